@@ -1,0 +1,1 @@
+"""The robot brain: controllers, behaviours, state machine and the agent runtime."""

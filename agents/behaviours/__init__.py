@@ -1,0 +1,1 @@
+"""Behaviour layers: navigation and formation."""

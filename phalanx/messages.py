@@ -1,0 +1,75 @@
+"""Versioned wire messages, one model per Zenoh key (see `phalanx.transport` for keys).
+
+Encoding and decoding (and the drop-and-count of malformed payloads) live in
+`phalanx.codec`; these are the values.
+"""
+
+from __future__ import annotations
+
+from typing import Final, Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from phalanx.geometry import Pose2D, Twist2D
+
+WIRE_VERSION: Final = 1
+
+
+class Message(BaseModel):
+    """Base of wire messages: frozen values, unknown fields rejected."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class RobotState(Message):
+    """What a robot publishes every control step on `.../robot/<id>/state`.
+
+    Pose in the shared world frame (m, rad), twist as measured (m/s, rad/s), `stamp_s`
+    on the fleet clock (sim time in lockstep, Unix time in real time).
+    """
+
+    version: Literal[1] = 1
+    robot_id: str
+    seq: int = Field(ge=0)
+    stamp_s: float
+    x_m: float
+    y_m: float
+    theta_rad: float
+    v_mps: float
+    omega_radps: float
+    fsm_state: str
+    obstacle: bool = False
+    direction: Literal[-1, 1] = 1
+    leader_id: str = ""
+    epoch: int = Field(default=0, ge=0)
+
+    @property
+    def pose(self) -> Pose2D:
+        """The robot's pose."""
+        return Pose2D(self.x_m, self.y_m, self.theta_rad)
+
+    @property
+    def twist(self) -> Twist2D:
+        """The robot's twist."""
+        return Twist2D(self.v_mps, self.omega_radps)
+
+
+class ClockTick(Message):
+    """A lockstep tick from the world on `phalanx/<fleet>/clock`."""
+
+    version: Literal[1] = 1
+    tick: int = Field(ge=0)
+    t_s: float
+    dt_s: float = Field(gt=0.0)
+    final: bool = False
+
+
+class VelocityCommand(Message):
+    """An agent's command for a simulated robot on `.../robot/<id>/cmd`."""
+
+    version: Literal[1] = 1
+    robot_id: str
+    tick: int = Field(ge=0)
+    stamp_s: float
+    v_mps: float
+    omega_radps: float

@@ -1,0 +1,1 @@
+"""The simulated world: P3DX kinematics, obstacles, sonar, collisions, scripted events."""
