@@ -103,8 +103,8 @@ class ControllerConfig(Model):
     k1: PositiveFloat = 0.6
     k2: PositiveFloat = 0.6
     h_m: PositiveFloat = 0.2
-    gain_per_s: PositiveFloat = 0.8
-    control_point_m: PositiveFloat = 0.25
+    gain_per_s: PositiveFloat = 1.0
+    control_point_m: PositiveFloat = 0.15
     compensate_delay: bool = True
     reverse_threshold_mps: NonNegativeFloat = 0.02
 
@@ -185,8 +185,14 @@ class LeaderProfile(Model):
 
 
 class DeadlockConfig(Model):
-    """The group's backward escape when every robot reports an obstacle."""
+    """The group's backward escape when every robot reports an obstacle.
 
+    `retrace` backs along the arc just driven (same curvature, so the path behind is the
+    one known to be free, and the rigid formation's headings do not change);
+    `fixed` backs with `reverse_omega_degps`.
+    """
+
+    reverse_mode: Literal["retrace", "fixed"] = "retrace"
     reverse_speed_mps: PositiveFloat = 0.15
     reverse_omega_degps: float = 0.0
     safe_distance_m: PositiveFloat = 1.5
@@ -253,6 +259,8 @@ class Scenario(Model):
     world: WorldConfig = WorldConfig()
     noise: NoiseConfig = NoiseConfig()
     settle_s: NonNegativeFloat = 5.0
+    initial_settle_s: NonNegativeFloat = 30.0
+    leader_timeout_s: PositiveFloat = 0.5
 
     @model_validator(mode="after")
     def _robots_match_slots(self) -> Self:
@@ -346,3 +354,46 @@ def load_robot(name_or_path: str | Path) -> RobotParams:
 def load_scenario(path: str | Path) -> Scenario:
     """Load a scenario TOML file."""
     return validate_file(Scenario, Path(path))
+
+
+def apply_overrides(scenario: Scenario, assignments: list[str]) -> Scenario:
+    """A copy of `scenario` with dotted `path=value` assignments (TOML values) applied.
+
+    For example `controller.kind="ours"` or `noise.sonar_std_m=0.02`; bare words are taken
+    as strings, so `controller.kind=ours` works too. The result is validated again.
+    """
+    data = scenario.model_dump(mode="python")
+    for assignment in assignments:
+        path, sep, text = assignment.partition("=")
+        if not sep or not path.strip():
+            raise ConfigError(f"override {assignment!r}: expected PATH=VALUE")
+        _set_path(data, path.strip().split("."), _parse_value(text.strip()), assignment)
+    return validate_data(Scenario, data, source=f"{scenario.name} with overrides")
+
+
+def _parse_value(text: str) -> Any:
+    try:
+        return tomllib.loads(f"v = {text}")["v"]
+    except tomllib.TOMLDecodeError:
+        return text
+
+
+def _set_path(data: dict[str, Any], keys: list[str], value: Any, assignment: str) -> None:
+    node: Any = data
+    for key in keys[:-1]:
+        node = _child(node, key, assignment)
+    last = keys[-1]
+    if isinstance(node, list) and last.isdigit() and int(last) < len(node):
+        node[int(last)] = value
+    elif isinstance(node, dict):
+        node[last] = value
+    else:
+        raise ConfigError(f"override {assignment!r}: {'.'.join(keys[:-1])} is not a table")
+
+
+def _child(node: Any, key: str, assignment: str) -> Any:
+    if isinstance(node, dict) and key in node:
+        return node[key]
+    if isinstance(node, list | tuple) and key.isdigit() and int(key) < len(node):
+        return node[int(key)]
+    raise ConfigError(f"override {assignment!r}: no field {key!r}")

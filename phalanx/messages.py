@@ -24,8 +24,9 @@ class Message(BaseModel):
 class RobotState(Message):
     """What a robot publishes every control step on `.../robot/<id>/state`.
 
-    Pose in the shared world frame (m, rad), twist as measured (m/s, rad/s), `stamp_s`
-    on the fleet clock (sim time in lockstep, Unix time in real time).
+    Pose in the shared world frame (m, rad) at `stamp_s` on the fleet clock (sim time in
+    lockstep, Unix time in real time); twist (m/s, rad/s) is the command the robot
+    executes from `stamp_s` on, so a receiver can dead-reckon the pose to its own time.
     """
 
     version: Literal[1] = 1

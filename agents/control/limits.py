@@ -1,0 +1,114 @@
+"""Kinematic limits and the command limiter applied after every controller.
+
+Saturation first (|v|, |w| and both wheel speeds, scaled together so the commanded
+curvature is kept), then acceleration limits against the last applied command. Both
+interventions are counted: the paper attributes the tracking controller's failure to its
+yaw rate leaving the 40 deg/s bound, so the counts belong in every report.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from phalanx.config import LimitsOverride, RobotParams
+from phalanx.geometry import ZERO_TWIST, Twist2D
+
+_EPS = 1e-12
+
+
+@dataclass(frozen=True, slots=True)
+class KinematicLimits:
+    """Velocity and acceleration bounds of a differential-drive robot (SI)."""
+
+    v_max_mps: float
+    omega_max_radps: float
+    wheel_v_max_mps: float
+    track_width_m: float
+    accel_mps2: float
+    decel_mps2: float
+    rot_accel_radps2: float
+
+    @classmethod
+    def from_params(
+        cls, robot: RobotParams, override: LimitsOverride | None = None
+    ) -> KinematicLimits:
+        """The robot's limits, tightened by a scenario's run bounds where given."""
+        v_max, w_max = robot.v_max_mps, robot.omega_max_radps
+        if override is not None and override.v_max_mps is not None:
+            v_max = min(v_max, override.v_max_mps)
+        if override is not None and override.omega_max_degps is not None:
+            w_max = min(w_max, math.radians(override.omega_max_degps))
+        return cls(
+            v_max_mps=v_max,
+            omega_max_radps=w_max,
+            wheel_v_max_mps=robot.wheel_v_max_mps,
+            track_width_m=robot.track_width_m,
+            accel_mps2=robot.accel_mps2,
+            decel_mps2=robot.decel_mps2,
+            rot_accel_radps2=robot.rot_accel_radps2,
+        )
+
+
+def saturation_scale(command: Twist2D, limits: KinematicLimits) -> float:
+    """The factor in (0, 1] that brings `command` inside every velocity bound."""
+    v, w = command.v_mps, command.omega_radps
+    half_track_w = 0.5 * limits.track_width_m * abs(w)
+    ratios = (
+        limits.v_max_mps / max(abs(v), _EPS),
+        limits.omega_max_radps / max(abs(w), _EPS),
+        limits.wheel_v_max_mps / max(abs(v) + half_track_w, _EPS),
+    )
+    return min(1.0, *ratios)
+
+
+def _allowed_change(current: float, wanted: float, up: float, down: float) -> float:
+    speeding_up = abs(wanted) > abs(current) and wanted * current >= 0.0
+    return up if speeding_up else down
+
+
+def accelerate(current: Twist2D, wanted: Twist2D, limits: KinematicLimits, dt_s: float) -> Twist2D:
+    """Move from `current` towards `wanted` within the acceleration bounds over `dt_s`.
+
+    Both axes move the same fraction of the way (a straight line in (v, w)), so a change
+    between two twists of equal curvature keeps that curvature throughout: a leader
+    reversing along its arc stays on it while it slows down and backs up.
+    """
+    dv = wanted.v_mps - current.v_mps
+    dw = wanted.omega_radps - current.omega_radps
+    max_dv = _allowed_change(current.v_mps, wanted.v_mps, limits.accel_mps2, limits.decel_mps2)
+    fraction = min(
+        1.0,
+        max_dv * dt_s / max(abs(dv), _EPS),
+        limits.rot_accel_radps2 * dt_s / max(abs(dw), _EPS),
+    )
+    return Twist2D(current.v_mps + fraction * dv, current.omega_radps + fraction * dw)
+
+
+class CommandLimiter:
+    """Saturates and rate-limits commands; remembers the last applied one."""
+
+    def __init__(self, limits: KinematicLimits) -> None:
+        self.limits = limits
+        self.saturations = 0
+        self.accel_limited = 0
+        self._last = ZERO_TWIST
+
+    def apply(self, command: Twist2D, dt_s: float) -> Twist2D:
+        """The command the robot may execute this step."""
+        v, w = command.v_mps, command.omega_radps
+        if not (math.isfinite(v) and math.isfinite(w)):
+            v, w = 0.0, 0.0  # never forward a NaN to a motor: brake within the limits
+        scale = saturation_scale(Twist2D(v, w), self.limits)
+        if scale < 1.0:
+            self.saturations += 1
+            v, w = v * scale, w * scale
+        limited = accelerate(self._last, Twist2D(v, w), self.limits, dt_s)
+        if limited != Twist2D(v, w):
+            self.accel_limited += 1
+        self._last = limited
+        return limited
+
+    def reset(self, current: Twist2D = ZERO_TWIST) -> None:
+        """Start again from `current`, counters kept."""
+        self._last = current

@@ -1,0 +1,55 @@
+"""Our follower controller: closed loop in both directions, on the exact rigid-body slot
+motion, with the age of the leader's state compensated.
+
+Feedback linearisation of a control point at signed distance `d` from the axle, ahead of
+it (d = +c) when the formation moves forwards and behind it (d = -c) when it reverses:
+    p = X_F + d t(theta_F),  p' = [t(theta_F), d n(theta_F)] [v, w]^T
+aimed at the same point of the rigid-body target pose (rigid_body_target), whose
+velocity is known in closed form. With p tracking p* exactly, the heading error obeys
+    d(th_e)/dt = w*(1 - cos th_e) - (v* / d) sin th_e,
+and since v* and d share the direction's sign, v*/d = |v*|/c > 0: stable both ways.
+That sign flip is exactly what the paper's tracking law (fixed h > 0) lacks in reverse.
+"""
+
+from __future__ import annotations
+
+import math
+
+from phalanx.agents.control.common import FollowerInput, predict_leader, rigid_body_target
+from phalanx.geometry import Twist2D, Vec2
+
+
+def _unit(theta_rad: float) -> Vec2:
+    return Vec2(math.cos(theta_rad), math.sin(theta_rad))
+
+
+class OursController:
+    """Closed-loop rigid-body tracking, forwards and backwards."""
+
+    def __init__(
+        self, *, gain_per_s: float, control_point_m: float, compensate_delay: bool = True
+    ) -> None:
+        self.gain_per_s = gain_per_s
+        self.control_point_m = control_point_m
+        self.compensate_delay = compensate_delay
+
+    def command(self, inp: FollowerInput) -> Twist2D:
+        """`[v, w] = M(theta, d)^-1 (p*' + K (p* - p))`."""
+        age_s = inp.leader_age_s if self.compensate_delay else 0.0
+        leader = predict_leader(inp.leader, inp.leader_twist, age_s)
+        target, ff = rigid_body_target(leader, inp.leader_twist, inp.slot)
+        d = self.control_point_m if inp.direction > 0 else -self.control_point_m
+        t_f, t_t = _unit(inp.follower.theta_rad), _unit(target.theta_rad)
+        p = Vec2(inp.follower.x_m + d * t_f.x_m, inp.follower.y_m + d * t_f.y_m)
+        p_star = Vec2(target.x_m + d * t_t.x_m, target.y_m + d * t_t.y_m)
+        # p*' = v* t(theta*) + d w* n(theta*), n = t rotated +90 deg
+        w_x = ff.v_mps * t_t.x_m - d * ff.omega_radps * t_t.y_m
+        w_y = ff.v_mps * t_t.y_m + d * ff.omega_radps * t_t.x_m
+        w_x += self.gain_per_s * (p_star.x_m - p.x_m)
+        w_y += self.gain_per_s * (p_star.y_m - p.y_m)
+        v = w_x * t_f.x_m + w_y * t_f.y_m
+        omega = (-w_x * t_f.y_m + w_y * t_f.x_m) / d
+        return Twist2D(v, omega)
+
+    def reset(self) -> None:
+        """Stateless."""

@@ -1,0 +1,105 @@
+"""An explicit state machine: states, guarded transitions with priorities, entry/exit
+actions and a log of every transition (the counterpart of the paper's Stateflow chart,
+figure 4a; the log draws figure 4b).
+
+The machine is generic over a context type `C` that guards read. Layers add states by
+adding transitions; nothing here knows about robots.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from dataclasses import dataclass, field
+from enum import StrEnum
+from typing import Generic, TypeVar
+
+C = TypeVar("C")
+
+ANY_STATE = "*"
+
+
+class State(StrEnum):
+    """Behaviour states of the formation and navigation layers."""
+
+    # formation layer, followers (figure 4a)
+    FORMATION_TRACK = "FORMATION_TRACK"
+    FORMATION_REVERSE = "FORMATION_REVERSE"
+    # the leader (navigation layer: scripted motion profile; the navigation issue adds more)
+    NAVIGATE = "NAVIGATE"
+    DEADLOCK_REVERSE = "DEADLOCK_REVERSE"
+    # shared
+    HOLD = "HOLD"
+
+
+@dataclass(frozen=True)
+class Transition(Generic[C]):
+    """`source -> target` when `guard(ctx)` holds; higher `priority` is tried first.
+
+    `source` may be `ANY_STATE` ("*"), which never fires into the state it is already in.
+    """
+
+    source: str
+    target: str
+    guard: Callable[[C], bool]
+    reason: str
+    priority: int = 0
+
+
+@dataclass(frozen=True, slots=True)
+class TransitionEvent:
+    """One logged transition: when (s), from, to, and why."""
+
+    t_s: float
+    source: str
+    target: str
+    reason: str
+
+
+@dataclass
+class StateMachine(Generic[C]):
+    """A flat state machine; call `update` once per control step."""
+
+    initial: str
+    transitions: Sequence[Transition[C]]
+    on_entry: Mapping[str, Callable[[C], None]] = field(default_factory=dict)
+    on_exit: Mapping[str, Callable[[C], None]] = field(default_factory=dict)
+    log: list[TransitionEvent] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        self.state = self.initial
+        self.entered_at_s = 0.0
+        self._ordered = sorted(self.transitions, key=lambda tr: -tr.priority)
+
+    @property
+    def states(self) -> tuple[str, ...]:
+        """Every state named by a transition, the initial one first."""
+        names = [self.initial]
+        for tr in self.transitions:
+            names += [s for s in (tr.source, tr.target) if s != ANY_STATE and s not in names]
+        return tuple(names)
+
+    def _candidates(self) -> Iterable[Transition[C]]:
+        for tr in self._ordered:
+            if tr.source == self.state or (tr.source == ANY_STATE and tr.target != self.state):
+                yield tr
+
+    def update(self, ctx: C, t_s: float) -> TransitionEvent | None:
+        """Take at most one transition (the highest-priority one whose guard holds)."""
+        for tr in self._candidates():
+            if tr.guard(ctx):
+                return self._take(tr, ctx, t_s)
+        return None
+
+    def force(self, target: str, ctx: C, t_s: float, reason: str) -> TransitionEvent:
+        """Move to `target` regardless of guards (used for external commands)."""
+        return self._take(Transition(self.state, target, lambda _: True, reason), ctx, t_s)
+
+    def _take(self, tr: Transition[C], ctx: C, t_s: float) -> TransitionEvent:
+        if (exit_action := self.on_exit.get(self.state)) is not None:
+            exit_action(ctx)
+        event = TransitionEvent(t_s, self.state, tr.target, tr.reason)
+        self.state, self.entered_at_s = tr.target, t_s
+        self.log.append(event)
+        if (entry_action := self.on_entry.get(tr.target)) is not None:
+            entry_action(ctx)
+        return event

@@ -1,0 +1,87 @@
+"""A formation is a shape: slot positions in a formation frame plus who follows whom.
+
+The formation frame moves with the group: origin at the root robot's slot, x along the
+formation's heading. In a rigid formation every robot has that heading, so the slot of
+any robot relative to any other, in the other's body frame, is the difference of their
+slot positions. That is what lets leadership pass to any robot (DESIGN.md).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass
+
+from phalanx.config import FormationConfig, Scenario
+from phalanx.errors import ConfigError
+from phalanx.geometry import Pose2D, Vec2, polar_to_slot, slot_to_polar
+
+
+@dataclass(frozen=True)
+class Formation:
+    """Resolved formation: slot of every robot and the tracking tree."""
+
+    positions: Mapping[str, Vec2]
+    parents: Mapping[str, str | None]
+
+    @property
+    def root(self) -> str:
+        """The robot that follows nobody (the formation leader)."""
+        return next(r for r, p in self.parents.items() if p is None)
+
+    @property
+    def robot_ids(self) -> tuple[str, ...]:
+        """Every robot, in definition order."""
+        return tuple(self.positions)
+
+    def leader_of(self, robot_id: str) -> str | None:
+        """The robot `robot_id` tracks, or None for the root."""
+        return self.parents[robot_id]
+
+    def followers_of(self, robot_id: str) -> tuple[str, ...]:
+        """The robots that track `robot_id`."""
+        return tuple(r for r, p in self.parents.items() if p == robot_id)
+
+    def slot_of(self, follower: str, leader: str) -> Vec2:
+        """`follower`'s slot in `leader`'s body frame, m (any pair, not only tree edges)."""
+        return self.positions[follower] - self.positions[leader]
+
+    def polar_of(self, follower: str, leader: str) -> tuple[float, float]:
+        """(l in m, phi in rad) of `follower` relative to `leader`."""
+        return slot_to_polar(self.slot_of(follower, leader))
+
+    def slot_pose(self, robot_id: str, root_pose: Pose2D) -> Pose2D:
+        """Where `robot_id` sits in a rigid formation whose root is at `root_pose`."""
+        position = root_pose.to_world(self.positions[robot_id] - self.positions[self.root])
+        return Pose2D(position.x_m, position.y_m, root_pose.theta_rad)
+
+
+def resolve_formation(config: FormationConfig) -> Formation:
+    """Turn slot definitions (cartesian or polar relative to a parent) into positions."""
+    slots = {s.robot: s for s in config.slots}
+    positions: dict[str, Vec2] = {}
+    resolving: set[str] = set()
+
+    def place(robot: str) -> Vec2:
+        if robot in positions:
+            return positions[robot]
+        if robot in resolving:
+            raise ConfigError(f"formation: the follow chain through {robot!r} is a cycle")
+        resolving.add(robot)
+        slot = slots[robot]
+        if slot.l_m is not None and slot.phi_deg is not None and slot.follows is not None:
+            offset = polar_to_slot(slot.l_m, math.radians(slot.phi_deg))
+            positions[robot] = place(slot.follows) + offset
+        else:
+            positions[robot] = Vec2(slot.x_m or 0.0, slot.y_m or 0.0)
+        return positions[robot]
+
+    for robot in slots:
+        place(robot)
+    ordered = {robot: positions[robot] for robot in slots}
+    return Formation(positions=ordered, parents={s.robot: s.follows for s in config.slots})
+
+
+def scenario_formation(scenario: Scenario) -> Formation:
+    """The resolved formation of a scenario."""
+    return resolve_formation(scenario.formation)

@@ -1,0 +1,80 @@
+from pathlib import Path
+
+import pytest
+
+from phalanx.config import Scenario, apply_overrides, load_robot, load_scenario, validate_data
+from phalanx.errors import ConfigError
+
+from phalanx.config import CONFIG_ROOT
+
+SCENARIOS = CONFIG_ROOT / "scenarios"
+
+
+def test_every_shipped_scenario_loads() -> None:
+    files = sorted(SCENARIOS.glob("*.toml"))
+    assert len(files) >= 3
+    for path in files:
+        assert load_scenario(path).name
+
+
+def test_p3dx_has_sixteen_sonars_and_the_paper_limits_tighten_it() -> None:
+    robot = load_robot("p3dx")
+    assert len(robot.sonar.units) == 16
+    scenario = load_scenario(SCENARIOS / "paper_wedge.toml")
+    assert scenario.limits.v_max_mps == pytest.approx(0.3)
+    assert scenario.limits.omega_max_degps == pytest.approx(40.0)
+    assert robot.v_max_mps > 0.3
+
+
+def test_unknown_key_names_file_field_and_hint(tmp_path: Path) -> None:
+    text = (
+        (SCENARIOS / "paper_wedge.toml")
+        .read_text()
+        .replace("reverse_speed_mps", "reverse_sped_mps")
+    )
+    path = tmp_path / "bad.toml"
+    path.write_text(text)
+    with pytest.raises(ConfigError) as err:
+        load_scenario(path)
+    message = str(err.value)
+    assert str(path) in message
+    assert "deadlock.reverse_sped_mps" in message
+    assert "did you mean 'reverse_speed_mps'" in message
+
+
+def test_wrong_value_is_a_config_error(tmp_path: Path) -> None:
+    path = tmp_path / "bad.toml"
+    path.write_text(
+        (SCENARIOS / "paper_wedge.toml")
+        .read_text()
+        .replace("control_rate_hz = 10.0", "control_rate_hz = -1")
+    )
+    with pytest.raises(ConfigError, match="control_rate_hz"):
+        load_scenario(path)
+
+
+def test_invalid_toml_and_missing_file(tmp_path: Path) -> None:
+    path = tmp_path / "broken.toml"
+    path.write_text("name = ")
+    with pytest.raises(ConfigError, match="not valid TOML"):
+        load_scenario(path)
+    with pytest.raises(ConfigError, match="no such file"):
+        load_scenario(tmp_path / "absent.toml")
+
+
+def test_slots_must_match_robots() -> None:
+    data = load_scenario(SCENARIOS / "paper_wedge.toml").model_dump()
+    data["robots"] = data["robots"][:2]
+    with pytest.raises(ConfigError, match="formation slots"):
+        validate_data(Scenario, data, source="test")
+
+
+def test_overrides_apply_and_validate() -> None:
+    scenario = load_scenario(SCENARIOS / "paper_wedge.toml")
+    changed = apply_overrides(scenario, ["controller.kind=icr", "noise.sonar_std_m=0.02"])
+    assert changed.controller.kind == "icr"
+    assert changed.noise.sonar_std_m == pytest.approx(0.02)
+    with pytest.raises(ConfigError, match="controller.kind"):
+        apply_overrides(scenario, ["controller.kind=fancy"])
+    with pytest.raises(ConfigError, match="no field"):
+        apply_overrides(scenario, ["nothing.here=1"])
