@@ -13,9 +13,14 @@ from typing import Any
 
 import numpy as np
 
+from phalanx.agents.control.limits import KinematicLimits
 from phalanx.figures import write_figures
 from phalanx.metrics import error_series, run_metrics
 from phalanx.simulator.batch import RunLog
+
+# Section 5 of the paper: backward-motion errors below 2 % linear and 0.8 % angular.
+PAPER_LINEAR_BOUND_PCT = 2.0
+PAPER_ANGULAR_BOUND_PCT = 0.8
 
 
 def _finite(value: Any) -> Any:
@@ -43,6 +48,14 @@ def write_recording(log: RunLog, path: Path, *, recording_id: str | None = None)
         tel.log_world(
             circles=[(c.x_m, c.y_m, c.radius_m) for c in log.scenario.world.circles],
             polygons=[list(p.vertices_m) for p in log.scenario.world.polygons],
+        )
+        limits = KinematicLimits.from_params(log.robot, log.scenario.limits)
+        tel.log_bounds(
+            t_s=[float(log.t_s[0]), float(log.t_s[-1])],
+            linear_pct=PAPER_LINEAR_BOUND_PCT,
+            angular_pct=PAPER_ANGULAR_BOUND_PCT,
+            v_max_mps=limits.v_max_mps,
+            omega_max_radps=limits.omega_max_radps,
         )
         for rid, tr in log.traces.items():
             nan = np.full(len(log.t_s), np.nan)

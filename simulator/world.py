@@ -23,6 +23,7 @@ from phalanx.simulator.sonar import SonarRing, ray_circle_hits, ray_segment_hits
 
 FloatArray = npt.NDArray[np.float64]
 _GRID_CELL_M = 1.0
+CONTACT_RELEASE_M = 0.05
 
 
 @dataclass(frozen=True, slots=True)
@@ -141,12 +142,11 @@ class World:
             self.v, self.w, self.v_cmd, self.w_cmd, self.robot, dt_s
         )
         x, y, th = integrate_arcs(self.x, self.y, self.th, self.v, self.w, dt_s)
-        touching = self._touching(x, y)
+        touching = self._touching(x, y, self.robot.radius_m)
         blocked = np.zeros(len(self._ids), dtype=bool)
         for i, other in touching:
             blocked[i] = True
             self._record_contact(self._ids[i], other)
-        self._contacts = {(self._ids[i], o) for i, o in touching}
         keep = ~blocked
         self.x, self.y, self.th = (
             np.where(keep, x, self.x),
@@ -155,14 +155,18 @@ class World:
         )
         self.v, self.w = np.where(keep, self.v, 0.0), np.where(keep, self.w, 0.0)
         self.bumped |= blocked
+        # An episode lasts until the robot has backed CONTACT_RELEASE_M away, so a robot
+        # pushing against a wall is one collision, not one per sub-step.
+        loose = self._touching(self.x, self.y, self.robot.radius_m + CONTACT_RELEASE_M)
+        still = {(self._ids[i], o) for i, o in loose}
+        self._contacts = (self._contacts & still) | {(self._ids[i], o) for i, o in touching}
 
     def _record_contact(self, rid: str, other: str) -> None:
         if (rid, other) not in self._contacts:
             self.collisions.append(Collision(round(self.t_s, 9), rid, other))
 
-    def _touching(self, x: FloatArray, y: FloatArray) -> list[tuple[int, str]]:
-        """(robot index, other) for every contact at positions x, y."""
-        radius = self.robot.radius_m
+    def _touching(self, x: FloatArray, y: FloatArray, radius: float) -> list[tuple[int, str]]:
+        """(robot index, other) for every contact of discs of `radius` at x, y."""
         found: list[tuple[int, str]] = []
         if len(self._circles):
             d = np.hypot(x[:, None] - self._circles[:, 0], y[:, None] - self._circles[:, 1])

@@ -14,7 +14,7 @@ from phalanx.geometry import Pose2D, Twist2D, Vec2, integrate_unicycle, wrap_ang
 
 # Below this slot speed (m/s) the heading offset beta fades to zero, so the target heading
 # has no jump when the leader stops and reverses.
-BETA_FADE_MPS = 0.02
+BETA_FADE_MPS = 0.01
 
 
 @dataclass(frozen=True, slots=True)

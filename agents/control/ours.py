@@ -2,13 +2,16 @@
 motion, with the age of the leader's state compensated.
 
 Feedback linearisation of a control point at signed distance `d` from the axle, ahead of
-it (d = +c) when the formation moves forwards and behind it (d = -c) when it reverses:
+it (d = +c) when the follower's target moves forwards and behind it (d = -c) when it
+moves backwards (the formation reversing, or an inner slot of a turn tighter than the
+slot's lateral offset):
     p = X_F + d t(theta_F),  p' = [t(theta_F), d n(theta_F)] [v, w]^T
 aimed at the same point of the rigid-body target pose (rigid_body_target), whose
 velocity is known in closed form. With p tracking p* exactly, the heading error obeys
     d(th_e)/dt = w*(1 - cos th_e) - (v* / d) sin th_e,
-and since v* and d share the direction's sign, v*/d = |v*|/c > 0: stable both ways.
-That sign flip is exactly what the paper's tracking law (fixed h > 0) lacks in reverse.
+and since v* and d share a sign, v*/d = |v*|/c > 0: stable both ways. That sign flip
+is exactly what the paper's tracking law (fixed h > 0) lacks in reverse. The sign follows
+v* with a small hysteresis band so it cannot chatter while v* crosses zero.
 """
 
 from __future__ import annotations
@@ -17,6 +20,8 @@ import math
 
 from phalanx.agents.control.common import FollowerInput, predict_leader, rigid_body_target
 from phalanx.geometry import Twist2D, Vec2
+
+SIGN_HYSTERESIS_MPS = 0.01
 
 
 def _unit(theta_rad: float) -> Vec2:
@@ -32,13 +37,21 @@ class OursController:
         self.gain_per_s = gain_per_s
         self.control_point_m = control_point_m
         self.compensate_delay = compensate_delay
+        self._sign: int | None = None
+
+    def _point_sign(self, v_star_mps: float, direction: int) -> int:
+        if self._sign is None:
+            self._sign = 1 if direction > 0 else -1
+        if abs(v_star_mps) > SIGN_HYSTERESIS_MPS and v_star_mps * self._sign < 0.0:
+            self._sign = -self._sign
+        return self._sign
 
     def command(self, inp: FollowerInput) -> Twist2D:
         """`[v, w] = M(theta, d)^-1 (p*' + K (p* - p))`."""
         age_s = inp.leader_age_s if self.compensate_delay else 0.0
         leader = predict_leader(inp.leader, inp.leader_twist, age_s)
         target, ff = rigid_body_target(leader, inp.leader_twist, inp.slot)
-        d = self.control_point_m if inp.direction > 0 else -self.control_point_m
+        d = self._point_sign(ff.v_mps, inp.direction) * self.control_point_m
         t_f, t_t = _unit(inp.follower.theta_rad), _unit(target.theta_rad)
         p = Vec2(inp.follower.x_m + d * t_f.x_m, inp.follower.y_m + d * t_f.y_m)
         p_star = Vec2(target.x_m + d * t_t.x_m, target.y_m + d * t_t.y_m)
@@ -52,4 +65,5 @@ class OursController:
         return Twist2D(v, omega)
 
     def reset(self) -> None:
-        """Stateless."""
+        """Forget which side of the axle the control point is on."""
+        self._sign = None
