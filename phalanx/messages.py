@@ -74,3 +74,48 @@ class VelocityCommand(Message):
     stamp_s: float
     v_mps: float
     omega_radps: float
+
+
+class SenseFrame(Message):
+    """What the world tells a simulated robot each tick on `.../robot/<id>/sense`.
+
+    In lockstep it is also the robot's tick: the agent answers with a VelocityCommand
+    for the same `tick`. Odometry pose (m, rad) in the world frame, measured twist.
+    """
+
+    version: Literal[1] = 1
+    robot_id: str
+    tick: int = Field(ge=0)
+    t_s: float
+    dt_s: float = Field(gt=0.0)
+    x_m: float
+    y_m: float
+    theta_rad: float
+    v_mps: float
+    omega_radps: float
+    sonar_ranges_m: tuple[float, ...] = ()
+    bumpers: tuple[bool, ...] = ()
+    final: bool = False
+
+
+class AgentEvent(Message):
+    """A behaviour-state transition, on `.../robot/<id>/event`."""
+
+    version: Literal[1] = 1
+    robot_id: str
+    t_s: float
+    source: str
+    target: str
+    reason: str
+
+
+class AgentReport(Message):
+    """An agent's counters when a run ends, on `.../robot/<id>/report`."""
+
+    version: Literal[1] = 1
+    robot_id: str
+    steps: int = Field(ge=0)
+    saturations: int = Field(ge=0)
+    accel_limited: int = Field(ge=0)
+    dropped_messages: int = Field(ge=0)
+    late_peer_steps: int = Field(ge=0)

@@ -29,6 +29,11 @@ NOISE = (
 )
 
 
+# The harder variant: the deadlock strikes during a 3 deg/s turn and the group backs
+# along the arc it came (the paper's ICR relation drops s_x, which matters only there).
+TURNING = ("deadlock.reverse_mode=retrace", "events.0.start_s=75")
+
+
 @dataclass(frozen=True)
 class Case:
     """One cell of the matrix."""
@@ -36,11 +41,19 @@ class Case:
     formation: str
     controller: str
     noise: bool = False
+    turning: bool = False
 
     @property
     def label(self) -> str:
         """Folder name of the case."""
-        return f"{self.formation}-{self.controller}" + ("-noise" if self.noise else "")
+        suffix = ("-noise" if self.noise else "") + ("-turning" if self.turning else "")
+        return f"{self.formation}-{self.controller}{suffix}"
+
+    @property
+    def overrides(self) -> list[str]:
+        """Scenario overrides of the case."""
+        extra = (*(NOISE if self.noise else ()), *(TURNING if self.turning else ()))
+        return [f'controller.kind="{self.controller}"', *extra]
 
 
 def run_case(case: Case, out_root: Path) -> dict[str, Any]:
@@ -49,8 +62,7 @@ def run_case(case: Case, out_root: Path) -> dict[str, Any]:
     from phalanx.simulator.batch import run_batch
 
     scenario = load_scenario(CONFIG_ROOT / "scenarios" / f"paper_{case.formation}.toml")
-    overrides = [f'controller.kind="{case.controller}"', *(NOISE if case.noise else ())]
-    log = run_batch(apply_overrides(scenario, overrides))
+    log = run_batch(apply_overrides(scenario, case.overrides))
     return write_results(log, out_root / case.label, recording=False)
 
 
@@ -134,6 +146,7 @@ def matrix_rows(cases: Sequence[Case], results: Sequence[dict[str, Any]]) -> lis
         sat = sum(f["saturations"] for f in m["followers"].values())
         rows.append(
             f"| {case.formation} | {case.controller}{' + noise' if case.noise else ''} "
+            f"{'(reverse while turning)' if case.turning else ''}"
             f"| {_cell(lin, PAPER_BOUNDS['linear_pct'])} | {_cell(ang, PAPER_BOUNDS['angular_pct'])} "
             f"| {_cell(ori, None)} | {lin_m:.3g} m / {ang_d:.3g} deg "
             f"| {_cell(flin, None)} | {sat} | {len(m['collisions'])} |"
@@ -147,7 +160,7 @@ def copy_figures(cases: Sequence[Case], out_root: Path, docs: Path) -> list[str]
     target.mkdir(parents=True, exist_ok=True)
     lines = []
     for case in cases:
-        if case.formation != "wedge" or case.noise:
+        if case.formation != "wedge" or case.noise or case.turning:
             continue
         for name in ("fig5_trajectories.png", "fig6_separations.png", "fig7_velocities.png"):
             dest = target / f"{case.label}-{name}"
@@ -208,6 +221,7 @@ def results_markdown(
 def default_cases() -> list[Case]:
     """3 formations x 4 controllers, and ours with noise in every formation."""
     cases = [Case(f, c) for f in FORMATIONS for c in CONTROLLERS]
+    cases += [Case(f, c, turning=True) for f in FORMATIONS for c in ("switching", "ours")]
     return cases + [Case(f, "ours", noise=True) for f in FORMATIONS]
 
 

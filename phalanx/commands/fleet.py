@@ -1,0 +1,130 @@
+"""`phalanx agent`, `phalanx world`, `phalanx up`: robots as processes over Zenoh."""
+
+from __future__ import annotations
+
+import logging
+import signal
+import threading
+from pathlib import Path
+from typing import TYPE_CHECKING, Annotated
+
+import typer
+
+if TYPE_CHECKING:
+    from phalanx.transport import TransportConfig
+
+ScenarioArg = Annotated[Path, typer.Argument(help="Scenario TOML file.", exists=True, dir_okay=False)]
+FleetOpt = Annotated[str, typer.Option(help="Fleet name: the Zenoh key prefix phalanx/<fleet>/.")]
+ClockOpt = Annotated[str, typer.Option(help="lockstep (deterministic, fast) or realtime.")]
+ListenOpt = Annotated[list[str] | None, typer.Option("--listen", help="Zenoh endpoint to listen on.")]
+ConnectOpt = Annotated[list[str] | None, typer.Option("--connect", help="Zenoh endpoint to connect to.")]
+ModeOpt = Annotated[str, typer.Option(help="Zenoh mode: peer, client or router.")]
+
+
+def _transport(mode: str, listen: list[str] | None, connect: list[str] | None) -> TransportConfig:
+    from phalanx.transport import TransportConfig
+
+    if mode not in ("peer", "client", "router"):
+        raise typer.BadParameter(f"expected peer, client or router, got {mode!r}")
+    return TransportConfig(mode=mode, listen=tuple(listen or ()), connect=tuple(connect or ()))  # type: ignore[arg-type]
+
+
+def _stop_on_signals() -> threading.Event:
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    return stop
+
+
+def _clock(value: str) -> str:
+    if value not in ("lockstep", "realtime"):
+        raise typer.BadParameter(f"expected lockstep or realtime, got {value!r}")
+    return value
+
+
+def agent(
+    scenario: ScenarioArg,
+    robot: Annotated[str, typer.Option(help="This process's robot id.")],
+    fleet: FleetOpt = "default",
+    clock: ClockOpt = "lockstep",
+    listen: ListenOpt = None,
+    connect: ConnectOpt = None,
+    mode: ModeOpt = "peer",
+    driver: Annotated[str, typer.Option(help="Driver backend: sim.")] = "sim",
+) -> None:
+    """Run one robot's agent: Zenoh in, behaviour stack, command out."""
+    from phalanx.agents.runtime import AgentRuntime, RuntimeOptions
+    from phalanx.config import load_robot, load_scenario
+    logging.basicConfig(level=logging.INFO, format=f"%(asctime)s {robot} %(levelname)s %(message)s")
+    if driver != "sim":
+        raise typer.BadParameter(f"driver {driver!r} is not available in this build; use sim")
+    config = load_scenario(scenario)
+    if robot not in {r.id for r in config.robots}:
+        raise typer.BadParameter(f"robot {robot!r} is not in {scenario}")
+    transport = _transport(mode, listen, connect)
+    options = RuntimeOptions(fleet=fleet, transport=transport, clock=_clock(clock))  # type: ignore[arg-type]
+    runtime = AgentRuntime(robot, config, load_robot(config.robot), options)
+    report = runtime.run(_stop_on_signals())
+    typer.echo(f"{robot}: {report.steps} steps, {report.saturations} saturations, "
+               f"{report.dropped_messages} dropped messages")
+
+
+def world(
+    scenario: ScenarioArg,
+    fleet: FleetOpt = "default",
+    clock: ClockOpt = "lockstep",
+    speed: Annotated[float, typer.Option(min=0.01, help="Real-time speed factor.")] = 1.0,
+    listen: ListenOpt = None,
+    connect: ConnectOpt = None,
+    mode: ModeOpt = "router",
+    out: Annotated[Path | None, typer.Option(help="Results folder.")] = None,
+    recording: Annotated[bool, typer.Option(help="Write a Rerun .rrd.")] = True,
+) -> None:
+    """Run the simulated world for agents in other processes; write the results folder."""
+    from phalanx.config import load_robot, load_scenario
+    from phalanx.report import print_summary
+    from phalanx.results import write_results
+    from phalanx.simulator.world_process import WorldOptions, WorldProcess
+
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s world %(levelname)s %(message)s")
+    config = load_scenario(scenario)
+    transport = _transport(mode, listen, connect)
+    options = WorldOptions(fleet=fleet, transport=transport, clock=_clock(clock), speed=speed)  # type: ignore[arg-type]
+    process = WorldProcess(config, load_robot(config.robot), options)
+    run_log = process.run(_stop_on_signals())
+    folder = out or Path("results") / f"{config.name}-{config.controller.kind}-up"
+    metrics = write_results(run_log, folder, recording=recording)
+    metrics_missed = {r: n for r, n in process.missed.items() if n}
+    print_summary(metrics)
+    if metrics_missed:
+        typer.echo(f"missed tick deadlines: {metrics_missed}")
+    typer.echo(f"results: {folder}")
+
+
+def up(
+    scenario: ScenarioArg,
+    fleet: FleetOpt = "default",
+    clock: ClockOpt = "lockstep",
+    speed: Annotated[float, typer.Option(min=0.01, help="Real-time speed factor.")] = 1.0,
+    out: Annotated[Path | None, typer.Option(help="Results folder.")] = None,
+    restart: Annotated[bool, typer.Option(help="Restart crashed agents (with back-off).")] = False,
+    timeout: Annotated[float, typer.Option(help="Give up after this many seconds.")] = 600.0,
+    recording: Annotated[bool, typer.Option(help="Write a Rerun .rrd.")] = True,
+) -> None:
+    """Start the world and one agent process per robot here; supervise; write results."""
+    from phalanx.config import load_scenario
+    from phalanx.launch import UpOptions, plan, supervise
+
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s up %(levelname)s %(message)s")
+    config = load_scenario(scenario)
+    options = UpOptions(fleet=fleet, clock=_clock(clock), speed=speed, out=out, restart=restart,
+                        timeout_s=timeout, recording=recording)
+    code = supervise(plan(scenario, config, options), options, _stop_on_signals())
+    raise typer.Exit(code)
+
+
+def register(app: typer.Typer) -> None:
+    """Add `phalanx agent`, `phalanx world` and `phalanx up`."""
+    app.command("agent")(agent)
+    app.command("world")(world)
+    app.command("up")(up)

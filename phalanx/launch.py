@@ -1,0 +1,132 @@
+"""`phalanx up`: the world and one agent process per robot on this machine, supervised.
+
+The world runs a Zenoh router on a free loopback port and every agent connects to it as
+a client, so the world routes the agents' states to each other (multicast scouting
+stays off; nothing is configured by hand). A crashed agent is reported and, with `restart`, started again. Everything
+is stopped on the way out: SIGTERM first, SIGKILL after a grace period.
+"""
+
+from __future__ import annotations
+
+import logging
+import signal
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from phalanx.config import Scenario
+from phalanx.transport import free_tcp_port, loopback_endpoint
+
+log = logging.getLogger("phalanx.up")
+GRACE_S = 5.0
+
+
+@dataclass
+class UpOptions:
+    """What `phalanx up` starts."""
+
+    fleet: str
+    clock: str = "lockstep"
+    speed: float = 1.0
+    out: Path | None = None
+    restart: bool = False
+    max_restarts: int = 3
+    timeout_s: float = 600.0
+    recording: bool = True
+    extra_agent_args: tuple[str, ...] = ()
+
+
+@dataclass
+class Child:
+    """A supervised process."""
+
+    name: str
+    argv: list[str]
+    process: subprocess.Popen[bytes] | None = None
+    restarts: int = 0
+    reported: bool = False
+    exits: list[int] = field(default_factory=list)
+
+    def start(self) -> None:
+        """Start (again)."""
+        self.reported = False
+        self.process = subprocess.Popen(self.argv)  # noqa: S603 - our own interpreter and CLI
+
+    def poll(self) -> int | None:
+        """Exit code if it has ended."""
+        return None if self.process is None else self.process.poll()
+
+
+def _cli() -> list[str]:
+    return [sys.executable, "-m", "phalanx"]
+
+
+def plan(scenario_path: Path, scenario: Scenario, options: UpOptions) -> list[Child]:
+    """The world and agent command lines."""
+    endpoint = loopback_endpoint(free_tcp_port())
+    common = ["--fleet", options.fleet, "--clock", options.clock]
+    world = [*_cli(), "world", str(scenario_path), *common, "--listen", endpoint,
+             "--speed", str(options.speed)]
+    if options.out is not None:
+        world += ["--out", str(options.out)]
+    if not options.recording:
+        world.append("--no-recording")
+    children = [Child("world", world)]
+    for entry in scenario.robots:
+        agent = [*_cli(), "agent", str(scenario_path), "--robot", entry.id, *common,
+                 "--mode", "client", "--connect", endpoint, *options.extra_agent_args]
+        children.append(Child(entry.id, agent))
+    return children
+
+
+def stop_all(children: list[Child]) -> None:
+    """SIGTERM every live child, then SIGKILL what is left after the grace period."""
+    live = [c.process for c in children if c.process is not None and c.process.poll() is None]
+    for proc in live:
+        proc.send_signal(signal.SIGTERM)
+    deadline = time.monotonic() + GRACE_S
+    for proc in live:
+        try:
+            proc.wait(max(0.1, deadline - time.monotonic()))
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait(5.0)
+
+
+def supervise(children: list[Child], options: UpOptions, stop: threading.Event) -> int:
+    """Run until the world ends; returns the world's exit code (or 1 on timeout/stop)."""
+    for child in children:
+        child.start()
+    world, agents = children[0], children[1:]
+    deadline = time.monotonic() + options.timeout_s
+    try:
+        while not stop.is_set() and time.monotonic() < deadline:
+            code = world.poll()
+            if code is not None:
+                return code
+            for agent in agents:
+                _check_agent(agent, options)
+            time.sleep(0.1)
+        log.error("stopping the fleet: %s", "interrupted" if stop.is_set() else "timed out")
+        return 1
+    finally:
+        stop_all(children)
+
+
+def _check_agent(agent: Child, options: UpOptions) -> None:
+    code = agent.poll()
+    if code is None or agent.reported:
+        return
+    agent.reported = True
+    if code == 0:
+        return
+    agent.exits.append(code)
+    log.error("agent %s exited with %d", agent.name, code)
+    if options.restart and agent.restarts < options.max_restarts:
+        agent.restarts += 1
+        time.sleep(min(2.0, 0.2 * 2**agent.restarts))
+        log.warning("restarting agent %s (restart %d)", agent.name, agent.restarts)
+        agent.start()

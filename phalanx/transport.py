@@ -1,0 +1,294 @@
+"""The Zenoh fabric: fleet-scoped keys, session configuration, and a session wrapper.
+
+Keys (DESIGN.md):
+    phalanx/<fleet>/robot/<id>/state   RobotState, every control step
+    phalanx/<fleet>/robot/<id>/sense   SenseFrame from the world (sim driver)
+    phalanx/<fleet>/robot/<id>/cmd     VelocityCommand to the world (sim driver)
+    phalanx/<fleet>/robot/<id>/event   AgentEvent (state-machine transitions)
+    phalanx/<fleet>/robot/<id>/report  AgentReport at the end of a run
+    phalanx/<fleet>/alive/<id>         liveliness token of each process
+    phalanx/<fleet>/status/<id>        queryable: counters as JSON
+
+Callbacks never call Zenoh nor block: they decode and hand values to thread-safe
+structures (Zenoh documents blocking in a callback as a deadlock risk).
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import socket
+import threading
+import time
+from collections import deque
+from collections.abc import Callable, Iterable
+from types import TracebackType
+from typing import Any, Literal, Self, TypeVar
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from phalanx.codec import DecodeStats, decode, encode
+from phalanx.errors import TransportError
+from phalanx.messages import Message
+
+M = TypeVar("M", bound=Message)
+_NAME = re.compile(r"^[A-Za-z0-9_-]{1,64}$")
+_open_sessions: set[int] = set()
+_registry_lock = threading.Lock()
+_log_initialised = False
+
+
+def _name(value: str, what: str) -> str:
+    if not _NAME.match(value):
+        raise TransportError(f"{what} {value!r}: use 1-64 letters, digits, '_' or '-'")
+    return value
+
+
+def robot_key(fleet: str, robot_id: str, topic: str) -> str:
+    """`phalanx/<fleet>/robot/<id>/<topic>`."""
+    return f"phalanx/{_name(fleet, 'fleet')}/robot/{_name(robot_id, 'robot id')}/{topic}"
+
+
+def robots_key(fleet: str, topic: str) -> str:
+    """Every robot's `topic`: `phalanx/<fleet>/robot/*/<topic>`."""
+    return f"phalanx/{_name(fleet, 'fleet')}/robot/*/{topic}"
+
+
+def alive_key(fleet: str, process_id: str) -> str:
+    """Liveliness token key of a process."""
+    return f"phalanx/{_name(fleet, 'fleet')}/alive/{_name(process_id, 'process id')}"
+
+
+def status_key(fleet: str, process_id: str) -> str:
+    """Status queryable of a process."""
+    return f"phalanx/{_name(fleet, 'fleet')}/status/{_name(process_id, 'process id')}"
+
+
+def robot_of(key: str) -> str:
+    """The robot id in a `.../robot/<id>/...` key."""
+    parts = key.split("/")
+    return parts[parts.index("robot") + 1] if "robot" in parts else ""
+
+
+class TransportConfig(BaseModel):
+    """How a process joins the fabric. Endpoints like `tcp/127.0.0.1:7447`."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    mode: Literal["peer", "client", "router"] = "peer"
+    listen: tuple[str, ...] = ()
+    connect: tuple[str, ...] = ()
+    multicast_scouting: bool = False
+    lease_ms: int = Field(default=1000, ge=100)
+    keep_alive: int = Field(default=4, ge=1)
+    open_timeout_s: float = Field(default=15.0, ge=0.0)
+
+
+def zenoh_config(cfg: TransportConfig) -> Any:
+    """A zenoh.Config for `cfg` (values inserted as JSON5 text, as Zenoh 1.x wants)."""
+    import zenoh
+
+    conf = zenoh.Config()
+    conf.insert_json5("mode", json.dumps(cfg.mode))
+    conf.insert_json5("listen/endpoints", json.dumps(list(cfg.listen)))
+    conf.insert_json5("connect/endpoints", json.dumps(list(cfg.connect)))
+    conf.insert_json5("scouting/multicast/enabled", json.dumps(cfg.multicast_scouting))
+    # A lost robot must be noticed in about a second, not Zenoh's default 10 s.
+    conf.insert_json5("transport/link/tx/lease", json.dumps(cfg.lease_ms))
+    conf.insert_json5("transport/link/tx/keep_alive", json.dumps(cfg.keep_alive))
+    return conf
+
+
+def free_tcp_port() -> int:
+    """A TCP port free on 127.0.0.1 right now."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
+        sock.bind(("127.0.0.1", 0))
+        return int(sock.getsockname()[1])
+
+
+def loopback_endpoint(port: int) -> str:
+    """`tcp/127.0.0.1:<port>`."""
+    return f"tcp/127.0.0.1:{port}"
+
+
+def open_session_count() -> int:
+    """Sessions opened by this process and not closed yet (tests fail on leaks)."""
+    with _registry_lock:
+        return len(_open_sessions)
+
+
+class History:
+    """The last few decoded values per robot, filled by a callback, read by the loop."""
+
+    def __init__(self, depth: int = 8) -> None:
+        self._lock = threading.RLock()  # `wait` evaluates predicates that read values
+        self._values: dict[str, deque[Any]] = {}
+        self._depth = depth
+        self._arrived = threading.Condition(self._lock)
+
+    def push(self, robot_id: str, value: Any) -> None:
+        """Add a value (callback side)."""
+        with self._arrived:
+            self._values.setdefault(robot_id, deque(maxlen=self._depth)).append(value)
+            self._arrived.notify_all()
+
+    def values(self, robot_id: str) -> list[Any]:
+        """A copy of the values held for `robot_id`, oldest first."""
+        with self._lock:
+            return list(self._values.get(robot_id, ()))
+
+    def wait(self, predicate: Callable[[], bool], timeout_s: float) -> bool:
+        """Block until `predicate()` holds (checked on every arrival) or the timeout."""
+        with self._arrived:
+            return self._arrived.wait_for(predicate, timeout_s)
+
+    def forget(self, robot_id: str) -> None:
+        """Drop everything held for `robot_id`."""
+        with self._lock:
+            self._values.pop(robot_id, None)
+
+
+class FleetSession:
+    """A Zenoh session with phalanx's codec, drop counting and liveliness; context manager."""
+
+    def __init__(self, cfg: TransportConfig) -> None:
+        import zenoh
+
+        global _log_initialised
+        if not _log_initialised:
+            zenoh.init_log_from_env_or("error")
+            _log_initialised = True
+        self._session = _open_with_retry(cfg)
+        self.stats = DecodeStats()
+        self._keep: list[Any] = []
+        self._publishers: dict[str, Any] = {}
+        self._closed = False
+        with _registry_lock:
+            _open_sessions.add(id(self))
+
+    @property
+    def zenoh(self) -> Any:
+        """The underlying zenoh.Session."""
+        return self._session
+
+    def publish(self, key: str, message: Message, *, reliable_block: bool = False) -> None:
+        """Put `message` on `key` (express; BLOCK congestion for must-arrive messages)."""
+        publisher = self._publishers.get(key)
+        if publisher is None:
+            publisher = self._declare_publisher(key, reliable_block)
+        publisher.put(encode(message))
+
+    def publish_raw(self, key: str, payload: bytes) -> None:
+        """Put raw bytes (tests inject malformed payloads with this)."""
+        self._session.put(key, payload)
+
+    def _declare_publisher(self, key: str, block: bool) -> Any:
+        import zenoh
+
+        congestion = zenoh.CongestionControl.BLOCK if block else zenoh.CongestionControl.DROP
+        publisher = self._session.declare_publisher(
+            key, express=True, congestion_control=congestion,
+            priority=zenoh.Priority.REAL_TIME,
+        )
+        self._publishers[key] = publisher
+        return publisher
+
+    def subscribe(
+        self, key_expr: str, model: type[M], on_message: Callable[[str, M], None]
+    ) -> None:
+        """Call `on_message(key, value)` for every valid message; count the rest.
+
+        `on_message` runs on a Zenoh thread: it must be quick and must not call Zenoh.
+        """
+        stats = self.stats
+
+        def callback(sample: Any) -> None:
+            value = decode(model, sample.payload.to_bytes(), stats)
+            if value is not None:
+                on_message(str(sample.key_expr), value)
+
+        self._keep.append(self._session.declare_subscriber(key_expr, callback))
+
+    def declare_alive(self, key: str) -> None:
+        """Hold a liveliness token on `key` while the session lives."""
+        self._keep.append(self._session.liveliness().declare_token(key))
+
+    def watch_alive(self, key_expr: str, on_change: Callable[[str, bool], None]) -> None:
+        """`on_change(key, alive)` on every token appearing (True) or vanishing (False)."""
+        import zenoh
+
+        def callback(sample: Any) -> None:
+            on_change(str(sample.key_expr), sample.kind == zenoh.SampleKind.PUT)
+
+        liveliness = self._session.liveliness()
+        self._keep.append(liveliness.declare_subscriber(key_expr, callback, history=True))
+
+    def serve_status(self, key: str, status: Callable[[], dict[str, Any]]) -> None:
+        """Answer queries on `key` with `status()` as JSON."""
+        def callback(query: Any) -> None:
+            query.reply(key, json.dumps(status()).encode("utf-8"))
+
+        self._keep.append(self._session.declare_queryable(key, callback))
+
+    def query_status(self, key: str, timeout_s: float = 2.0) -> list[dict[str, Any]]:
+        """Every status reply to `key` within `timeout_s`."""
+        replies = []
+        for reply in self._session.get(key, timeout=timeout_s):
+            if reply.ok is not None:
+                replies.append(json.loads(reply.ok.payload.to_bytes()))
+        return replies
+
+    def close(self) -> None:
+        """Undeclare everything and close the session; safe twice."""
+        if self._closed:
+            return
+        self._closed = True
+        for entity in reversed(self._keep + list(self._publishers.values())):
+            _quietly(entity.undeclare)
+        self._keep.clear()
+        self._publishers.clear()
+        self._session.close()
+        with _registry_lock:
+            _open_sessions.discard(id(self))
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.close()
+
+
+def _quietly(action: Callable[[], object]) -> None:
+    try:
+        action()
+    except Exception:  # noqa: BLE001, S110 - already gone during shutdown is fine
+        pass
+
+
+def _open_with_retry(cfg: TransportConfig) -> Any:
+    """Open a session, retrying while the endpoints it connects to are not up yet."""
+    import zenoh
+
+    deadline = time.monotonic() + cfg.open_timeout_s
+    delay_s = 0.05
+    while True:
+        try:
+            return zenoh.open(zenoh_config(cfg))
+        except Exception as exc:  # zenoh raises its own ZError  # noqa: BLE001
+            if time.monotonic() + delay_s > deadline:
+                raise TransportError(f"cannot open a Zenoh session with {cfg}: {exc}") from exc
+            time.sleep(delay_s)
+            delay_s = min(1.0, delay_s * 2)
+
+
+def open_session(cfg: TransportConfig) -> FleetSession:
+    """Open a fleet session (use it in a `with` block)."""
+    return FleetSession(cfg)
+
+
+def endpoints(ports: Iterable[int]) -> tuple[str, ...]:
+    """Loopback endpoints for `ports`."""
+    return tuple(loopback_endpoint(p) for p in ports)
