@@ -37,6 +37,7 @@ class UpOptions:
     timeout_s: float = 600.0
     recording: bool = True
     extra_agent_args: tuple[str, ...] = ()
+    overrides: tuple[str, ...] = ()
 
 
 @dataclass
@@ -67,7 +68,7 @@ def _cli() -> list[str]:
 def plan(scenario_path: Path, scenario: Scenario, options: UpOptions) -> list[Child]:
     """The world and agent command lines."""
     endpoint = loopback_endpoint(free_tcp_port())
-    common = ["--fleet", options.fleet, "--clock", options.clock]
+    common = ["--fleet", options.fleet, "--clock", options.clock, *options.overrides]
     world = [*_cli(), "world", str(scenario_path), *common, "--listen", endpoint,
              "--speed", str(options.speed)]
     if options.out is not None:

@@ -8,6 +8,8 @@ from pathlib import Path
 
 import pytest
 
+from phalanx.transport import open_session_count
+
 REPO = Path(__file__).resolve().parent.parent
 SCENARIOS = REPO / "configs" / "scenarios"
 
@@ -37,3 +39,12 @@ def _no_leaked_processes() -> Iterator[None]:
         for pid in leaked:
             os.kill(pid, 9)
         pytest.fail(f"test leaked child processes {sorted(leaked)}")
+
+
+@pytest.fixture(autouse=True)
+def _no_leaked_sessions() -> Iterator[None]:
+    before = open_session_count()
+    yield
+    leaked = open_session_count() - before
+    if leaked:
+        pytest.fail(f"test leaked {leaked} Zenoh session(s)")

@@ -11,6 +11,7 @@ from typing import TYPE_CHECKING, Annotated
 import typer
 
 if TYPE_CHECKING:
+    from phalanx.config import Scenario
     from phalanx.transport import TransportConfig
 
 ScenarioArg = Annotated[Path, typer.Argument(help="Scenario TOML file.", exists=True, dir_okay=False)]
@@ -19,6 +20,17 @@ ClockOpt = Annotated[str, typer.Option(help="lockstep (deterministic, fast) or r
 ListenOpt = Annotated[list[str] | None, typer.Option("--listen", help="Zenoh endpoint to listen on.")]
 ConnectOpt = Annotated[list[str] | None, typer.Option("--connect", help="Zenoh endpoint to connect to.")]
 ModeOpt = Annotated[str, typer.Option(help="Zenoh mode: peer, client or router.")]
+SetOpt = Annotated[
+    list[str] | None,
+    typer.Option("--set", help="Override a scenario field, e.g. --set duration_s=60 (repeatable)."),
+]
+
+
+def _scenario(path: Path, overrides: list[str] | None) -> Scenario:
+    from phalanx.config import apply_overrides, load_scenario
+
+    config = load_scenario(path)
+    return apply_overrides(config, overrides) if overrides else config
 
 
 def _transport(mode: str, listen: list[str] | None, connect: list[str] | None) -> TransportConfig:
@@ -50,6 +62,7 @@ def agent(
     listen: ListenOpt = None,
     connect: ConnectOpt = None,
     mode: ModeOpt = "peer",
+    set_: SetOpt = None,
     driver: Annotated[str, typer.Option(help="Driver backend: sim.")] = "sim",
 ) -> None:
     """Run one robot's agent: Zenoh in, behaviour stack, command out."""
@@ -77,17 +90,18 @@ def world(
     listen: ListenOpt = None,
     connect: ConnectOpt = None,
     mode: ModeOpt = "router",
+    set_: SetOpt = None,
     out: Annotated[Path | None, typer.Option(help="Results folder.")] = None,
     recording: Annotated[bool, typer.Option(help="Write a Rerun .rrd.")] = True,
 ) -> None:
     """Run the simulated world for agents in other processes; write the results folder."""
-    from phalanx.config import load_robot, load_scenario
+    from phalanx.config import load_robot
     from phalanx.report import print_summary
     from phalanx.results import write_results
     from phalanx.simulator.world_process import WorldOptions, WorldProcess
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s world %(levelname)s %(message)s")
-    config = load_scenario(scenario)
+    config = _scenario(scenario, set_)
     transport = _transport(mode, listen, connect)
     options = WorldOptions(fleet=fleet, transport=transport, clock=_clock(clock), speed=speed)  # type: ignore[arg-type]
     process = WorldProcess(config, load_robot(config.robot), options)
@@ -110,15 +124,16 @@ def up(
     restart: Annotated[bool, typer.Option(help="Restart crashed agents (with back-off).")] = False,
     timeout: Annotated[float, typer.Option(help="Give up after this many seconds.")] = 600.0,
     recording: Annotated[bool, typer.Option(help="Write a Rerun .rrd.")] = True,
+    set_: SetOpt = None,
 ) -> None:
     """Start the world and one agent process per robot here; supervise; write results."""
-    from phalanx.config import load_scenario
     from phalanx.launch import UpOptions, plan, supervise
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s up %(levelname)s %(message)s")
-    config = load_scenario(scenario)
+    config = _scenario(scenario, set_)
     options = UpOptions(fleet=fleet, clock=_clock(clock), speed=speed, out=out, restart=restart,
-                        timeout_s=timeout, recording=recording)
+                        timeout_s=timeout, recording=recording,
+                        overrides=tuple(f"--set={o}" for o in set_ or ()))
     code = supervise(plan(scenario, config, options), options, _stop_on_signals())
     raise typer.Exit(code)
 

@@ -1,0 +1,166 @@
+"""Robots as separate processes over real Zenoh on loopback (scouting off)."""
+
+from __future__ import annotations
+
+import json
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from phalanx.config import CONFIG_ROOT, load_scenario
+from phalanx.messages import RobotState
+from phalanx.metrics import run_metrics
+from phalanx.simulator.batch import run_batch
+from phalanx.transport import (
+    TransportConfig,
+    free_tcp_port,
+    loopback_endpoint,
+    open_session,
+    robot_key,
+    robots_key,
+)
+
+pytestmark = pytest.mark.integration
+WEDGE = CONFIG_ROOT / "scenarios" / "paper_wedge.toml"
+CLI = [sys.executable, "-m", "phalanx"]
+
+
+def _stop(procs: list[subprocess.Popen[bytes]]) -> None:
+    for proc in procs:
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGTERM)
+    for proc in procs:
+        try:
+            proc.wait(10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait(5)
+
+
+@pytest.fixture
+def processes() -> Iterator[list[subprocess.Popen[bytes]]]:
+    procs: list[subprocess.Popen[bytes]] = []
+    yield procs
+    _stop(procs)
+
+
+def test_up_reproduces_the_in_process_run(tmp_path: Path) -> None:
+    """Lockstep over Zenoh gives the batch runner's metrics: both give every agent the
+    peer states published one tick (100 ms) earlier, so they agree to rounding."""
+    out = tmp_path / "up"
+    proc = subprocess.run(
+        [*CLI, "up", str(WEDGE), "--out", str(out), "--fleet", "same", "--timeout", "120",
+         "--no-recording"],
+        capture_output=True, text=True, timeout=180, check=False,
+    )
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    multi = json.loads((out / "metrics.json").read_text())
+    single = run_metrics(run_batch(load_scenario(WEDGE)))
+    assert multi["deadlock_reverses"] == single["deadlock_reverses"] == 1
+    for rid in ("r2", "r3"):
+        for phase in ("forward", "backward"):
+            for key in ("linear_pct", "angular_pct", "orientation_deg"):
+                got = multi["followers"][rid][phase][key]["max"]
+                want = single["followers"][rid][phase][key]["max"]
+                assert got == pytest.approx(want, rel=1e-6, abs=1e-9), (rid, phase, key)
+        assert multi["followers"][rid]["saturations"] == single["followers"][rid]["saturations"]
+    assert [e["target"] for e in multi["transitions"]["r1"]] == [
+        e["target"] for e in single["transitions"]["r1"]
+    ]
+
+
+def _spawn_fleet(fleet: str, endpoint: str, clock: str, duration_s: float,
+                 procs: list[subprocess.Popen[bytes]], out: Path) -> None:
+    scenario = WEDGE
+    common = ["--fleet", fleet, "--clock", clock, "--set", f"duration_s={duration_s}"]
+    procs.append(subprocess.Popen(
+        [*CLI, "world", str(scenario), *common, "--listen", endpoint,
+         "--out", str(out), "--no-recording"],
+        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+    ))
+    for rid in ("r1", "r2", "r3"):
+        procs.append(subprocess.Popen(
+            [*CLI, "agent", str(scenario), "--robot", rid, *common,
+             "--mode", "client", "--connect", endpoint],
+            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+        ))
+
+
+def _wait(predicate: object, timeout_s: float) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if predicate():  # type: ignore[operator]
+            return True
+        time.sleep(0.01)
+    return False
+
+
+def test_followers_stop_within_500_ms_of_a_killed_leader(
+    tmp_path: Path, processes: list[subprocess.Popen[bytes]]
+) -> None:
+    endpoint = loopback_endpoint(free_tcp_port())
+    _spawn_fleet("kill", endpoint, "realtime", 60.0, processes, tmp_path / "out")
+    seen: dict[str, tuple[float, RobotState]] = {}
+    lock = threading.Lock()
+
+    def record(_key: str, state: RobotState) -> None:
+        with lock:
+            seen[state.robot_id] = (time.monotonic(), state)
+
+    with open_session(TransportConfig(mode="client", connect=(endpoint,))) as session:
+        session.subscribe(robots_key("kill", "state"), RobotState, record)
+        tracking = _wait(lambda: all(
+            rid in seen and seen[rid][1].fsm_state == "FORMATION_TRACK" and seen[rid][1].stamp_s > 3
+            for rid in ("r2", "r3")), 40.0)
+        assert tracking, f"followers never tracked: {seen}"
+        leader = processes[1]
+        leader.send_signal(signal.SIGKILL)
+        killed_at = time.monotonic()
+        leader.wait(5)
+
+        def stopped() -> bool:
+            with lock:
+                return all(seen[r][1].fsm_state == "HOLD" and seen[r][0] > killed_at
+                           for r in ("r2", "r3"))
+
+        assert _wait(stopped, 2.0), f"followers did not stop: {seen}"
+        noticed_s = max(seen[r][0] for r in ("r2", "r3")) - killed_at
+        assert noticed_s < 0.5, f"followers stopped {noticed_s:.3f} s after the kill"
+        time.sleep(0.5)
+        with lock:
+            # HOLD commands zero: within the decel limit the followers come to rest.
+            assert all(abs(seen[r][1].v_mps) < 0.15 for r in ("r2", "r3"))
+
+
+def test_malformed_payloads_on_every_key_are_counted_and_ignored(
+    tmp_path: Path, processes: list[subprocess.Popen[bytes]]
+) -> None:
+    endpoint = loopback_endpoint(free_tcp_port())
+    out = tmp_path / "out"
+    _spawn_fleet("junk", endpoint, "realtime", 20.0, processes, out)
+    with open_session(TransportConfig(mode="client", connect=(endpoint,))) as session:
+        assert _wait(lambda: len(session.query_status("phalanx/junk/status/*", 1.0)) >= 4, 40.0)
+        garbage = [b"", b"\x00", b"\x01\x01\xff", b"{not json", b'{"version": 99}', bytes(range(256))]
+        for rid in ("r1", "r2", "r3"):
+            for topic in ("state", "sense", "cmd", "event", "report"):
+                for payload in garbage:
+                    session.publish_raw(robot_key("junk", rid, topic), payload)
+        time.sleep(1.0)
+        statuses = session.query_status("phalanx/junk/status/*", 2.0)
+    processes[0].wait(60)  # the world finishes its 20 s and writes results
+    assert processes[0].returncode == 0
+    assert (out / "metrics.json").exists()
+    agents = [s for s in statuses if "robot_id" in s]
+    assert len(agents) == 3
+    for status in agents:
+        decode = status["decode"]
+        assert isinstance(decode, dict)
+        assert sum(decode["malformed"].values()) + sum(decode["unknown_version"].values()) >= len(garbage)
+
+
