@@ -76,31 +76,30 @@ class Agent:
         self._last_odometry: Odometry | None = None
         self.leader: LeaderBehaviour | None = None
         self.follower: FollowerBehaviour | None = None
+        self.behaviour: LeaderBehaviour | FollowerBehaviour
         if self.leader_id is None:
-            self.leader = LeaderBehaviour(scenario.leader_profile, scenario.deadlock)
+            self.behaviour = self.leader = LeaderBehaviour(
+                scenario.leader_profile, scenario.deadlock
+            )
         else:
-            self.follower = FollowerBehaviour(scenario.controller.reverse_threshold_mps)
+            self.behaviour = self.follower = FollowerBehaviour(
+                scenario.controller.reverse_threshold_mps
+            )
 
     @property
     def state_name(self) -> str:
         """The current behaviour state."""
-        behaviour = self.leader or self.follower
-        assert behaviour is not None  # noqa: S101 - one of them is always set
-        return behaviour.fsm.state
+        return self.behaviour.fsm.state
 
     @property
     def direction(self) -> int:
         """+1 forwards, -1 backwards."""
-        behaviour = self.leader or self.follower
-        assert behaviour is not None  # noqa: S101
-        return behaviour.direction
+        return self.behaviour.direction
 
     @property
     def transitions(self) -> list[TransitionEvent]:
         """Every transition taken so far."""
-        behaviour = self.leader or self.follower
-        assert behaviour is not None  # noqa: S101
-        return behaviour.fsm.log
+        return self.behaviour.fsm.log
 
     def step(
         self, observation: Observation, peers: Mapping[str, RobotState], t_s: float
@@ -111,9 +110,10 @@ class Agent:
             observation.status, self._front, self.scenario.deadlock.obstacle_range_m
         )
         if self.leader is not None:
-            event, wanted = self._lead(observation, peers, blocked, t_s, dt_s)
+            event, wanted = self._lead(self.leader, observation, peers, blocked, t_s, dt_s)
         else:
-            event, wanted = self._follow(observation, peers, t_s, dt_s)
+            assert self.follower is not None  # noqa: S101 - set whenever leader is not
+            event, wanted = self._follow(self.follower, observation, peers, t_s, dt_s)
         command = self.limiter.apply(wanted, dt_s)
         self._last_odometry = observation.odometry
         events = (event,) if event is not None else ()
@@ -121,37 +121,42 @@ class Agent:
 
     def _lead(
         self,
+        leader: LeaderBehaviour,
         observation: Observation,
         peers: Mapping[str, RobotState],
         blocked: bool,
         t_s: float,
         dt_s: float,
     ) -> tuple[TransitionEvent | None, Twist2D]:
-        assert self.leader is not None  # noqa: S101
         others = [r for r in self.formation.robot_ids if r != self.robot_id]
         blocked_ids = tuple(r for r in others if r in peers and peers[r].obstacle)
         everyone = blocked and len(blocked_ids) == len(others)
-        self.leader.observe(
+        leader.observe(
             blocked=((self.robot_id,) if blocked else ()) + blocked_ids,
             everyone_blocked=everyone,
             odometry_step_m=self._travelled_m(observation.odometry),
         )
-        event = self.leader.update(t_s)
-        return event, self.leader.wanted_twist(dt_s)
+        event = leader.update(t_s)
+        return event, leader.wanted_twist(dt_s)
 
     def _follow(
-        self, observation: Observation, peers: Mapping[str, RobotState], t_s: float, dt_s: float
+        self,
+        follower: FollowerBehaviour,
+        observation: Observation,
+        peers: Mapping[str, RobotState],
+        t_s: float,
+        dt_s: float,
     ) -> tuple[TransitionEvent | None, Twist2D]:
-        assert self.follower is not None and self.leader_id is not None  # noqa: S101
-        lead = peers.get(self.leader_id)
+        leader_id = self.formation.leader_of(self.robot_id) or ""
+        lead = peers.get(leader_id)
         fresh = lead is not None and t_s - lead.stamp_s <= self.scenario.leader_timeout_s
-        self.follower.observe(
+        follower.observe(
             leader_v_mps=lead.v_mps if lead else 0.0,
             leader_direction=lead.direction if lead else 1,
             leader_fresh=fresh,
         )
-        event = self.follower.update(t_s)
-        if lead is None or self.follower.fsm.state == State.HOLD:
+        event = follower.update(t_s)
+        if lead is None or follower.fsm.state == State.HOLD:
             return event, ZERO_TWIST
         inp = FollowerInput(
             follower=observation.odometry.pose,
@@ -159,8 +164,8 @@ class Agent:
             leader=lead.pose,
             leader_twist=lead.twist,
             leader_age_s=max(0.0, t_s - lead.stamp_s),
-            slot=self.formation.slot_of(self.robot_id, self.leader_id),
-            direction=self.follower.direction,
+            slot=self.formation.slot_of(self.robot_id, leader_id),
+            direction=follower.direction,
             dt_s=dt_s,
         )
         return event, self.controller.command(inp)

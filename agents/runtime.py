@@ -42,7 +42,9 @@ def pick_state(states: list[RobotState], not_after_s: float) -> RobotState | Non
     """The newest state stamped no later than `not_after_s`."""
     chosen = None
     for state in states:
-        if state.stamp_s <= not_after_s + EPS_S and (chosen is None or state.stamp_s > chosen.stamp_s):
+        if state.stamp_s <= not_after_s + EPS_S and (
+            chosen is None or state.stamp_s > chosen.stamp_s
+        ):
             chosen = state
     return chosen
 
@@ -106,10 +108,14 @@ class AgentRuntime:
     def _wire(self, session: FleetSession) -> None:
         fleet, rid = self.options.fleet, self.robot_id
         session.declare_alive(alive_key(fleet, rid))
-        session.subscribe(robot_key(fleet, rid, "sense"), SenseFrame, lambda _k, f: self.frames.put(f))
+        session.subscribe(
+            robot_key(fleet, rid, "sense"), SenseFrame, lambda _k, f: self.frames.put(f)
+        )
         for peer in self.watched:
             session.subscribe(
-                robot_key(fleet, peer, "state"), RobotState, lambda _k, s: self.peers.push(s.robot_id, s)
+                robot_key(fleet, peer, "state"),
+                RobotState,
+                lambda _k, s: self.peers.push(s.robot_id, s),
             )
         session.watch_alive(f"phalanx/{fleet}/alive/*", self._on_alive)
         session.serve_status(status_key(fleet, rid), self._status)
@@ -125,8 +131,13 @@ class AgentRuntime:
 
     def _status(self) -> dict[str, object]:
         stats = self._session.stats.as_dict() if self._session else {}
-        return {"robot_id": self.robot_id, "steps": self.steps, "state": self.agent.state_name,
-                "late_peer_steps": self.late_peer_steps, "decode": stats}
+        return {
+            "robot_id": self.robot_id,
+            "steps": self.steps,
+            "state": self.agent.state_name,
+            "late_peer_steps": self.late_peer_steps,
+            "decode": stats,
+        }
 
     def _loop(self, stop: threading.Event) -> None:
         last_frame = time.monotonic()
@@ -135,8 +146,11 @@ class AgentRuntime:
                 frame = self.frames.get(timeout=0.1)
             except queue.Empty:
                 if time.monotonic() - last_frame > self.options.frame_timeout_s:
-                    log.warning("%s: no frame for %.0f s, stopping", self.robot_id,
-                                self.options.frame_timeout_s)
+                    log.warning(
+                        "%s: no frame for %.0f s, stopping",
+                        self.robot_id,
+                        self.options.frame_timeout_s,
+                    )
                     return
                 continue
             last_frame = time.monotonic()
@@ -149,6 +163,7 @@ class AgentRuntime:
         not_after = frame.t_s - delay_s if self.options.clock == "lockstep" else frame.t_s
         needed = [p for p in self.watched if p not in self.dead]
         if self.options.clock == "lockstep" and frame.t_s - delay_s >= -EPS_S:
+
             def ready() -> bool:
                 return all(_has_state(self.peers.values(p), not_after) for p in needed)
 
@@ -160,10 +175,14 @@ class AgentRuntime:
     def step(self, frame: SenseFrame) -> StepOutput:
         """Answer one frame: step the agent core, publish state, events and command."""
         peers = self._peers_for(frame)
-        odometry = Odometry(Pose2D(frame.x_m, frame.y_m, frame.theta_rad),
-                            Twist2D(frame.v_mps, frame.omega_radps), frame.t_s)
-        status = RobotStatus(sonar_ranges_m=frame.sonar_ranges_m, bumpers=frame.bumpers,
-                             motors_enabled=True)
+        odometry = Odometry(
+            Pose2D(frame.x_m, frame.y_m, frame.theta_rad),
+            Twist2D(frame.v_mps, frame.omega_radps),
+            frame.t_s,
+        )
+        status = RobotStatus(
+            sonar_ranges_m=frame.sonar_ranges_m, bumpers=frame.bumpers, motors_enabled=True
+        )
         out = self.agent.step(Observation(odometry, status), peers, frame.t_s)
         self._publish(frame, out)
         self.steps += 1
@@ -174,29 +193,51 @@ class AgentRuntime:
         fleet, rid = self.options.fleet, self.robot_id
         self._session.publish(robot_key(fleet, rid, "state"), out.state)
         for event in out.events:
-            message = AgentEvent(robot_id=rid, t_s=event.t_s, source=event.source,
-                                 target=event.target, reason=event.reason)
+            message = AgentEvent(
+                robot_id=rid,
+                t_s=event.t_s,
+                source=event.source,
+                target=event.target,
+                reason=event.reason,
+            )
             self._session.publish(robot_key(fleet, rid, "event"), message, reliable_block=True)
             if self.telemetry is not None:
-                self.telemetry.log_transition(rid, t_s=event.t_s, source=event.source,
-                                              target=event.target, reason=event.reason)
-        command = VelocityCommand(robot_id=rid, tick=frame.tick, stamp_s=frame.t_s,
-                                  v_mps=out.command.v_mps, omega_radps=out.command.omega_radps)
+                self.telemetry.log_transition(
+                    rid,
+                    t_s=event.t_s,
+                    source=event.source,
+                    target=event.target,
+                    reason=event.reason,
+                )
+        command = VelocityCommand(
+            robot_id=rid,
+            tick=frame.tick,
+            stamp_s=frame.t_s,
+            v_mps=out.command.v_mps,
+            omega_radps=out.command.omega_radps,
+        )
         self._session.publish(robot_key(fleet, rid, "cmd"), command, reliable_block=True)
         if self.telemetry is not None:
             self.telemetry.log_step(
-                rid, t_s=frame.t_s, step=frame.tick, pose=out.state.pose, cmd=out.command,
-                measured=Twist2D(frame.v_mps, frame.omega_radps), fsm_state=out.state.fsm_state,
+                rid,
+                t_s=frame.t_s,
+                step=frame.tick,
+                pose=out.state.pose,
+                cmd=out.command,
+                measured=Twist2D(frame.v_mps, frame.omega_radps),
+                fsm_state=out.state.fsm_state,
                 leader_id=out.state.leader_id,
             )
 
     def _report(self) -> AgentReport:
         dropped = self._session.stats.dropped if self._session else 0
         return AgentReport(
-            robot_id=self.robot_id, steps=self.steps,
+            robot_id=self.robot_id,
+            steps=self.steps,
             saturations=self.agent.limiter.saturations,
             accel_limited=self.agent.limiter.accel_limited,
-            dropped_messages=dropped, late_peer_steps=self.late_peer_steps,
+            dropped_messages=dropped,
+            late_peer_steps=self.late_peer_steps,
         )
 
 

@@ -38,25 +38,68 @@ JSON_MARK = ord("{")
 # (field name, kind) in wire order; kinds: s = string, d = float64, I = uint32, b = int8,
 # ? = bool, D = list of float64, B = list of bool. `version` is the header, not a field.
 LAYOUTS: dict[type[Message], tuple[int, tuple[tuple[str, str], ...]]] = {
-    RobotState: (1, (("robot_id", "s"), ("seq", "I"), ("stamp_s", "d"), ("x_m", "d"),
-                     ("y_m", "d"), ("theta_rad", "d"), ("v_mps", "d"), ("omega_radps", "d"),
-                     ("fsm_state", "s"), ("obstacle", "?"), ("direction", "b"),
-                     ("leader_id", "s"), ("epoch", "I"))),
+    RobotState: (
+        1,
+        (
+            ("robot_id", "s"),
+            ("seq", "I"),
+            ("stamp_s", "d"),
+            ("x_m", "d"),
+            ("y_m", "d"),
+            ("theta_rad", "d"),
+            ("v_mps", "d"),
+            ("omega_radps", "d"),
+            ("fsm_state", "s"),
+            ("obstacle", "?"),
+            ("direction", "b"),
+            ("leader_id", "s"),
+            ("epoch", "I"),
+        ),
+    ),
     ClockTick: (2, (("tick", "I"), ("t_s", "d"), ("dt_s", "d"), ("final", "?"))),
-    VelocityCommand: (3, (("robot_id", "s"), ("tick", "I"), ("stamp_s", "d"), ("v_mps", "d"),
-                          ("omega_radps", "d"))),
-    SenseFrame: (4, (("robot_id", "s"), ("tick", "I"), ("t_s", "d"), ("dt_s", "d"),
-                     ("x_m", "d"), ("y_m", "d"), ("theta_rad", "d"), ("v_mps", "d"),
-                     ("omega_radps", "d"), ("sonar_ranges_m", "D"), ("bumpers", "B"),
-                     ("final", "?"))),
-    AgentEvent: (5, (("robot_id", "s"), ("t_s", "d"), ("source", "s"), ("target", "s"),
-                     ("reason", "s"))),
-    AgentReport: (6, (("robot_id", "s"), ("steps", "I"), ("saturations", "I"),
-                      ("accel_limited", "I"), ("dropped_messages", "I"),
-                      ("late_peer_steps", "I"))),
+    VelocityCommand: (
+        3,
+        (("robot_id", "s"), ("tick", "I"), ("stamp_s", "d"), ("v_mps", "d"), ("omega_radps", "d")),
+    ),
+    SenseFrame: (
+        4,
+        (
+            ("robot_id", "s"),
+            ("tick", "I"),
+            ("t_s", "d"),
+            ("dt_s", "d"),
+            ("x_m", "d"),
+            ("y_m", "d"),
+            ("theta_rad", "d"),
+            ("v_mps", "d"),
+            ("omega_radps", "d"),
+            ("sonar_ranges_m", "D"),
+            ("bumpers", "B"),
+            ("final", "?"),
+        ),
+    ),
+    AgentEvent: (
+        5,
+        (("robot_id", "s"), ("t_s", "d"), ("source", "s"), ("target", "s"), ("reason", "s")),
+    ),
+    AgentReport: (
+        6,
+        (
+            ("robot_id", "s"),
+            ("steps", "I"),
+            ("saturations", "I"),
+            ("accel_limited", "I"),
+            ("dropped_messages", "I"),
+            ("late_peer_steps", "I"),
+        ),
+    ),
 }
-_SCALARS = {"d": struct.Struct("<d"), "I": struct.Struct("<I"), "b": struct.Struct("<b"),
-            "?": struct.Struct("<?")}
+_SCALARS = {
+    "d": struct.Struct("<d"),
+    "I": struct.Struct("<I"),
+    "b": struct.Struct("<b"),
+    "?": struct.Struct("<?"),
+}
 _COUNT = struct.Struct("<H")
 
 
@@ -139,8 +182,12 @@ class DecodeStats:
 
     def as_dict(self) -> dict[str, Any]:
         """JSON-friendly counters (for status queries)."""
-        return {"ok": dict(self.ok), "malformed": dict(self.malformed),
-                "unknown_version": dict(self.unknown_version), "last_error": self.last_error}
+        return {
+            "ok": dict(self.ok),
+            "malformed": dict(self.malformed),
+            "unknown_version": dict(self.unknown_version),
+            "last_error": self.last_error,
+        }
 
 
 def decode(model: type[M], payload: bytes, stats: DecodeStats | None = None) -> M | None:

@@ -13,13 +13,14 @@ from pathlib import Path
 import matplotlib as mpl
 
 mpl.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402 - the backend must be chosen first
-import numpy as np  # noqa: E402
-from matplotlib.figure import Figure  # noqa: E402
+import matplotlib.pyplot as plt
+import numpy as np
+from matplotlib.axes import Axes
+from matplotlib.figure import Figure
 
-from phalanx.agents.control.limits import KinematicLimits  # noqa: E402
-from phalanx.metrics import error_series  # noqa: E402
-from phalanx.simulator.batch import RunLog  # noqa: E402
+from phalanx.agents.control.limits import KinematicLimits
+from phalanx.metrics import error_series
+from phalanx.simulator.batch import RunLog
 
 COLOURS = ("tab:red", "tab:blue", "tab:green", "tab:purple", "tab:orange", "tab:brown")
 
@@ -42,7 +43,7 @@ def _reverse_spans(log: RunLog) -> list[tuple[float, float]]:
     return spans
 
 
-def _shade(ax: plt.Axes, log: RunLog) -> None:
+def _shade(ax: Axes, log: RunLog) -> None:
     for i, (a, b) in enumerate(_reverse_spans(log)):
         ax.axvspan(a, b, color="0.85", label="reverse" if i == 0 else None)
 

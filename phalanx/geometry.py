@@ -36,7 +36,7 @@ class Vec2:
         return math.hypot(self.x_m, self.y_m)
 
     def rotated(self, angle_rad: float) -> Vec2:
-        """This vector rotated counter-clockwise by `angle_rad`."""
+        """The vector rotated counter-clockwise by `angle_rad`."""
         c, s = math.cos(angle_rad), math.sin(angle_rad)
         return Vec2(c * self.x_m - s * self.y_m, s * self.x_m + c * self.y_m)
 

@@ -2,8 +2,9 @@
 
 The world runs a Zenoh router on a free loopback port and every agent connects to it as
 a client, so the world routes the agents' states to each other (multicast scouting
-stays off; nothing is configured by hand). A crashed agent is reported and, with `restart`, started again. Everything
-is stopped on the way out: SIGTERM first, SIGKILL after a grace period.
+stays off; nothing is configured by hand). A crashed agent is reported and, with
+`restart`, started again. Everything is stopped on the way out: SIGTERM first, SIGKILL
+after a grace period.
 """
 
 from __future__ import annotations
@@ -69,16 +70,35 @@ def plan(scenario_path: Path, scenario: Scenario, options: UpOptions) -> list[Ch
     """The world and agent command lines."""
     endpoint = loopback_endpoint(free_tcp_port())
     common = ["--fleet", options.fleet, "--clock", options.clock, *options.overrides]
-    world = [*_cli(), "world", str(scenario_path), *common, "--listen", endpoint,
-             "--speed", str(options.speed)]
+    world = [
+        *_cli(),
+        "world",
+        str(scenario_path),
+        *common,
+        "--listen",
+        endpoint,
+        "--speed",
+        str(options.speed),
+    ]
     if options.out is not None:
         world += ["--out", str(options.out)]
     if not options.recording:
         world.append("--no-recording")
     children = [Child("world", world)]
     for entry in scenario.robots:
-        agent = [*_cli(), "agent", str(scenario_path), "--robot", entry.id, *common,
-                 "--mode", "client", "--connect", endpoint, *options.extra_agent_args]
+        agent = [
+            *_cli(),
+            "agent",
+            str(scenario_path),
+            "--robot",
+            entry.id,
+            *common,
+            "--mode",
+            "client",
+            "--connect",
+            endpoint,
+            *options.extra_agent_args,
+        ]
         children.append(Child(entry.id, agent))
     return children
 

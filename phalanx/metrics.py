@@ -6,8 +6,8 @@ For each follower against the robot it tracks:
 - orientation error: the follower's heading against the heading a rigid formation
   would give it (theta_L + beta, DESIGN.md), in deg.
 Split into the forward and the backward phase of the formation (the root's direction);
-each phase is measured from `settle_s` after the switch (and the forward phase also from `initial_settle_s`,
-so the convergence from the start offsets is not counted).
+each phase is measured from `settle_s` after the switch (and the forward phase also from
+`initial_settle_s`, so the convergence from the start offsets is not counted).
 """
 
 from __future__ import annotations

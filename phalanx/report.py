@@ -147,7 +147,8 @@ def matrix_rows(cases: Sequence[Case], results: Sequence[dict[str, Any]]) -> lis
         rows.append(
             f"| {case.formation} | {case.controller}{' + noise' if case.noise else ''} "
             f"{'(reverse while turning)' if case.turning else ''}"
-            f"| {_cell(lin, PAPER_BOUNDS['linear_pct'])} | {_cell(ang, PAPER_BOUNDS['angular_pct'])} "
+            f"| {_cell(lin, PAPER_BOUNDS['linear_pct'])} "
+            f"| {_cell(ang, PAPER_BOUNDS['angular_pct'])} "
             f"| {_cell(ori, None)} | {lin_m:.3g} m / {ang_d:.3g} deg "
             f"| {_cell(flin, None)} | {sat} | {len(m['collisions'])} |"
         )

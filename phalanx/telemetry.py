@@ -167,8 +167,13 @@ class Telemetry:
             self._submit(lambda: self._rec.log("world/obstacles", arch, static=True))
 
     def log_bounds(
-        self, *, t_s: Sequence[float], linear_pct: float, angular_pct: float,
-        v_max_mps: float, omega_max_radps: float,
+        self,
+        *,
+        t_s: Sequence[float],
+        linear_pct: float,
+        angular_pct: float,
+        v_max_mps: float,
+        omega_max_radps: float,
     ) -> None:
         """The paper's error bounds and the velocity limits as flat series."""
         series = {
@@ -209,14 +214,20 @@ class Telemetry:
             rr, rec, base = _rr(), self._rec, f"robots/{robot_id}"
             rec.set_time("sim_time", duration=t_s)
             rec.set_time("step", sequence=step)
-            rec.log(f"{base}/pose", rr.Points2D([(pose.x_m, pose.y_m)], radii=0.25,
-                                                labels=[f"{robot_id} {fsm_state}"]))
+            rec.log(
+                f"{base}/pose",
+                rr.Points2D([(pose.x_m, pose.y_m)], radii=0.25, labels=[f"{robot_id} {fsm_state}"]),
+            )
             heading = (0.4 * math.cos(pose.theta_rad), 0.4 * math.sin(pose.theta_rad))
-            rec.log(f"{base}/heading", rr.Arrows2D(vectors=[heading], origins=[(pose.x_m, pose.y_m)]))
+            rec.log(
+                f"{base}/heading", rr.Arrows2D(vectors=[heading], origins=[(pose.x_m, pose.y_m)])
+            )
             rec.log(f"{base}/trail", rr.LineStrips2D([trail_points]))
             if slot_target is not None:
-                rec.log(f"{base}/slot_target",
-                        rr.Points2D([(slot_target.x_m, slot_target.y_m)], radii=0.05))
+                rec.log(
+                    f"{base}/slot_target",
+                    rr.Points2D([(slot_target.x_m, slot_target.y_m)], radii=0.05),
+                )
             if rays:
                 rec.log(f"{base}/sonar", rr.LineStrips2D(rays, radii=0.005))
             self._log_scalars(base, cmd, measured, errors)
@@ -232,14 +243,16 @@ class Telemetry:
         rec.log(f"{base}/measured/v_mps", rr.Scalars(measured.v_mps))
         rec.log(f"{base}/measured/omega_degps", rr.Scalars(math.degrees(measured.omega_radps)))
         if errors is not None:
-            for name, value in zip(("linear_pct", "angular_pct", "orientation_deg"), errors,
-                                   strict=True):
+            for name, value in zip(
+                ("linear_pct", "angular_pct", "orientation_deg"), errors, strict=True
+            ):
                 rec.log(f"{base}/errors/{name}", rr.Scalars(value))
 
     def log_transition(
         self, robot_id: str, *, t_s: float, source: str, target: str, reason: str
     ) -> None:
         """A state-machine transition as a text log line."""
+
         def job() -> None:
             rr = _rr()
             self._rec.set_time("sim_time", duration=t_s)
@@ -250,11 +263,14 @@ class Telemetry:
 
     def log_truth(self, robot_id: str, *, t_s: float, pose: Pose2D) -> None:
         """Ground truth from the world."""
+
         def job() -> None:
             rr = _rr()
             self._rec.set_time("sim_time", duration=t_s)
-            self._rec.log(f"world/truth/{robot_id}",
-                          rr.Points2D([(pose.x_m, pose.y_m)], radii=0.05, colors=[(0, 0, 0)]))
+            self._rec.log(
+                f"world/truth/{robot_id}",
+                rr.Points2D([(pose.x_m, pose.y_m)], radii=0.05, colors=[(0, 0, 0)]),
+            )
 
         self._submit(job)
 
@@ -281,9 +297,12 @@ class Telemetry:
         heading = 0.4 * np.column_stack([np.cos(theta_rad), np.sin(theta_rad)])
         self._columns(f"{base}/heading", t_s, {"arrows": (heading, np.column_stack([x_m, y_m]))})
         scalars = {
-            "cmd/v_mps": cmd_v, "cmd/omega_degps": np.degrees(cmd_omega),
-            "measured/v_mps": meas_v, "measured/omega_degps": np.degrees(meas_omega),
-            "errors/linear_pct": linear_pct, "errors/angular_pct": angular_pct,
+            "cmd/v_mps": cmd_v,
+            "cmd/omega_degps": np.degrees(cmd_omega),
+            "measured/v_mps": meas_v,
+            "measured/omega_degps": np.degrees(meas_omega),
+            "errors/linear_pct": linear_pct,
+            "errors/angular_pct": angular_pct,
             "errors/orientation_deg": orientation_deg,
         }
         for name, values in scalars.items():
@@ -291,13 +310,17 @@ class Telemetry:
                 continue
             self._columns(f"{base}/{name}", t_s, {"scalars": values})
         trail = np.column_stack([x_m, y_m])
-        self._submit(lambda: self._rec.log(f"{base}/trail", _rr().LineStrips2D([trail]), static=True))
+        self._submit(
+            lambda: self._rec.log(f"{base}/trail", _rr().LineStrips2D([trail]), static=True)
+        )
 
     def _columns(self, path: str, t_s: FloatArray, data: dict[str, Any]) -> None:
         def job() -> None:
             rr = _rr()
-            times = [rr.TimeColumn("sim_time", duration=t_s),
-                     rr.TimeColumn("step", sequence=np.arange(len(t_s)))]
+            times = [
+                rr.TimeColumn("sim_time", duration=t_s),
+                rr.TimeColumn("step", sequence=np.arange(len(t_s))),
+            ]
             if "scalars" in data:
                 columns = rr.Scalars.columns(scalars=data["scalars"])
             elif "points" in data:
@@ -335,12 +358,16 @@ class Telemetry:
         return self
 
     def __exit__(
-        self, exc_type: type[BaseException] | None, exc: BaseException | None,
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
         tb: TracebackType | None,
     ) -> None:
         self.close()
 
 
 def _circle_outline(x: float, y: float, r: float, n: int = 32) -> list[tuple[float, float]]:
-    return [(x + r * math.cos(2 * math.pi * k / n), y + r * math.sin(2 * math.pi * k / n))
-            for k in range(n + 1)]
+    return [
+        (x + r * math.cos(2 * math.pi * k / n), y + r * math.sin(2 * math.pi * k / n))
+        for k in range(n + 1)
+    ]

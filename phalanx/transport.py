@@ -15,6 +15,7 @@ structures (Zenoh documents blocking in a callback as a deadlock risk).
 
 from __future__ import annotations
 
+import contextlib
 import json
 import re
 import socket
@@ -187,7 +188,9 @@ class FleetSession:
 
         congestion = zenoh.CongestionControl.BLOCK if block else zenoh.CongestionControl.DROP
         publisher = self._session.declare_publisher(
-            key, express=True, congestion_control=congestion,
+            key,
+            express=True,
+            congestion_control=congestion,
             priority=zenoh.Priority.REAL_TIME,
         )
         self._publishers[key] = publisher
@@ -225,6 +228,7 @@ class FleetSession:
 
     def serve_status(self, key: str, status: Callable[[], dict[str, Any]]) -> None:
         """Answer queries on `key` with `status()` as JSON."""
+
         def callback(query: Any) -> None:
             query.reply(key, json.dumps(status()).encode("utf-8"))
 
@@ -255,17 +259,17 @@ class FleetSession:
         return self
 
     def __exit__(
-        self, exc_type: type[BaseException] | None, exc: BaseException | None,
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
         tb: TracebackType | None,
     ) -> None:
         self.close()
 
 
 def _quietly(action: Callable[[], object]) -> None:
-    try:
+    with contextlib.suppress(Exception):  # already gone during shutdown is fine
         action()
-    except Exception:  # noqa: BLE001, S110 - already gone during shutdown is fine
-        pass
 
 
 def _open_with_retry(cfg: TransportConfig) -> Any:
@@ -277,7 +281,7 @@ def _open_with_retry(cfg: TransportConfig) -> Any:
     while True:
         try:
             return zenoh.open(zenoh_config(cfg))
-        except Exception as exc:  # zenoh raises its own ZError  # noqa: BLE001
+        except Exception as exc:  # zenoh raises its own ZError
             if time.monotonic() + delay_s > deadline:
                 raise TransportError(f"cannot open a Zenoh session with {cfg}: {exc}") from exc
             time.sleep(delay_s)

@@ -108,7 +108,7 @@ class BatchRunner:
         self.agents = build_agents(scenario, self.robot, self.formation)
         self.steps = round(scenario.duration_s * scenario.control_rate_hz)
         self.delay_ticks = max(1, round(scenario.comm_delay_s * scenario.control_rate_hz))
-        self.t_s = np.arange(self.steps) * scenario.dt_s
+        self.t_s = np.arange(self.steps, dtype=np.float64) * scenario.dt_s
         self.traces = {rid: RobotTrace.empty(self.steps) for rid in self.agents}
         self._published: deque[dict[str, RobotState]] = deque(maxlen=self.delay_ticks)
 

@@ -49,7 +49,11 @@ def _polygon_edges(world: WorldConfig) -> _Edges:
     for i, poly in enumerate(world.polygons):
         pts = poly.vertices_m
         for (x0, y0), (x1, y1) in zip(pts, pts[1:] + pts[:1], strict=True):
-            ax.append(x0), ay.append(y0), bx.append(x1), by.append(y1), owner.append(i)
+            ax.append(x0)
+            ay.append(y0)
+            bx.append(x1)
+            by.append(y1)
+            owner.append(i)
     arr = np.array
     return _Edges(
         arr(ax, float), arr(ay, float), arr(bx, float), arr(by, float), arr(owner, dtype=np.intp)
@@ -301,7 +305,7 @@ class World:
         np.minimum.at(per_unit, ring.unit_of_ray, hits)
         if self.noise.sonar_std_m > 0.0:
             per_unit = per_unit + self.rng.normal(0.0, self.noise.sonar_std_m, ring.units)
-        return np.clip(per_unit, ring.min_range_m, ring.max_range_m)
+        return np.asarray(np.clip(per_unit, ring.min_range_m, ring.max_range_m), dtype=np.float64)
 
     def _nearby_circles(self, i: int) -> tuple[FloatArray, FloatArray, FloatArray]:
         """Obstacle circles and other robots' discs within sonar reach of robot i."""

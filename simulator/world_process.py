@@ -58,7 +58,9 @@ class _Inbox:
     """What agents sent, filled by Zenoh callbacks (thread-safe via the condition)."""
 
     cond: threading.Condition = field(default_factory=threading.Condition)
-    commands: dict[int, dict[str, VelocityCommand]] = field(default_factory=lambda: defaultdict(dict))
+    commands: dict[int, dict[str, VelocityCommand]] = field(
+        default_factory=lambda: defaultdict(dict)
+    )
     latest: dict[str, VelocityCommand] = field(default_factory=dict)
     states: dict[str, dict[int, RobotState]] = field(default_factory=lambda: defaultdict(dict))
     events: list[AgentEvent] = field(default_factory=list)
@@ -75,7 +77,7 @@ class WorldProcess:
         self.formation = scenario_formation(scenario)
         self.ids = tuple(r.id for r in scenario.robots)
         self.steps = round(scenario.duration_s * scenario.control_rate_hz)
-        self.t_s = np.arange(self.steps) * scenario.dt_s
+        self.t_s = np.arange(self.steps, dtype=np.float64) * scenario.dt_s
         self.traces = {rid: RobotTrace.empty(self.steps) for rid in self.ids}
         self.inbox = _Inbox()
         self.missed: dict[str, int] = dict.fromkeys(self.ids, 0)
@@ -101,7 +103,9 @@ class WorldProcess:
         session.declare_alive(alive_key(fleet, WORLD_ID))
         session.subscribe(robots_key(fleet, "cmd"), VelocityCommand, self._on_command)
         session.subscribe(robots_key(fleet, "state"), RobotState, self._on_state)
-        session.subscribe(robots_key(fleet, "event"), AgentEvent, lambda _k, e: self._put(box.events.append, e))
+        session.subscribe(
+            robots_key(fleet, "event"), AgentEvent, lambda _k, e: self._put(box.events.append, e)
+        )
         session.subscribe(robots_key(fleet, "report"), AgentReport, self._on_report)
         session.watch_alive(f"phalanx/{fleet}/alive/*", self._on_alive)
         session.serve_status(status_key(fleet, WORLD_ID), self._status)
@@ -145,28 +149,39 @@ class WorldProcess:
         deadline = time.monotonic() + self.options.startup_timeout_s
         with self.inbox.cond:
             while not set(self.ids) <= self.inbox.alive and not stop.is_set():
-                if not self.inbox.cond.wait(min(0.2, max(0.0, deadline - time.monotonic()))):
-                    if time.monotonic() > deadline:
-                        missing = sorted(set(self.ids) - self.inbox.alive)
-                        log.warning("starting without %s", missing)
-                        return
+                self.inbox.cond.wait(min(0.2, max(0.0, deadline - time.monotonic())))
+                if time.monotonic() > deadline:
+                    missing = sorted(set(self.ids) - self.inbox.alive)
+                    log.warning("starting without %s", missing)
+                    return
         time.sleep(0.2)  # let the agents' subscriptions reach the world's publications
 
     def _frame(self, rid: str, k: int, final: bool = False) -> SenseFrame:
         odo, status = self.world.odometry(rid), self.world.status(rid)
         return SenseFrame(
-            robot_id=rid, tick=k, t_s=float(k * self.scenario.dt_s), dt_s=self.scenario.dt_s,
-            x_m=odo.pose.x_m, y_m=odo.pose.y_m, theta_rad=odo.pose.theta_rad,
-            v_mps=odo.twist.v_mps, omega_radps=odo.twist.omega_radps,
-            sonar_ranges_m=status.sonar_ranges_m, bumpers=status.bumpers, final=final,
+            robot_id=rid,
+            tick=k,
+            t_s=float(k * self.scenario.dt_s),
+            dt_s=self.scenario.dt_s,
+            x_m=odo.pose.x_m,
+            y_m=odo.pose.y_m,
+            theta_rad=odo.pose.theta_rad,
+            v_mps=odo.twist.v_mps,
+            omega_radps=odo.twist.omega_radps,
+            sonar_ranges_m=status.sonar_ranges_m,
+            bumpers=status.bumpers,
+            final=final,
         )
 
     def _tick(self, session: FleetSession, k: int) -> None:
         self.tick = k
         started = time.monotonic()
         for rid in self.ids:
-            session.publish(robot_key(self.options.fleet, rid, "sense"), self._frame(rid, k),
-                            reliable_block=True)
+            session.publish(
+                robot_key(self.options.fleet, rid, "sense"),
+                self._frame(rid, k),
+                reliable_block=True,
+            )
         if self.options.clock == "lockstep":
             self._await_commands(k)
         else:
@@ -213,8 +228,11 @@ class WorldProcess:
 
     def _finish(self, session: FleetSession) -> None:
         for rid in self.ids:
-            session.publish(robot_key(self.options.fleet, rid, "sense"),
-                            self._frame(rid, self.tick, final=True), reliable_block=True)
+            session.publish(
+                robot_key(self.options.fleet, rid, "sense"),
+                self._frame(rid, self.tick, final=True),
+                reliable_block=True,
+            )
         deadline = time.monotonic() + self.options.report_timeout_s
         with self.inbox.cond:
             self.inbox.cond.wait_for(
@@ -229,8 +247,13 @@ class WorldProcess:
         for e in sorted(self.inbox.events, key=lambda e: e.t_s):
             events[e.robot_id].append(TransitionEvent(e.t_s, e.source, e.target, e.reason))
         return RunLog(
-            scenario=self.scenario, robot=self.robot, formation=self.formation, t_s=self.t_s,
-            traces=self.traces, transitions=events, collisions=list(self.world.collisions),
+            scenario=self.scenario,
+            robot=self.robot,
+            formation=self.formation,
+            t_s=self.t_s,
+            traces=self.traces,
+            transitions=events,
+            collisions=list(self.world.collisions),
             saturations={r: reports[r].saturations if r in reports else 0 for r in self.ids},
             accel_limited={r: reports[r].accel_limited if r in reports else 0 for r in self.ids},
             wall_time_s=self.wall_time_s,

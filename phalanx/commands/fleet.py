@@ -6,7 +6,7 @@ import logging
 import signal
 import threading
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated
+from typing import TYPE_CHECKING, Annotated, Literal
 
 import typer
 
@@ -14,11 +14,17 @@ if TYPE_CHECKING:
     from phalanx.config import Scenario
     from phalanx.transport import TransportConfig
 
-ScenarioArg = Annotated[Path, typer.Argument(help="Scenario TOML file.", exists=True, dir_okay=False)]
+ScenarioArg = Annotated[
+    Path, typer.Argument(help="Scenario TOML file.", exists=True, dir_okay=False)
+]
 FleetOpt = Annotated[str, typer.Option(help="Fleet name: the Zenoh key prefix phalanx/<fleet>/.")]
 ClockOpt = Annotated[str, typer.Option(help="lockstep (deterministic, fast) or realtime.")]
-ListenOpt = Annotated[list[str] | None, typer.Option("--listen", help="Zenoh endpoint to listen on.")]
-ConnectOpt = Annotated[list[str] | None, typer.Option("--connect", help="Zenoh endpoint to connect to.")]
+ListenOpt = Annotated[
+    list[str] | None, typer.Option("--listen", help="Zenoh endpoint to listen on.")
+]
+ConnectOpt = Annotated[
+    list[str] | None, typer.Option("--connect", help="Zenoh endpoint to connect to.")
+]
 ModeOpt = Annotated[str, typer.Option(help="Zenoh mode: peer, client or router.")]
 SetOpt = Annotated[
     list[str] | None,
@@ -38,7 +44,7 @@ def _transport(mode: str, listen: list[str] | None, connect: list[str] | None) -
 
     if mode not in ("peer", "client", "router"):
         raise typer.BadParameter(f"expected peer, client or router, got {mode!r}")
-    return TransportConfig(mode=mode, listen=tuple(listen or ()), connect=tuple(connect or ()))  # type: ignore[arg-type]
+    return TransportConfig(mode=mode, listen=tuple(listen or ()), connect=tuple(connect or ()))
 
 
 def _stop_on_signals() -> threading.Event:
@@ -48,10 +54,12 @@ def _stop_on_signals() -> threading.Event:
     return stop
 
 
-def _clock(value: str) -> str:
-    if value not in ("lockstep", "realtime"):
-        raise typer.BadParameter(f"expected lockstep or realtime, got {value!r}")
-    return value
+def _clock(value: str) -> Literal["lockstep", "realtime"]:
+    if value == "lockstep":
+        return "lockstep"
+    if value == "realtime":
+        return "realtime"
+    raise typer.BadParameter(f"expected lockstep or realtime, got {value!r}")
 
 
 def agent(
@@ -68,6 +76,7 @@ def agent(
     """Run one robot's agent: Zenoh in, behaviour stack, command out."""
     from phalanx.agents.runtime import AgentRuntime, RuntimeOptions
     from phalanx.config import load_robot, load_scenario
+
     logging.basicConfig(level=logging.INFO, format=f"%(asctime)s {robot} %(levelname)s %(message)s")
     if driver != "sim":
         raise typer.BadParameter(f"driver {driver!r} is not available in this build; use sim")
@@ -75,11 +84,13 @@ def agent(
     if robot not in {r.id for r in config.robots}:
         raise typer.BadParameter(f"robot {robot!r} is not in {scenario}")
     transport = _transport(mode, listen, connect)
-    options = RuntimeOptions(fleet=fleet, transport=transport, clock=_clock(clock))  # type: ignore[arg-type]
+    options = RuntimeOptions(fleet=fleet, transport=transport, clock=_clock(clock))
     runtime = AgentRuntime(robot, config, load_robot(config.robot), options)
     report = runtime.run(_stop_on_signals())
-    typer.echo(f"{robot}: {report.steps} steps, {report.saturations} saturations, "
-               f"{report.dropped_messages} dropped messages")
+    typer.echo(
+        f"{robot}: {report.steps} steps, {report.saturations} saturations, "
+        f"{report.dropped_messages} dropped messages"
+    )
 
 
 def world(
@@ -103,7 +114,7 @@ def world(
     logging.basicConfig(level=logging.INFO, format="%(asctime)s world %(levelname)s %(message)s")
     config = _scenario(scenario, set_)
     transport = _transport(mode, listen, connect)
-    options = WorldOptions(fleet=fleet, transport=transport, clock=_clock(clock), speed=speed)  # type: ignore[arg-type]
+    options = WorldOptions(fleet=fleet, transport=transport, clock=_clock(clock), speed=speed)
     process = WorldProcess(config, load_robot(config.robot), options)
     run_log = process.run(_stop_on_signals())
     folder = out or Path("results") / f"{config.name}-{config.controller.kind}-up"
@@ -131,9 +142,16 @@ def up(
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s up %(levelname)s %(message)s")
     config = _scenario(scenario, set_)
-    options = UpOptions(fleet=fleet, clock=_clock(clock), speed=speed, out=out, restart=restart,
-                        timeout_s=timeout, recording=recording,
-                        overrides=tuple(f"--set={o}" for o in set_ or ()))
+    options = UpOptions(
+        fleet=fleet,
+        clock=_clock(clock),
+        speed=speed,
+        out=out,
+        restart=restart,
+        timeout_s=timeout,
+        recording=recording,
+        overrides=tuple(f"--set={o}" for o in set_ or ()),
+    )
     code = supervise(plan(scenario, config, options), options, _stop_on_signals())
     raise typer.Exit(code)
 

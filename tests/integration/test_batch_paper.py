@@ -31,7 +31,7 @@ def _run(formation: str, controller: str) -> tuple[RunLog, dict[str, Any]]:
 
 @pytest.mark.parametrize("formation", ["wedge", "inline", "collateral"])
 def test_ours_keeps_the_shape_backwards_within_the_issue_bounds(formation: str) -> None:
-    log, metrics = _run(formation, "ours")
+    _log, metrics = _run(formation, "ours")
     assert metrics["deadlock_reverses"] >= 1
     assert not metrics["collisions"]
     for follower in metrics["followers"].values():

@@ -55,9 +55,22 @@ def test_up_reproduces_the_in_process_run(tmp_path: Path) -> None:
     peer states published one tick (100 ms) earlier, so they agree to rounding."""
     out = tmp_path / "up"
     proc = subprocess.run(
-        [*CLI, "up", str(WEDGE), "--out", str(out), "--fleet", "same", "--timeout", "120",
-         "--no-recording"],
-        capture_output=True, text=True, timeout=180, check=False,
+        [
+            *CLI,
+            "up",
+            str(WEDGE),
+            "--out",
+            str(out),
+            "--fleet",
+            "same",
+            "--timeout",
+            "120",
+            "--no-recording",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=180,
+        check=False,
     )
     assert proc.returncode == 0, proc.stderr[-2000:]
     multi = json.loads((out / "metrics.json").read_text())
@@ -75,21 +88,52 @@ def test_up_reproduces_the_in_process_run(tmp_path: Path) -> None:
     ]
 
 
-def _spawn_fleet(fleet: str, endpoint: str, clock: str, duration_s: float,
-                 procs: list[subprocess.Popen[bytes]], out: Path) -> None:
+def _spawn_fleet(
+    fleet: str,
+    endpoint: str,
+    clock: str,
+    duration_s: float,
+    procs: list[subprocess.Popen[bytes]],
+    out: Path,
+) -> None:
     scenario = WEDGE
     common = ["--fleet", fleet, "--clock", clock, "--set", f"duration_s={duration_s}"]
-    procs.append(subprocess.Popen(
-        [*CLI, "world", str(scenario), *common, "--listen", endpoint,
-         "--out", str(out), "--no-recording"],
-        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-    ))
+    procs.append(
+        subprocess.Popen(
+            [
+                *CLI,
+                "world",
+                str(scenario),
+                *common,
+                "--listen",
+                endpoint,
+                "--out",
+                str(out),
+                "--no-recording",
+            ],
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+        )
+    )
     for rid in ("r1", "r2", "r3"):
-        procs.append(subprocess.Popen(
-            [*CLI, "agent", str(scenario), "--robot", rid, *common,
-             "--mode", "client", "--connect", endpoint],
-            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-        ))
+        procs.append(
+            subprocess.Popen(
+                [
+                    *CLI,
+                    "agent",
+                    str(scenario),
+                    "--robot",
+                    rid,
+                    *common,
+                    "--mode",
+                    "client",
+                    "--connect",
+                    endpoint,
+                ],
+                stdout=subprocess.DEVNULL,
+                stderr=subprocess.DEVNULL,
+            )
+        )
 
 
 def _wait(predicate: object, timeout_s: float) -> bool:
@@ -115,9 +159,15 @@ def test_followers_stop_within_500_ms_of_a_killed_leader(
 
     with open_session(TransportConfig(mode="client", connect=(endpoint,))) as session:
         session.subscribe(robots_key("kill", "state"), RobotState, record)
-        tracking = _wait(lambda: all(
-            rid in seen and seen[rid][1].fsm_state == "FORMATION_TRACK" and seen[rid][1].stamp_s > 3
-            for rid in ("r2", "r3")), 40.0)
+        tracking = _wait(
+            lambda: all(
+                rid in seen
+                and seen[rid][1].fsm_state == "FORMATION_TRACK"
+                and seen[rid][1].stamp_s > 3
+                for rid in ("r2", "r3")
+            ),
+            40.0,
+        )
         assert tracking, f"followers never tracked: {seen}"
         leader = processes[1]
         leader.send_signal(signal.SIGKILL)
@@ -126,8 +176,9 @@ def test_followers_stop_within_500_ms_of_a_killed_leader(
 
         def stopped() -> bool:
             with lock:
-                return all(seen[r][1].fsm_state == "HOLD" and seen[r][0] > killed_at
-                           for r in ("r2", "r3"))
+                return all(
+                    seen[r][1].fsm_state == "HOLD" and seen[r][0] > killed_at for r in ("r2", "r3")
+                )
 
         assert _wait(stopped, 2.0), f"followers did not stop: {seen}"
         noticed_s = max(seen[r][0] for r in ("r2", "r3")) - killed_at
@@ -146,7 +197,14 @@ def test_malformed_payloads_on_every_key_are_counted_and_ignored(
     _spawn_fleet("junk", endpoint, "realtime", 20.0, processes, out)
     with open_session(TransportConfig(mode="client", connect=(endpoint,))) as session:
         assert _wait(lambda: len(session.query_status("phalanx/junk/status/*", 1.0)) >= 4, 40.0)
-        garbage = [b"", b"\x00", b"\x01\x01\xff", b"{not json", b'{"version": 99}', bytes(range(256))]
+        garbage = [
+            b"",
+            b"\x00",
+            b"\x01\x01\xff",
+            b"{not json",
+            b'{"version": 99}',
+            bytes(range(256)),
+        ]
         for rid in ("r1", "r2", "r3"):
             for topic in ("state", "sense", "cmd", "event", "report"):
                 for payload in garbage:
@@ -161,6 +219,6 @@ def test_malformed_payloads_on_every_key_are_counted_and_ignored(
     for status in agents:
         decode = status["decode"]
         assert isinstance(decode, dict)
-        assert sum(decode["malformed"].values()) + sum(decode["unknown_version"].values()) >= len(garbage)
-
-
+        assert sum(decode["malformed"].values()) + sum(decode["unknown_version"].values()) >= len(
+            garbage
+        )

@@ -91,8 +91,14 @@ def test_on_slot_under_rigid_feed_forward_stays_on_slot(
     st.floats(-math.radians(20.0), math.radians(20.0)),
 )
 def test_ours_converges_from_offsets_both_ways(
-    speed: float, yaw: float, l_m: float, phi: float, direction: int,
-    offset_m: float, offset_dir: float, heading_off: float,
+    speed: float,
+    yaw: float,
+    l_m: float,
+    phi: float,
+    direction: int,
+    offset_m: float,
+    offset_dir: float,
+    heading_off: float,
 ) -> None:
     """From 0.3-0.5 m and up to 20 deg off, ours settles within the issue's bounds, with
     the leader's state 100 ms old, control at 10 Hz and the paper's limits in the loop."""
@@ -109,8 +115,13 @@ def test_ours_converges_from_offsets_both_ways(
     controller = OursController(gain_per_s=1.0, control_point_m=0.15)
     limiter = CommandLimiter(PAPER_LIMITS)
     leader, follower = _simulate(
-        controller, twist=twist, slot=slot, follower=start, seconds=60.0,
-        direction=direction, limiter=limiter,
+        controller,
+        twist=twist,
+        slot=slot,
+        follower=start,
+        seconds=60.0,
+        direction=direction,
+        limiter=limiter,
     )
     dx, dy = follower.x_m - leader.x_m, follower.y_m - leader.y_m
     body = Pose2D(0.0, 0.0, leader.theta_rad).to_body(Vec2(dx, dy))
@@ -165,8 +176,12 @@ def test_paper_icr_drifts_when_the_slot_has_a_longitudinal_offset() -> None:
     slot = polar_to_slot(1.0, math.radians(135.0))
     twist = Twist2D(0.15, math.radians(3.0))
     leader, follower = _simulate(
-        PaperIcr(), twist=twist, slot=slot, follower=Pose2D(slot.x_m, slot.y_m, 0.0),
-        seconds=30.0, direction=1,
+        PaperIcr(),
+        twist=twist,
+        slot=slot,
+        follower=Pose2D(slot.x_m, slot.y_m, 0.0),
+        seconds=30.0,
+        direction=1,
     )
     expected = leader.to_world(slot)
     assert math.hypot(follower.x_m - expected.x_m, follower.y_m - expected.y_m) > 0.3
@@ -178,8 +193,13 @@ def test_paper_tracking_converges_forwards_and_jackknifes_backwards() -> None:
     tracking = PaperTracking(k1=0.6, k2=0.6, h_m=0.2)
     for direction in (1, -1):
         leader, follower = _simulate(
-            tracking, twist=Twist2D(0.15 * direction, 0.0), slot=slot, follower=start,
-            seconds=60.0, direction=direction, delay_steps=0,
+            tracking,
+            twist=Twist2D(0.15 * direction, 0.0),
+            slot=slot,
+            follower=start,
+            seconds=60.0,
+            direction=direction,
+            delay_steps=0,
             limiter=CommandLimiter(PAPER_LIMITS),
         )
         heading_error = math.degrees(abs(wrap_angle(follower.theta_rad - leader.theta_rad)))
@@ -202,15 +222,26 @@ def test_limiter_keeps_curvature_and_counts() -> None:
 
 @settings(max_examples=60, deadline=None)
 @given(
-    st.floats(-1e3, 1e3), st.floats(-1e3, 1e3), st.floats(-10, 10), st.floats(-5, 5),
-    st.floats(-5, 5), st.floats(0.0, 2.0), directions,
+    st.floats(-1e3, 1e3),
+    st.floats(-1e3, 1e3),
+    st.floats(-10, 10),
+    st.floats(-5, 5),
+    st.floats(-5, 5),
+    st.floats(0.0, 2.0),
+    directions,
 )
 def test_ours_is_finite_for_any_finite_input(
     x: float, y: float, th: float, v: float, w: float, age: float, direction: int
 ) -> None:
     inp = FollowerInput(
-        Pose2D(x, y, th), Twist2D(0.0, 0.0), Pose2D(0.0, 0.0, 0.0), Twist2D(v, w), age,
-        Vec2(-1.0, 0.5), direction, DT_S,
+        Pose2D(x, y, th),
+        Twist2D(0.0, 0.0),
+        Pose2D(0.0, 0.0, 0.0),
+        Twist2D(v, w),
+        age,
+        Vec2(-1.0, 0.5),
+        direction,
+        DT_S,
     )
     cmd = OursController(gain_per_s=1.0, control_point_m=0.15).command(inp)
     assert math.isfinite(cmd.v_mps)

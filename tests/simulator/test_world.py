@@ -145,8 +145,9 @@ def test_truth_matches_unicycle_integration() -> None:
 @given(st.floats(-0.3, 0.3), st.floats(-1.0, 1.0), st.floats(-1.0, 1.0))
 def test_never_ends_inside_an_obstacle(v: float, w: float, y0: float) -> None:
     pole = CircleObstacle(x_m=1.0, y_m=0.0, radius_m=0.4)
-    world = World(robot=ROBOT, world=WorldConfig(circles=(pole,), polygons=(WALL_AHEAD,)),
-                  noise=NoiseConfig())
+    world = World(
+        robot=ROBOT, world=WorldConfig(circles=(pole,), polygons=(WALL_AHEAD,)), noise=NoiseConfig()
+    )
     world.add_robot("a", Pose2D(-0.5, y0, 0.0))
     for _ in range(100):
         world.step({"a": Twist2D(v if v > 0 else 0.3, w)}, 0.1)

@@ -2,10 +2,15 @@ from pathlib import Path
 
 import pytest
 
-from phalanx.config import Scenario, apply_overrides, load_robot, load_scenario, validate_data
+from phalanx.config import (
+    CONFIG_ROOT,
+    Scenario,
+    apply_overrides,
+    load_robot,
+    load_scenario,
+    validate_data,
+)
 from phalanx.errors import ConfigError
-
-from phalanx.config import CONFIG_ROOT
 
 SCENARIOS = CONFIG_ROOT / "scenarios"
 
@@ -74,7 +79,7 @@ def test_overrides_apply_and_validate() -> None:
     changed = apply_overrides(scenario, ["controller.kind=icr", "noise.sonar_std_m=0.02"])
     assert changed.controller.kind == "icr"
     assert changed.noise.sonar_std_m == pytest.approx(0.02)
-    with pytest.raises(ConfigError, match="controller.kind"):
+    with pytest.raises(ConfigError, match=r"controller\.kind"):
         apply_overrides(scenario, ["controller.kind=fancy"])
     with pytest.raises(ConfigError, match="no field"):
         apply_overrides(scenario, ["nothing.here=1"])

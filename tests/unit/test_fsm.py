@@ -25,9 +25,11 @@ def test_priority_entry_exit_and_log() -> None:
     )
     assert fsm.update(Ctx(0), 0.0) is None
     event = fsm.update(Ctx(7), 1.0)
-    assert event is not None and (event.source, event.target, event.reason) == ("A", "C", "x large")
+    assert event is not None
+    assert (event.source, event.target, event.reason) == ("A", "C", "x large")
     assert calls == ["exit A", "enter C"]
-    assert fsm.update(Ctx(-1), 2.0) is not None and fsm.state == "A"
+    assert fsm.update(Ctx(-1), 2.0) is not None
+    assert fsm.state == "A"
     assert fsm.update(Ctx(-1), 3.0) is None  # "*" never re-enters the state it is in
     assert [e.t_s for e in fsm.log] == [1.0, 2.0]
     assert fsm.states == ("A", "B", "C")
@@ -37,11 +39,13 @@ def test_follower_switches_on_leader_velocity_with_hysteresis() -> None:
     b = FollowerBehaviour(threshold_mps=0.02)
     b.observe(leader_v_mps=0.15, leader_direction=1, leader_fresh=True)
     b.update(0.0)
-    assert b.fsm.state == State.FORMATION_TRACK and b.direction == 1
+    assert b.fsm.state == State.FORMATION_TRACK
+    assert b.direction == 1
     b.observe(leader_v_mps=-0.01, leader_direction=-1, leader_fresh=True)
     assert b.update(1.0) is None  # inside the band: no chatter
     b.observe(leader_v_mps=-0.05, leader_direction=-1, leader_fresh=True)
-    assert b.update(2.0) is not None and b.fsm.state == State.FORMATION_REVERSE
+    assert b.update(2.0) is not None
+    assert b.fsm.state == State.FORMATION_REVERSE
     assert b.direction == -1
     b.observe(leader_v_mps=0.05, leader_direction=1, leader_fresh=True)
     b.update(3.0)
@@ -56,7 +60,9 @@ def test_follower_holds_when_the_leader_goes_stale_and_resumes() -> None:
     assert b.fsm.state == State.FORMATION_REVERSE
     b.observe(leader_v_mps=-0.1, leader_direction=-1, leader_fresh=False)
     event = b.update(0.2)
-    assert event is not None and event.target == State.HOLD and "stale" in event.reason
+    assert event is not None
+    assert event.target == State.HOLD
+    assert "stale" in event.reason
     b.observe(leader_v_mps=-0.1, leader_direction=-1, leader_fresh=True)
     b.update(0.3)
     assert b.fsm.state == State.FORMATION_REVERSE
@@ -84,7 +90,8 @@ def test_leader_reverses_a_safe_distance_when_everyone_is_blocked() -> None:
     b.observe(blocked=("r1",), everyone_blocked=False, odometry_step_m=0.0)
     assert b.update(0.0) is None
     b.observe(blocked=("r1", "r2"), everyone_blocked=True, odometry_step_m=0.0)
-    assert b.update(0.1) is not None and b.direction == -1
+    assert b.update(0.1) is not None
+    assert b.direction == -1
     assert b.wanted_twist(0.1).v_mps == -0.1
     t = 0.1
     while b.fsm.state == State.DEADLOCK_REVERSE and t < 20.0:
