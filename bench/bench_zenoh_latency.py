@@ -1,0 +1,151 @@
+"""Leader state published -> follower command computed, between processes over Zenoh.
+
+Every robot is its own process (spawned, never forked: Zenoh runs threads). Each one
+publishes its RobotState on its own 20 Hz timer with a random phase, as free-running
+agents do; each follower subscribes to its own leader in a grid formation (rows chained
+behind the root) and, on every state received, runs the real agent core's step and
+publishes its command. Latency = command computed (follower) - state stamped (leader),
+both read from CLOCK_MONOTONIC, one clock for every process on this machine.
+
+Two topologies: every process a Zenoh client of one router (as `phalanx up` runs), and
+peers connected directly (each listens on its own loopback port and connects to the
+others). Scouting is off in both.
+
+    .venv/bin/python bench/bench_zenoh_latency.py [--robots 3 10 30] [--seconds 10]
+"""
+
+from __future__ import annotations
+
+import argparse
+import multiprocessing as mp
+import queue
+import random
+import statistics
+import time
+from typing import Any
+
+from phalanx.agents.core import Agent, Observation
+from phalanx.config import CONFIG_ROOT, Scenario, apply_overrides, load_robot, load_scenario
+from phalanx.drivers.base import Odometry, RobotStatus
+from phalanx.formation import scenario_formation
+from phalanx.geometry import Pose2D, Twist2D
+from phalanx.messages import RobotState, VelocityCommand
+from phalanx.scenarios import grid_scenario
+from phalanx.transport import (
+    TransportConfig,
+    free_tcp_port,
+    loopback_endpoint,
+    open_session,
+    robot_key,
+)
+
+RATE_HZ = 20.0
+WARMUP_S = 1.0  # connection set-up and first-call costs are not steady state
+FLEET = "bench"
+
+
+def _scenario(n: int) -> Scenario:
+    base = load_scenario(CONFIG_ROOT / "scenarios" / "paper_wedge.toml")
+    return apply_overrides(grid_scenario(base, n), ["leader_timeout_s=1e9"])
+
+
+def robot(
+    cfg: TransportConfig, rid: str, n: int, seconds: float, ready: Any, out: Any
+) -> None:
+    """One robot: publish own state at RATE_HZ, step on every leader state received."""
+    scenario = _scenario(n)
+    formation = scenario_formation(scenario)
+    agent = Agent(rid, scenario=scenario, robot=load_robot("p3dx"), formation=formation)
+    leader_id = formation.leader_of(rid)
+    here = formation.positions[rid]
+    inbox: queue.SimpleQueue[RobotState] = queue.SimpleQueue()
+    latencies: list[float] = []
+    state = RobotState(robot_id=rid, seq=0, stamp_s=0.0, x_m=here.x_m, y_m=here.y_m,
+                       theta_rad=0.0, v_mps=0.15, omega_radps=0.0, fsm_state="NAVIGATE")
+    with open_session(cfg) as session:
+        if leader_id is not None:
+            session.subscribe(robot_key(FLEET, leader_id, "state"), RobotState,
+                              lambda _k, m: inbox.put(m))
+        ready.wait()
+        start = time.monotonic()
+        next_pub = start + random.random() / RATE_HZ
+        end = start + WARMUP_S + seconds
+        seq = 0
+        while (now := time.monotonic()) < end:
+            if now >= next_pub:
+                seq += 1
+                state = state.model_copy(update={"seq": seq, "stamp_s": now})
+                session.publish(robot_key(FLEET, rid, "state"), state)
+                next_pub += 1.0 / RATE_HZ
+                continue
+            try:
+                lead = inbox.get(timeout=max(0.0, next_pub - time.monotonic()))
+            except queue.Empty:
+                continue
+            got = time.monotonic()
+            odo = Odometry(Pose2D(here.x_m, here.y_m, 0.0), Twist2D(0.15, 0.0), got)
+            status = RobotStatus(sonar_ranges_m=(5.0,) * 16)
+            result = agent.step(Observation(odo, status), {lead.robot_id: lead}, got)
+            done = time.monotonic()
+            session.publish(robot_key(FLEET, rid, "cmd"), VelocityCommand(
+                robot_id=rid, tick=seq, stamp_s=done,
+                v_mps=result.command.v_mps, omega_radps=result.command.omega_radps))
+            if got - start > WARMUP_S:
+                latencies.append(done - lead.stamp_s)
+    out.put(latencies)
+
+
+def _configs(n: int, topology: str) -> tuple[TransportConfig | None, list[TransportConfig]]:
+    if topology == "router":
+        endpoint = loopback_endpoint(free_tcp_port())
+        client = TransportConfig(mode="client", connect=(endpoint,))
+        return TransportConfig(mode="router", listen=(endpoint,)), [client] * n
+    eps = [loopback_endpoint(free_tcp_port()) for _ in range(n)]
+    # Peer i connects to every earlier peer: a full mesh with one link per pair.
+    return None, [
+        TransportConfig(mode="peer", listen=(eps[i],), connect=tuple(eps[:i])) for i in range(n)
+    ]
+
+
+def measure(n: int, seconds: float, topology: str) -> list[float]:
+    """Latencies (s) of every follower command in an `n`-robot fleet."""
+    router_cfg, cfgs = _configs(n, topology)
+    ctx = mp.get_context("spawn")
+    ready = ctx.Barrier(n)
+    out = ctx.Queue()
+    router = open_session(router_cfg) if router_cfg else None
+    try:
+        procs = [
+            ctx.Process(target=robot, args=(cfgs[i], f"g{i}", n, seconds, ready, out))
+            for i in range(n)
+        ]
+        for p in procs:
+            p.start()
+        results = [out.get(timeout=seconds + 120) for _ in range(n)]
+        for p in procs:
+            p.join(30)
+    finally:
+        if router is not None:
+            router.close()
+    return [x for r in results for x in r]
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser()
+    parser.add_argument("--robots", type=int, nargs="+", default=[3, 10, 30])
+    parser.add_argument("--seconds", type=float, default=10.0)
+    parser.add_argument("--topology", nargs="+", default=["router", "peer"],
+                        choices=["router", "peer"])
+    args = parser.parse_args()
+    print(f"leader state -> follower command over Zenoh, {RATE_HZ:.0f} Hz per robot, loopback")
+    print("topology  robots  samples  p50_ms  p90_ms  p99_ms  max_ms")
+    for topology in args.topology:
+        for n in args.robots:
+            lat = sorted(measure(n, args.seconds, topology))
+            q = statistics.quantiles(lat, n=100)
+            print(f"{topology:8s}  {n:6d}  {len(lat):7d}  {1e3 * q[49]:6.3f}  "
+                  f"{1e3 * q[89]:6.3f}  {1e3 * q[98]:6.3f}  {1e3 * lat[-1]:6.3f}", flush=True)
+
+
+if __name__ == "__main__":
+    main()
