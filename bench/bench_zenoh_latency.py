@@ -49,9 +49,7 @@ def _scenario(n: int) -> Scenario:
     return apply_overrides(grid_scenario(base, n), ["leader_timeout_s=1e9"])
 
 
-def robot(
-    cfg: TransportConfig, rid: str, n: int, seconds: float, ready: Any, out: Any
-) -> None:
+def robot(cfg: TransportConfig, rid: str, n: int, seconds: float, ready: Any, out: Any) -> None:
     """One robot: publish own state at RATE_HZ, step on every leader state received."""
     scenario = _scenario(n)
     formation = scenario_formation(scenario)
@@ -60,12 +58,22 @@ def robot(
     here = formation.positions[rid]
     inbox: queue.SimpleQueue[RobotState] = queue.SimpleQueue()
     latencies: list[float] = []
-    state = RobotState(robot_id=rid, seq=0, stamp_s=0.0, x_m=here.x_m, y_m=here.y_m,
-                       theta_rad=0.0, v_mps=0.15, omega_radps=0.0, fsm_state="NAVIGATE")
+    state = RobotState(
+        robot_id=rid,
+        seq=0,
+        stamp_s=0.0,
+        x_m=here.x_m,
+        y_m=here.y_m,
+        theta_rad=0.0,
+        v_mps=0.15,
+        omega_radps=0.0,
+        fsm_state="NAVIGATE",
+    )
     with open_session(cfg) as session:
         if leader_id is not None:
-            session.subscribe(robot_key(FLEET, leader_id, "state"), RobotState,
-                              lambda _k, m: inbox.put(m))
+            session.subscribe(
+                robot_key(FLEET, leader_id, "state"), RobotState, lambda _k, m: inbox.put(m)
+            )
         ready.wait()
         start = time.monotonic()
         next_pub = start + random.random() / RATE_HZ
@@ -87,9 +95,16 @@ def robot(
             status = RobotStatus(sonar_ranges_m=(5.0,) * 16)
             result = agent.step(Observation(odo, status), {lead.robot_id: lead}, got)
             done = time.monotonic()
-            session.publish(robot_key(FLEET, rid, "cmd"), VelocityCommand(
-                robot_id=rid, tick=seq, stamp_s=done,
-                v_mps=result.command.v_mps, omega_radps=result.command.omega_radps))
+            session.publish(
+                robot_key(FLEET, rid, "cmd"),
+                VelocityCommand(
+                    robot_id=rid,
+                    tick=seq,
+                    stamp_s=done,
+                    v_mps=result.command.v_mps,
+                    omega_radps=result.command.omega_radps,
+                ),
+            )
             if got - start > WARMUP_S:
                 latencies.append(done - lead.stamp_s)
     out.put(latencies)
@@ -134,8 +149,9 @@ def main() -> None:
     parser = argparse.ArgumentParser()
     parser.add_argument("--robots", type=int, nargs="+", default=[3, 10, 30])
     parser.add_argument("--seconds", type=float, default=10.0)
-    parser.add_argument("--topology", nargs="+", default=["router", "peer"],
-                        choices=["router", "peer"])
+    parser.add_argument(
+        "--topology", nargs="+", default=["router", "peer"], choices=["router", "peer"]
+    )
     args = parser.parse_args()
     print(f"leader state -> follower command over Zenoh, {RATE_HZ:.0f} Hz per robot, loopback")
     print("topology  robots  samples  p50_ms  p90_ms  p99_ms  max_ms")
@@ -143,8 +159,11 @@ def main() -> None:
         for n in args.robots:
             lat = sorted(measure(n, args.seconds, topology))
             q = statistics.quantiles(lat, n=100)
-            print(f"{topology:8s}  {n:6d}  {len(lat):7d}  {1e3 * q[49]:6.3f}  "
-                  f"{1e3 * q[89]:6.3f}  {1e3 * q[98]:6.3f}  {1e3 * lat[-1]:6.3f}", flush=True)
+            print(
+                f"{topology:8s}  {n:6d}  {len(lat):7d}  {1e3 * q[49]:6.3f}  "
+                f"{1e3 * q[89]:6.3f}  {1e3 * q[98]:6.3f}  {1e3 * lat[-1]:6.3f}",
+                flush=True,
+            )
 
 
 if __name__ == "__main__":

@@ -1,10 +1,12 @@
 """Wire encoding of the messages in `phalanx.messages`, and total decoding.
 
 Two forms: JSON (pydantic) and a packed binary form (1-byte message kind, 1-byte
-version, fields in a fixed order; strings and lists length-prefixed). `bench/bench_codec.py`
-measures both; the packed form is the default (see docs/PERFORMANCE.md for the figures:
-about a third of the bytes and several times faster to decode than JSON for a
-RobotState). JSON stays available for debugging (`PHALANX_WIRE=json`).
+version, the fixed-size fields in one block, then strings and lists, length-prefixed).
+`bench/bench_codec.py` measures both; the packed form is the default because it is
+40 % of the bytes of JSON for a RobotState, which is what counts on a robot's WiFi. It is
+about as fast to encode and a few microseconds slower to decode (figures in
+docs/PERFORMANCE.md), which is noise against a 50 ms control period. JSON stays
+available for debugging (`PHALANX_WIRE=json`).
 
 Decoding never raises: a malformed payload, an unknown kind or version, or a value that
 fails validation is dropped and counted in `DecodeStats`.
@@ -35,8 +37,10 @@ M = TypeVar("M", bound=Message)
 WireFormat = Literal["packed", "json"]
 JSON_MARK = ord("{")
 
-# (field name, kind) in wire order; kinds: s = string, d = float64, I = uint32, b = int8,
-# ? = bool, D = list of float64, B = list of bool. `version` is the header, not a field.
+# (field name, kind); on the wire every fixed-size field comes first, in this order, packed
+# by one Struct, then the strings and lists in this order. Kinds: s = string, d = float64,
+# I = uint32, b = int8, ? = bool, D = list of float64, B = list of bool. `version` is
+# the header, not a field.
 LAYOUTS: dict[type[Message], tuple[int, tuple[tuple[str, str], ...]]] = {
     RobotState: (
         1,
@@ -94,13 +98,31 @@ LAYOUTS: dict[type[Message], tuple[int, tuple[tuple[str, str], ...]]] = {
         ),
     ),
 }
-_SCALARS = {
-    "d": struct.Struct("<d"),
-    "I": struct.Struct("<I"),
-    "b": struct.Struct("<b"),
-    "?": struct.Struct("<?"),
-}
+_SCALAR_KINDS = frozenset("dIb?")
 _COUNT = struct.Struct("<H")
+
+
+@dataclass(frozen=True)
+class _Layout:
+    """A message's wire layout: every fixed-size field in one Struct, then the rest."""
+
+    kind_id: int
+    fixed_names: tuple[str, ...]
+    fixed: struct.Struct
+    variable: tuple[tuple[str, str], ...]  # (name, kind) of strings and lists, in order
+
+
+def _compile(kind_id: int, layout: tuple[tuple[str, str], ...]) -> _Layout:
+    fixed = [(n, k) for n, k in layout if k in _SCALAR_KINDS]
+    return _Layout(
+        kind_id=kind_id,
+        fixed_names=tuple(n for n, _ in fixed),
+        fixed=struct.Struct("<" + "".join(k for _, k in fixed)),
+        variable=tuple((n, k) for n, k in layout if k not in _SCALAR_KINDS),
+    )
+
+
+_COMPILED = {model: _compile(kind_id, layout) for model, (kind_id, layout) in LAYOUTS.items()}
 
 
 def default_format() -> WireFormat:
@@ -108,33 +130,29 @@ def default_format() -> WireFormat:
     return "json" if os.environ.get("PHALANX_WIRE") == "json" else "packed"
 
 
-def _pack_value(kind: str, value: Any, out: bytearray) -> None:
+def _pack_variable(kind: str, value: Any, out: bytearray) -> None:
     if kind == "s":
         raw = value.encode("utf-8")
-        out += _COUNT.pack(len(raw)) + raw
-    elif kind == "D":
-        out += _COUNT.pack(len(value)) + struct.pack(f"<{len(value)}d", *value)
-    elif kind == "B":
-        out += _COUNT.pack(len(value)) + struct.pack(f"<{len(value)}?", *value)
+        out += _COUNT.pack(len(raw))
+        out += raw
     else:
-        out += _SCALARS[kind].pack(value)
+        out += _COUNT.pack(len(value))
+        out += struct.pack(f"<{len(value)}{'d' if kind == 'D' else '?'}", *value)
 
 
 def encode(message: Message, fmt: WireFormat | None = None) -> bytes:
     """Bytes of `message` in the packed (default) or JSON form."""
     if (fmt or default_format()) == "json":
         return message.model_dump_json().encode("utf-8")
-    kind_id, layout = LAYOUTS[type(message)]
-    out = bytearray((kind_id, message.version))  # type: ignore[attr-defined]
-    for name, kind in layout:
-        _pack_value(kind, getattr(message, name), out)
+    wire = _COMPILED[type(message)]
+    out = bytearray((wire.kind_id, message.version))  # type: ignore[attr-defined]
+    out += wire.fixed.pack(*[getattr(message, n) for n in wire.fixed_names])
+    for name, kind in wire.variable:
+        _pack_variable(kind, getattr(message, name), out)
     return bytes(out)
 
 
-def _unpack_value(kind: str, payload: bytes, offset: int) -> tuple[Any, int]:
-    if kind in _SCALARS:
-        unpacker = _SCALARS[kind]
-        return unpacker.unpack_from(payload, offset)[0], offset + unpacker.size
+def _unpack_variable(kind: str, payload: bytes, offset: int) -> tuple[Any, int]:
     (count,) = _COUNT.unpack_from(payload, offset)
     offset += _COUNT.size
     if kind == "s":
@@ -148,15 +166,15 @@ def _unpack_value(kind: str, payload: bytes, offset: int) -> tuple[Any, int]:
 
 
 def _decode_packed(model: type[M], payload: bytes) -> M:
-    kind_id, layout = LAYOUTS[model]
-    if len(payload) < 2 or payload[0] != kind_id:
-        raise ValueError(f"expected message kind {kind_id}, got {payload[:1]!r}")
+    wire = _COMPILED[model]
+    if len(payload) < 2 or payload[0] != wire.kind_id:
+        raise ValueError(f"expected message kind {wire.kind_id}, got {payload[:1]!r}")
     if payload[1] != 1:
         raise _UnknownVersion(payload[1])
-    values: dict[str, Any] = {}
-    offset = 2
-    for name, kind in layout:
-        values[name], offset = _unpack_value(kind, payload, offset)
+    values = dict(zip(wire.fixed_names, wire.fixed.unpack_from(payload, 2), strict=True))
+    offset = 2 + wire.fixed.size
+    for name, kind in wire.variable:
+        values[name], offset = _unpack_variable(kind, payload, offset)
     if offset != len(payload):
         raise ValueError(f"{len(payload) - offset} trailing bytes")
     return model.model_validate(values)

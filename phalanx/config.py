@@ -8,6 +8,7 @@ closest valid name.
 from __future__ import annotations
 
 import difflib
+import json
 import math
 import tomllib
 from collections.abc import Mapping
@@ -324,13 +325,22 @@ def _describe(error: Mapping[str, Any], model: type[BaseModel]) -> str:
 
 
 def validate_file(model: type[M], path: Path) -> M:
-    """Read a TOML file into `model`, or raise ConfigError naming file, field and hint."""
+    """Read a TOML file (or JSON, as tools write it) into `model`.
+
+    Raises ConfigError naming the file, the field path and a hint.
+    """
     try:
-        data = tomllib.loads(path.read_text(encoding="utf-8"))
+        text = path.read_text(encoding="utf-8")
     except FileNotFoundError as exc:
         raise ConfigError(f"{path}: no such file") from exc
+    try:
+        data = json.loads(text) if path.suffix == ".json" else tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{path}: not valid TOML: {exc}") from exc
+    except json.JSONDecodeError as exc:
+        raise ConfigError(f"{path}: not valid JSON: {exc}") from exc
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}: expected a table at the top level")
     return validate_data(model, data, source=str(path))
 
 
@@ -352,7 +362,7 @@ def load_robot(name_or_path: str | Path) -> RobotParams:
 
 
 def load_scenario(path: str | Path) -> Scenario:
-    """Load a scenario TOML file."""
+    """Load a scenario file (TOML; JSON is accepted for generated scenarios)."""
     return validate_file(Scenario, Path(path))
 
 

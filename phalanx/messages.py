@@ -16,9 +16,13 @@ WIRE_VERSION: Final = 1
 
 
 class Message(BaseModel):
-    """Base of wire messages: frozen values, unknown fields rejected."""
+    """Base of wire messages: frozen values, unknown fields and NaN/inf rejected.
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    A non-finite number from a peer must never reach a controller: it would turn into a
+    non-finite wheel command. Such a payload fails validation and is dropped and counted.
+    """
+
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
 class RobotState(Message):

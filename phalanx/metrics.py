@@ -171,6 +171,7 @@ def run_metrics(log: RunLog) -> dict[str, Any]:
         "comm_delay_s": log.scenario.comm_delay_s,
         "wall_time_s": log.wall_time_s,
         "realtime_factor": log.scenario.duration_s / max(log.wall_time_s, 1e-9),
+        "runtime": log.runtime,
         "followers": {f: follower_metrics(log, f) for f in followers},
         "leader": {
             "id": root,

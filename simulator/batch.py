@@ -13,6 +13,7 @@ import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -68,6 +69,7 @@ class RunLog:
     saturations: dict[str, int]
     accel_limited: dict[str, int]
     wall_time_s: float = 0.0
+    runtime: dict[str, Any] = field(default_factory=dict)
 
 
 def _start_pose(scenario: Scenario, robot_id: str) -> Pose2D:

@@ -83,6 +83,9 @@ class WorldProcess:
         self.missed: dict[str, int] = dict.fromkeys(self.ids, 0)
         self.tick = 0
         self.wall_time_s = 0.0
+        self._sent_at: dict[int, float] = {}
+        self.response_s: list[float] = []  # frame published -> command received, per command
+        self.overruns = 0  # real time: ticks whose work outlasted the period
 
     def run(self, stop: threading.Event) -> RunLog:
         """Run the scenario to its end (or `stop`) and return the log."""
@@ -90,10 +93,19 @@ class WorldProcess:
             self._wire(session)
             self._await_agents(stop)
             started = time.perf_counter()
+            period_s = self.scenario.dt_s / self.options.speed
+            next_tick = time.monotonic()
             for k in range(self.steps):
                 if stop.is_set():
                     break
                 self._tick(session, k)
+                if self.options.clock == "realtime":
+                    next_tick += period_s
+                    slack = next_tick - time.monotonic()
+                    if slack < 0.0:
+                        self.overruns += 1
+                        next_tick = time.monotonic()  # do not try to catch up in a burst
+                    time.sleep(max(0.0, slack))
             self.wall_time_s = time.perf_counter() - started
             self._finish(session)
         return self._log()
@@ -118,7 +130,11 @@ class WorldProcess:
     def _on_command(self, key: str, cmd: VelocityCommand) -> None:
         if robot_of(key) != cmd.robot_id or cmd.robot_id not in self.traces:
             return  # a command must come from the robot it names
+        received = time.monotonic()
         with self.inbox.cond:
+            sent = self._sent_at.get(cmd.tick)
+            if sent is not None and cmd.robot_id not in self.inbox.commands[cmd.tick]:
+                self.response_s.append(received - sent)
             self.inbox.commands[cmd.tick][cmd.robot_id] = cmd
             self.inbox.latest[cmd.robot_id] = cmd
             self.inbox.cond.notify_all()
@@ -175,7 +191,9 @@ class WorldProcess:
 
     def _tick(self, session: FleetSession, k: int) -> None:
         self.tick = k
-        started = time.monotonic()
+        with self.inbox.cond:
+            self._sent_at[k] = time.monotonic()
+            self._sent_at.pop(k - 50, None)
         for rid in self.ids:
             session.publish(
                 robot_key(self.options.fleet, rid, "sense"),
@@ -184,9 +202,6 @@ class WorldProcess:
             )
         if self.options.clock == "lockstep":
             self._await_commands(k)
-        else:
-            period = self.scenario.dt_s / self.options.speed
-            time.sleep(max(0.0, period - (time.monotonic() - started)))
         commands = self._commands_for(k)
         self._record(k, commands)
         self.world.step(commands, self.scenario.dt_s)
@@ -257,7 +272,30 @@ class WorldProcess:
             saturations={r: reports[r].saturations if r in reports else 0 for r in self.ids},
             accel_limited={r: reports[r].accel_limited if r in reports else 0 for r in self.ids},
             wall_time_s=self.wall_time_s,
+            runtime=self._runtime(),
         )
+
+    def _runtime(self) -> dict[str, object]:
+        """Figures of the run as processes: response times, deadlines, reports."""
+        period_s = self.scenario.dt_s / self.options.speed
+        response = np.asarray(self.response_s, dtype=np.float64)
+        quantiles: list[float | None] = (
+            np.quantile(response, [0.5, 0.99]).tolist() if response.size else [None, None]
+        )
+        expected = (self.tick + 1) * len(self.ids)
+        return {
+            "clock": self.options.clock,
+            "period_s": period_s,
+            "response_p50_s": quantiles[0],
+            "response_p99_s": quantiles[1],
+            "response_max_s": float(response.max()) if response.size else None,
+            "commands_expected": expected,
+            "commands_received": int(response.size),
+            "commands_late": int(np.count_nonzero(response > period_s)),
+            "missed_deadlines": dict(self.missed),
+            "overruns": self.overruns,
+            "agents": {rid: r.model_dump() for rid, r in self.inbox.reports.items()},
+        }
 
     def _fill_states(self) -> None:
         for rid in self.ids:
