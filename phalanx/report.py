@@ -191,7 +191,8 @@ def results_markdown(
         "control at 10 Hz, the leader's state 100 ms old when a follower uses it, the "
         "paper's bounds |v| <= 0.3 m/s and |omega| <= 40 deg/s, followers starting "
         "0.36-0.45 m and 10-12 deg off their slots, every robot blocked at t = 100 s, "
-        "then a 4.5 m reverse in formation while the leader turns at 3 deg/s.",
+        "then a 4.5 m reverse in formation at 0.15 m/s without changing orientation "
+        "(the paper's section 4), then forwards again.",
         "",
         "Errors as the paper defines them: linear |l - l_d| / l_d, angular "
         "|phi - phi_d| / phi_d, orientation = follower heading against the heading a "
@@ -214,9 +215,33 @@ def results_markdown(
         "",
         WHY_TRACKING_FAILS,
         "",
+        "## Reading the other rows",
+        "",
+        *NOTES,
+        "",
     ]
     figs = ["## Figures (wedge)", "", *figures, ""]
     return "\n".join([*header, *body, *why, *figs])
+
+
+NOTES = [
+    "- **icr** (eq. 7 alone) is a geometric feed-forward: it gives each follower the "
+    "twist a rigid body would have, but has no feedback on the slot error, so the "
+    "followers' start offsets never decay and heading errors integrate into position "
+    "errors; it is meant to be switched in for the reverse phase only, as the paper does.",
+    "- **reverse while turning** rows: the deadlock is triggered at t = 75 s, in the "
+    "middle of a 3 deg/s turn, and the leader retraces the arc it came along "
+    '(`deadlock.reverse_mode = "retrace"`). The paper\'s ICR relation drops the '
+    "along-track slot term, which only matters while the formation turns; the paper's "
+    "switching strategy breaks the shape there (and collides in the inline formation), "
+    "ours keeps the same bounds.",
+    "- **+ noise** rows: odometry noise (2 % of v, 0.01 rad/s of omega) and sonar noise "
+    "(2 cm). Each robot knows its pose only from its own dead reckoning, so the robots' "
+    "independent odometry drifts apart over 200 s and the separation measured on ground "
+    "truth grows with that drift (a few decimetres over the run). Bounding it needs "
+    "a shared position reference (external localisation, or relative sensing "
+    "of the leader), which the paper does not have either.",
+]
 
 
 def default_cases() -> list[Case]:

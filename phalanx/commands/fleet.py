@@ -75,12 +75,12 @@ def agent(
 ) -> None:
     """Run one robot's agent: Zenoh in, behaviour stack, command out."""
     from phalanx.agents.runtime import AgentRuntime, RuntimeOptions
-    from phalanx.config import load_robot, load_scenario
+    from phalanx.config import load_robot
 
     logging.basicConfig(level=logging.INFO, format=f"%(asctime)s {robot} %(levelname)s %(message)s")
     if driver != "sim":
         raise typer.BadParameter(f"driver {driver!r} is not available in this build; use sim")
-    config = load_scenario(scenario)
+    config = _scenario(scenario, set_)
     if robot not in {r.id for r in config.robots}:
         raise typer.BadParameter(f"robot {robot!r} is not in {scenario}")
     transport = _transport(mode, listen, connect)

@@ -145,7 +145,7 @@ def _wait(predicate: object, timeout_s: float) -> bool:
     return False
 
 
-def test_followers_stop_within_500_ms_of_a_killed_leader(
+def test_followers_stop_within_500_ms_of_a_killed_leader_and_resume_on_rejoin(
     tmp_path: Path, processes: list[subprocess.Popen[bytes]]
 ) -> None:
     endpoint = loopback_endpoint(free_tcp_port())
@@ -187,6 +187,23 @@ def test_followers_stop_within_500_ms_of_a_killed_leader(
         with lock:
             # HOLD commands zero: within the decel limit the followers come to rest.
             assert all(abs(seen[r][1].v_mps) < 0.15 for r in ("r2", "r3"))
+
+        # The leader's process is started again: it rejoins and the followers track it.
+        processes.append(subprocess.Popen(leader.args, stdout=subprocess.DEVNULL))
+        restarted_at = time.monotonic()
+
+        def rejoined() -> bool:
+            with lock:
+                return (
+                    "r1" in seen
+                    and seen["r1"][0] > restarted_at
+                    and all(
+                        seen[r][1].fsm_state == "FORMATION_TRACK" and seen[r][0] > restarted_at
+                        for r in ("r2", "r3")
+                    )
+                )
+
+        assert _wait(rejoined, 30.0), f"the fleet did not resume after the restart: {seen}"
 
 
 def test_malformed_payloads_on_every_key_are_counted_and_ignored(
