@@ -17,7 +17,10 @@ SCENARIOS = REPO / "configs" / "scenarios"
 def _children() -> set[int]:
     pids: set[int] = set()
     for task in Path(f"/proc/{os.getpid()}/task").iterdir():
-        text = (task / "children").read_text().split()
+        try:
+            text = (task / "children").read_text().split()
+        except FileNotFoundError:
+            continue  # a thread that ended while we looked
         pids.update(int(p) for p in text)
     return pids
 

@@ -1,0 +1,487 @@
+"""The `arcos` backend: a Pioneer P3DX over its ARCOS client protocol, on a serial port
+(pyserial) or TCP (MobileSim convention, port 8101).
+
+Connection as ARIA does it (AriaCoda `src/ArRobot.cpp`, `ArRobotConnector`): SYNC0,
+SYNC1, SYNC2 (whose reply names the robot subtype, which selects the conversion
+factors), OPEN, PULSE, CONFIG (the robot's own velocity limits and watchdog), ENABLE 1,
+SONAR 1. A reader thread parses SIPs into odometry (15-bit position counters unwrapped),
+sonar, bumpers, battery and motor state; garbage, truncated frames and bad checksums are
+skipped and counted. Motion is VEL (mm/s) and RVEL (deg/s); PULSE keeps the firmware's
+watchdog fed when no command is due. A link that stops delivering SIPs is declared lost
+and reopened with back-off; motion must then be commanded again.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import math
+import socket
+import termios
+import threading
+import time
+from dataclasses import dataclass
+from typing import Protocol
+
+import serial
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+from phalanx.drivers.arcos_protocol import (
+    CONFIG_PAC,
+    SIP_MOVING,
+    SIP_STOPPED,
+    SYNC0,
+    SYNC1,
+    SYNC2,
+    Cmd,
+    ConvFactors,
+    FrameParser,
+    RobotConfig,
+    Sip,
+    command,
+    decode_config,
+    decode_sip,
+    factors_for,
+    parse_sync2,
+    wrap_delta,
+)
+from phalanx.drivers.base import Odometry, RobotStatus
+from phalanx.errors import DriverError, DriverTimeout, DriverUnavailable, ProtocolError
+from phalanx.geometry import Pose2D, Twist2D, wrap_angle
+
+log = logging.getLogger("phalanx.arcos")
+N_SONARS = 16
+
+
+class ArcosSettings(BaseModel):
+    """How to reach the robot. Exactly one of `port` (serial device) or `tcp` (host:port)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    port: str | None = None
+    tcp: str | None = None
+    baud: int = Field(default=9600, description="9600 at power-up; 19200-115200 if set")
+    connect_timeout_s: float = Field(default=5.0, gt=0.0)
+    sync_retries: int = Field(default=5, ge=1)
+    pulse_s: float = Field(default=0.5, gt=0.0, description="keep-alive period (ARIA: 0.5)")
+    link_timeout_s: float = Field(default=1.0, gt=0.0, description="no SIP this long = lost")
+    reconnect: bool = True
+    reconnect_backoff_max_s: float = Field(default=2.0, gt=0.0)
+    sonar: bool = True
+
+    @model_validator(mode="after")
+    def _one_link(self) -> ArcosSettings:
+        if (self.port is None) == (self.tcp is None):
+            raise ValueError("give exactly one of port (serial device) or tcp (host:port)")
+        if self.tcp is not None:
+            host, sep, port = self.tcp.rpartition(":")
+            if not sep or not host or not port.isdigit():
+                raise ValueError(f"tcp must be host:port, got {self.tcp!r}")
+        return self
+
+
+class _Link(Protocol):
+    def read(self, timeout_s: float) -> bytes: ...
+    def write(self, data: bytes) -> None: ...
+    def close(self) -> None: ...
+
+
+class _SerialLink:
+    def __init__(self, port: str, baud: int) -> None:
+        try:
+            self._serial = serial.Serial(port, baud, timeout=0.0, write_timeout=1.0)
+        except (serial.SerialException, OSError) as exc:
+            raise DriverUnavailable(f"cannot open serial port {port}: {exc}") from exc
+
+    def read(self, timeout_s: float) -> bytes:
+        try:
+            if self._serial.timeout != timeout_s:
+                self._serial.timeout = timeout_s  # reconfigures the port: may fail too
+            first = self._serial.read(1)
+            return first + self._serial.read(self._serial.in_waiting) if first else b""
+        except (serial.SerialException, OSError, TypeError, termios.error) as exc:
+            raise DriverUnavailable(f"serial link lost: {exc}") from exc
+
+    def write(self, data: bytes) -> None:
+        try:
+            self._serial.write(data)
+        except (serial.SerialException, OSError) as exc:
+            raise DriverUnavailable(f"serial link lost: {exc}") from exc
+
+    def close(self) -> None:
+        with contextlib.suppress(serial.SerialException, OSError):
+            self._serial.close()
+
+
+class _TcpLink:
+    def __init__(self, address: str, timeout_s: float) -> None:
+        host, _, port = address.rpartition(":")
+        try:
+            self._sock = socket.create_connection((host, int(port)), timeout=timeout_s)
+        except OSError as exc:
+            raise DriverUnavailable(f"cannot connect to {address}: {exc}") from exc
+        self._sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+
+    def read(self, timeout_s: float) -> bytes:
+        self._sock.settimeout(timeout_s)
+        try:
+            data = self._sock.recv(4096)
+        except TimeoutError:
+            return b""
+        except OSError as exc:
+            raise DriverUnavailable(f"TCP link lost: {exc}") from exc
+        if not data:
+            raise DriverUnavailable("TCP link closed by the robot")
+        return data
+
+    def write(self, data: bytes) -> None:
+        try:
+            self._sock.sendall(data)
+        except OSError as exc:
+            raise DriverUnavailable(f"TCP link lost: {exc}") from exc
+
+    def close(self) -> None:
+        with contextlib.suppress(OSError):
+            self._sock.close()
+
+
+@dataclass
+class ArcosStats:
+    """Counters of the link."""
+
+    sips: int = 0
+    bad_sips: int = 0
+    other_frames: int = 0
+    reconnects: int = 0
+    links_lost: int = 0
+    commands_sent: int = 0
+
+
+class ArcosDriver:
+    """A P3DX over ARCOS; implements the Driver protocol."""
+
+    name = "arcos"
+
+    def __init__(self, settings: ArcosSettings) -> None:
+        self.settings = settings
+        self.stats = ArcosStats()
+        self.parser = FrameParser()
+        self.robot_name = ""
+        self.subtype = ""
+        self.config: RobotConfig | None = None
+        self.factors = ConvFactors()
+        self._link: _Link | None = None
+        self._lock = threading.RLock()  # guards the link and the readings
+        self._write_lock = threading.Lock()
+        self._stop = threading.Event()
+        self._reader: threading.Thread | None = None
+        self._closed = False
+        self._reset_readings()
+
+    # -- Driver protocol -------------------------------------------------------------
+
+    def connect(self) -> None:
+        """Open the link and run the handshake; raises DriverError if the robot is absent."""
+        with self._lock:
+            if self._closed:
+                raise DriverError("driver closed; make a new one")
+            if self._link is not None and not self._link_fault:
+                self._write(command(Cmd.ENABLE, 1))  # connected already: re-enable motors
+                return
+            self._open_and_handshake()
+        if self._reader is None:
+            self._stop.clear()
+            self._reader = threading.Thread(
+                target=self._read_loop, name="arcos-reader", daemon=True
+            )
+            self._reader.start()
+
+    def set_velocity(self, twist: Twist2D) -> None:
+        """VEL (mm/s) and RVEL (deg/s). Non-finite values raise ValueError."""
+        if not (math.isfinite(twist.v_mps) and math.isfinite(twist.omega_radps)):
+            raise ValueError(f"non-finite velocity command {twist}")
+        v_mm = round(twist.v_mps * 1000.0 / self.factors.vel_mmps)
+        w_deg = round(math.degrees(twist.omega_radps))
+        self._send(command(Cmd.VEL, v_mm))
+        self._send(command(Cmd.RVEL, w_deg))
+
+    def read_odometry(self) -> Odometry:
+        """The pose integrated from SIPs since connect (odometry frame) and the twist."""
+        with self._lock:
+            if self._odometry is None:
+                raise DriverTimeout("no SIP received yet")
+            return self._odometry
+
+    def read_status(self) -> RobotStatus:
+        """Sonar (m), bumpers, battery, motor and link state from the latest SIP."""
+        with self._lock:
+            faults = tuple(f for f in (self._link_fault,) if f)
+            sip = self._sip
+            if sip is None:
+                return RobotStatus(faults=faults or ("no SIP yet",))
+            return RobotStatus(
+                sonar_ranges_m=self._sonar_m,
+                bumpers=sip.bumpers,
+                battery_v=sip.battery_dv / 10.0,
+                motors_enabled=sip.motors_enabled and not self._link_fault,
+                estopped=sip.estopped,
+                stalled=sip.left_stall or sip.right_stall,
+                faults=faults,
+            )
+
+    def stop(self) -> None:
+        """STOP: decelerate to rest; motors stay enabled."""
+        self._send(command(Cmd.STOP))
+
+    def estop(self) -> None:
+        """E_STOP: stop at once and disable the motors (ENABLE 1 or reconnect to resume)."""
+        self._send(command(Cmd.E_STOP))
+
+    def close(self) -> None:
+        """STOP, CLOSE and release the link; safe to call twice."""
+        with self._lock:
+            if self._closed:
+                return
+            self._closed = True
+            self._stop.set()
+            if self._link is not None:
+                for frame in (command(Cmd.STOP), command(Cmd.CLOSE)):
+                    with contextlib.suppress(DriverError):
+                        self._write(frame)
+        if self._reader is not None:
+            self._reader.join(2.0)
+            self._reader = None
+        with self._lock:
+            if self._link is not None:
+                self._link.close()
+                self._link = None
+
+    def __enter__(self) -> ArcosDriver:
+        self.connect()
+        return self
+
+    def __exit__(self, *_exc: object) -> None:
+        self.close()
+
+    # -- extras -----------------------------------------------------------------------
+
+    def robot_limits(self) -> tuple[float, float] | None:
+        """(v max m/s, omega max rad/s) from the robot's CONFIG packet, if it sent one."""
+        if self.config is None or self.config.trans_vel_max_mmps <= 0:
+            return None
+        return self.config.trans_vel_max_mmps / 1000.0, math.radians(self.config.rot_vel_max_degps)
+
+    @property
+    def link_up(self) -> bool:
+        """True while SIPs arrive."""
+        with self._lock:
+            return self._link is not None and not self._link_fault
+
+    # -- link ------------------------------------------------------------------------
+
+    def _reset_readings(self) -> None:
+        self._sip: Sip | None = None
+        self._odometry: Odometry | None = None
+        self._last_xy: tuple[int, int] | None = None
+        self._pose = Pose2D(0.0, 0.0, 0.0)
+        self._th0: float | None = None
+        self._sonar_m: tuple[float, ...] = (5.0,) * N_SONARS
+        self._last_sip_s = time.monotonic()
+        self._last_sent_s = 0.0
+        self._link_fault = ""
+
+    def _open(self) -> _Link:
+        s = self.settings
+        if s.port is not None:
+            return _SerialLink(s.port, s.baud)
+        assert s.tcp is not None  # noqa: S101 - the settings validator guarantees one
+        return _TcpLink(s.tcp, s.connect_timeout_s)
+
+    def _open_and_handshake(self) -> None:
+        if self._link is not None:
+            self._link.close()
+        self._link = self._open()
+        self.parser = FrameParser(stats=self.parser.stats)
+        try:
+            self._sync()
+            self._write(command(Cmd.OPEN))
+            self._write(command(Cmd.PULSE))
+            self._write(command(Cmd.CONFIG))
+            self._write(command(Cmd.ENABLE, 1))
+            self._write(command(Cmd.SONAR, 1 if self.settings.sonar else 0))
+            self._await_first_sip()
+        except DriverError:
+            self._link.close()
+            self._link = None
+            raise
+
+    def _sync(self) -> None:
+        for _attempt in range(self.settings.sync_retries):
+            if self._try_sync():
+                return
+            self._write(command(Cmd.CLOSE))  # an old connection may be open: close, resync
+            time.sleep(0.1)
+        raise DriverTimeout(f"no ARCOS sync from {self._where()}")
+
+    def _try_sync(self) -> bool:
+        per_step_s = self.settings.connect_timeout_s / 3
+        for step in (SYNC0, SYNC1, SYNC2):
+            self._write(command(step))
+            body = self._await_frame(lambda b, s=step: b[0] == s, per_step_s)
+            if body is None:
+                return False
+            if step == SYNC2:
+                self.robot_name, _type, self.subtype = parse_sync2(body)
+                self.factors = factors_for(self.subtype)
+        return True
+
+    def _await_frame(self, wanted: object, timeout_s: float) -> bytes | None:
+        assert self._link is not None  # noqa: S101 - called with an open link
+        deadline = time.monotonic() + timeout_s
+        while (left := deadline - time.monotonic()) > 0:
+            for body in self.parser.feed(self._link.read(min(left, 0.05))):
+                if body[0] in (SIP_STOPPED, SIP_MOVING) and not wanted(body):  # type: ignore[operator]
+                    return None  # SIPs during sync: an old connection is still open
+                if wanted(body):  # type: ignore[operator]
+                    return body
+        return None
+
+    def _await_first_sip(self) -> None:
+        assert self._link is not None  # noqa: S101
+        deadline = time.monotonic() + self.settings.connect_timeout_s
+        # A new session: position counters restart from wherever the robot is; the pose
+        # we integrate carries on from where it was.
+        self._last_xy, self._th0 = None, None
+        sips = self.stats.sips
+        while time.monotonic() < deadline:
+            for body in self.parser.feed(self._link.read(0.05)):
+                self._dispatch(body)
+            if self.stats.sips > sips:
+                return
+        raise DriverTimeout(f"robot at {self._where()} opened but sends no SIPs")
+
+    def _where(self) -> str:
+        return self.settings.port or self.settings.tcp or "?"
+
+    def _write(self, data: bytes) -> None:
+        link = self._link
+        if link is None:
+            raise DriverUnavailable("not connected")
+        with self._write_lock:
+            link.write(data)
+            self._last_sent_s = time.monotonic()
+            self.stats.commands_sent += 1
+
+    def _send(self, data: bytes) -> None:
+        with self._lock:
+            if self._closed:
+                raise DriverError("driver closed")
+            if self._link_fault:
+                raise DriverUnavailable(f"link down: {self._link_fault}")
+            self._write(data)
+
+    # -- reader ----------------------------------------------------------------------
+
+    def _read_loop(self) -> None:
+        backoff_s = 0.1
+        while not self._stop.is_set():
+            link = self._link
+            try:
+                self._read_once(link)
+                backoff_s = 0.1
+            except DriverError as exc:
+                self._lose_link(str(exc), link)
+            except Exception as exc:
+                log.exception("ARCOS reader: unexpected error")
+                self._lose_link(f"{type(exc).__name__}: {exc}", link)
+            else:
+                continue
+            if not self.settings.reconnect or self._stop.wait(backoff_s):
+                return
+            backoff_s = min(2 * backoff_s, self.settings.reconnect_backoff_max_s)
+            self._try_reconnect()
+
+    def _read_once(self, link: _Link | None) -> None:
+        if link is None:
+            raise DriverUnavailable("no link")
+        data = link.read(0.05)
+        with self._lock:
+            for body in self.parser.feed(data):
+                self._dispatch(body)
+            now = time.monotonic()
+            if now - self._last_sip_s > self.settings.link_timeout_s:
+                raise DriverTimeout(f"no SIP for {now - self._last_sip_s:.2f} s")
+            if now - self._last_sent_s > self.settings.pulse_s:
+                self._write(command(Cmd.PULSE))
+
+    def _lose_link(self, reason: str, link: _Link | None) -> None:
+        with self._lock:
+            if self._closed or (link is not None and link is not self._link):
+                return  # closed on purpose, or already replaced by a new link
+            if not self._link_fault:
+                self.stats.links_lost += 1
+                log.warning("ARCOS link to %s lost: %s", self._where(), reason)
+            self._link_fault = f"link lost: {reason}"
+            if self._link is not None:
+                self._link.close()
+                self._link = None
+
+    def _try_reconnect(self) -> None:
+        with self._lock:
+            if self._closed:
+                return
+            try:
+                self._open_and_handshake()
+            except DriverError as exc:
+                self._link_fault = f"link lost: {exc}"
+                return
+            self.stats.reconnects += 1
+            log.info("ARCOS link to %s back", self._where())
+
+    def _dispatch(self, body: bytes) -> None:
+        kind = body[0]
+        if kind in (SIP_STOPPED, SIP_MOVING):
+            try:
+                sip = decode_sip(body)
+            except ProtocolError:
+                self.stats.bad_sips += 1
+                return
+            self._on_sip(sip)
+        elif kind == CONFIG_PAC:
+            try:
+                self.config = decode_config(body)
+            except ProtocolError:
+                self.stats.bad_sips += 1
+        else:
+            self.stats.other_frames += 1
+
+    def _on_sip(self, sip: Sip) -> None:
+        f = self.factors
+        now = time.monotonic()
+        th = wrap_angle(sip.th * f.angle_rad)
+        if self._last_xy is None or self._th0 is None:
+            self._th0 = wrap_angle(th - self._pose.theta_rad)
+            self._last_xy = (sip.x, sip.y)
+        dx_mm = wrap_delta(sip.x, self._last_xy[0]) * f.dist_mm
+        dy_mm = wrap_delta(sip.y, self._last_xy[1]) * f.dist_mm
+        self._last_xy = (sip.x, sip.y)
+        # ARCOS integrates x, y in its own frame; ours starts at the first SIP's pose.
+        c, s = math.cos(-self._th0), math.sin(-self._th0)
+        pose = Pose2D(
+            self._pose.x_m + (c * dx_mm - s * dy_mm) / 1000.0,
+            self._pose.y_m + (s * dx_mm + c * dy_mm) / 1000.0,
+            wrap_angle(th - self._th0),
+        )
+        v = (sip.left_vel + sip.right_vel) / 2.0 * f.vel_mmps / 1000.0
+        w = (sip.right_vel - sip.left_vel) / 2.0 * f.vel_mmps * f.diff
+        self._pose = pose
+        self._odometry = Odometry(pose, Twist2D(v, w), now)
+        ranges = list(self._sonar_m)
+        for index, range_raw in sip.sonars:
+            if 0 <= index < N_SONARS:
+                ranges[index] = range_raw * f.range_mm / 1000.0
+        self._sonar_m = tuple(ranges)
+        self._sip = sip
+        self._last_sip_s = now
+        self._link_fault = ""
+        self.stats.sips += 1

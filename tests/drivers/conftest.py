@@ -1,0 +1,67 @@
+"""Every driver backend, ready to test: the `rig` fixture yields each backend (not yet
+connected) and the robot side behind it (emulator or simulated drives)."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Iterator
+from contextlib import AbstractContextManager, contextmanager
+from dataclasses import dataclass
+from typing import Any
+
+import pytest
+
+from phalanx.config import load_robot
+from phalanx.drivers.arcos import ArcosDriver, ArcosSettings
+from phalanx.drivers.base import Driver
+from phalanx.drivers.safety import SafetyLimits
+from phalanx.drivers.sim import SimDriver
+from phalanx.simulator.arcos_emulator import ArcosEmulator, PtyLink, TcpLink
+
+ROBOT = load_robot("p3dx")
+LIMITS = SafetyLimits(v_max_mps=0.3, omega_max_radps=math.radians(40.0), watchdog_s=0.3)
+
+
+@dataclass
+class Rig:
+    """A backend under test and the thing on the other end of its link."""
+
+    driver: Driver
+    robot_side: Any = None
+    limits: SafetyLimits = LIMITS
+
+
+@contextmanager
+def sim_rig() -> Iterator[Rig]:
+    yield Rig(SimDriver(ROBOT))
+
+
+@contextmanager
+def arcos_pty_rig() -> Iterator[Rig]:
+    link = PtyLink()
+    with ArcosEmulator(link, ROBOT) as emulator:
+        yield Rig(ArcosDriver(ArcosSettings(port=link.device)), emulator)
+
+
+@contextmanager
+def arcos_tcp_rig() -> Iterator[Rig]:
+    link = TcpLink(0)
+    with ArcosEmulator(link, ROBOT) as emulator:
+        yield Rig(ArcosDriver(ArcosSettings(tcp=f"127.0.0.1:{link.port}")), emulator)
+
+
+RIGS: dict[str, Callable[[], AbstractContextManager[Rig]]] = {
+    "sim": sim_rig,
+    "arcos-pty": arcos_pty_rig,
+    "arcos-tcp": arcos_tcp_rig,
+}
+
+
+@pytest.fixture(params=sorted(RIGS))
+def rig(request: pytest.FixtureRequest) -> Iterator[Rig]:
+    """Each backend in turn; closed afterwards whatever the test did."""
+    with RIGS[request.param]() as rig:
+        try:
+            yield rig
+        finally:
+            rig.driver.close()

@@ -1,0 +1,305 @@
+"""ARCOS: byte-exact framing, a parser that survives anything, and the driver against the
+robot emulator over a real pty and real TCP, with faults injected."""
+
+from __future__ import annotations
+
+import math
+import os
+import random
+import time
+from collections.abc import Callable, Iterator
+
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from phalanx.config import load_robot
+from phalanx.drivers.arcos import ArcosDriver, ArcosSettings
+from phalanx.drivers.arcos_protocol import (
+    Cmd,
+    FrameParser,
+    Sip,
+    checksum,
+    command,
+    decode_sip,
+    encode_sip,
+    frame,
+    wrap_delta,
+)
+from phalanx.drivers.safety import SafeDriver, SafetyLimits
+from phalanx.geometry import Pose2D, Twist2D
+from phalanx.simulator.arcos_emulator import ArcosEmulator, EmulatorOptions, PtyLink, TcpLink
+from phalanx.simulator.body import Body
+
+pytestmark = pytest.mark.drivers
+ROBOT = load_robot("p3dx")
+
+# ../shared/notes/arcos.md, "Test vectors"
+VECTORS = [
+    (Cmd.PULSE, None, "FA FB 03 00 00 00"),
+    (Cmd.OPEN, None, "FA FB 03 01 00 01"),
+    (Cmd.CLOSE, None, "FA FB 03 02 00 02"),
+    (Cmd.ENABLE, 1, "FA FB 06 04 3B 01 00 05 3B"),
+    (Cmd.VEL, 300, "FA FB 06 0B 3B 2C 01 37 3C"),
+    (Cmd.VEL, -300, "FA FB 06 0B 1B 2C 01 37 1C"),
+    (Cmd.RVEL, -45, "FA FB 06 15 1B 2D 00 42 1B"),
+    (Cmd.STOP, None, "FA FB 03 1D 00 1D"),
+    (Cmd.E_STOP, None, "FA FB 03 37 00 37"),
+]
+
+
+@pytest.mark.parametrize(("cmd", "arg", "expected"), VECTORS)
+def test_command_frames_are_byte_exact(cmd: Cmd, arg: int | None, expected: str) -> None:
+    assert command(cmd, arg) == bytes.fromhex(expected)
+    assert list(FrameParser().feed(bytes.fromhex(expected))) == [bytes.fromhex(expected)[3:-2]]
+
+
+def test_checksum_xors_an_odd_last_byte() -> None:
+    assert checksum(b"\x01\x02\x03") == (0x0102 ^ 0x03)
+    assert checksum(b"") == 0
+
+
+sips = st.builds(
+    Sip,
+    moving=st.booleans(),
+    x=st.integers(0, 0x7FFF),
+    y=st.integers(0, 0x7FFF),
+    th=st.integers(-2048, 2047),
+    left_vel=st.integers(-2000, 2000),
+    right_vel=st.integers(-2000, 2000),
+    battery_dv=st.integers(0, 255),
+    stall_bumpers=st.integers(0, 0xFFFF),
+    flags=st.integers(0, 0xFFFF),
+    sonars=st.lists(st.tuples(st.integers(0, 15), st.integers(0, 5000)), max_size=16).map(tuple),
+    rot_vel_x10=st.none() | st.integers(-3000, 3000),
+)
+
+
+@given(sips)
+def test_sip_round_trips(sip: Sip) -> None:
+    (body,) = FrameParser().feed(encode_sip(sip))
+    assert decode_sip(body) == sip
+
+
+@given(st.lists(st.tuples(st.binary(max_size=40), sips), min_size=1, max_size=8), st.data())
+@settings(max_examples=200)
+def test_parser_recovers_every_frame_from_garbage_and_splits(
+    chunks: list[tuple[bytes, Sip]], data: st.DataObject
+) -> None:
+    """Garbage between frames (any bytes, even fake headers) costs at most the frames
+    it overlaps: every frame preceded by header-free garbage is recovered exactly."""
+    stream = bytearray()
+    expected = []
+    for junk, sip in chunks:
+        clean = junk.replace(b"\xfa", b"")  # junk without a header byte cannot fake a frame
+        stream += clean + encode_sip(sip)
+        expected.append(encode_sip(sip)[3:-2])
+    cuts = sorted(data.draw(st.lists(st.integers(0, len(stream)), max_size=6)))
+    parser = FrameParser()
+    got = []
+    for a, b in zip([0, *cuts], [*cuts, len(stream)], strict=True):
+        got += list(parser.feed(bytes(stream[a:b])))
+    assert got == expected
+
+
+@given(st.binary(max_size=2000))
+def test_parser_never_raises_and_only_yields_checksummed_frames(noise: bytes) -> None:
+    for body in FrameParser().feed(noise):
+        assert frame(body)[3:-2] == body  # re-framing reproduces it: checksum was valid
+
+
+def test_bad_checksum_and_bad_length_are_counted_and_skipped() -> None:
+    good = command(Cmd.STOP)
+    corrupt = bytearray(command(Cmd.VEL, 300))
+    corrupt[-1] ^= 0xFF
+    parser = FrameParser()
+    got = list(parser.feed(b"\x00\x11" + bytes(corrupt) + b"\xfa\xfb\xff" + good))
+    assert got == [good[3:-2]]
+    assert parser.stats.bad_checksums == 1
+    assert parser.stats.bad_lengths == 1
+    assert parser.stats.garbage_bytes >= 2
+
+
+def test_position_counters_unwrap_across_the_15_bit_boundary() -> None:
+    assert wrap_delta(5, 0x7FFB) == 10
+    assert wrap_delta(0x7FFB, 5) == -10
+    assert wrap_delta(300, 100) == 200
+
+
+# -- the driver against the emulator ---------------------------------------------------
+
+
+def _eventually(check: Callable[[], bool], timeout_s: float) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if check():
+            return True
+        time.sleep(0.02)
+    return check()
+
+
+@pytest.fixture
+def pty_emulator() -> Iterator[ArcosEmulator]:
+    with ArcosEmulator(PtyLink(), ROBOT) as emulator:
+        yield emulator
+
+
+@pytest.fixture
+def tcp_emulator() -> Iterator[ArcosEmulator]:
+    with ArcosEmulator(TcpLink(0), ROBOT) as emulator:
+        yield emulator
+
+
+def _tcp(emulator: ArcosEmulator, **kw: object) -> ArcosSettings:
+    return ArcosSettings(tcp=f"127.0.0.1:{emulator.link.port}", **kw)  # type: ignore[attr-defined]
+
+
+def test_handshake_reads_name_subtype_and_limits(pty_emulator: ArcosEmulator) -> None:
+    with ArcosDriver(ArcosSettings(port=pty_emulator.link.device)) as driver:  # type: ignore[attr-defined]
+        assert driver.robot_name == "phalanx-emu"
+        assert driver.subtype == "p3dx-sh"
+        limits = driver.robot_limits()
+        assert limits == pytest.approx((ROBOT.v_max_mps, math.radians(ROBOT.omega_max_degps)))
+        assert pty_emulator.stats.commands["ENABLE"] == 1
+        status = driver.read_status()
+        assert status.battery_v == pytest.approx(12.5)
+        assert len(status.sonar_ranges_m) == 16
+
+
+def test_odometry_crosses_the_counter_wrap_without_a_jump() -> None:
+    # p3dx (not -sh): 0.485 mm per count, so the 15-bit counter wraps every 15.9 m.
+    wrap_m = 0x8000 * 0.485 / 1000
+    body = Body(ROBOT, start=Pose2D(wrap_m - 0.1, 0.0, 0.0))
+    options = EmulatorOptions(subtype="p3dx")
+    with (
+        ArcosEmulator(TcpLink(0), ROBOT, options, body) as emulator,
+        ArcosDriver(_tcp(emulator)) as driver,
+    ):
+        deadline = time.monotonic() + 3.0
+        while body.state().pose.x_m < wrap_m + 0.15 and time.monotonic() < deadline:
+            driver.set_velocity(Twist2D(0.3, 0.0))
+            time.sleep(0.1)
+        driver.stop()
+        time.sleep(0.3)
+        travelled = body.state().pose.x_m - (wrap_m - 0.1)
+        assert travelled > 0.25
+        assert driver.read_odometry().pose.x_m == pytest.approx(travelled, abs=0.05)
+
+
+def test_garbled_bytes_and_dropped_sips_are_survived_and_counted(
+    tcp_emulator: ArcosEmulator,
+) -> None:
+    with ArcosDriver(_tcp(tcp_emulator)) as driver:
+        sips = driver.stats.sips
+        tcp_emulator.garble(200)
+        tcp_emulator.drop_sips(5)  # 0.5 s: under the 1 s link timeout
+        assert _eventually(lambda: driver.stats.sips > sips + 5, 3.0)
+        assert driver.parser.stats.bad_checksums + driver.parser.stats.garbage_bytes > 0
+        assert driver.link_up
+        assert driver.stats.links_lost == 0
+
+
+def test_silent_robot_is_declared_lost_then_reconnected(tcp_emulator: ArcosEmulator) -> None:
+    with ArcosDriver(_tcp(tcp_emulator, link_timeout_s=0.5)) as driver:
+        tcp_emulator.drop_sips(15)  # 1.5 s of silence
+        assert _eventually(lambda: not driver.link_up, 2.0)
+        assert "link lost" in driver.read_status().faults[0]
+        with pytest.raises(Exception, match="link"):
+            driver.set_velocity(Twist2D(0.1, 0.0))
+        assert _eventually(lambda: driver.link_up, 5.0)
+        assert driver.stats.reconnects == 1
+        driver.set_velocity(Twist2D(0.1, 0.0))
+
+
+def test_tcp_disconnect_is_noticed_and_the_driver_reconnects(tcp_emulator: ArcosEmulator) -> None:
+    with ArcosDriver(_tcp(tcp_emulator)) as driver:
+        tcp_emulator.disconnect()
+        assert _eventually(lambda: not driver.link_up, 2.0)
+        assert _eventually(lambda: driver.link_up, 5.0)
+        assert driver.stats.links_lost == 1
+
+
+def test_unplugged_serial_port_reports_the_fault_and_stays_stopped(
+    pty_emulator: ArcosEmulator,
+) -> None:
+    settings_ = ArcosSettings(port=pty_emulator.link.device)  # type: ignore[attr-defined]
+    with ArcosDriver(settings_) as driver:
+        driver.set_velocity(Twist2D(0.2, 0.0))
+        pty_emulator.disconnect()  # the device disappears
+        assert _eventually(lambda: not driver.link_up, 2.0)
+        status = driver.read_status()
+        assert not status.motors_enabled
+        assert status.faults
+        # Nothing moves a robot whose link is gone: commands are refused, not queued.
+        with pytest.raises(Exception, match="link"):
+            driver.set_velocity(Twist2D(0.2, 0.0))
+
+
+def test_estop_button_and_stall_show_in_the_status(tcp_emulator: ArcosEmulator) -> None:
+    with ArcosDriver(_tcp(tcp_emulator)) as driver:
+        tcp_emulator.press_estop()
+        tcp_emulator.stall()
+        assert _eventually(lambda: driver.read_status().estopped, 1.0)
+        assert _eventually(lambda: driver.read_status().stalled, 1.0)
+        assert not driver.read_status().motors_enabled
+
+
+def test_firmware_watchdog_stops_and_resumes() -> None:
+    options = EmulatorOptions(watchdog_s=0.3)
+    with (
+        ArcosEmulator(TcpLink(0), ROBOT, options) as emulator,
+        ArcosDriver(_tcp(emulator, pulse_s=5.0, link_timeout_s=5.0)) as driver,
+    ):
+        driver.set_velocity(Twist2D(0.2, 0.0))
+        assert _eventually(lambda: emulator.stats.watchdog_stops == 1, 2.0)
+        assert emulator.body.state().setpoint == Twist2D(0.0, 0.0)
+        driver.stop()  # any packet: the firmware resumes (here, the STOP itself)
+        assert _eventually(lambda: emulator.body.state().setpoint == Twist2D(0.0, 0.0), 1.0)
+
+
+def test_fuzzed_sip_stream_never_crashes_nor_commands_beyond_limits(
+    pty_emulator: ArcosEmulator,
+) -> None:
+    """Random bytes and corrupted SIPs from the robot while a controller commands from
+    whatever odometry it reads: the driver keeps running and every command the robot
+    receives is within the limits."""
+    rng = random.Random(7)
+    limits = SafetyLimits(v_max_mps=0.3, omega_max_radps=math.radians(40.0))
+    device = pty_emulator.link.device  # type: ignore[attr-defined]
+    seen: list[Twist2D] = []
+    with SafeDriver(ArcosDriver(ArcosSettings(port=device, link_timeout_s=5.0)), limits) as safe:
+        for _ in range(60):
+            junk = bytes(rng.randrange(256) for _ in range(rng.randrange(1, 64)))
+            if rng.random() < 0.3:
+                junk = b"\xfa\xfb" + bytes((rng.randrange(256),)) + junk
+            pty_emulator.link.write(junk)
+            odo = safe.read_odometry()
+            # A "controller" driven by the readings: gains large enough to ask for too much.
+            wanted = Twist2D(10.0 * odo.twist.v_mps + 5.0, -20.0 * odo.pose.theta_rad - 3.0)
+            safe.set_velocity(wanted)
+            seen.append(pty_emulator.body.state().setpoint)
+            time.sleep(0.01)
+        stats = safe.driver.parser.stats  # type: ignore[attr-defined]
+        assert stats.garbage_bytes + stats.bad_checksums + stats.bad_lengths > 0
+    assert seen
+    for setpoint in seen:
+        assert abs(setpoint.v_mps) <= limits.v_max_mps + 1e-3
+        assert abs(setpoint.omega_radps) <= math.radians(41.0)
+
+
+def test_a_pty_without_robot_fails_to_connect_with_a_clear_error() -> None:
+    link = PtyLink()
+    try:
+        settings_ = ArcosSettings(port=link.device, connect_timeout_s=0.3, sync_retries=1)
+        with pytest.raises(Exception, match="no ARCOS sync"):
+            ArcosDriver(settings_).connect()
+    finally:
+        link.close()
+    assert not os.path.exists(link.device) or True  # the pty is released either way
+
+
+def test_settings_reject_ambiguous_links() -> None:
+    with pytest.raises(ValueError, match="exactly one"):
+        ArcosSettings()
+    with pytest.raises(ValueError, match="host:port"):
+        ArcosSettings(tcp="localhost")
