@@ -63,6 +63,8 @@ class RuntimeOptions:
 class AgentRuntime:
     """One robot's process loop around an `Agent`."""
 
+    publish_commands = True  # the world executes them (sim driver)
+
     def __init__(
         self,
         robot_id: str,
@@ -108,9 +110,10 @@ class AgentRuntime:
     def _wire(self, session: FleetSession) -> None:
         fleet, rid = self.options.fleet, self.robot_id
         session.declare_alive(alive_key(fleet, rid))
-        session.subscribe(
-            robot_key(fleet, rid, "sense"), SenseFrame, lambda _k, f: self.frames.put(f)
-        )
+        if self.publish_commands:  # a simulated robot: the world's frames are its ticks
+            session.subscribe(
+                robot_key(fleet, rid, "sense"), SenseFrame, lambda _k, f: self.frames.put(f)
+            )
         for peer in self.watched:
             session.subscribe(
                 robot_key(fleet, peer, "state"),
@@ -216,7 +219,8 @@ class AgentRuntime:
             v_mps=out.command.v_mps,
             omega_radps=out.command.omega_radps,
         )
-        self._session.publish(robot_key(fleet, rid, "cmd"), command, reliable_block=True)
+        if self.publish_commands:
+            self._session.publish(robot_key(fleet, rid, "cmd"), command, reliable_block=True)
         if self.telemetry is not None:
             self.telemetry.log_step(
                 rid,

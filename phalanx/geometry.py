@@ -62,6 +62,16 @@ class Pose2D:
         """Map a world point into this pose's body frame."""
         return (point - self.position).rotated(-self.theta_rad)
 
+    def compose(self, local: Pose2D) -> Pose2D:
+        """`local` (a pose in this pose's frame) in the world frame: self * local."""
+        p = self.to_world(local.position)
+        return Pose2D(p.x_m, p.y_m, wrap_angle(self.theta_rad + local.theta_rad))
+
+    def relative(self, other: Pose2D) -> Pose2D:
+        """`other` (a world pose) in this pose's frame: the inverse of `compose`."""
+        p = self.to_body(other.position)
+        return Pose2D(p.x_m, p.y_m, wrap_angle(other.theta_rad - self.theta_rad))
+
 
 @dataclass(frozen=True, slots=True)
 class Twist2D:

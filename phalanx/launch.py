@@ -39,6 +39,8 @@ class UpOptions:
     recording: bool = True
     extra_agent_args: tuple[str, ...] = ()
     overrides: tuple[str, ...] = ()
+    driver: str = "sim"
+    startup_s: float = 8.0  # robot drivers: time given to every process before step 0
 
 
 @dataclass
@@ -84,7 +86,21 @@ def plan(scenario_path: Path, scenario: Scenario, options: UpOptions) -> list[Ch
         world += ["--out", str(options.out)]
     if not options.recording:
         world.append("--no-recording")
-    children = [Child("world", world)]
+    agent_extra: dict[str, list[str]] = {entry.id: [] for entry in scenario.robots}
+    emulators: list[Child] = []
+    if options.driver == "arcos":
+        epoch = time.time() + options.startup_s
+        world += ["--epoch", f"{epoch:.3f}"]
+        for entry in scenario.robots:
+            port = free_tcp_port()
+            emulators.append(Child(f"{entry.id}-emulator", [
+                *_cli(), "emulate", "p3dx", "--tcp", str(port), "--world", str(scenario_path),
+                "--robot", entry.id, "--fleet", options.fleet, "--connect", endpoint,
+            ]))  # fmt: skip
+            agent_extra[entry.id] = [
+                "--driver", "arcos", "--arcos-tcp", f"127.0.0.1:{port}", "--epoch", f"{epoch:.3f}",
+            ]  # fmt: skip
+    children = [Child("world", world), *emulators]
     for entry in scenario.robots:
         agent = [
             *_cli(),
@@ -97,6 +113,7 @@ def plan(scenario_path: Path, scenario: Scenario, options: UpOptions) -> list[Ch
             "client",
             "--connect",
             endpoint,
+            *agent_extra[entry.id],
             *options.extra_agent_args,
         ]
         children.append(Child(entry.id, agent))

@@ -6,7 +6,7 @@ obeys ENABLE, VEL, RVEL, VEL2, STOP, E_STOP, SONAR, CONFIG and CLOSE, and runs t
 firmware watchdog: no client packet for `watchdog_s` stops the motors, the next packet
 resumes the last setpoints (ARCOS behaviour, ../shared/notes/arcos.md). Faults can be
 injected while it runs: garbled bytes, dropped SIPs, stalled wheels, the e-stop button,
-a disconnect.
+an unplugged cable (silence both ways), a disconnect.
 """
 
 from __future__ import annotations
@@ -192,6 +192,7 @@ class _Faults:
     garble_bytes: int = 0
     drop_sips: int = 0
     estop_button: bool = False
+    unplugged: bool = False
 
 
 class ArcosEmulator:
@@ -262,6 +263,11 @@ class ArcosEmulator:
             if pressed:
                 self._motors_enabled = False
 
+    def unplug(self, unplugged: bool = True) -> None:
+        """Cut the cable: nothing in, nothing out; the firmware watchdog does the rest."""
+        with self._lock:
+            self._faults.unplugged = unplugged
+
     def disconnect(self) -> None:
         """Unplug: drop the client (TCP) or remove the device (pty)."""
         with self._lock:
@@ -291,6 +297,8 @@ class ArcosEmulator:
                 if self._stop.wait(0.05):
                     return
                 continue
+            if self._faults.unplugged:
+                data = b""
             for body in self.parser.feed(data):
                 self._handle(body)
             now = time.monotonic()
@@ -401,6 +409,8 @@ class ArcosEmulator:
                 log.warning("emulator watchdog: no packet for %.1f s, motors stopped", now)
 
     def _send(self, data: bytes) -> None:
+        if self._faults.unplugged:
+            return
         if self._faults.garble_bytes:
             n = min(self._faults.garble_bytes, len(data))
             self._faults.garble_bytes -= n

@@ -51,6 +51,7 @@ class WorldOptions:
     tick_timeout_s: float = 2.0
     startup_timeout_s: float = 60.0
     report_timeout_s: float = 5.0
+    epoch_s: float | None = None  # real time: tick 0 at this Unix time (shared with agents)
 
 
 @dataclass
@@ -92,8 +93,11 @@ class WorldProcess:
         with open_session(self.options.transport) as session:
             self._wire(session)
             self._await_agents(stop)
-            started = time.perf_counter()
             period_s = self.scenario.dt_s / self.options.speed
+            epoch = self.options.epoch_s
+            if self.options.clock == "realtime" and epoch is not None:
+                stop.wait(max(0.0, epoch - time.time()))
+            started = time.perf_counter()
             next_tick = time.monotonic()
             for k in range(self.steps):
                 if stop.is_set():

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import math
 import signal
 import threading
 from pathlib import Path
@@ -12,6 +13,8 @@ import typer
 
 if TYPE_CHECKING:
     from phalanx.config import Scenario
+    from phalanx.drivers.base import Driver
+    from phalanx.drivers.safety import SafeDriver
     from phalanx.transport import TransportConfig
 
 ScenarioArg = Annotated[
@@ -71,26 +74,108 @@ def agent(
     connect: ConnectOpt = None,
     mode: ModeOpt = "peer",
     set_: SetOpt = None,
-    driver: Annotated[str, typer.Option(help="Driver backend: sim.")] = "sim",
+    driver: Annotated[
+        str, typer.Option(help="sim (the world process drives it), arcos or canopen.")
+    ] = "sim",
+    arcos_port: Annotated[
+        str | None, typer.Option(help="arcos: serial device, e.g. /dev/ttyUSB0.")
+    ] = None,
+    arcos_tcp: Annotated[
+        str | None, typer.Option(help="arcos: host:port (MobileSim, emulator: 8101).")
+    ] = None,
+    baud: Annotated[int, typer.Option(help="arcos: serial baud rate.")] = 9600,
+    can_channel: Annotated[str, typer.Option(help="canopen: python-can channel.")] = "can0",
+    can_interface: Annotated[
+        str, typer.Option(help="canopen: python-can interface (socketcan, virtual...).")
+    ] = "socketcan",
+    epoch: Annotated[
+        float | None,
+        typer.Option(
+            help="Robot drivers: Unix time of step 0, shared by the fleet (default: now)."
+        ),
+    ] = None,
+    watchdog: Annotated[
+        float, typer.Option(help="Robot drivers: stop if no command for this long (s).")
+    ] = 0.5,
 ) -> None:
     """Run one robot's agent: Zenoh in, behaviour stack, command out."""
+    import time
+
     from phalanx.agents.runtime import AgentRuntime, RuntimeOptions
     from phalanx.config import load_robot
 
     logging.basicConfig(level=logging.INFO, format=f"%(asctime)s {robot} %(levelname)s %(message)s")
-    if driver != "sim":
-        raise typer.BadParameter(f"driver {driver!r} is not available in this build; use sim")
     config = _scenario(scenario, set_)
     if robot not in {r.id for r in config.robots}:
         raise typer.BadParameter(f"robot {robot!r} is not in {scenario}")
     transport = _transport(mode, listen, connect)
-    options = RuntimeOptions(fleet=fleet, transport=transport, clock=_clock(clock))
-    runtime = AgentRuntime(robot, config, load_robot(config.robot), options)
-    report = runtime.run(_stop_on_signals())
+    params = load_robot(config.robot)
+    stop = _stop_on_signals()
+    if driver == "sim":
+        options = RuntimeOptions(fleet=fleet, transport=transport, clock=_clock(clock))
+        report = AgentRuntime(robot, config, params, options).run(stop)
+    else:
+        from phalanx.agents.driver_runtime import DriverRuntime
+        from phalanx.drivers.safety import SafeDriver, SafetyLimits
+
+        backend = _backend(driver, arcos_port, arcos_tcp, baud, can_channel, can_interface)
+        bounds = config.limits
+        limits = SafetyLimits(
+            bounds.v_max_mps or params.v_max_mps,
+            math.radians(bounds.omega_max_degps or params.omega_max_degps),
+            watchdog,
+        )
+        options = RuntimeOptions(fleet=fleet, transport=transport, clock="realtime")
+        safe = SafeDriver(backend, limits)
+        _connect_with_retry(safe, stop)
+        with safe:
+            runtime = DriverRuntime(
+                robot, config, params, options, safe, epoch_s=epoch or time.time()
+            )
+            report = runtime.run(stop)
     typer.echo(
         f"{robot}: {report.steps} steps, {report.saturations} saturations, "
         f"{report.dropped_messages} dropped messages"
     )
+
+
+def _connect_with_retry(driver: SafeDriver, stop: threading.Event, timeout_s: float = 15.0) -> None:
+    """Connect, retrying while the robot (or its emulator) comes up; exit 2 if it never does."""
+    import time
+
+    from phalanx.errors import DriverError
+
+    deadline = time.monotonic() + timeout_s
+    while True:
+        try:
+            driver.connect()
+            return
+        except DriverError as exc:
+            if time.monotonic() > deadline or stop.wait(0.5):
+                typer.echo(f"cannot reach the robot: {exc}", err=True)
+                raise typer.Exit(2) from exc
+
+
+def _backend(
+    driver: str,
+    arcos_port: str | None,
+    arcos_tcp: str | None,
+    baud: int,
+    can_channel: str,
+    can_interface: str,
+) -> Driver:
+    if driver == "arcos":
+        from phalanx.drivers.arcos import ArcosDriver, ArcosSettings
+
+        try:
+            return ArcosDriver(ArcosSettings(port=arcos_port, tcp=arcos_tcp, baud=baud))
+        except ValueError as exc:
+            raise typer.BadParameter(f"arcos: {exc}") from exc
+    if driver == "canopen":
+        from phalanx.drivers.canopen import CanopenDriver, CanopenSettings
+
+        return CanopenDriver(CanopenSettings(channel=can_channel, interface=can_interface))
+    raise typer.BadParameter(f"driver must be sim, arcos or canopen, got {driver!r}")
 
 
 def world(
@@ -104,6 +189,9 @@ def world(
     set_: SetOpt = None,
     out: Annotated[Path | None, typer.Option(help="Results folder.")] = None,
     recording: Annotated[bool, typer.Option(help="Write a Rerun .rrd.")] = True,
+    epoch: Annotated[
+        float | None, typer.Option(help="Real time: Unix time of tick 0, shared with agents.")
+    ] = None,
 ) -> None:
     """Run the simulated world for agents in other processes; write the results folder."""
     from phalanx.config import load_robot
@@ -114,7 +202,9 @@ def world(
     logging.basicConfig(level=logging.INFO, format="%(asctime)s world %(levelname)s %(message)s")
     config = _scenario(scenario, set_)
     transport = _transport(mode, listen, connect)
-    options = WorldOptions(fleet=fleet, transport=transport, clock=_clock(clock), speed=speed)
+    options = WorldOptions(
+        fleet=fleet, transport=transport, clock=_clock(clock), speed=speed, epoch_s=epoch
+    )
     process = WorldProcess(config, load_robot(config.robot), options)
     run_log = process.run(_stop_on_signals())
     folder = out or Path("results") / f"{config.name}-{config.controller.kind}-up"
@@ -136,6 +226,10 @@ def up(
     timeout: Annotated[float, typer.Option(help="Give up after this many seconds.")] = 600.0,
     recording: Annotated[bool, typer.Option(help="Write a Rerun .rrd.")] = True,
     set_: SetOpt = None,
+    driver: Annotated[
+        str,
+        typer.Option(help="sim, or arcos: every robot an ARCOS emulator moved by the world."),
+    ] = "sim",
 ) -> None:
     """Start the world and one agent process per robot here; supervise; write results."""
     from phalanx.launch import UpOptions, plan, supervise
@@ -151,7 +245,13 @@ def up(
         timeout_s=timeout,
         recording=recording,
         overrides=tuple(f"--set={o}" for o in set_ or ()),
+        driver=driver,
     )
+    if driver not in ("sim", "arcos"):
+        raise typer.BadParameter(f"up runs sim or arcos robots, not {driver!r}")
+    if driver == "arcos" and options.clock == "lockstep":
+        typer.echo("arcos robots keep their own time: running with --clock realtime", err=True)
+        options.clock = "realtime"
     code = supervise(plan(scenario, config, options), options, _stop_on_signals())
     raise typer.Exit(code)
 

@@ -14,9 +14,12 @@ import pytest
 from phalanx.config import load_robot
 from phalanx.drivers.arcos import ArcosDriver, ArcosSettings
 from phalanx.drivers.base import Driver
+from phalanx.drivers.canopen import CanopenDriver, CanopenSettings
 from phalanx.drivers.safety import SafetyLimits
 from phalanx.drivers.sim import SimDriver
+from phalanx.geometry import Twist2D
 from phalanx.simulator.arcos_emulator import ArcosEmulator, PtyLink, TcpLink
+from phalanx.simulator.cia402 import SimulatedDiffDrive
 
 ROBOT = load_robot("p3dx")
 LIMITS = SafetyLimits(v_max_mps=0.3, omega_max_radps=math.radians(40.0), watchdog_s=0.3)
@@ -29,6 +32,7 @@ class Rig:
     driver: Driver
     robot_side: Any = None
     limits: SafetyLimits = LIMITS
+    zero_commanded: Callable[[], bool] | None = None  # the robot itself was told to stop
 
 
 @contextmanager
@@ -40,27 +44,45 @@ def sim_rig() -> Iterator[Rig]:
 def arcos_pty_rig() -> Iterator[Rig]:
     link = PtyLink()
     with ArcosEmulator(link, ROBOT) as emulator:
-        yield Rig(ArcosDriver(ArcosSettings(port=link.device)), emulator)
+        yield Rig(ArcosDriver(ArcosSettings(port=link.device)), emulator, LIMITS, _zero(emulator))
 
 
 @contextmanager
 def arcos_tcp_rig() -> Iterator[Rig]:
     link = TcpLink(0)
     with ArcosEmulator(link, ROBOT) as emulator:
-        yield Rig(ArcosDriver(ArcosSettings(tcp=f"127.0.0.1:{link.port}")), emulator)
+        driver = ArcosDriver(ArcosSettings(tcp=f"127.0.0.1:{link.port}"))
+        yield Rig(driver, emulator, LIMITS, _zero(emulator))
 
 
-RIGS: dict[str, Callable[[], AbstractContextManager[Rig]]] = {
-    "sim": sim_rig,
-    "arcos-pty": arcos_pty_rig,
-    "arcos-tcp": arcos_tcp_rig,
+def _zero(emulator: ArcosEmulator) -> Callable[[], bool]:
+    return lambda: emulator.body.state().setpoint == Twist2D(0.0, 0.0)
+
+
+@contextmanager
+def canopen_rig(request: pytest.FixtureRequest) -> Iterator[Rig]:
+    channel = f"conf-{request.node.name}"  # a virtual bus of its own
+    with SimulatedDiffDrive(channel) as drives:
+        driver = CanopenDriver(CanopenSettings(interface="virtual", channel=channel))
+
+        def zero() -> bool:
+            return all(d.target == 0 for d in drives.drives)
+
+        yield Rig(driver, drives, LIMITS, zero)
+
+
+RIGS: dict[str, Callable[[pytest.FixtureRequest], AbstractContextManager[Rig]]] = {
+    "sim": lambda _r: sim_rig(),
+    "arcos-pty": lambda _r: arcos_pty_rig(),
+    "arcos-tcp": lambda _r: arcos_tcp_rig(),
+    "canopen-virtual": canopen_rig,
 }
 
 
 @pytest.fixture(params=sorted(RIGS))
 def rig(request: pytest.FixtureRequest) -> Iterator[Rig]:
     """Each backend in turn; closed afterwards whatever the test did."""
-    with RIGS[request.param]() as rig:
+    with RIGS[request.param](request) as rig:
         try:
             yield rig
         finally:

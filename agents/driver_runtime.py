@@ -1,0 +1,114 @@
+"""The agent process on a robot driver (`phalanx agent --driver arcos|canopen`).
+
+The robot, not a world process, supplies odometry and sensors, so the agent keeps its
+own clock: control steps at `epoch + k * dt` on the wall clock (Unix time; every agent
+and the world of a fleet are given the same epoch, so their scenario times agree within
+the hosts' clock sync). Each step reads the driver, turns its odometry (which starts at
+zero where the robot was switched on) into the shared world frame with the robot's start
+pose from the scenario, runs the same agent core as the simulated robots, publishes the
+state, and sends the command through the safety wrapper. The command is not published
+as a `cmd` for a world to execute: the robot executes it.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+import time
+
+from phalanx.agents.core import StepOutput
+from phalanx.agents.runtime import AgentRuntime, RuntimeOptions
+from phalanx.config import RobotParams, Scenario
+from phalanx.drivers.safety import SafeDriver
+from phalanx.errors import DriverError
+from phalanx.geometry import Pose2D
+from phalanx.messages import SenseFrame
+from phalanx.telemetry import Telemetry
+
+log = logging.getLogger("phalanx.agent")
+
+
+def start_pose(scenario: Scenario, robot_id: str) -> Pose2D:
+    """The robot's start pose in the world frame, from the scenario."""
+    start = next(r.start for r in scenario.robots if r.id == robot_id)
+    return Pose2D(start.x_m, start.y_m, math.radians(start.theta_deg))
+
+
+class DriverRuntime(AgentRuntime):
+    """An AgentRuntime whose ticks come from its own clock and whose robot is a driver."""
+
+    publish_commands = False
+
+    def __init__(
+        self,
+        robot_id: str,
+        scenario: Scenario,
+        robot: RobotParams,
+        options: RuntimeOptions,
+        driver: SafeDriver,
+        *,
+        epoch_s: float,
+        telemetry: Telemetry | None = None,
+    ) -> None:
+        super().__init__(robot_id, scenario, robot, options, telemetry=telemetry)
+        self.driver = driver
+        self.robot = robot
+        self.epoch_s = epoch_s
+        self.origin = start_pose(scenario, robot_id)
+        self.driver_errors = 0
+        self.overruns = 0
+
+    def _loop(self, stop: threading.Event) -> None:
+        dt_s = self.scenario.dt_s
+        steps = round(self.scenario.duration_s / dt_s)
+        if self.epoch_s > time.time() and stop.wait(self.epoch_s - time.time()):
+            return
+        k = max(0, math.ceil((time.time() - self.epoch_s) / dt_s))
+        try:
+            while k < steps and not stop.is_set():
+                wait_s = self.epoch_s + k * dt_s - time.time()
+                if wait_s > 0 and stop.wait(wait_s):
+                    break
+                late_ticks = math.floor((time.time() - self.epoch_s) / dt_s) - k
+                if late_ticks > 0:  # skip what cannot be done in time rather than bunch up
+                    self.overruns += 1
+                    k += late_ticks
+                self._drive(k)
+                k += 1
+        finally:
+            self.driver.stop()
+
+    def _drive(self, k: int) -> StepOutput | None:
+        try:
+            odometry = self.driver.read_odometry()
+            status = self.driver.read_status()
+        except DriverError as exc:
+            self.driver_errors += 1
+            log.warning("%s: no reading from the robot at step %d: %s", self.robot_id, k, exc)
+            return None
+        pose = self.origin.compose(odometry.pose)
+        # A backend without sonar (CAN drives) reports free space: it never blocks.
+        sonar = status.sonar_ranges_m or (self.robot.sonar.max_range_m,) * len(
+            self.robot.sonar.units
+        )
+        frame = SenseFrame(
+            robot_id=self.robot_id,
+            tick=k,
+            t_s=k * self.scenario.dt_s,
+            dt_s=self.scenario.dt_s,
+            x_m=pose.x_m,
+            y_m=pose.y_m,
+            theta_rad=pose.theta_rad,
+            v_mps=odometry.twist.v_mps,
+            omega_radps=odometry.twist.omega_radps,
+            sonar_ranges_m=sonar,
+            bumpers=status.bumpers,
+        )
+        out = self.step(frame)
+        try:
+            self.driver.set_velocity(out.command)
+        except DriverError as exc:
+            self.driver_errors += 1
+            log.warning("%s: command not sent at step %d: %s", self.robot_id, k, exc)
+        return out

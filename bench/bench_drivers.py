@@ -1,0 +1,169 @@
+"""Driver backends against their emulated robots: latency, parsing rate, time to stop.
+
+For ARCOS (emulator over a pty and over TCP) and CiA 402 (two simulated drives on
+python-can's virtual bus), prints:
+- command -> robot: set_velocity() until the robot side has the new setpoint (emulator
+  firmware setpoint, drive target velocity);
+- command -> motion seen: from rest, set_velocity() until the driver's odometry shows the
+  robot moving (ARCOS: the next SIP, every 100 ms; CAN: the next TPDO, every 20 ms);
+- frames parsed per second: the ARCOS frame parser and SIP decoder on a recorded stream;
+- lost link -> motors stopped: ARCOS cable unplugged (silence both ways) until the
+  firmware watchdog stops the motors (2 s on a P3DX) and until the driver reports the link
+  lost; CAN heartbeat lost until both wheels are commanded to zero.
+
+    .venv/bin/python bench/bench_drivers.py [--repeats 30]
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+
+from phalanx.config import load_robot
+from phalanx.drivers.arcos import ArcosDriver, ArcosSettings
+from phalanx.drivers.arcos_protocol import FrameParser, Sip, decode_sip, encode_sip
+from phalanx.drivers.canopen import CanopenDriver, CanopenSettings
+from phalanx.geometry import Twist2D
+from phalanx.simulator.arcos_emulator import ArcosEmulator, Link, PtyLink, TcpLink
+from phalanx.simulator.cia402 import SimulatedDiffDrive
+
+ROBOT = load_robot("p3dx")
+
+
+def _until(check: Callable[[], bool], timeout_s: float = 5.0) -> float:
+    started = time.perf_counter()
+    while not check():
+        if time.perf_counter() - started > timeout_s:
+            return float("nan")
+        time.sleep(0.0002)
+    return time.perf_counter() - started
+
+
+def _pct(values: list[float]) -> str:
+    values = sorted(v for v in values if v == v)
+    if not values:
+        return "n/a"
+    p99 = values[min(len(values) - 1, round(0.99 * (len(values) - 1)))]
+    return f"p50 {1e3 * statistics.median(values):7.2f} ms  p99 {1e3 * p99:7.2f} ms"
+
+
+@contextmanager
+def arcos(link: Link) -> Iterator[tuple[ArcosEmulator, ArcosDriver]]:
+    with ArcosEmulator(link, ROBOT) as emulator:
+        where = link.device if isinstance(link, PtyLink) else None
+        settings = (
+            ArcosSettings(port=where) if where else ArcosSettings(tcp=f"127.0.0.1:{link.port}")  # type: ignore[attr-defined]
+        )
+        with ArcosDriver(settings) as driver:
+            yield emulator, driver
+
+
+def arcos_latency(name: str, link: Link, repeats: int) -> None:
+    to_robot, to_motion = [], []
+    with arcos(link) as (emulator, driver):
+        for i in range(repeats):
+            v = 0.1 if i % 2 == 0 else -0.1
+            driver.set_velocity(Twist2D(0.0, 0.0))  # from rest: latency, not acceleration
+            _until(lambda: driver.read_odometry().twist.v_mps == 0.0)
+            t0 = time.perf_counter()
+            driver.set_velocity(Twist2D(v, 0.0))
+            to_robot.append(_until(lambda v=v: emulator.body.state().setpoint.v_mps == v))
+            t1 = time.perf_counter() - t0
+            seen = _until(lambda v=v: driver.read_odometry().twist.v_mps * v > 0.0)
+            to_motion.append(t1 + seen)
+        driver.stop()
+    print(f"arcos {name:4s} command -> robot setpoint   {_pct(to_robot)}")
+    print(f"arcos {name:4s} command -> motion in SIP    {_pct(to_motion)}")
+
+
+def arcos_unplug(repeats: int) -> None:
+    stopped, noticed = [], []
+    for _ in range(repeats):
+        with arcos(TcpLink(0)) as (emulator, driver):
+            driver.set_velocity(Twist2D(0.2, 0.0))
+            _until(lambda: emulator.body.state().twist.v_mps > 0.1)
+            t0 = time.perf_counter()
+            emulator.unplug()
+            noticed.append(_until(lambda: not driver.link_up))
+            stopped.append(
+                time.perf_counter() - t0 + _until(lambda: emulator.body.state().twist.v_mps == 0.0)
+            )
+            emulator.unplug(False)
+    print(f"arcos unplugged -> driver reports link lost {_pct(noticed)}")
+    print(f"arcos unplugged -> motors stopped (firmware watchdog 2 s) {_pct(stopped)}")
+
+
+def parse_rate() -> None:
+    sip = Sip(moving=True, x=1000, y=2000, th=100, left_vel=150, right_vel=160,
+              battery_dv=125, stall_bumpers=0, flags=1,
+              sonars=tuple((i, 1000 + i) for i in range(16)), rot_vel_x10=12)  # fmt: skip
+    stream = encode_sip(sip) * 20000
+    started = time.perf_counter()
+    frames = 0
+    parser = FrameParser()
+    for offset in range(0, len(stream), 4096):
+        for body in parser.feed(stream[offset : offset + 4096]):
+            decode_sip(body)
+            frames += 1
+    rate = frames / (time.perf_counter() - started)
+    print(
+        f"arcos frame parser + SIP decode: {rate:,.0f} SIPs/s ({len(encode_sip(sip))} B each; "
+        f"a P3DX sends 10/s)"
+    )
+
+
+def _can_rig(channel: str) -> tuple[list[float], list[float], float, float]:
+    """One simulated robot: (command -> target, command -> TPDO motion, TPDO rate, stop)."""
+    to_drive, to_motion = [], []
+    with SimulatedDiffDrive(channel) as drives:
+        driver = CanopenDriver(CanopenSettings(interface="virtual", channel=channel))
+        driver.connect()
+        for j in range(10):
+            v = 0.1 if j % 2 == 0 else -0.1
+            driver.set_velocity(Twist2D(0.0, 0.0))  # from rest: latency, not acceleration
+            _until(lambda: abs(driver.read_odometry().twist.v_mps) < 1e-4)
+            t0 = time.perf_counter()
+            driver.set_velocity(Twist2D(v, 0.0))
+            to_drive.append(_until(lambda v=v: drives.left.target * v > 0))
+            t1 = time.perf_counter() - t0
+            moving = _until(lambda v=v: driver.read_odometry().twist.v_mps * v > 1e-3)
+            to_motion.append(t1 + moving)
+        n0, t0 = driver.stats.tpdos, time.perf_counter()
+        time.sleep(1.0)
+        rate = (driver.stats.tpdos - n0) / (time.perf_counter() - t0)
+        drives.right.lose_heartbeat()
+        stop = _until(lambda: drives.left.target == 0 and bool(driver.stats.faults))
+        driver.close()
+    return to_drive, to_motion, rate, stop
+
+
+def can_latency(repeats: int) -> None:
+    to_drive, to_motion, rates, stops = [], [], [], []
+    for i in range(max(3, repeats // 10)):
+        a, b, rate, stop = _can_rig(f"bench{i}")
+        to_drive += a
+        to_motion += b
+        rates.append(rate)
+        stops.append(stop)
+    print(f"canopen command -> drive target (RPDO)   {_pct(to_drive)}")
+    print(f"canopen command -> motion in TPDO         {_pct(to_motion)}")
+    print(f"canopen TPDOs processed: {statistics.mean(rates):.0f}/s (2 drives x 50 Hz)")
+    print(f"canopen heartbeat lost -> wheels zero    {_pct(stops)} (timeout 300 ms, beats 50 ms)")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser()
+    parser.add_argument("--repeats", type=int, default=30)
+    args = parser.parse_args()
+    arcos_latency("pty", PtyLink(), args.repeats)
+    arcos_latency("tcp", TcpLink(0), args.repeats)
+    parse_rate()
+    arcos_unplug(max(3, args.repeats // 10))
+    can_latency(args.repeats)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,346 @@
+"""The `canopen` backend: a differential drive of two CiA 402 drives in profile velocity
+mode over python-can, with the `canopen` library doing SDO, PDO, NMT and EMCY.
+
+Connect: wait for each drive's heartbeat, PRE-OPERATIONAL, profile velocity mode (3) and
+its ramps by SDO, the 402 state machine walked to OPERATION ENABLED by controlword
+(fault reset first if needed), PDOs from the object dictionary, NMT start. Run: target
+velocities by RPDO1 (controlword + target), statusword and actual velocity by TPDO1,
+odometry integrated from the measured wheel speeds. Supervision: a drive whose heartbeat
+is missing for `heartbeat_timeout_s`, or which reports an EMCY or FAULT, stops the robot
+(zero targets and quick stop on both wheels) and the fault is reported until `connect()`
+resets it. Facts: ../shared/notes/can.md (CiA 402 words, ids, canopen 2.4 behaviour).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+import time
+from dataclasses import dataclass, field
+
+import canopen
+from pydantic import BaseModel, ConfigDict, Field
+
+from phalanx.drivers.base import Odometry, RobotStatus
+from phalanx.drivers.cia402 import Cw, drive_od
+from phalanx.errors import DriverError, DriverTimeout, DriverUnavailable
+from phalanx.geometry import Pose2D, Twist2D, integrate_unicycle
+
+log = logging.getLogger("phalanx.canopen")
+STATE_MASK = 0x6F
+OPERATION_ENABLED = 0x27
+FAULT_MASK, FAULT = 0x4F, 0x08
+PROFILE_VELOCITY = 3
+
+
+class CanopenSettings(BaseModel):
+    """Bus, node ids, wheel geometry and the drives' velocity scale."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    interface: str = "socketcan"
+    channel: str = "can0"
+    bitrate: int = Field(default=500_000, gt=0)
+    left_node_id: int = Field(default=1, ge=1, le=127)
+    right_node_id: int = Field(default=2, ge=1, le=127)
+    wheel_radius_m: float = Field(default=0.0975, gt=0.0)
+    track_width_m: float = Field(default=0.357, gt=0.0)
+    counts_per_radps: float = Field(default=1000.0, gt=0.0, description="drive units per rad/s")
+    left_sign: int = Field(default=1, description="+1 or -1: mounting direction")
+    right_sign: int = Field(default=-1, description="mirrored on the right side")
+    max_wheel_radps: float = Field(default=12.5, gt=0.0)
+    heartbeat_timeout_s: float = Field(default=0.3, gt=0.0)
+    connect_timeout_s: float = Field(default=3.0, gt=0.0)
+    accel_counts_ps2: int = Field(default=10_000, gt=0)
+
+
+@dataclass
+class _Wheel:
+    name: str
+    node: canopen.RemoteNode
+    sign: int
+    last_beat_s: float = 0.0
+    statusword: int = 0
+    speed_radps: float = 0.0
+    tpdos: int = 0
+    pdo_ready: bool = False
+
+
+@dataclass
+class CanopenStats:
+    """Counters of the bus."""
+
+    tpdos: int = 0
+    rpdos: int = 0
+    emcys: int = 0
+    heartbeat_losses: int = 0
+    faults: list[str] = field(default_factory=list)
+
+
+class CanopenDriver:
+    """Two CiA 402 drives as one differential-drive robot; implements the Driver protocol."""
+
+    name = "canopen"
+
+    def __init__(self, settings: CanopenSettings) -> None:
+        self.settings = settings
+        self.stats = CanopenStats()
+        self._lock = threading.RLock()  # readings, faults, PDO sends; never held while waiting
+        self._connect_lock = threading.Lock()
+        self._network: canopen.Network | None = None
+        self._wheels: tuple[_Wheel, _Wheel] | None = None
+        self._faults: list[str] = []
+        self._pose = Pose2D(0.0, 0.0, 0.0)
+        self._twist = Twist2D(0.0, 0.0)
+        self._odom_s = time.monotonic()
+        self._stop = threading.Event()
+        self._supervisor: threading.Thread | None = None
+        self._closed = False
+
+    # -- Driver protocol -------------------------------------------------------------
+
+    def connect(self) -> None:
+        """Open the bus (once) and bring both drives to OPERATION ENABLED."""
+        # Bus waits happen without `_lock`: the bus thread's callbacks take it, and a
+        # blocked callback would hold back the heartbeats being waited for.
+        with self._connect_lock:
+            if self._closed:
+                raise DriverError("driver closed; make a new one")
+            if self._network is None:
+                self._open_bus()
+            assert self._wheels is not None  # noqa: S101 - set by _open_bus
+            for wheel in self._wheels:
+                self._enable(wheel)
+            with self._lock:
+                self._faults.clear()
+                self._odom_s = time.monotonic()
+        if self._supervisor is None:
+            self._supervisor = threading.Thread(target=self._supervise, name="can-supervisor")
+            self._supervisor.daemon = True
+            self._supervisor.start()
+
+    def set_velocity(self, twist: Twist2D) -> None:
+        """Wheel targets from (v, omega) by RPDO1. Refused while a drive is faulted."""
+        if not (math.isfinite(twist.v_mps) and math.isfinite(twist.omega_radps)):
+            raise ValueError(f"non-finite velocity command {twist}")
+        with self._lock:
+            self._check_usable()
+            if self._faults:
+                raise DriverUnavailable(f"drives stopped: {'; '.join(self._faults)}")
+            s = self.settings
+            half = twist.omega_radps * s.track_width_m / 2.0
+            left = (twist.v_mps - half) / s.wheel_radius_m
+            right = (twist.v_mps + half) / s.wheel_radius_m
+            scale = max(1.0, abs(left) / s.max_wheel_radps, abs(right) / s.max_wheel_radps)
+            assert self._wheels is not None  # noqa: S101
+            for wheel, radps in zip(self._wheels, (left / scale, right / scale), strict=True):
+                self._send(wheel, Cw.ENABLE_OPERATION, radps)
+
+    def read_odometry(self) -> Odometry:
+        """Pose integrated from the drives' measured wheel speeds since connect."""
+        with self._lock:
+            if self._wheels is None:
+                raise DriverTimeout("not connected")
+            return Odometry(self._pose, self._twist, self._odom_s)
+
+    def read_status(self) -> RobotStatus:
+        """Motor state of both drives and any fault; no sonar or bumpers on this robot."""
+        with self._lock:
+            wheels = self._wheels or ()
+            enabled = bool(wheels) and all(
+                w.statusword & STATE_MASK == OPERATION_ENABLED for w in wheels
+            )
+            return RobotStatus(
+                motors_enabled=enabled and not self._faults,
+                stalled=False,
+                faults=tuple(self._faults),
+            )
+
+    def stop(self) -> None:
+        """Zero targets, drives stay enabled."""
+        with self._lock:
+            if self._wheels is None or self._closed:
+                return
+            for wheel in self._wheels:
+                self._send(wheel, Cw.ENABLE_OPERATION, 0.0)
+
+    def estop(self) -> None:
+        """Quick stop on both drives (they ramp down and disable); `connect()` re-enables."""
+        with self._lock:
+            if self._wheels is None:
+                return
+            for wheel in self._wheels:
+                self._send(wheel, Cw.QUICK_STOP, 0.0)
+            self._faults.append("e-stop")
+
+    def close(self) -> None:
+        """Zero targets, shut the drives down (disabled), leave the bus; safe twice."""
+        with self._lock:
+            if self._closed:
+                return
+            self._closed = True
+            self._stop.set()
+            if self._wheels is not None:
+                for wheel in self._wheels:
+                    try:
+                        self._send(wheel, Cw.SHUTDOWN, 0.0)
+                    except Exception as exc:
+                        log.warning("shutdown of %s failed: %s", wheel.name, exc)
+        if self._supervisor is not None:
+            self._supervisor.join(2.0)
+            self._supervisor = None
+        with self._lock:
+            network, self._network = self._network, None
+        if network is not None:
+            network.disconnect()  # joins the bus thread: never with `_lock` held
+
+    def __enter__(self) -> CanopenDriver:
+        self.connect()
+        return self
+
+    def __exit__(self, *_exc: object) -> None:
+        self.close()
+
+    # -- bus -------------------------------------------------------------------------
+
+    def _check_usable(self) -> None:
+        if self._closed:
+            raise DriverError("driver closed")
+        if self._wheels is None:
+            raise DriverUnavailable("not connected")
+
+    def _open_bus(self) -> None:
+        s = self.settings
+        network = canopen.Network()
+        try:
+            if s.interface == "virtual":
+                network.connect(interface=s.interface, channel=s.channel)
+            else:
+                network.connect(interface=s.interface, channel=s.channel, bitrate=s.bitrate)
+        except Exception as exc:
+            raise DriverUnavailable(f"cannot open CAN {s.interface}:{s.channel}: {exc}") from exc
+        wheels = []
+        for name, node_id, sign in (
+            ("left", s.left_node_id, s.left_sign),
+            ("right", s.right_node_id, s.right_sign),
+        ):
+            node = network.add_node(node_id, drive_od(node_id))
+            wheel = _Wheel(name, node, sign)
+            node.nmt.add_heartbeat_callback(lambda _state, w=wheel: self._on_beat(w))
+            node.emcy.add_callback(lambda err, w=wheel: self._on_emcy(w, err))
+            wheels.append(wheel)
+        self._network = network
+        self._wheels = (wheels[0], wheels[1])
+
+    def _enable(self, wheel: _Wheel) -> None:
+        s, node = self.settings, wheel.node
+        try:
+            node.nmt.wait_for_heartbeat(s.connect_timeout_s)
+            node.nmt.state = "PRE-OPERATIONAL"
+            node.sdo[0x6060].raw = PROFILE_VELOCITY
+            node.sdo[0x6083].raw = s.accel_counts_ps2
+            node.sdo[0x6084].raw = s.accel_counts_ps2
+            if node.sdo[0x6041].raw & FAULT_MASK == FAULT:
+                node.sdo[0x6040].raw = 0x00
+                node.sdo[0x6040].raw = Cw.FAULT_RESET  # rising edge of bit 7
+            for command, expected in (
+                (Cw.SHUTDOWN, 0x21),
+                (Cw.SWITCH_ON, 0x23),
+                (Cw.ENABLE_OPERATION, OPERATION_ENABLED),
+            ):
+                node.sdo[0x60FF].raw = 0
+                node.sdo[0x6040].raw = command
+                self._await_state(wheel, expected)
+            if not wheel.pdo_ready:
+                node.tpdo.read(from_od=True)
+                node.rpdo.read(from_od=True)
+                node.tpdo[1].add_callback(lambda pdo, w=wheel: self._on_tpdo(w, pdo))
+                wheel.pdo_ready = True
+            node.nmt.state = "OPERATIONAL"
+        except (
+            canopen.SdoAbortedError,
+            canopen.SdoCommunicationError,
+            canopen.nmt.NmtError,
+        ) as exc:
+            raise DriverUnavailable(f"{wheel.name} drive (node {node.id}): {exc}") from exc
+        wheel.last_beat_s = time.monotonic()
+
+    def _await_state(self, wheel: _Wheel, expected: int) -> None:
+        deadline = time.monotonic() + self.settings.connect_timeout_s
+        while (status := int(wheel.node.sdo[0x6041].raw)) & STATE_MASK != expected:
+            if time.monotonic() > deadline:
+                raise DriverTimeout(
+                    f"{wheel.name} drive stuck at statusword {status:#06x}, wanted {expected:#x}"
+                )
+            time.sleep(0.01)
+        wheel.statusword = status
+
+    def _send(self, wheel: _Wheel, controlword: int, radps: float) -> None:
+        counts = round(wheel.sign * radps * self.settings.counts_per_radps)
+        rpdo = wheel.node.rpdo[1]
+        rpdo["Controlword"].raw = int(controlword)
+        rpdo["Target velocity"].raw = counts
+        rpdo.transmit()
+        self.stats.rpdos += 1
+
+    # -- callbacks (bus thread) and supervision --------------------------------------
+
+    def _on_beat(self, wheel: _Wheel) -> None:
+        wheel.last_beat_s = time.monotonic()
+
+    def _on_emcy(self, wheel: _Wheel, error: canopen.emcy.EmcyError) -> None:
+        if error.code == 0:
+            return  # "error reset / no error"
+        with self._lock:
+            self.stats.emcys += 1
+            self._fault(f"{wheel.name} drive EMCY {error.code:#06x} ({error.get_desc()})")
+
+    def _on_tpdo(self, wheel: _Wheel, pdo: canopen.pdo.PdoMap) -> None:
+        with self._lock:
+            wheel.statusword = int(pdo["Statusword"].raw)
+            counts = int(pdo["Velocity actual value"].raw)
+            wheel.speed_radps = wheel.sign * counts / self.settings.counts_per_radps
+            wheel.tpdos += 1
+            self.stats.tpdos += 1
+            if wheel.statusword & FAULT_MASK == FAULT:
+                self._fault(f"{wheel.name} drive in FAULT")
+            self._integrate()
+
+    def _integrate(self) -> None:
+        assert self._wheels is not None  # noqa: S101
+        now = time.monotonic()
+        left, right = self._wheels
+        s = self.settings
+        v = s.wheel_radius_m * (left.speed_radps + right.speed_radps) / 2.0
+        w = s.wheel_radius_m * (right.speed_radps - left.speed_radps) / s.track_width_m
+        self._pose = integrate_unicycle(self._pose, self._twist, now - self._odom_s)
+        self._twist = Twist2D(v, w)
+        self._odom_s = now
+
+    def _fault(self, reason: str) -> None:
+        """Stop both wheels and remember why (call with the lock held)."""
+        if reason in self._faults:
+            return
+        log.error("stopping the robot: %s", reason)
+        self._faults.append(reason)
+        self.stats.faults.append(reason)
+        if self._wheels is not None and not self._closed:
+            for wheel in self._wheels:
+                try:
+                    self._send(wheel, Cw.QUICK_STOP, 0.0)
+                except Exception as exc:
+                    log.warning("quick stop of %s failed: %s", wheel.name, exc)
+
+    def _supervise(self) -> None:
+        period_s = min(0.02, self.settings.heartbeat_timeout_s / 5)
+        while not self._stop.wait(period_s):
+            with self._lock:
+                if self._wheels is None or self._closed:
+                    continue
+                now = time.monotonic()
+                for wheel in self._wheels:
+                    if now - wheel.last_beat_s > self.settings.heartbeat_timeout_s:
+                        if f"{wheel.name} drive heartbeat lost" not in self._faults:
+                            self.stats.heartbeat_losses += 1
+                        self._fault(f"{wheel.name} drive heartbeat lost")

@@ -1,0 +1,99 @@
+"""An emulated P3DX whose body lives in the world process: ARCOS on one side, Zenoh on the
+other, so a whole scenario runs with every agent on the `arcos` driver.
+
+The world publishes the robot's sense frame every tick; the bridge hands its pose (in
+the robot's own odometry frame, which starts at the scenario's start pose), twist and
+sonar ranges to the emulator, and answers each frame with the velocity setpoint the
+emulated firmware is executing, as the robot's `cmd`. The agent never talks to the world:
+it only sees ARCOS.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+
+from phalanx.config import RobotParams
+from phalanx.geometry import Pose2D, Twist2D
+from phalanx.messages import SenseFrame, VelocityCommand
+from phalanx.simulator.body import Body, BodyState
+from phalanx.transport import FleetSession, TransportConfig, open_session, robot_key
+
+log = logging.getLogger("phalanx.emulator")
+
+
+class WorldBody(Body):
+    """A Body whose motion comes from the world's sense frames, not from integration."""
+
+    def __init__(self, robot: RobotParams, origin: Pose2D) -> None:
+        super().__init__(robot)
+        self.origin = origin
+        self._sonar: tuple[float, ...] = super().sonar_ranges_m()
+        self.frames = 0
+        self.final = threading.Event()
+
+    def update(self, frame: SenseFrame) -> Twist2D:
+        """Take the world's frame; return the setpoint to execute until the next one."""
+        local = self.origin.relative(Pose2D(frame.x_m, frame.y_m, frame.theta_rad))
+        with self._lock:
+            self._pose = local
+            self._twist = Twist2D(frame.v_mps, frame.omega_radps)
+            if frame.sonar_ranges_m:
+                self._sonar = frame.sonar_ranges_m
+            self.frames += 1
+            return Twist2D(0.0, 0.0) if self._stalled else self._setpoint
+
+    def step(self, dt_s: float) -> BodyState:
+        """The world integrates: nothing to do here."""
+        del dt_s
+        return self.state()
+
+    def sonar_ranges_m(self) -> tuple[float, ...]:
+        """The world's latest sonar ranges for this robot."""
+        with self._lock:
+            return self._sonar
+
+
+class WorldBridge:
+    """Wires a WorldBody to the world over Zenoh."""
+
+    def __init__(self, body: WorldBody, robot_id: str, fleet: str) -> None:
+        self.body = body
+        self.robot_id = robot_id
+        self.fleet = fleet
+        self._session: FleetSession | None = None
+
+    def open(self, transport: TransportConfig) -> WorldBridge:
+        """Open the session and answer the world's frames from now on."""
+        self._session = open_session(transport)
+        self._session.subscribe(
+            robot_key(self.fleet, self.robot_id, "sense"), SenseFrame, self._on_frame
+        )
+        return self
+
+    def _on_frame(self, _key: str, frame: SenseFrame) -> None:
+        if frame.robot_id != self.robot_id or self._session is None:
+            return
+        if frame.final:
+            self.body.final.set()
+            return
+        setpoint = self.body.update(frame)
+        if not (math.isfinite(setpoint.v_mps) and math.isfinite(setpoint.omega_radps)):
+            setpoint = Twist2D(0.0, 0.0)
+        self._session.publish(
+            robot_key(self.fleet, self.robot_id, "cmd"),
+            VelocityCommand(
+                robot_id=self.robot_id,
+                tick=frame.tick,
+                stamp_s=frame.t_s,
+                v_mps=setpoint.v_mps,
+                omega_radps=setpoint.omega_radps,
+            ),
+        )
+
+    def close(self) -> None:
+        """Close the session (safe twice)."""
+        if self._session is not None:
+            self._session.close()
+            self._session = None

@@ -1,0 +1,176 @@
+"""The CiA 402 backend against simulated drives on python-can's virtual bus: the 402
+state machine, supervision (heartbeat, EMCY, FAULT), and a clean close."""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable, Iterator
+
+import can
+import pytest
+
+from phalanx.drivers.canopen import CanopenDriver, CanopenSettings
+from phalanx.drivers.cia402 import SW_OPERATION_ENABLED, SW_SWITCH_ON_DISABLED, Cw
+from phalanx.errors import DriverError, DriverUnavailable
+from phalanx.geometry import Twist2D
+from phalanx.simulator.cia402 import SimulatedDiffDrive, next_state
+
+pytestmark = pytest.mark.drivers
+
+
+def _eventually(check: Callable[[], bool], timeout_s: float) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if check():
+            return True
+        time.sleep(0.01)
+    return check()
+
+
+@pytest.fixture
+def rig(request: pytest.FixtureRequest) -> Iterator[tuple[SimulatedDiffDrive, CanopenDriver]]:
+    channel = f"can-{request.node.name}"
+    with SimulatedDiffDrive(channel) as drives:
+        driver = CanopenDriver(CanopenSettings(interface="virtual", channel=channel))
+        try:
+            yield drives, driver
+        finally:
+            driver.close()
+
+
+def test_state_machine_walks_to_operation_enabled_and_back() -> None:
+    state = SW_SWITCH_ON_DISABLED
+    for command in (Cw.SHUTDOWN, Cw.SWITCH_ON, Cw.ENABLE_OPERATION):
+        state = next_state(state, command, 0)
+    assert state == SW_OPERATION_ENABLED
+    assert next_state(state, Cw.QUICK_STOP, Cw.ENABLE_OPERATION) == 0x07
+    assert next_state(state, Cw.DISABLE_VOLTAGE, Cw.ENABLE_OPERATION) == SW_SWITCH_ON_DISABLED
+    # A fault clears only on the rising edge of bit 7.
+    assert next_state(0x08, Cw.FAULT_RESET, Cw.FAULT_RESET) == 0x08
+    assert next_state(0x08, Cw.FAULT_RESET, 0) == SW_SWITCH_ON_DISABLED
+
+
+def test_connect_enables_both_drives_in_profile_velocity(
+    rig: tuple[SimulatedDiffDrive, CanopenDriver],
+) -> None:
+    drives, driver = rig
+    driver.connect()
+    assert all(d.state == SW_OPERATION_ENABLED for d in drives.drives)
+    assert all(d.node.sdo[0x6060].raw == 3 for d in drives.drives)
+    assert all(d.node.nmt.state == "OPERATIONAL" for d in drives.drives)
+
+
+def test_wheel_targets_follow_the_geometry_and_mounting(
+    rig: tuple[SimulatedDiffDrive, CanopenDriver],
+) -> None:
+    drives, driver = rig
+    driver.connect()
+    s = driver.settings
+    driver.set_velocity(Twist2D(0.2, 0.5))
+    half = 0.5 * s.track_width_m / 2
+    left = (0.2 - half) / s.wheel_radius_m * s.counts_per_radps
+    right = (0.2 + half) / s.wheel_radius_m * s.counts_per_radps
+    assert _eventually(lambda: drives.left.target == round(left), 1.0)
+    assert drives.right.target == round(-right)  # mirrored mounting: right_sign = -1
+    assert _eventually(lambda: abs(driver.read_odometry().twist.omega_radps - 0.5) < 0.01, 2.0)
+    assert driver.read_odometry().twist.v_mps == pytest.approx(0.2, abs=0.005)
+
+
+def test_wheel_speed_limit_scales_both_wheels(
+    rig: tuple[SimulatedDiffDrive, CanopenDriver],
+) -> None:
+    drives, driver = rig
+    driver.connect()
+    driver.set_velocity(Twist2D(5.0, 0.0))  # far above max_wheel_radps
+    limit = driver.settings.max_wheel_radps * driver.settings.counts_per_radps
+    assert _eventually(lambda: drives.left.target != 0, 1.0)
+    assert abs(drives.left.target) <= round(limit)
+    assert abs(drives.right.target) <= round(limit)
+
+
+def test_lost_heartbeat_stops_both_wheels(rig: tuple[SimulatedDiffDrive, CanopenDriver]) -> None:
+    drives, driver = rig
+    driver.connect()
+    driver.set_velocity(Twist2D(0.2, 0.0))
+    assert _eventually(lambda: abs(drives.left.velocity) > 1000, 2.0)
+    lost_at = time.monotonic()
+    drives.right.lose_heartbeat()
+    assert _eventually(lambda: bool(driver.read_status().faults), 2.0)
+    assert time.monotonic() - lost_at < driver.settings.heartbeat_timeout_s + 0.2
+    assert "heartbeat" in driver.read_status().faults[0]
+    assert _eventually(lambda: drives.left.target == 0, 0.5)  # the live wheel stops too
+    assert not driver.read_status().motors_enabled
+    with pytest.raises(DriverUnavailable):
+        driver.set_velocity(Twist2D(0.2, 0.0))
+    drives.right.restore()
+    driver.connect()  # back: the drives are re-enabled and the fault cleared
+    assert not driver.read_status().faults
+    driver.set_velocity(Twist2D(0.1, 0.0))
+    assert _eventually(lambda: drives.right.target != 0, 1.0)
+
+
+def test_drive_fault_is_reported_and_reset_on_connect(
+    rig: tuple[SimulatedDiffDrive, CanopenDriver],
+) -> None:
+    drives, driver = rig
+    driver.connect()
+    drives.left.inject_fault(0x2310)
+    assert _eventually(lambda: any("EMCY 0x2310" in f for f in driver.read_status().faults), 1.0)
+    assert driver.stats.emcys == 1
+    driver.connect()
+    assert drives.left.state == SW_OPERATION_ENABLED
+    assert drives.left.node.sdo[0x603F].raw == 0
+    assert not driver.read_status().faults
+
+
+def test_close_twice_leaves_drives_stopped_and_disabled(
+    rig: tuple[SimulatedDiffDrive, CanopenDriver],
+) -> None:
+    drives, driver = rig
+    driver.connect()
+    driver.set_velocity(Twist2D(0.2, 0.0))
+    driver.close()
+    driver.close()
+    assert _eventually(lambda: all(d.target == 0 for d in drives.drives), 1.0)
+    assert all(d.state != SW_OPERATION_ENABLED for d in drives.drives)
+    with pytest.raises(DriverError):
+        driver.set_velocity(Twist2D(0.1, 0.0))
+
+
+def test_non_finite_command_is_refused(rig: tuple[SimulatedDiffDrive, CanopenDriver]) -> None:
+    _, driver = rig
+    driver.connect()
+    with pytest.raises(ValueError, match="non-finite"):
+        driver.set_velocity(Twist2D(math.inf, 0.0))
+
+
+def test_absent_drives_give_a_clear_error() -> None:
+    driver = CanopenDriver(
+        CanopenSettings(interface="virtual", channel="nobody-here", connect_timeout_s=0.3)
+    )
+    try:
+        with pytest.raises(DriverUnavailable, match="left drive"):
+            driver.connect()
+    finally:
+        driver.close()
+
+
+def _vcan0_present() -> bool:
+    try:
+        can.Bus(interface="socketcan", channel="vcan0").shutdown()
+    except (OSError, can.CanError):
+        return False
+    return True
+
+
+@pytest.mark.skipif(not _vcan0_present(), reason="needs SocketCAN vcan0 (modprobe vcan; root)")
+def test_runs_on_socketcan_vcan() -> None:
+    with SimulatedDiffDrive("vcan0", interface="socketcan") as drives:
+        driver = CanopenDriver(CanopenSettings(interface="socketcan", channel="vcan0"))
+        try:
+            driver.connect()
+            driver.set_velocity(Twist2D(0.1, 0.0))
+            assert _eventually(lambda: drives.left.target != 0, 1.0)
+        finally:
+            driver.close()
