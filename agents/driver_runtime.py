@@ -53,7 +53,6 @@ class DriverRuntime(AgentRuntime):
     ) -> None:
         super().__init__(robot_id, scenario, robot, options, telemetry=telemetry)
         self.driver = driver
-        self.robot = robot
         self.epoch_s = epoch_s
         self.origin = start_pose(scenario, robot_id)
         self.driver_errors = 0

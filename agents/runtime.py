@@ -21,7 +21,8 @@ from phalanx.drivers.base import Odometry, RobotStatus
 from phalanx.formation import Formation, scenario_formation
 from phalanx.geometry import Pose2D, Twist2D
 from phalanx.messages import AgentEvent, AgentReport, RobotState, SenseFrame, VelocityCommand
-from phalanx.telemetry import Telemetry
+from phalanx.metrics import live_errors
+from phalanx.telemetry import Telemetry, sonar_rays
 from phalanx.transport import (
     FleetSession,
     History,
@@ -79,6 +80,9 @@ class AgentRuntime:
         self.options = options
         self.formation: Formation = scenario_formation(scenario)
         self.agent = Agent(robot_id, scenario=scenario, robot=robot, formation=self.formation)
+        self.robot = robot
+        self._last_peers: dict[str, RobotState] = {}
+        self.step_times_s: list[float] = []
         self.telemetry = telemetry
         self.peers = History(depth=16)
         self.frames: queue.Queue[SenseFrame] = queue.Queue()
@@ -177,7 +181,9 @@ class AgentRuntime:
 
     def step(self, frame: SenseFrame) -> StepOutput:
         """Answer one frame: step the agent core, publish state, events and command."""
-        peers = self._peers_for(frame)
+        peers = self._peers_for(frame)  # (the bounded wait for peers is not step time)
+        started = time.perf_counter()
+        self._last_peers = peers
         odometry = Odometry(
             Pose2D(frame.x_m, frame.y_m, frame.theta_rad),
             Twist2D(frame.v_mps, frame.omega_radps),
@@ -189,6 +195,7 @@ class AgentRuntime:
         out = self.agent.step(Observation(odometry, status), peers, frame.t_s)
         self._publish(frame, out)
         self.steps += 1
+        self.step_times_s.append(time.perf_counter() - started)
         return out
 
     def _publish(self, frame: SenseFrame, out: StepOutput) -> None:
@@ -222,19 +229,39 @@ class AgentRuntime:
         if self.publish_commands:
             self._session.publish(robot_key(fleet, rid, "cmd"), command, reliable_block=True)
         if self.telemetry is not None:
-            self.telemetry.log_step(
-                rid,
-                t_s=frame.t_s,
-                step=frame.tick,
-                pose=out.state.pose,
-                cmd=out.command,
-                measured=Twist2D(frame.v_mps, frame.omega_radps),
-                fsm_state=out.state.fsm_state,
-                leader_id=out.state.leader_id,
-            )
+            self._log_step(frame, out)
+
+    def _log_step(self, frame: SenseFrame, out: StepOutput) -> None:
+        assert self.telemetry is not None  # noqa: S101 - checked by the caller
+        if self.steps == 0:  # the state log starts with the state the robot starts in
+            self.telemetry.log_transition(
+                self.robot_id, t_s=frame.t_s, source="-", target=out.state.fsm_state,
+                reason="agent started",
+            )  # fmt: skip
+        leader = self._last_peers.get(out.state.leader_id) if out.state.leader_id else None
+        errors = None
+        if leader is not None:
+            live = live_errors(self.formation, self.robot_id, out.state.pose, leader)
+            errors = live
+        self.telemetry.log_step(
+            self.robot_id,
+            t_s=frame.t_s,
+            step=frame.tick,
+            pose=out.state.pose,
+            cmd=out.command,
+            measured=Twist2D(frame.v_mps, frame.omega_radps),
+            slot_target=errors.slot_target if errors else None,
+            errors=(errors.linear_pct, errors.angular_pct, errors.orientation_deg)
+            if errors
+            else None,
+            sonar_rays=sonar_rays(self.robot, out.state.pose, frame.sonar_ranges_m),
+            fsm_state=out.state.fsm_state,
+            leader_id=out.state.leader_id,
+        )
 
     def _report(self) -> AgentReport:
         dropped = self._session.stats.dropped if self._session else 0
+        times = sorted(self.step_times_s) or [0.0]
         return AgentReport(
             robot_id=self.robot_id,
             steps=self.steps,
@@ -242,6 +269,9 @@ class AgentRuntime:
             accel_limited=self.agent.limiter.accel_limited,
             dropped_messages=dropped,
             late_peer_steps=self.late_peer_steps,
+            step_p50_us=1e6 * times[len(times) // 2],
+            step_p99_us=1e6 * times[min(len(times) - 1, round(0.99 * (len(times) - 1)))],
+            telemetry_dropped=self.telemetry.dropped if self.telemetry else 0,
         )
 
 

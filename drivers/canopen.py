@@ -258,6 +258,11 @@ class CanopenDriver:
                 node.tpdo[1].add_callback(lambda pdo, w=wheel: self._on_tpdo(w, pdo))
                 wheel.pdo_ready = True
             node.nmt.state = "OPERATIONAL"
+            # PDOs count only once the drive is OPERATIONAL: wait for its heartbeat to say so.
+            deadline = time.monotonic() + s.connect_timeout_s
+            while node.nmt.wait_for_heartbeat(s.connect_timeout_s) != "OPERATIONAL":
+                if time.monotonic() > deadline:
+                    raise DriverTimeout(f"{wheel.name} drive did not become OPERATIONAL")
         except (
             canopen.SdoAbortedError,
             canopen.SdoCommunicationError,

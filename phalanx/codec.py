@@ -95,6 +95,9 @@ LAYOUTS: dict[type[Message], tuple[int, tuple[tuple[str, str], ...]]] = {
             ("accel_limited", "I"),
             ("dropped_messages", "I"),
             ("late_peer_steps", "I"),
+            ("step_p50_us", "d"),
+            ("step_p99_us", "d"),
+            ("telemetry_dropped", "I"),
         ),
     ),
 }

@@ -15,6 +15,7 @@ import subprocess
 import sys
 import threading
 import time
+import uuid
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -41,6 +42,8 @@ class UpOptions:
     overrides: tuple[str, ...] = ()
     driver: str = "sim"
     startup_s: float = 8.0  # robot drivers: time given to every process before step 0
+    recording_id: str = field(default_factory=lambda: str(uuid.uuid4()))
+    telemetry_url: str | None = None  # stream live to a viewer as well
 
 
 @dataclass
@@ -84,9 +87,11 @@ def plan(scenario_path: Path, scenario: Scenario, options: UpOptions) -> list[Ch
     ]
     if options.out is not None:
         world += ["--out", str(options.out)]
-    if not options.recording:
-        world.append("--no-recording")
-    agent_extra: dict[str, list[str]] = {entry.id: [] for entry in scenario.robots}
+    # The world's own post-run recording is replaced by every process's live one.
+    world += ["--no-recording", *_telemetry_args(options, "world")]
+    agent_extra: dict[str, list[str]] = {
+        entry.id: _telemetry_args(options, entry.id) for entry in scenario.robots
+    }
     emulators: list[Child] = []
     if options.driver == "arcos":
         epoch = time.time() + options.startup_s
@@ -97,7 +102,7 @@ def plan(scenario_path: Path, scenario: Scenario, options: UpOptions) -> list[Ch
                 *_cli(), "emulate", "p3dx", "--tcp", str(port), "--world", str(scenario_path),
                 "--robot", entry.id, "--fleet", options.fleet, "--connect", endpoint,
             ]))  # fmt: skip
-            agent_extra[entry.id] = [
+            agent_extra[entry.id] += [
                 "--driver", "arcos", "--arcos-tcp", f"127.0.0.1:{port}", "--epoch", f"{epoch:.3f}",
             ]  # fmt: skip
     children = [Child("world", world), *emulators]
@@ -118,6 +123,50 @@ def plan(scenario_path: Path, scenario: Scenario, options: UpOptions) -> list[Ch
         ]
         children.append(Child(entry.id, agent))
     return children
+
+
+def _telemetry_args(options: UpOptions, name: str) -> list[str]:
+    args = []
+    if options.recording and options.out is not None:
+        args += ["--telemetry-file", str(telemetry_dir(options.out) / f"{name}.rrd")]
+    if options.telemetry_url:
+        args += ["--telemetry-url", options.telemetry_url]
+    return ["--recording-id", options.recording_id, *args] if args else []
+
+
+def telemetry_dir(out: Path) -> Path:
+    """Where every process of a run writes its part of the recording."""
+    return out / "telemetry"
+
+
+def merge_recordings(parts: list[Path], target: Path, timeout_s: float = 120.0) -> bool:
+    """Merge the processes' .rrd files into one (the same recording id: one recording).
+
+    A part without a footer (its process was killed) is merged as far as it goes.
+    """
+    rerun = Path(sys.executable).with_name("rerun")
+    command = [str(rerun if rerun.exists() else "rerun"), "rrd", "merge", "--continue-on-error"]
+    try:
+        subprocess.run(  # noqa: S603 - rerun's own CLI, our paths
+            [*command, "-o", str(target), *map(str, parts)],
+            check=True,
+            capture_output=True,
+            timeout=timeout_s,
+        )
+    except (OSError, subprocess.SubprocessError) as exc:
+        log.error("could not merge the recording parts into %s: %s", target, exc)
+        return False
+    return True
+
+
+def start_viewer(port: int | None = None) -> str:
+    """Start `phalanx view` in the background (it outlives the run); its gRPC url."""
+    port = port or free_tcp_port()
+    subprocess.Popen(  # noqa: S603 - our own CLI
+        [*_cli(), "view", "--port", str(port)], start_new_session=True
+    )
+    time.sleep(1.0)  # the SDK buffers until it connects, but a listening viewer is quicker
+    return f"rerun+http://127.0.0.1:{port}/proxy"
 
 
 def stop_all(children: list[Child]) -> None:

@@ -123,3 +123,6 @@ class AgentReport(Message):
     accel_limited: int = Field(ge=0)
     dropped_messages: int = Field(ge=0)
     late_peer_steps: int = Field(ge=0)
+    step_p50_us: float = Field(default=0.0, ge=0.0)  # control step: core, publish, telemetry
+    step_p99_us: float = Field(default=0.0, ge=0.0)
+    telemetry_dropped: int = Field(default=0, ge=0)

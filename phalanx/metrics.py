@@ -20,7 +20,9 @@ import numpy as np
 import numpy.typing as npt
 
 from phalanx.agents.control.common import rigid_body_target
-from phalanx.geometry import Twist2D, wrap_angle
+from phalanx.formation import Formation
+from phalanx.geometry import Pose2D, Twist2D, wrap_angle
+from phalanx.messages import RobotState
 from phalanx.simulator.batch import RunLog
 
 FloatArray = npt.NDArray[np.float64]
@@ -93,6 +95,37 @@ def error_series(log: RunLog, follower: str) -> ErrorSeries:
         orientation_deg=np.degrees(orient),
         linear_m=np.abs(l_m - l_d),
         angular_deg=np.degrees(dphi),
+    )
+
+
+@dataclass(frozen=True)
+class LiveErrors:
+    """One follower's errors at one step, against the leader state it used."""
+
+    slot_target: Pose2D
+    linear_pct: float
+    angular_pct: float
+    orientation_deg: float
+
+
+def live_errors(
+    formation: Formation, follower: str, pose: Pose2D, leader: RobotState
+) -> LiveErrors:
+    """The paper's errors of `follower` at `pose` against `leader`'s published state
+    (what a robot can know on its own, for live telemetry; `error_series` uses truth).
+    """
+    l_d, phi_d = formation.polar_of(follower, leader.robot_id)
+    local = leader.pose.to_body(pose.position)
+    l_m = local.norm()
+    phi = math.atan2(local.y_m, local.x_m) % (2 * math.pi)
+    dphi = abs((phi - phi_d + math.pi) % (2 * math.pi) - math.pi)
+    slot = formation.slot_of(follower, leader.robot_id)
+    target, _ = rigid_body_target(leader.pose, leader.twist, slot)
+    return LiveErrors(
+        slot_target=target,
+        linear_pct=100.0 * abs(l_m - l_d) / l_d,
+        angular_pct=100.0 * dphi / phi_d,
+        orientation_deg=math.degrees(abs(wrap_angle(pose.theta_rad - target.theta_rad))),
     )
 
 

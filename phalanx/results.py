@@ -18,10 +18,6 @@ from phalanx.figures import write_figures
 from phalanx.metrics import error_series, run_metrics
 from phalanx.simulator.batch import RunLog
 
-# Section 5 of the paper: backward-motion errors below 2 % linear and 0.8 % angular.
-PAPER_LINEAR_BOUND_PCT = 2.0
-PAPER_ANGULAR_BOUND_PCT = 0.8
-
 
 def _finite(value: Any) -> Any:
     """JSON has no NaN: empty statistics become null."""
@@ -41,7 +37,12 @@ def write_metrics(metrics: dict[str, Any], path: Path) -> None:
 
 def write_recording(log: RunLog, path: Path, *, recording_id: str | None = None) -> None:
     """Log the whole run to an `.rrd` file in columns (world, every robot, transitions)."""
-    from phalanx.telemetry import Telemetry, TelemetrySink  # rerun loads only when recording
+    from phalanx.telemetry import (  # rerun loads only when recording
+        PAPER_ANGULAR_BOUND_PCT,
+        PAPER_LINEAR_BOUND_PCT,
+        Telemetry,
+        TelemetrySink,
+    )
 
     sink = TelemetrySink(kind="file", path=path)
     with Telemetry(recording_id=recording_id or str(uuid.uuid4()), sink=sink) as tel:

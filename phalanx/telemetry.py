@@ -32,12 +32,18 @@ import numpy as np
 import numpy.typing as npt
 from pydantic import BaseModel, ConfigDict
 
+from phalanx.config import RobotParams
 from phalanx.geometry import Pose2D, Twist2D, Vec2
 
 FloatArray = npt.NDArray[np.float64]
 OUTBOX_CAPACITY = 20_000
 TRAIL_POINTS = 600
+TRAIL_EVERY_STEPS = 10
 CLOSE_TIMEOUT_S = 10.0
+DEFAULT_URL = "rerun+http://127.0.0.1:9876/proxy"
+# Section 5 of the paper: backward-motion errors below 2 % linear and 0.8 % angular.
+PAPER_LINEAR_BOUND_PCT = 2.0
+PAPER_ANGULAR_BOUND_PCT = 0.8
 
 
 class TelemetrySink(BaseModel):
@@ -45,9 +51,20 @@ class TelemetrySink(BaseModel):
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
-    kind: Literal["off", "file", "grpc", "memory"] = "off"
+    kind: Literal["off", "file", "grpc", "tee", "memory"] = "off"  # tee: file and grpc
     path: Path | None = None
     url: str | None = None
+
+
+def sink_for(path: Path | None, url: str | None) -> TelemetrySink:
+    """A file sink, a gRPC (viewer) sink, both, or off, from what is given."""
+    if path is not None and url is not None:
+        return TelemetrySink(kind="tee", path=path, url=url)
+    if path is not None:
+        return TelemetrySink(kind="file", path=path)
+    if url is not None:
+        return TelemetrySink(kind="grpc", url=url)
+    return TelemetrySink(kind="off")
 
 
 def _rr() -> Any:
@@ -123,7 +140,14 @@ class Telemetry:
             self.sink.path.parent.mkdir(parents=True, exist_ok=True)
             rec.save(str(self.sink.path))
         elif self.sink.kind == "grpc":
-            rec.connect_grpc(self.sink.url or "rerun+http://127.0.0.1:9876/proxy")
+            rec.connect_grpc(self.sink.url or DEFAULT_URL)
+        elif self.sink.kind == "tee":
+            if self.sink.path is None:
+                raise ValueError("a tee sink needs a path")
+            self.sink.path.parent.mkdir(parents=True, exist_ok=True)
+            rec.set_sinks(
+                rr.FileSink(str(self.sink.path)), rr.GrpcSink(self.sink.url or DEFAULT_URL)
+            )
         else:
             rec.memory_recording()
         return rec
@@ -207,8 +231,10 @@ class Telemetry:
             return
         trail = self._trails.setdefault(robot_id, deque(maxlen=TRAIL_POINTS))
         trail.append((pose.x_m, pose.y_m))
-        trail_points = list(trail)
+        # The trail (the last minute of positions) is redrawn once a second, not every step.
+        trail_points = list(trail) if step % TRAIL_EVERY_STEPS == 0 else None
         rays = [[(a.x_m, a.y_m), (b.x_m, b.y_m)] for a, b in sonar_rays]
+        label = f"{robot_id} {fsm_state}" + (f" -> {leader_id}" if leader_id else "")
 
         def job() -> None:
             rr, rec, base = _rr(), self._rec, f"robots/{robot_id}"
@@ -216,13 +242,14 @@ class Telemetry:
             rec.set_time("step", sequence=step)
             rec.log(
                 f"{base}/pose",
-                rr.Points2D([(pose.x_m, pose.y_m)], radii=0.25, labels=[f"{robot_id} {fsm_state}"]),
+                rr.Points2D([(pose.x_m, pose.y_m)], radii=0.25, labels=[label]),
             )
             heading = (0.4 * math.cos(pose.theta_rad), 0.4 * math.sin(pose.theta_rad))
             rec.log(
                 f"{base}/heading", rr.Arrows2D(vectors=[heading], origins=[(pose.x_m, pose.y_m)])
             )
-            rec.log(f"{base}/trail", rr.LineStrips2D([trail_points]))
+            if trail_points is not None:
+                rec.log(f"{base}/trail", rr.LineStrips2D([trail_points]))
             if slot_target is not None:
                 rec.log(
                     f"{base}/slot_target",
@@ -351,7 +378,7 @@ class Telemetry:
             self.dropped += len(self._outbox)
         if self._rec is not None:
             self._rec.flush(timeout_sec=CLOSE_TIMEOUT_S)
-            if self.sink.kind == "file":
+            if self.sink.kind in ("file", "tee"):
                 self._rec.disconnect()  # finalizes the .rrd footer
 
     def __enter__(self) -> Self:
@@ -364,6 +391,21 @@ class Telemetry:
         tb: TracebackType | None,
     ) -> None:
         self.close()
+
+
+def sonar_rays(
+    robot: RobotParams, pose: Pose2D, ranges_m: Sequence[float]
+) -> list[tuple[Vec2, Vec2]]:
+    """World-frame segments of the sonars that see something (range below the maximum)."""
+    rays = []
+    for unit, range_m in zip(robot.sonar.units, ranges_m, strict=False):
+        if range_m >= robot.sonar.max_range_m:
+            continue
+        start = pose.to_world(Vec2(unit.x_m, unit.y_m))
+        heading = pose.theta_rad + math.radians(unit.heading_deg)
+        end = start + Vec2(range_m * math.cos(heading), range_m * math.sin(heading))
+        rays.append((start, end))
+    return rays
 
 
 def _circle_outline(x: float, y: float, r: float, n: int = 32) -> list[tuple[float, float]]:

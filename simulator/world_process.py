@@ -19,12 +19,14 @@ from typing import Literal
 
 import numpy as np
 
+from phalanx.agents.control.limits import KinematicLimits
 from phalanx.agents.fsm import State, TransitionEvent
 from phalanx.config import RobotParams, Scenario
 from phalanx.formation import scenario_formation
 from phalanx.geometry import ZERO_TWIST, Twist2D
 from phalanx.messages import AgentEvent, AgentReport, RobotState, SenseFrame, VelocityCommand
 from phalanx.simulator.batch import RobotTrace, RunLog, build_world
+from phalanx.telemetry import PAPER_ANGULAR_BOUND_PCT, PAPER_LINEAR_BOUND_PCT, Telemetry
 from phalanx.transport import (
     FleetSession,
     TransportConfig,
@@ -72,8 +74,16 @@ class _Inbox:
 class WorldProcess:
     """Simulates the scenario's world for agents in other processes."""
 
-    def __init__(self, scenario: Scenario, robot: RobotParams, options: WorldOptions) -> None:
+    def __init__(
+        self,
+        scenario: Scenario,
+        robot: RobotParams,
+        options: WorldOptions,
+        *,
+        telemetry: Telemetry | None = None,
+    ) -> None:
         self.scenario, self.robot, self.options = scenario, robot, options
+        self.telemetry = telemetry
         self.world = build_world(scenario, robot)
         self.formation = scenario_formation(scenario)
         self.ids = tuple(r.id for r in scenario.robots)
@@ -92,6 +102,7 @@ class WorldProcess:
         """Run the scenario to its end (or `stop`) and return the log."""
         with open_session(self.options.transport) as session:
             self._wire(session)
+            self._log_static()
             self._await_agents(stop)
             period_s = self.scenario.dt_s / self.options.speed
             epoch = self.options.epoch_s
@@ -237,6 +248,25 @@ class WorldProcess:
             out[rid] = Twist2D(cmd.v_mps, cmd.omega_radps) if cmd and alive else ZERO_TWIST
         return out
 
+    def _log_static(self) -> None:
+        """Obstacles, the paper's bounds and the velocity limits, the layout."""
+        if self.telemetry is None:
+            return
+        world = self.scenario.world
+        self.telemetry.log_world(
+            circles=[(c.x_m, c.y_m, c.radius_m) for c in world.circles],
+            polygons=[list(p.vertices_m) for p in world.polygons],
+        )
+        limits = KinematicLimits.from_params(self.robot, self.scenario.limits)
+        self.telemetry.log_bounds(
+            t_s=[0.0, self.scenario.duration_s],
+            linear_pct=PAPER_LINEAR_BOUND_PCT,
+            angular_pct=PAPER_ANGULAR_BOUND_PCT,
+            v_max_mps=limits.v_max_mps,
+            omega_max_radps=limits.omega_max_radps,
+        )
+        self.telemetry.send_blueprint(self.ids)
+
     def _record(self, k: int, commands: dict[str, Twist2D]) -> None:
         for rid in self.ids:
             pose, twist = self.world.truth(rid)
@@ -244,6 +274,8 @@ class WorldProcess:
             tr.x_m[k], tr.y_m[k], tr.theta_rad[k] = pose.x_m, pose.y_m, pose.theta_rad
             tr.v_mps[k], tr.omega_radps[k] = twist.v_mps, twist.omega_radps
             tr.cmd_v_mps[k], tr.cmd_omega_radps[k] = commands[rid].v_mps, commands[rid].omega_radps
+            if self.telemetry is not None:
+                self.telemetry.log_truth(rid, t_s=float(self.t_s[k]), pose=pose)
 
     def _finish(self, session: FleetSession) -> None:
         for rid in self.ids:

@@ -12,9 +12,11 @@ from typing import TYPE_CHECKING, Annotated, Literal
 import typer
 
 if TYPE_CHECKING:
-    from phalanx.config import Scenario
+    from phalanx.config import RobotParams, Scenario
     from phalanx.drivers.base import Driver
     from phalanx.drivers.safety import SafeDriver
+    from phalanx.messages import AgentReport
+    from phalanx.telemetry import Telemetry
     from phalanx.transport import TransportConfig
 
 ScenarioArg = Annotated[
@@ -29,6 +31,16 @@ ConnectOpt = Annotated[
     list[str] | None, typer.Option("--connect", help="Zenoh endpoint to connect to.")
 ]
 ModeOpt = Annotated[str, typer.Option(help="Zenoh mode: peer, client or router.")]
+RecordingIdOpt = Annotated[
+    str | None, typer.Option(help="Telemetry: the fleet run's Rerun recording id (shared).")
+]
+TelemetryFileOpt = Annotated[
+    Path | None, typer.Option(help="Telemetry: write this process's part to this .rrd.")
+]
+TelemetryUrlOpt = Annotated[
+    str | None,
+    typer.Option(help="Telemetry: stream live to this Rerun gRPC url (see phalanx view)."),
+]
 SetOpt = Annotated[
     list[str] | None,
     typer.Option("--set", help="Override a scenario field, e.g. --set duration_s=60 (repeatable)."),
@@ -97,11 +109,11 @@ def agent(
     watchdog: Annotated[
         float, typer.Option(help="Robot drivers: stop if no command for this long (s).")
     ] = 0.5,
+    recording_id: RecordingIdOpt = None,
+    telemetry_file: TelemetryFileOpt = None,
+    telemetry_url: TelemetryUrlOpt = None,
 ) -> None:
     """Run one robot's agent: Zenoh in, behaviour stack, command out."""
-    import time
-
-    from phalanx.agents.runtime import AgentRuntime, RuntimeOptions
     from phalanx.config import load_robot
 
     logging.basicConfig(level=logging.INFO, format=f"%(asctime)s {robot} %(levelname)s %(message)s")
@@ -111,32 +123,68 @@ def agent(
     transport = _transport(mode, listen, connect)
     params = load_robot(config.robot)
     stop = _stop_on_signals()
-    if driver == "sim":
-        options = RuntimeOptions(fleet=fleet, transport=transport, clock=_clock(clock))
-        report = AgentRuntime(robot, config, params, options).run(stop)
-    else:
-        from phalanx.agents.driver_runtime import DriverRuntime
-        from phalanx.drivers.safety import SafeDriver, SafetyLimits
-
-        backend = _backend(driver, arcos_port, arcos_tcp, baud, can_channel, can_interface)
-        bounds = config.limits
-        limits = SafetyLimits(
-            bounds.v_max_mps or params.v_max_mps,
-            math.radians(bounds.omega_max_degps or params.omega_max_degps),
-            watchdog,
-        )
-        options = RuntimeOptions(fleet=fleet, transport=transport, clock="realtime")
-        safe = SafeDriver(backend, limits)
-        _connect_with_retry(safe, stop)
-        with safe:
-            runtime = DriverRuntime(
-                robot, config, params, options, safe, epoch_s=epoch or time.time()
-            )
-            report = runtime.run(stop)
+    with _telemetry(recording_id, telemetry_file, telemetry_url, robot) as telemetry:
+        report = _run_agent(
+            robot, config, params, transport, fleet, clock, stop, telemetry,
+            _backend(driver, arcos_port, arcos_tcp, baud, can_channel, can_interface),
+            epoch, watchdog,
+        )  # fmt: skip
     typer.echo(
         f"{robot}: {report.steps} steps, {report.saturations} saturations, "
         f"{report.dropped_messages} dropped messages"
     )
+
+
+def _telemetry(
+    recording_id: str | None, path: Path | None, url: str | None, robot_id: str | None
+) -> Telemetry:
+    from phalanx.telemetry import Telemetry, sink_for
+
+    sink = sink_for(path, url)
+    if sink.kind != "off" and recording_id is None:
+        raise typer.BadParameter("telemetry needs --recording-id (one per fleet run)")
+    return Telemetry(recording_id=recording_id or "off", sink=sink, robot_id=robot_id)
+
+
+def _run_agent(
+    robot: str,
+    config: Scenario,
+    params: RobotParams,
+    transport: TransportConfig,
+    fleet: str,
+    clock: str,
+    stop: threading.Event,
+    telemetry: Telemetry,
+    backend: Driver | None,
+    epoch: float | None,
+    watchdog: float,
+) -> AgentReport:
+    import time
+
+    from phalanx.agents.runtime import AgentRuntime, RuntimeOptions
+
+    tel = telemetry if telemetry.sink.kind != "off" else None
+    if backend is None:
+        options = RuntimeOptions(fleet=fleet, transport=transport, clock=_clock(clock))
+        return AgentRuntime(robot, config, params, options, telemetry=tel).run(stop)
+    # A robot driver: the agent keeps its own clock; commands go through the safety layer.
+    from phalanx.agents.driver_runtime import DriverRuntime
+    from phalanx.drivers.safety import SafeDriver, SafetyLimits
+
+    bounds = config.limits
+    limits = SafetyLimits(
+        bounds.v_max_mps or params.v_max_mps,
+        math.radians(bounds.omega_max_degps or params.omega_max_degps),
+        watchdog,
+    )
+    options = RuntimeOptions(fleet=fleet, transport=transport, clock="realtime")
+    safe = SafeDriver(backend, limits)
+    _connect_with_retry(safe, stop)
+    with safe:
+        runtime = DriverRuntime(
+            robot, config, params, options, safe, epoch_s=epoch or time.time(), telemetry=tel
+        )
+        return runtime.run(stop)
 
 
 def _connect_with_retry(driver: SafeDriver, stop: threading.Event, timeout_s: float = 15.0) -> None:
@@ -163,7 +211,9 @@ def _backend(
     baud: int,
     can_channel: str,
     can_interface: str,
-) -> Driver:
+) -> Driver | None:
+    if driver == "sim":
+        return None
     if driver == "arcos":
         from phalanx.drivers.arcos import ArcosDriver, ArcosSettings
 
@@ -192,6 +242,9 @@ def world(
     epoch: Annotated[
         float | None, typer.Option(help="Real time: Unix time of tick 0, shared with agents.")
     ] = None,
+    recording_id: RecordingIdOpt = None,
+    telemetry_file: TelemetryFileOpt = None,
+    telemetry_url: TelemetryUrlOpt = None,
 ) -> None:
     """Run the simulated world for agents in other processes; write the results folder."""
     from phalanx.config import load_robot
@@ -205,8 +258,10 @@ def world(
     options = WorldOptions(
         fleet=fleet, transport=transport, clock=_clock(clock), speed=speed, epoch_s=epoch
     )
-    process = WorldProcess(config, load_robot(config.robot), options)
-    run_log = process.run(_stop_on_signals())
+    with _telemetry(recording_id, telemetry_file, telemetry_url, None) as telemetry:
+        tel = telemetry if telemetry.sink.kind != "off" else None
+        process = WorldProcess(config, load_robot(config.robot), options, telemetry=tel)
+        run_log = process.run(_stop_on_signals())
     folder = out or Path("results") / f"{config.name}-{config.controller.kind}-up"
     metrics = write_results(run_log, folder, recording=recording)
     metrics_missed = {r: n for r, n in process.missed.items() if n}
@@ -230,17 +285,35 @@ def up(
         str,
         typer.Option(help="sim, or arcos: every robot an ARCOS emulator moved by the world."),
     ] = "sim",
+    viewer: Annotated[
+        bool, typer.Option(help="Open the Rerun viewer and stream the run to it live.")
+    ] = False,
+    telemetry_url: Annotated[
+        str | None,
+        typer.Option(help="Stream live to a running viewer, e.g. from `phalanx view --web`."),
+    ] = None,
 ) -> None:
     """Start the world and one agent process per robot here; supervise; write results."""
-    from phalanx.launch import UpOptions, plan, supervise
+    from phalanx.launch import (
+        UpOptions,
+        merge_recordings,
+        plan,
+        start_viewer,
+        supervise,
+        telemetry_dir,
+    )
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s up %(levelname)s %(message)s")
     config = _scenario(scenario, set_)
+    out = out or Path("results") / f"{config.name}-{config.controller.kind}-up"
+    if viewer and telemetry_url is None:
+        telemetry_url = start_viewer()
     options = UpOptions(
         fleet=fleet,
         clock=_clock(clock),
         speed=speed,
         out=out,
+        telemetry_url=telemetry_url,
         restart=restart,
         timeout_s=timeout,
         recording=recording,
@@ -253,6 +326,9 @@ def up(
         typer.echo("arcos robots keep their own time: running with --clock realtime", err=True)
         options.clock = "realtime"
     code = supervise(plan(scenario, config, options), options, _stop_on_signals())
+    parts = sorted(telemetry_dir(out).glob("*.rrd")) if recording else []
+    if parts and merge_recordings(parts, out / "run.rrd"):
+        typer.echo(f"recording: {out / 'run.rrd'} ({len(parts)} processes merged)")
     raise typer.Exit(code)
 
 

@@ -1,0 +1,64 @@
+"""`phalanx view`: the Rerun viewer, native or served to a browser, with a memory limit."""
+
+from __future__ import annotations
+
+import signal
+import subprocess
+import sys
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+
+def rerun_command(
+    recordings: list[Path], *, web: bool, port: int, web_port: int, memory_limit: str
+) -> list[str]:
+    """The `rerun` command line for `phalanx view`."""
+    rerun = Path(sys.executable).with_name("rerun")
+    argv = [str(rerun if rerun.exists() else "rerun")]
+    if web:
+        # Bound to loopback: a robot's or laptop's viewer is not for the whole network.
+        argv += ["--serve-web", "--bind", "127.0.0.1", "--port", str(port)]
+        argv += ["--web-viewer-port", str(web_port), "--server-memory-limit", memory_limit]
+    else:
+        argv += ["--port", str(port), "--memory-limit", memory_limit]
+    return argv + [str(r) for r in recordings]
+
+
+def view(
+    recordings: Annotated[
+        list[Path] | None, typer.Argument(help=".rrd files to open (none: wait for live data).")
+    ] = None,
+    web: Annotated[
+        bool, typer.Option(help="Serve the web viewer on 127.0.0.1 instead of a window.")
+    ] = False,
+    port: Annotated[int, typer.Option(help="gRPC port phalanx processes stream to.")] = 9876,
+    web_port: Annotated[int, typer.Option(help="HTTP port of the web viewer.")] = 9090,
+    memory_limit: Annotated[
+        str, typer.Option(help="Drop the oldest data beyond this (e.g. 2GB, 50%).")
+    ] = "2GB",
+) -> None:
+    """Open the viewer. Stream a run to it with `phalanx up ... --telemetry-url URL`."""
+    for path in recordings or []:
+        if not path.exists():
+            raise typer.BadParameter(f"{path}: no such recording")
+    argv = rerun_command(
+        list(recordings or []), web=web, port=port, web_port=web_port, memory_limit=memory_limit
+    )
+    url = f"rerun+http://127.0.0.1:{port}/proxy"
+    typer.echo(f"stream to: --telemetry-url {url}", err=True)
+    if web:
+        typer.echo(f"open: http://127.0.0.1:{web_port}/?url={url}", err=True)
+    process = subprocess.Popen(argv)  # noqa: S603 - rerun's CLI, our arguments
+    signal.signal(signal.SIGTERM, lambda *_: process.terminate())
+    try:
+        raise typer.Exit(process.wait())
+    except KeyboardInterrupt:
+        process.terminate()
+        raise typer.Exit(process.wait(10)) from None
+
+
+def register(app: typer.Typer) -> None:
+    """Add `phalanx view`."""
+    app.command("view")(view)
