@@ -10,23 +10,28 @@ Entity layout (units and frames in the names):
     robots/<id>/measured/{v_mps,omega_degps}
     robots/<id>/errors/{linear_pct,angular_pct,orientation_deg}
     robots/<id>/fsm                      state transitions (text log)
+    robots/<id>/state                    behaviour state over time (the paper's figure 4b)
     bounds/...                           the paper's error bounds and the velocity limits
 Timelines: `sim_time` (s) and `step`.
 
 Logging never blocks a control step: calls append to a bounded outbox drained by a
-background thread; when the sink is slow or gone the oldest entries are dropped and
-counted in `dropped`.
+background thread; when the sink is slow the oldest entries are dropped, when a viewer
+is gone its entries are, and both are counted in `dropped`.
 """
 
 from __future__ import annotations
 
+import logging
 import math
+import socket
 import threading
+import time
 from collections import deque
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from types import TracebackType
 from typing import Any, Literal, Self
+from urllib.parse import urlparse
 
 import numpy as np
 import numpy.typing as npt
@@ -36,10 +41,14 @@ from phalanx.config import RobotParams
 from phalanx.geometry import Pose2D, Twist2D, Vec2
 
 FloatArray = npt.NDArray[np.float64]
+Job = Callable[[Any], None]  # logs one entry to a recording stream
+log = logging.getLogger("phalanx.telemetry")
 OUTBOX_CAPACITY = 20_000
 TRAIL_POINTS = 600
 TRAIL_EVERY_STEPS = 10
 CLOSE_TIMEOUT_S = 10.0
+VIEWER_FLUSH_S = 2.0
+VIEWER_CHECK_S = 1.0
 DEFAULT_URL = "rerun+http://127.0.0.1:9876/proxy"
 # Section 5 of the paper: backward-motion errors below 2 % linear and 0.8 % angular.
 PAPER_LINEAR_BOUND_PCT = 2.0
@@ -74,30 +83,70 @@ def _rr() -> Any:
 
 
 def make_blueprint(
-    robot_ids: Sequence[str],
-    *,
-    linear_bound_pct: float = 2.0,
-    angular_bound_pct: float = 0.8,
+    robot_ids: Sequence[str], *, extent_m: tuple[float, float, float, float] | None = None
 ) -> Any:
-    """Map of the fleet, error and velocity series, state log: figures 4b-7 live."""
+    """Map of the fleet, error and velocity series, state log: figures 4b-7 live.
+
+    `extent_m` (x_min, x_max, y_min, y_max) frames the map; without it the viewer fits it.
+    """
     import rerun.blueprint as rrb
 
-    del linear_bound_pct, angular_bound_pct  # drawn as bounds/* series by the logger
+    bounds = None
+    if extent_m is not None:
+        x0, x1, y0, y1 = extent_m
+        bounds = rrb.VisualBounds2D(x_range=(x0, x1), y_range=(y0, y1))
+    whole_run = rrb.TimeAxis(
+        view_range=rrb.TimeRange(
+            start=rrb.TimeRangeBoundary.infinite(), end=rrb.TimeRangeBoundary.infinite()
+        )
+    )
+
+    def series(name: str, paths: Sequence[str], bounds: Sequence[str]) -> Any:
+        contents = [f"robots/{rid}/{p}" for rid in robot_ids for p in paths]
+        return rrb.TimeSeriesView(
+            name=name, origin="/", contents=[*contents, *bounds], axis_x=whole_run
+        )
+
+    errors = rrb.Tabs(
+        series(
+            "separation errors (%)",
+            ["errors/linear_pct", "errors/angular_pct"],
+            ["bounds/errors/**"],
+        ),
+        series("orientation error (deg)", ["errors/orientation_deg"], []),
+    )
+    states = rrb.Tabs(
+        rrb.StateTimelineView(
+            name="behaviour states",
+            origin="/",
+            contents=[f"robots/{rid}/state" for rid in robot_ids],
+            time_view=whole_run,
+        ),
+        rrb.TextLogView(
+            name="transitions", origin="/", contents=[f"robots/{rid}/fsm" for rid in robot_ids]
+        ),
+    )
     return rrb.Blueprint(
         rrb.Horizontal(
-            rrb.Spatial2DView(name="fleet map", origin="/"),
+            rrb.Spatial2DView(
+                name="fleet map",
+                origin="/",
+                contents=["world/**", "robots/**"],
+                visual_bounds=bounds,
+            ),
             rrb.Vertical(
-                rrb.TimeSeriesView(
-                    name="separation errors",
-                    origin="/",
-                    contents=["robots/*/errors/**", "bounds/errors/**"],
+                errors,
+                series(
+                    "linear velocity (m/s)",
+                    ["cmd/v_mps", "measured/v_mps"],
+                    ["bounds/velocity/v_max_mps", "bounds/velocity/v_min_mps"],
                 ),
-                rrb.TimeSeriesView(
-                    name="velocities",
-                    origin="/",
-                    contents=["robots/*/cmd/**", "robots/*/measured/**", "bounds/velocity/**"],
+                series(
+                    "yaw rate (deg/s)",
+                    ["cmd/omega_degps", "measured/omega_degps"],
+                    ["bounds/velocity/omega_max_degps", "bounds/velocity/omega_min_degps"],
                 ),
-                rrb.TextLogView(name="state machine", origin="/", contents=["robots/*/fsm"]),
+                states,
             ),
             column_shares=[3, 2],
         ),
@@ -105,8 +154,66 @@ def make_blueprint(
     )
 
 
+class _Extent:
+    """The bounding box of every position logged, to frame the map at the end of a run."""
+
+    def __init__(self) -> None:
+        self.box: list[float] | None = None  # x_min, x_max, y_min, y_max
+
+    def add(self, x_m: FloatArray | float, y_m: FloatArray | float) -> None:
+        """Grow the box to include the given positions."""
+        xs, ys = np.atleast_1d(x_m), np.atleast_1d(y_m)
+        if xs.size == 0:
+            return
+        new = [float(xs.min()), float(xs.max()), float(ys.min()), float(ys.max())]
+        if self.box is None:
+            self.box = new
+            return
+        b = self.box
+        self.box = [min(b[0], new[0]), max(b[1], new[1]), min(b[2], new[2]), max(b[3], new[3])]
+
+    def framed(self, margin_m: float = 1.5) -> tuple[float, float, float, float] | None:
+        """The box with a margin (m), or None when nothing was logged."""
+        if self.box is None:
+            return None
+        x0, x1, y0, y1 = self.box
+        return (x0 - margin_m, x1 + margin_m, y0 - margin_m, y1 + margin_m)
+
+
+class _Stream:
+    """One sink's recording stream. A viewer (gRPC) stream can go down and come back."""
+
+    def __init__(self, kind: Literal["file", "grpc", "memory"], target: str | None) -> None:
+        self.kind, self.target = kind, target
+        self.rec: Any = None
+        self.next_check_s = 0.0
+
+    @property
+    def live(self) -> bool:
+        """Whether entries reach this sink now."""
+        return self.rec is not None
+
+
+def viewer_reachable(url: str, timeout_s: float = 0.2) -> bool:
+    """Whether something listens at a Rerun gRPC url's host and port (a TCP connect)."""
+    parsed = urlparse(url)
+    try:
+        with socket.create_connection((parsed.hostname or "127.0.0.1", parsed.port or 9876),
+                                      timeout=timeout_s):  # fmt: skip
+            return True
+    except OSError:
+        return False
+
+
 class Telemetry:
-    """A recording stream with phalanx's entity layout; context manager."""
+    """phalanx's entity layout over one recording id, to a file, a viewer, both, or memory.
+
+    Every call only appends to a bounded outbox; a background thread hands entries to the
+    Rerun SDK. A viewer is probed every `VIEWER_CHECK_S`: while it is gone its entries
+    are dropped (counted), and when it comes back the stream reconnects and re-sends the
+    static entities (obstacles, bounds, layout). A file sink is a stream of its own, so a
+    viewer coming and going never costs the recording anything.
+    """
 
     def __init__(
         self,
@@ -118,46 +225,65 @@ class Telemetry:
     ) -> None:
         self.sink = sink
         self.robot_id = robot_id
-        self.dropped = 0
+        self.app_id, self.recording_id = app_id, recording_id
+        self.dropped = 0  # entries that missed at least one sink
         self.logged_steps: dict[str, int] = {}
         self._trails: dict[str, deque[tuple[float, float]]] = {}
-        self._outbox: deque[Callable[[], None]] = deque()
+        self._outbox: deque[Job] = deque()
+        self._static: list[Job] = []
+        self._extent = _Extent()
+        self._layout_ids: list[str] | None = None  # set once a layout was sent
         self._wake = threading.Condition()
         self._closed = False
-        self._rec: Any = None
+        self._streams = self._plan_streams(sink)
         self._worker: threading.Thread | None = None
-        if sink.kind != "off":
-            self._rec = self._open(app_id, recording_id)
+        for stream in self._streams:
+            if stream.kind != "grpc":  # a viewer connects from the worker: never blocks here
+                self._open(stream)
+        if self._streams:
             self._worker = threading.Thread(target=self._drain, name="telemetry", daemon=True)
             self._worker.start()
 
-    def _open(self, app_id: str, recording_id: str) -> Any:
-        rr = _rr()
-        rec = rr.RecordingStream(app_id, recording_id=recording_id, send_properties=False)
-        if self.sink.kind == "file":
-            if self.sink.path is None:
-                raise ValueError("a file sink needs a path")
-            self.sink.path.parent.mkdir(parents=True, exist_ok=True)
-            rec.save(str(self.sink.path))
-        elif self.sink.kind == "grpc":
-            rec.connect_grpc(self.sink.url or DEFAULT_URL)
-        elif self.sink.kind == "tee":
-            if self.sink.path is None:
-                raise ValueError("a tee sink needs a path")
-            self.sink.path.parent.mkdir(parents=True, exist_ok=True)
-            rec.set_sinks(
-                rr.FileSink(str(self.sink.path)), rr.GrpcSink(self.sink.url or DEFAULT_URL)
-            )
+    @staticmethod
+    def _plan_streams(sink: TelemetrySink) -> list[_Stream]:
+        if sink.kind in ("file", "tee") and sink.path is None:
+            raise ValueError(f"a {sink.kind} sink needs a path")
+        streams = []
+        if sink.kind in ("file", "tee"):
+            streams.append(_Stream("file", str(sink.path)))
+        if sink.kind in ("grpc", "tee"):
+            streams.append(_Stream("grpc", sink.url or DEFAULT_URL))
+        if sink.kind == "memory":
+            streams.append(_Stream("memory", None))
+        return streams
+
+    def _open(self, stream: _Stream) -> None:
+        rec = _rr().RecordingStream(
+            self.app_id, recording_id=self.recording_id, send_properties=False
+        )
+        if stream.kind == "file":
+            path = Path(stream.target or "")
+            path.parent.mkdir(parents=True, exist_ok=True)
+            rec.save(str(path))
+        elif stream.kind == "grpc":
+            rec.connect_grpc(stream.target)
         else:
             rec.memory_recording()
-        return rec
+        stream.rec = rec
+
+    @property
+    def viewer_live(self) -> bool:
+        """Whether a viewer sink is connected now (False without one)."""
+        return any(s.live for s in self._streams if s.kind == "grpc")
 
     # --- outbox ------------------------------------------------------------------------
 
-    def _submit(self, job: Callable[[], None]) -> None:
-        if self._rec is None or self._closed:
+    def _submit(self, job: Job, *, static: bool = False) -> None:
+        if not self._streams or self._closed:
             return
         with self._wake:
+            if static:
+                self._static.append(job)
             if len(self._outbox) >= OUTBOX_CAPACITY:
                 self._outbox.popleft()
                 self.dropped += 1
@@ -167,12 +293,53 @@ class Telemetry:
     def _drain(self) -> None:
         while True:
             with self._wake:
-                while not self._outbox and not self._closed:
-                    self._wake.wait(0.5)
+                if not self._outbox and not self._closed:
+                    self._wake.wait(VIEWER_CHECK_S)
                 if not self._outbox and self._closed:
                     return
-                job = self._outbox.popleft()
-            job()
+                job = self._outbox.popleft() if self._outbox else None
+            self._check_viewers()
+            if job is not None:
+                self._apply(job)
+
+    def _apply(self, job: Job) -> None:
+        missed = False
+        for stream in self._streams:
+            if not stream.live:
+                missed = True
+                continue
+            try:
+                job(stream.rec)
+            except Exception:  # a sink's failure must not end telemetry (or the robot)
+                log.exception("telemetry: logging to the %s sink failed", stream.kind)
+                missed = True
+        if missed:
+            with self._wake:
+                self.dropped += 1
+
+    def _check_viewers(self) -> None:
+        now = time.monotonic()
+        for stream in self._streams:
+            if stream.kind != "grpc" or now < stream.next_check_s or self._closed:
+                continue
+            stream.next_check_s = now + VIEWER_CHECK_S
+            reachable = viewer_reachable(stream.target or DEFAULT_URL)
+            if stream.live and not reachable:
+                log.warning("telemetry: viewer at %s is gone; dropping live data", stream.target)
+                stream.rec = None
+            elif not stream.live and reachable:
+                self._reconnect(stream)
+
+    def _reconnect(self, stream: _Stream) -> None:
+        try:
+            self._open(stream)
+            for job in list(self._static):
+                job(stream.rec)
+        except Exception:
+            log.exception("telemetry: could not connect to the viewer at %s", stream.target)
+            stream.rec = None
+            return
+        log.info("telemetry: streaming to the viewer at %s", stream.target)
 
     # --- logging -----------------------------------------------------------------------
 
@@ -185,10 +352,10 @@ class Telemetry:
         """Static obstacle outlines."""
         strips = [_circle_outline(x, y, r) for x, y, r in circles]
         strips += [[*p, p[0]] for p in polygons if p]
-        rr = _rr()
-        arch = rr.LineStrips2D(strips, colors=[(200, 200, 200)]) if strips else None
-        if arch is not None:
-            self._submit(lambda: self._rec.log("world/obstacles", arch, static=True))
+        if not strips or not self._streams:
+            return
+        arch = _rr().LineStrips2D(strips, colors=[(200, 200, 200)])
+        self._submit(lambda rec: rec.log("world/obstacles", arch, static=True), static=True)
 
     def log_bounds(
         self,
@@ -204,11 +371,13 @@ class Telemetry:
             "bounds/errors/linear_pct": linear_pct,
             "bounds/errors/angular_pct": angular_pct,
             "bounds/velocity/v_max_mps": v_max_mps,
+            "bounds/velocity/v_min_mps": -v_max_mps,
             "bounds/velocity/omega_max_degps": math.degrees(omega_max_radps),
+            "bounds/velocity/omega_min_degps": -math.degrees(omega_max_radps),
         }
         times = np.asarray(t_s, dtype=np.float64)
         for path, value in series.items():
-            self._columns(path, times, {"scalars": np.full(len(times), value)})
+            self._columns(path, times, {"scalars": np.full(len(times), value)}, static=True)
 
     def log_step(
         self,
@@ -227,23 +396,24 @@ class Telemetry:
     ) -> None:
         """One control step of one robot (live agents)."""
         self.logged_steps[robot_id] = self.logged_steps.get(robot_id, 0) + 1
-        if self._rec is None:
+        if not self._streams:
             return
+        self._extent.add(pose.x_m, pose.y_m)
         trail = self._trails.setdefault(robot_id, deque(maxlen=TRAIL_POINTS))
-        trail.append((pose.x_m, pose.y_m))
-        # The trail (the last minute of positions) is redrawn once a second, not every step.
-        trail_points = list(trail) if step % TRAIL_EVERY_STEPS == 0 else None
+        # The trail keeps every TRAIL_EVERY_STEPS-th position (a point a second at 10 Hz, up
+        # to TRAIL_POINTS) and is redrawn as often: its cost stays flat however long the run.
+        trail_points = None
+        if step % TRAIL_EVERY_STEPS == 0:
+            trail.append((pose.x_m, pose.y_m))
+            trail_points = list(trail)
         rays = [[(a.x_m, a.y_m), (b.x_m, b.y_m)] for a, b in sonar_rays]
         label = f"{robot_id} {fsm_state}" + (f" -> {leader_id}" if leader_id else "")
 
-        def job() -> None:
-            rr, rec, base = _rr(), self._rec, f"robots/{robot_id}"
+        def job(rec: Any) -> None:
+            rr, base = _rr(), f"robots/{robot_id}"
             rec.set_time("sim_time", duration=t_s)
             rec.set_time("step", sequence=step)
-            rec.log(
-                f"{base}/pose",
-                rr.Points2D([(pose.x_m, pose.y_m)], radii=0.25, labels=[label]),
-            )
+            rec.log(f"{base}/pose", rr.Points2D([(pose.x_m, pose.y_m)], radii=0.25, labels=[label]))
             heading = (0.4 * math.cos(pose.theta_rad), 0.4 * math.sin(pose.theta_rad))
             rec.log(
                 f"{base}/heading", rr.Arrows2D(vectors=[heading], origins=[(pose.x_m, pose.y_m)])
@@ -257,46 +427,33 @@ class Telemetry:
                 )
             if rays:
                 rec.log(f"{base}/sonar", rr.LineStrips2D(rays, radii=0.005))
-            self._log_scalars(base, cmd, measured, errors)
+            _log_scalars(rec, base, cmd, measured, errors)
 
         self._submit(job)
-
-    def _log_scalars(
-        self, base: str, cmd: Twist2D, measured: Twist2D, errors: tuple[float, float, float] | None
-    ) -> None:
-        rr, rec = _rr(), self._rec
-        rec.log(f"{base}/cmd/v_mps", rr.Scalars(cmd.v_mps))
-        rec.log(f"{base}/cmd/omega_degps", rr.Scalars(math.degrees(cmd.omega_radps)))
-        rec.log(f"{base}/measured/v_mps", rr.Scalars(measured.v_mps))
-        rec.log(f"{base}/measured/omega_degps", rr.Scalars(math.degrees(measured.omega_radps)))
-        if errors is not None:
-            for name, value in zip(
-                ("linear_pct", "angular_pct", "orientation_deg"), errors, strict=True
-            ):
-                rec.log(f"{base}/errors/{name}", rr.Scalars(value))
 
     def log_transition(
         self, robot_id: str, *, t_s: float, source: str, target: str, reason: str
     ) -> None:
         """A state-machine transition as a text log line."""
+        text = f"t={t_s:.1f} s {robot_id}: {source} -> {target} ({reason})"
 
-        def job() -> None:
+        def job(rec: Any) -> None:
             rr = _rr()
-            self._rec.set_time("sim_time", duration=t_s)
-            text = f"t={t_s:.1f} s {robot_id}: {source} -> {target} ({reason})"
-            self._rec.log(f"robots/{robot_id}/fsm", rr.TextLog(text, level="INFO"))
+            rec.set_time("sim_time", duration=t_s)
+            rec.log(f"robots/{robot_id}/fsm", rr.TextLog(text, level="INFO"))
+            rec.log(f"robots/{robot_id}/state", rr.StateChange(state=target))
 
         self._submit(job)
 
     def log_truth(self, robot_id: str, *, t_s: float, pose: Pose2D) -> None:
         """Ground truth from the world."""
+        self._extent.add(pose.x_m, pose.y_m)
 
-        def job() -> None:
-            rr = _rr()
-            self._rec.set_time("sim_time", duration=t_s)
-            self._rec.log(
+        def job(rec: Any) -> None:
+            rec.set_time("sim_time", duration=t_s)
+            rec.log(
                 f"world/truth/{robot_id}",
-                rr.Points2D([(pose.x_m, pose.y_m)], radii=0.05, colors=[(0, 0, 0)]),
+                _rr().Points2D([(pose.x_m, pose.y_m)], radii=0.05, colors=[(0, 0, 0)]),
             )
 
         self._submit(job)
@@ -319,6 +476,7 @@ class Telemetry:
     ) -> None:
         """A whole run of one robot at once (the batch runner), as columns."""
         self.logged_steps[robot_id] = self.logged_steps.get(robot_id, 0) + len(t_s)
+        self._extent.add(x_m, y_m)
         base = f"robots/{robot_id}"
         self._columns(f"{base}/pose", t_s, {"points": np.column_stack([x_m, y_m])})
         heading = 0.4 * np.column_stack([np.cos(theta_rad), np.sin(theta_rad)])
@@ -337,12 +495,12 @@ class Telemetry:
                 continue
             self._columns(f"{base}/{name}", t_s, {"scalars": values})
         trail = np.column_stack([x_m, y_m])
-        self._submit(
-            lambda: self._rec.log(f"{base}/trail", _rr().LineStrips2D([trail]), static=True)
-        )
+        self._submit(lambda rec: rec.log(f"{base}/trail", _rr().LineStrips2D([trail]), static=True))
 
-    def _columns(self, path: str, t_s: FloatArray, data: dict[str, Any]) -> None:
-        def job() -> None:
+    def _columns(
+        self, path: str, t_s: FloatArray, data: dict[str, Any], *, static: bool = False
+    ) -> None:
+        def job(rec: Any) -> None:
             rr = _rr()
             times = [
                 rr.TimeColumn("sim_time", duration=t_s),
@@ -355,31 +513,56 @@ class Telemetry:
             else:
                 vectors, origins = data["arrows"]
                 columns = rr.Arrows2D.columns(vectors=vectors, origins=origins)
-            self._rec.send_columns(path, indexes=times, columns=columns)
+            rec.send_columns(path, indexes=times, columns=columns)
 
-        self._submit(job)
+        self._submit(job, static=static)
 
-    def send_blueprint(self, robot_ids: Sequence[str] = ()) -> None:
-        """Send the default layout."""
-        ids = list(robot_ids) or list(self.logged_steps)
-        self._submit(lambda: self._rec.send_blueprint(make_blueprint(ids)))
+    def send_blueprint(
+        self,
+        robot_ids: Sequence[str] = (),
+        *,
+        extent_m: tuple[float, float, float, float] | None = None,
+    ) -> None:
+        """Send the layout (again, e.g. with the map framed on the whole run at its end)."""
+        if not self._streams:
+            return
+        self._layout_ids = list(robot_ids) or list(self.logged_steps)
+        blueprint = make_blueprint(self._layout_ids, extent_m=extent_m)
+        self._submit(lambda rec: rec.send_blueprint(blueprint), static=True)
 
     # --- lifecycle ---------------------------------------------------------------------
 
     def close(self) -> None:
-        """Drain what is queued (bounded), flush and finalize the sink; safe twice."""
+        """Drain what is queued (bounded), flush and finalize every sink; safe twice."""
         if self._closed:
             return
+        extent = self._extent.framed()
+        if self._layout_ids is not None and extent is not None:
+            self.send_blueprint(self._layout_ids, extent_m=extent)  # the whole run in view
         with self._wake:
             self._closed = True
             self._wake.notify_all()
         if self._worker is not None:
             self._worker.join(CLOSE_TIMEOUT_S)
+        with self._wake:
             self.dropped += len(self._outbox)
-        if self._rec is not None:
-            self._rec.flush(timeout_sec=CLOSE_TIMEOUT_S)
-            if self.sink.kind in ("file", "tee"):
-                self._rec.disconnect()  # finalizes the .rrd footer
+            self._outbox.clear()
+        for stream in self._streams:
+            self._finish(stream)
+
+    @staticmethod
+    def _finish(stream: _Stream) -> None:
+        if stream.rec is None:
+            return
+        # A viewer that went away makes the SDK's flush fail: that must not fail the caller.
+        timeout_s = CLOSE_TIMEOUT_S if stream.kind == "file" else VIEWER_FLUSH_S
+        try:
+            stream.rec.flush(timeout_sec=timeout_s)
+        except RuntimeError as exc:
+            log.warning("telemetry: the %s sink did not take everything: %s", stream.kind, exc)
+        if stream.kind == "file":
+            stream.rec.disconnect()  # finalizes the .rrd footer
+        stream.rec = None
 
     def __enter__(self) -> Self:
         return self
@@ -391,6 +574,21 @@ class Telemetry:
         tb: TracebackType | None,
     ) -> None:
         self.close()
+
+
+def _log_scalars(
+    rec: Any, base: str, cmd: Twist2D, measured: Twist2D, errors: tuple[float, float, float] | None
+) -> None:
+    rr = _rr()
+    rec.log(f"{base}/cmd/v_mps", rr.Scalars(cmd.v_mps))
+    rec.log(f"{base}/cmd/omega_degps", rr.Scalars(math.degrees(cmd.omega_radps)))
+    rec.log(f"{base}/measured/v_mps", rr.Scalars(measured.v_mps))
+    rec.log(f"{base}/measured/omega_degps", rr.Scalars(math.degrees(measured.omega_radps)))
+    if errors is not None:
+        for name, value in zip(
+            ("linear_pct", "angular_pct", "orientation_deg"), errors, strict=True
+        ):
+            rec.log(f"{base}/errors/{name}", rr.Scalars(value))
 
 
 def sonar_rays(

@@ -12,17 +12,22 @@ import typer
 
 
 def rerun_command(
-    recordings: list[Path], *, web: bool, port: int, web_port: int, memory_limit: str
+    recordings: list[Path],
+    *,
+    web: bool,
+    bind: str,
+    port: int,
+    web_port: int,
+    memory_limit: str,
 ) -> list[str]:
     """The `rerun` command line for `phalanx view`."""
     rerun = Path(sys.executable).with_name("rerun")
-    argv = [str(rerun if rerun.exists() else "rerun")]
+    argv = [str(rerun if rerun.exists() else "rerun"), "--bind", bind, "--port", str(port)]
     if web:
-        # Bound to loopback: a robot's or laptop's viewer is not for the whole network.
-        argv += ["--serve-web", "--bind", "127.0.0.1", "--port", str(port)]
-        argv += ["--web-viewer-port", str(web_port), "--server-memory-limit", memory_limit]
+        argv += ["--serve-web", "--web-viewer-port", str(web_port)]
+        argv += ["--server-memory-limit", memory_limit]
     else:
-        argv += ["--port", str(port), "--memory-limit", memory_limit]
+        argv += ["--memory-limit", memory_limit]
     return argv + [str(r) for r in recordings]
 
 
@@ -31,8 +36,12 @@ def view(
         list[Path] | None, typer.Argument(help=".rrd files to open (none: wait for live data).")
     ] = None,
     web: Annotated[
-        bool, typer.Option(help="Serve the web viewer on 127.0.0.1 instead of a window.")
+        bool, typer.Option(help="Serve the web viewer over HTTP instead of opening a window.")
     ] = False,
+    bind: Annotated[
+        str,
+        typer.Option(help="Address to listen on; 0.0.0.0 to take data from robots on the network."),
+    ] = "127.0.0.1",
     port: Annotated[int, typer.Option(help="gRPC port phalanx processes stream to.")] = 9876,
     web_port: Annotated[int, typer.Option(help="HTTP port of the web viewer.")] = 9090,
     memory_limit: Annotated[
@@ -44,12 +53,18 @@ def view(
         if not path.exists():
             raise typer.BadParameter(f"{path}: no such recording")
     argv = rerun_command(
-        list(recordings or []), web=web, port=port, web_port=web_port, memory_limit=memory_limit
+        list(recordings or []),
+        web=web,
+        bind=bind,
+        port=port,
+        web_port=web_port,
+        memory_limit=memory_limit,
     )
-    url = f"rerun+http://127.0.0.1:{port}/proxy"
+    host = "127.0.0.1" if bind in ("0.0.0.0", "::") else bind  # noqa: S104 - compared, not bound
+    url = f"rerun+http://{host}:{port}/proxy"
     typer.echo(f"stream to: --telemetry-url {url}", err=True)
     if web:
-        typer.echo(f"open: http://127.0.0.1:{web_port}/?url={url}", err=True)
+        typer.echo(f"open: http://{host}:{web_port}/?url={url}", err=True)
     process = subprocess.Popen(argv)  # noqa: S603 - rerun's CLI, our arguments
     signal.signal(signal.SIGTERM, lambda *_: process.terminate())
     try:

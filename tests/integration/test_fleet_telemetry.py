@@ -13,11 +13,12 @@ import pytest
 
 from phalanx.config import CONFIG_ROOT
 from phalanx.rrd import summarize
+from phalanx.transport import free_tcp_port
 
 pytestmark = pytest.mark.integration
 WEDGE = CONFIG_ROOT / "scenarios" / "paper_wedge.toml"
 PER_ROBOT = ("pose", "heading", "trail", "cmd/v_mps", "cmd/omega_degps", "measured/v_mps",
-             "measured/omega_degps", "fsm")  # fmt: skip
+             "measured/omega_degps", "fsm", "state")  # fmt: skip
 PER_FOLLOWER = ("slot_target", "errors/linear_pct", "errors/angular_pct", "errors/orientation_deg")
 
 
@@ -48,3 +49,20 @@ def test_up_recording_reads_back_whole(tmp_path: Path) -> None:
             assert rows[f"/robots/{rid}/{name}"] >= steps[rid] - 1, (rid, name)
     assert rows["/bounds/errors/linear_pct"] > 0
     assert rows["/bounds/velocity/v_max_mps"] > 0
+
+
+def test_a_dead_viewer_costs_the_fleet_nothing_but_counted_drops(tmp_path: Path) -> None:
+    out = tmp_path / "run"
+    dead = f"rerun+http://127.0.0.1:{free_tcp_port()}/proxy"  # nothing listens there
+    proc = subprocess.run(
+        [sys.executable, "-m", "phalanx", "up", str(WEDGE), "--out", str(out), "--fleet", "dead",
+         "--timeout", "240", "--set", "duration_s=20", "--telemetry-url", dead],
+        capture_output=True, text=True, timeout=300, check=False,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    agents = json.loads((out / "metrics.json").read_text())["runtime"]["agents"]
+    assert {rid: a["steps"] for rid, a in agents.items()} == {"r1": 200, "r2": 200, "r3": 200}
+    for rid, report in agents.items():  # every step's entry missed the viewer, and says so
+        assert report["telemetry_dropped"] >= report["steps"], rid
+    rows = summarize(out / "run.rrd").rows  # ... while the recording kept everything
+    assert all(rows[f"/robots/{rid}/pose"] == 200 for rid in agents)
