@@ -86,7 +86,7 @@ def main() -> None:
     parser = argparse.ArgumentParser()
     parser.add_argument("--run", type=Path, help="a results folder with run.rrd")
     parser.add_argument("--out", type=Path, default=REPO / "docs" / "figures" / "viewer.png")
-    parser.add_argument("--wait", type=float, default=30.0, help="seconds before the shot")
+    parser.add_argument("--wait", type=float, default=60.0, help="seconds before the shot")
     args = parser.parse_args()
     run = args.run
     if run is None:

@@ -101,19 +101,28 @@ def make_blueprint(
         )
     )
 
-    def series(name: str, paths: Sequence[str], bounds: Sequence[str]) -> Any:
+    def series(
+        name: str, paths: Sequence[str], bounds: Sequence[str], y_range: tuple[float, float] | None
+    ) -> Any:
         contents = [f"robots/{rid}/{p}" for rid in robot_ids for p in paths]
         return rrb.TimeSeriesView(
-            name=name, origin="/", contents=[*contents, *bounds], axis_x=whole_run
+            name=name,
+            origin="/",
+            contents=[*contents, *bounds],
+            axis_x=whole_run,
+            axis_y=rrb.ScalarAxis(range=y_range) if y_range else None,
         )
 
+    # The error axes stop a little above the paper's bounds (the start offsets are tens of
+    # per cent and would flatten everything else); zoom out in the viewer to see them.
     errors = rrb.Tabs(
         series(
             "separation errors (%)",
             ["errors/linear_pct", "errors/angular_pct"],
             ["bounds/errors/**"],
+            (0.0, 3.0),
         ),
-        series("orientation error (deg)", ["errors/orientation_deg"], []),
+        series("orientation error (deg)", ["errors/orientation_deg"], [], (0.0, 3.0)),
     )
     states = rrb.Tabs(
         rrb.StateTimelineView(
@@ -140,11 +149,13 @@ def make_blueprint(
                     "linear velocity (m/s)",
                     ["cmd/v_mps", "measured/v_mps"],
                     ["bounds/velocity/v_max_mps", "bounds/velocity/v_min_mps"],
+                    None,
                 ),
                 series(
                     "yaw rate (deg/s)",
                     ["cmd/omega_degps", "measured/omega_degps"],
                     ["bounds/velocity/omega_max_degps", "bounds/velocity/omega_min_degps"],
+                    None,
                 ),
                 states,
             ),
