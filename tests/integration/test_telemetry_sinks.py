@@ -48,12 +48,19 @@ def aggregator(port: int, path: Path) -> Iterator[None]:
         wait_for(lambda: viewer_reachable(f"rerun+http://127.0.0.1:{port}/proxy"), 15.0)
         yield
     finally:
-        proc.send_signal(signal.SIGINT)
-        try:
-            proc.wait(10.0)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait(5.0)
+        stop(proc, signal.SIGINT)
+
+
+def stop(proc: subprocess.Popen[bytes], sig: signal.Signals) -> bool:
+    """Stop `proc` with `sig`; kill it if it lingers. Whether it stopped on `sig`."""
+    proc.send_signal(sig)
+    try:
+        proc.wait(15.0)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait(5.0)
+        return False
+    return True
 
 
 def wait_for(condition: Callable[[], bool], timeout_s: float) -> None:
@@ -147,10 +154,5 @@ def test_view_web_serves_the_viewer_on_loopback_and_takes_a_stream(tmp_path: Pat
         if listening:  # `ss` is there: nothing listens beyond loopback
             assert all(" 127.0.0.1:" in line for line in listening.splitlines()), listening
     finally:
-        proc.send_signal(signal.SIGTERM)
-        try:
-            proc.wait(15.0)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait(5.0)
-            pytest.fail("phalanx view did not stop on SIGTERM")
+        stopped = stop(proc, signal.SIGTERM)
+    assert stopped, "phalanx view did not stop on SIGTERM"
