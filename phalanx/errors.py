@@ -31,3 +31,11 @@ class TransportError(PhalanxError):
 
 class MessageError(PhalanxError):
     """A wire payload is malformed or of an unknown version."""
+
+
+class DeploymentError(PhalanxError):
+    """A fleet could not be deployed: a host is missing or disagrees on the deployment."""
+
+
+class RequestRefused(DeploymentError):
+    """A host daemon refused a request; the message says which rule it broke."""

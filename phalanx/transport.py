@@ -83,6 +83,12 @@ class TransportConfig(BaseModel):
     lease_ms: int = Field(default=1000, ge=100)
     keep_alive: int = Field(default=4, ge=1)
     open_timeout_s: float = Field(default=15.0, ge=0.0)
+    # Routers and peers retry their `connect` endpoints forever; a lost link comes back
+    # within `retry_max_ms` of the network returning (Zenoh's default waits up to 4 s).
+    retry_max_ms: int | None = Field(default=None, ge=100)
+    # Multicast scouting in router mode: connect to routers found that way, one link per
+    # pair (only the router with the greater Zenoh id connects).
+    autoconnect_routers: bool = False
 
 
 def zenoh_config(cfg: TransportConfig) -> Any:
@@ -97,6 +103,18 @@ def zenoh_config(cfg: TransportConfig) -> Any:
     # A lost robot must be noticed in about a second, not Zenoh's default 10 s.
     conf.insert_json5("transport/link/tx/lease", json.dumps(cfg.lease_ms))
     conf.insert_json5("transport/link/tx/keep_alive", json.dumps(cfg.keep_alive))
+    if cfg.retry_max_ms is not None:
+        retry = {
+            "period_init_ms": min(250, cfg.retry_max_ms),
+            "period_max_ms": cfg.retry_max_ms,
+            "period_increase_factor": 2,
+        }
+        conf.insert_json5("connect/retry", json.dumps(retry))
+    if cfg.autoconnect_routers:
+        autoconnect = {"router": ["router"], "peer": ["router", "peer"]}
+        conf.insert_json5("scouting/multicast/autoconnect", json.dumps(autoconnect))
+        strategy = {"router": {"to_router": "greater-zid", "to_peer": "always"}}
+        conf.insert_json5("scouting/multicast/autoconnect_strategy", json.dumps(strategy))
     return conf
 
 
@@ -241,6 +259,11 @@ class FleetSession:
             if reply.ok is not None:
                 replies.append(json.loads(reply.ok.payload.to_bytes()))
         return replies
+
+    def hold(self, entity: Any) -> Any:
+        """Keep an entity declared on `self.zenoh` until `close()` undeclares it; returns it."""
+        self._keep.append(entity)
+        return entity
 
     def close(self) -> None:
         """Undeclare everything and close the session; safe twice."""

@@ -1,0 +1,255 @@
+"""Host daemons on loopback (no root needed): requests checked and refused, crashed agents
+restarted with back-off, children's output streamed, `phalanx stop`, missing hosts named."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from phalanx.deployment import client_transport, load_deployment
+from phalanx.fleet_launch import FleetClient
+from phalanx.hostd import DaemonOptions, HostDaemon, ManagedChild
+from phalanx.hostproto import ChildStatus, HostStatus, LogLine
+from phalanx.transport import alive_key, free_tcp_port
+
+pytestmark = pytest.mark.integration
+PLACEMENT = {"r1": "h1", "r2": "h2", "r3": "h2"}
+
+
+def _deployment(kit: Any, tmp_path: Path, name: str, *, zenoh_extra: str = "") -> Path:
+    hosts = [("h1", "127.0.0.1", free_tcp_port()), ("h2", "127.0.0.1", free_tcp_port())]
+    text = kit.deployment_text(
+        name=name, hosts=hosts, out_dir=tmp_path / "results", clock="realtime",
+        placement=PLACEMENT, world_host="h1", lease_ms=1000, zenoh_extra=zenoh_extra,
+    )  # fmt: skip
+    path = tmp_path / f"{name}.toml"
+    path.write_text(text)
+    return path
+
+
+def _wait(predicate: Callable[[], bool], timeout_s: float) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        time.sleep(0.1)
+    return False
+
+
+def _child(status: HostStatus | None, name: str) -> ChildStatus | None:
+    if status is None:
+        return None
+    return next((c for c in status.children if c.name == name), None)
+
+
+def test_bad_requests_are_refused_with_a_reason_and_counted(kit: Any, tmp_path: Path) -> None:
+    path = _deployment(kit, tmp_path, "refuse")
+    loaded = load_deployment(path)
+    good = {"deployment": "refuse", "digest": loaded.digest, "run_id": "run1"}
+    bad: list[tuple[bytes, str]] = [
+        (b"", "malformed spawn request"),
+        (b"{not json", "malformed spawn request"),
+        (b"\xff\xfe" * 10, "malformed spawn request"),
+        (json.dumps({**good, "command": "rm -rf /"}).encode(), "Extra inputs are not permitted"),
+        (json.dumps({**good, "version": 2}).encode(), "version"),
+        (json.dumps({**good, "run_id": "../../etc"}).encode(), "run_id"),
+        (json.dumps({**good, "overrides": ["duration_s=1\n--driver=x"]}).encode(), "overrides"),
+        (json.dumps({**good, "epoch_unix": float("nan")}).encode(), "epoch_unix"),
+        (json.dumps({**good, "deployment": "other"}).encode(), "serves deployment 'refuse'"),
+        (json.dumps({**good, "digest": "0" * 64}).encode(), "differs on host"),
+        (json.dumps({**good, "robots": ["rr2"]}).encode(), "did you mean 'r2'"),
+        (json.dumps({**good, "robots": ["r1"]}).encode(), "runs on host 'h1'"),
+        (json.dumps({**good, "overrides": ["duration_s=-5"]}).encode(), "duration_s"),
+        (json.dumps({**good, "epoch_unix": 1.0}).encode(), "more than a day"),
+        (b" " * (65 * 1024), "at most"),
+    ]
+    daemons = kit.start_daemons(path, ["h1", "h2"], tmp_path / "logs")
+    try:
+        with FleetClient(loaded, client_transport(loaded.spec, via="h1")) as client:
+            client.wait_for_hosts(30.0, lambda _text: None)
+            for payload, reason in bad:
+                reply = client.ask("spawn", {"h2": payload}, timeout_s=5.0)["h2"]
+                assert reply is not None, payload[:60]
+                assert not reply.ok, payload[:60]
+                assert reason in reply.error, (payload[:60], reply.error)
+            stop_reply = client.ask("stop", {"h2": b'{"deployment": "refuse", "run_id": "nope"}'})
+            assert stop_reply["h2"] is not None
+            assert "not this host's" in stop_reply["h2"].error
+            # r2 is already on the fabric (an orphan, or started elsewhere): never twice.
+            client.session.declare_alive(alive_key("refuse", "r2"))
+            time.sleep(0.5)
+            twice = client.ask("spawn", {"h2": json.dumps({**good, "robots": ["r2"]}).encode()})
+            assert twice["h2"] is not None
+            assert "r2 is already on the fabric" in twice["h2"].error
+            status = client.statuses()["h2"]
+            assert status is not None
+            assert status.refused == len(bad) + 2
+            assert status.children == ()  # nothing was started
+    finally:
+        codes = daemons.stop()
+    assert codes == {"h1": 0, "h2": 0}, daemons.log_tail()
+
+
+def test_a_crashed_agent_restarts_with_backoff_and_the_output_reaches_the_launcher(
+    kit: Any, tmp_path: Path
+) -> None:
+    path = _deployment(kit, tmp_path, "crash")
+    loaded = load_deployment(path)
+    daemons = kit.start_daemons(path, ["h1", "h2"], tmp_path / "logs")
+    try:
+        with FleetClient(loaded, client_transport(loaded.spec)) as client:
+            client.wait_for_hosts(30.0, lambda _text: None)
+            client.spawn("crash1", overrides=("duration_s=60",), epoch_unix=None)
+
+            def r2() -> ChildStatus | None:
+                return _child(client.statuses(["h2"])["h2"], "r2")
+
+            def running() -> bool:
+                statuses = client.statuses()
+                world, agent = _child(statuses["h1"], "world"), _child(statuses["h2"], "r2")
+                return all(c is not None and c.state == "running" for c in (world, agent))
+
+            assert _wait(running, 40.0), daemons.log_tail()
+            time.sleep(0.5)  # the world has subscribed to the robots' liveliness
+            first = r2()
+            assert first is not None
+            assert first.pid is not None
+            os.kill(first.pid, signal.SIGKILL)
+            assert _wait(
+                lambda: (c := r2()) is not None and c.restarts == 1 and c.state == "running", 30.0
+            ), daemons.log_tail()
+            again = r2()
+            assert again is not None
+            assert again.pid != first.pid
+            assert "killed by SIGKILL" in again.last_error
+
+            def heard(line: LogLine) -> bool:
+                return line.host == "h1" and line.child == "world" and "r2 is gone" in line.line
+
+            lines: list[LogLine] = []
+
+            def world_said_r2_gone() -> bool:
+                while not client.watch.logs.empty():
+                    lines.append(client.watch.logs.get())
+                return any(heard(line) for line in lines)
+
+            assert _wait(world_said_r2_gone, 10.0), [line.line for line in lines][-20:]
+
+        stopped = subprocess.run(
+            [*kit.CLI, "stop", str(path), "--wait", "20"],
+            capture_output=True, text=True, timeout=60, check=False,
+        )  # fmt: skip
+        assert stopped.returncode == 0, stopped.stdout + stopped.stderr
+        assert "host h2: stopping" in stopped.stdout
+        with FleetClient(loaded, client_transport(loaded.spec)) as client:
+            states = {c.name: c.state for s in client.statuses().values() if s for c in s.children}
+        # An agent may end by itself first: the stopped world sends its final frames.
+        assert set(states) == {"r1", "world", "r2", "r3"}, states
+        assert set(states.values()) <= {"stopped", "finished"}, states
+        assert states["world"] == "stopped", states
+    finally:
+        codes = daemons.stop()
+    assert codes == {"h1": 0, "h2": 0}, daemons.log_tail()
+
+
+def test_launch_names_the_hosts_that_are_missing(kit: Any, tmp_path: Path) -> None:
+    path = _deployment(kit, tmp_path, "missing")
+    daemons = kit.start_daemons(path, ["h1"], tmp_path / "logs")
+    try:
+        launched = subprocess.run(
+            [*kit.CLI, "launch", str(path), "--host-wait", "3", "--no-table"],
+            capture_output=True, text=True, timeout=60, check=False,
+        )  # fmt: skip
+    finally:
+        codes = daemons.stop()
+    assert launched.returncode == 2, launched.stdout + launched.stderr
+    assert "hosts not present after 3 s: h2" in launched.stderr
+    assert "phalanx host" in launched.stderr
+    assert codes == {"h1": 0}
+
+
+def test_hosts_that_only_reach_a_router_find_each_other_through_it(
+    kit: Any, tmp_path: Path
+) -> None:
+    port = free_tcp_port()
+    path = _deployment(
+        kit, tmp_path, "hub", zenoh_extra=f'router = {{ address = "127.0.0.1", port = {port} }}'
+    )
+    loaded = load_deployment(path)
+    with (tmp_path / "router.log").open("wb") as sink:
+        router = subprocess.Popen(
+            [*kit.CLI, "router", str(path)], stdout=sink, stderr=subprocess.STDOUT
+        )
+    daemons = kit.start_daemons(path, ["h1", "h2"], tmp_path / "logs")
+    try:
+        # Through h1's daemon, h2 answers: h1 -> router -> h2 (neither connects to the other).
+        with FleetClient(loaded, client_transport(loaded.spec, via="h1")) as client:
+            statuses = client.wait_for_hosts(30.0, lambda _text: None)
+            assert set(statuses) == {"h1", "h2"}
+            assert statuses["h2"].robots == ("r2", "r3")
+    finally:
+        codes = daemons.stop()
+        router.send_signal(signal.SIGTERM)
+        router_code = router.wait(15)
+    assert codes == {"h1": 0, "h2": 0}, daemons.log_tail()
+    assert router_code == 0
+    assert f"router listening on tcp/127.0.0.1:{port}" in (tmp_path / "router.log").read_text()
+
+
+def _bare_daemon(grace_s: float) -> HostDaemon:
+    """A daemon without a session: its supervision alone, on children we give it."""
+    return HostDaemon(load_deployment("loopback"), "robot-b", DaemonOptions(grace_s=grace_s))
+
+
+def _adopt(daemon: HostDaemon, name: str, code: str) -> ManagedChild:
+    """Supervise `python -c code` as agent `name` (only a test may run such a child)."""
+    child = ManagedChild(
+        name,
+        "agent",
+        [sys.executable, "-c", code],
+        policy=daemon.spec.restart,
+        on_line=lambda *_: None,
+    )
+    daemon.children[name] = child
+    child.start(workdir=Path.cwd())
+    return child
+
+
+def test_a_child_that_ignores_sigterm_is_killed_after_the_grace_period() -> None:
+    daemon = _bare_daemon(grace_s=0.5)
+    stubborn = _adopt(
+        daemon,
+        "r2",
+        "import signal, time; signal.signal(signal.SIGTERM, signal.SIG_IGN); "
+        "print('up', flush=True); time.sleep(60)",
+    )
+    assert _wait(lambda: "up" in stubborn.lines, 10.0)
+    started = time.monotonic()
+    daemon.shutdown()
+    assert stubborn.poll() == -signal.SIGKILL
+    assert 0.5 <= time.monotonic() - started < 5.0
+    assert stubborn.state == "stopped"
+
+
+def test_a_crash_is_reported_with_its_last_error_and_restarted_after_a_delay() -> None:
+    daemon = _bare_daemon(grace_s=0.5)
+    crashing = _adopt(
+        daemon,
+        "r3",
+        "import sys; print('starting'); print('ERROR no robot', flush=True); sys.exit(3)",
+    )
+    assert _wait(lambda: (daemon.supervise(), crashing.state)[1] == "backoff", 10.0)
+    assert crashing.last_error == "exit 3: ERROR no robot"
+    assert crashing.restart_at - time.monotonic() <= daemon.spec.restart.backoff_s
+    assert _wait(lambda: (daemon.supervise(), crashing.restarts)[1] == 1, 10.0)
+    daemon.shutdown()
+    assert crashing.poll() is not None
