@@ -196,8 +196,9 @@ def merge_recordings(parts: list[Path], target: Path, timeout_s: float = 120.0) 
 
     A part without a footer (its process was killed) is merged as far as it goes.
     """
-    rerun = Path(sys.executable).with_name("rerun")
-    command = [str(rerun if rerun.exists() else "rerun"), "rrd", "merge", "--continue-on-error"]
+    from phalanx.telemetry import rerun_executable
+
+    command = [rerun_executable(), "rrd", "merge", "--continue-on-error"]
     try:
         subprocess.run(  # noqa: S603 - rerun's own CLI, our paths
             [*command, "-o", str(target), *map(str, parts)],

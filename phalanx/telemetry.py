@@ -21,8 +21,10 @@ is gone its entries are, and both are counted in `dropped`.
 
 from __future__ import annotations
 
+import importlib.util
 import logging
 import math
+import shutil
 import socket
 import threading
 import time
@@ -74,6 +76,21 @@ def sink_for(path: Path | None, url: str | None) -> TelemetrySink:
     if url is not None:
         return TelemetrySink(kind="grpc", url=url)
     return TelemetrySink(kind="off")
+
+
+def rerun_executable() -> str:
+    """The Rerun CLI binary itself.
+
+    The `rerun` on PATH is a Python wrapper that runs the binary as a child: a SIGTERM to
+    the wrapper would orphan the binary (a viewer or merge left running), so phalanx
+    starts and stops the binary directly.
+    """
+    spec = importlib.util.find_spec("rerun_cli")
+    if spec is not None and spec.origin is not None:
+        binary = Path(spec.origin).with_name("rerun")
+        if binary.is_file():
+            return str(binary)
+    return shutil.which("rerun") or "rerun"
 
 
 def _rr() -> Any:

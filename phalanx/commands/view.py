@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import signal
 import subprocess
-import sys
 from pathlib import Path
 from typing import Annotated
 
@@ -21,8 +20,9 @@ def rerun_command(
     memory_limit: str,
 ) -> list[str]:
     """The `rerun` command line for `phalanx view`."""
-    rerun = Path(sys.executable).with_name("rerun")
-    argv = [str(rerun if rerun.exists() else "rerun"), "--bind", bind, "--port", str(port)]
+    from phalanx.telemetry import rerun_executable
+
+    argv = [rerun_executable(), "--bind", bind, "--port", str(port)]
     if web:
         argv += ["--serve-web", "--web-viewer-port", str(web_port)]
         argv += ["--server-memory-limit", memory_limit]

@@ -17,14 +17,14 @@ import pytest
 
 from phalanx.geometry import Pose2D, Twist2D
 from phalanx.rrd import summarize
-from phalanx.telemetry import Telemetry, TelemetrySink, viewer_reachable
+from phalanx.telemetry import Telemetry, TelemetrySink, rerun_executable, viewer_reachable
 from phalanx.transport import free_tcp_port
 
 pytestmark = [
     pytest.mark.integration,
     pytest.mark.filterwarnings("ignore:RRD file has no footer"),  # the aggregator's own file
 ]
-RERUN = Path(sys.executable).with_name("rerun")
+RERUN = rerun_executable()
 
 
 @contextmanager
@@ -156,3 +156,6 @@ def test_view_web_serves_the_viewer_on_loopback_and_takes_a_stream(tmp_path: Pat
     finally:
         stopped = stop(proc, signal.SIGTERM)
     assert stopped, "phalanx view did not stop on SIGTERM"
+    # ... and took the viewer with it: nothing is left serving either port
+    wait_for(lambda: not viewer_reachable(f"rerun+http://127.0.0.1:{grpc}/proxy"), 10.0)
+    assert not viewer_reachable(f"rerun+http://127.0.0.1:{web}/")
