@@ -30,6 +30,7 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
 from types import TracebackType
 from typing import Any, Literal, Self
@@ -41,11 +42,20 @@ from pydantic import BaseModel, ConfigDict
 
 from phalanx.config import RobotParams
 from phalanx.geometry import Pose2D, Twist2D, Vec2
+from phalanx.rerun_layout import (
+    StepRow,
+    TruthRow,
+    make_blueprint,
+    send_step_rows,
+    send_truth_rows,
+)
 
 FloatArray = npt.NDArray[np.float64]
-Job = Callable[[Any], None]  # logs one entry to a recording stream
+Job = Callable[[Any], None]  # logs to a recording stream
 log = logging.getLogger("phalanx.telemetry")
-OUTBOX_CAPACITY = 20_000
+OUTBOX_CAPACITY = 20_000  # jobs; a job is one entry, or one batch of rows
+FLUSH_ROWS = 20  # a robot's steps go out in batches of at most this many ...
+FLUSH_S = 0.2  # ... and at most this old (wall time), so a live view lags by no more
 TRAIL_POINTS = 600
 TRAIL_EVERY_STEPS = 10
 CLOSE_TIMEOUT_S = 10.0
@@ -99,89 +109,6 @@ def _rr() -> Any:
     return rerun
 
 
-def make_blueprint(
-    robot_ids: Sequence[str], *, extent_m: tuple[float, float, float, float] | None = None
-) -> Any:
-    """Map of the fleet, error and velocity series, state log: figures 4b-7 live.
-
-    `extent_m` (x_min, x_max, y_min, y_max) frames the map; without it the viewer fits it.
-    """
-    import rerun.blueprint as rrb
-
-    bounds = None
-    if extent_m is not None:
-        x0, x1, y0, y1 = extent_m
-        bounds = rrb.VisualBounds2D(x_range=(x0, x1), y_range=(y0, y1))
-    whole_run = rrb.TimeAxis(
-        view_range=rrb.TimeRange(
-            start=rrb.TimeRangeBoundary.infinite(), end=rrb.TimeRangeBoundary.infinite()
-        )
-    )
-
-    def series(
-        name: str, paths: Sequence[str], bounds: Sequence[str], y_range: tuple[float, float] | None
-    ) -> Any:
-        contents = [f"robots/{rid}/{p}" for rid in robot_ids for p in paths]
-        return rrb.TimeSeriesView(
-            name=name,
-            origin="/",
-            contents=[*contents, *bounds],
-            axis_x=whole_run,
-            axis_y=rrb.ScalarAxis(range=y_range) if y_range else None,
-        )
-
-    # The error axes stop a little above the paper's bounds (the start offsets are tens of
-    # per cent and would flatten everything else); zoom out in the viewer to see them.
-    errors = rrb.Tabs(
-        series(
-            "separation errors (%)",
-            ["errors/linear_pct", "errors/angular_pct"],
-            ["bounds/errors/**"],
-            (0.0, 3.0),
-        ),
-        series("orientation error (deg)", ["errors/orientation_deg"], [], (0.0, 3.0)),
-    )
-    states = rrb.Tabs(
-        rrb.StateTimelineView(
-            name="behaviour states",
-            origin="/",
-            contents=[f"robots/{rid}/state" for rid in robot_ids],
-            time_view=whole_run,
-        ),
-        rrb.TextLogView(
-            name="transitions", origin="/", contents=[f"robots/{rid}/fsm" for rid in robot_ids]
-        ),
-    )
-    return rrb.Blueprint(
-        rrb.Horizontal(
-            rrb.Spatial2DView(
-                name="fleet map",
-                origin="/",
-                contents=["world/**", "robots/**"],
-                visual_bounds=bounds,
-            ),
-            rrb.Vertical(
-                errors,
-                series(
-                    "linear velocity (m/s)",
-                    ["cmd/v_mps", "measured/v_mps"],
-                    ["bounds/velocity/v_max_mps", "bounds/velocity/v_min_mps"],
-                    None,
-                ),
-                series(
-                    "yaw rate (deg/s)",
-                    ["cmd/omega_degps", "measured/omega_degps"],
-                    ["bounds/velocity/omega_max_degps", "bounds/velocity/omega_min_degps"],
-                    None,
-                ),
-                states,
-            ),
-            column_shares=[3, 2],
-        ),
-        collapse_panels=True,
-    )
-
-
 class _Extent:
     """The bounding box of every position logged, to frame the map at the end of a run."""
 
@@ -233,6 +160,15 @@ def viewer_reachable(url: str, timeout_s: float = 0.2) -> bool:
         return False
 
 
+@dataclass
+class _Batch:
+    """Rows of one robot waiting to go out together, and how to send them."""
+
+    send: Callable[[Any, list[Any]], None]
+    rows: list[Any] = field(default_factory=list)
+    started_s: float = field(default_factory=time.monotonic)
+
+
 class Telemetry:
     """phalanx's entity layout over one recording id, to a file, a viewer, both, or memory.
 
@@ -257,11 +193,13 @@ class Telemetry:
         self.dropped = 0  # entries that missed at least one sink
         self.logged_steps: dict[str, int] = {}
         self._trails: dict[str, deque[tuple[float, float]]] = {}
-        self._outbox: deque[Job] = deque()
+        self._outbox: deque[tuple[Job, int]] = deque()  # (job, entries it carries)
+        self._rows: dict[str, _Batch] = {}  # per robot (and per truth), not yet submitted
         self._static: list[Job] = []
         self._extent = _Extent()
         self._layout_ids: list[str] | None = None  # set once a layout was sent
         self._wake = threading.Condition()
+        self._busy = False  # the background thread is applying a job
         self._closed = False
         self._streams = self._plan_streams(sink)
         self._worker: threading.Thread | None = None
@@ -306,17 +244,33 @@ class Telemetry:
 
     # --- outbox ------------------------------------------------------------------------
 
-    def _submit(self, job: Job, *, static: bool = False) -> None:
+    def _submit(self, job: Job, *, static: bool = False, entries: int = 1) -> None:
         if not self._streams or self._closed:
             return
         with self._wake:
             if static:
                 self._static.append(job)
             if len(self._outbox) >= OUTBOX_CAPACITY:
-                self._outbox.popleft()
-                self.dropped += 1
-            self._outbox.append(job)
+                _, lost = self._outbox.popleft()
+                self.dropped += lost
+            self._outbox.append((job, entries))
             self._wake.notify()
+
+    def _add_row(self, key: str, row: object, send: Callable[[Any, list[Any]], None]) -> None:
+        """Buffer `row`; hand the batch over when it is full or old enough."""
+        with self._wake:
+            batch = self._rows.get(key)
+            if batch is None:
+                batch = self._rows[key] = _Batch(send)
+            batch.rows.append(row)
+            if len(batch.rows) >= FLUSH_ROWS or time.monotonic() - batch.started_s >= FLUSH_S:
+                self._flush(key)
+
+    def _flush(self, key: str) -> None:
+        batch = self._rows.pop(key, None)
+        if batch is not None and batch.rows:
+            rows, send = batch.rows, batch.send
+            self._submit(lambda rec: send(rec, rows), entries=len(rows))
 
     def _drain(self) -> None:
         while True:
@@ -326,11 +280,13 @@ class Telemetry:
                 if not self._outbox and self._closed:
                     return
                 job = self._outbox.popleft() if self._outbox else None
+                self._busy = job is not None
             self._check_viewers()
             if job is not None:
-                self._apply(job)
+                self._apply(*job)
+            self._busy = False
 
-    def _apply(self, job: Job) -> None:
+    def _apply(self, job: Job, entries: int) -> None:
         missed = False
         for stream in self._streams:
             if not stream.live:
@@ -343,7 +299,7 @@ class Telemetry:
                 missed = True
         if missed:
             with self._wake:
-                self.dropped += 1
+                self.dropped += entries
 
     def _check_viewers(self) -> None:
         now = time.monotonic()
@@ -422,7 +378,7 @@ class Telemetry:
         fsm_state: str = "",
         leader_id: str = "",
     ) -> None:
-        """One control step of one robot (live agents)."""
+        """One control step of one robot (live agents); sent in batches of steps."""
         self.logged_steps[robot_id] = self.logged_steps.get(robot_id, 0) + 1
         if not self._streams:
             return
@@ -433,31 +389,20 @@ class Telemetry:
         trail_points = None
         if step % TRAIL_EVERY_STEPS == 0:
             trail.append((pose.x_m, pose.y_m))
-            trail_points = list(trail)
-        rays = [[(a.x_m, a.y_m), (b.x_m, b.y_m)] for a, b in sonar_rays]
-        label = f"{robot_id} {fsm_state}" + (f" -> {leader_id}" if leader_id else "")
-
-        def job(rec: Any) -> None:
-            rr, base = _rr(), f"robots/{robot_id}"
-            rec.set_time("sim_time", duration=t_s)
-            rec.set_time("step", sequence=step)
-            rec.log(f"{base}/pose", rr.Points2D([(pose.x_m, pose.y_m)], radii=0.25, labels=[label]))
-            heading = (0.4 * math.cos(pose.theta_rad), 0.4 * math.sin(pose.theta_rad))
-            rec.log(
-                f"{base}/heading", rr.Arrows2D(vectors=[heading], origins=[(pose.x_m, pose.y_m)])
-            )
-            if trail_points is not None:
-                rec.log(f"{base}/trail", rr.LineStrips2D([trail_points]))
-            if slot_target is not None:
-                rec.log(
-                    f"{base}/slot_target",
-                    rr.Points2D([(slot_target.x_m, slot_target.y_m)], radii=0.05),
-                )
-            if rays:
-                rec.log(f"{base}/sonar", rr.LineStrips2D(rays, radii=0.005))
-            _log_scalars(rec, base, cmd, measured, errors)
-
-        self._submit(job)
+            trail_points = tuple(trail)
+        row = StepRow(
+            t_s=t_s,
+            step=step,
+            pose=pose,
+            cmd=cmd,
+            measured=measured,
+            label=f"{robot_id} {fsm_state}" + (f" -> {leader_id}" if leader_id else ""),
+            slot_target=slot_target,
+            errors=errors,
+            rays=tuple(((a.x_m, a.y_m), (b.x_m, b.y_m)) for a, b in sonar_rays),
+            trail=trail_points,
+        )
+        self._add_row(robot_id, row, lambda rec, rows: send_step_rows(rec, robot_id, rows))
 
     def log_transition(
         self, robot_id: str, *, t_s: float, source: str, target: str, reason: str
@@ -474,17 +419,13 @@ class Telemetry:
         self._submit(job)
 
     def log_truth(self, robot_id: str, *, t_s: float, pose: Pose2D) -> None:
-        """Ground truth from the world."""
+        """Ground truth from the world; sent in batches of steps."""
         self._extent.add(pose.x_m, pose.y_m)
-
-        def job(rec: Any) -> None:
-            rec.set_time("sim_time", duration=t_s)
-            rec.log(
-                f"world/truth/{robot_id}",
-                _rr().Points2D([(pose.x_m, pose.y_m)], radii=0.05, colors=[(0, 0, 0)]),
-            )
-
-        self._submit(job)
+        self._add_row(
+            f"truth/{robot_id}",
+            TruthRow(t_s, pose.x_m, pose.y_m),
+            lambda rec, rows: send_truth_rows(rec, robot_id, rows),
+        )
 
     def log_columns(
         self,
@@ -560,10 +501,29 @@ class Telemetry:
 
     # --- lifecycle ---------------------------------------------------------------------
 
+    def flush(self, timeout_s: float = 0.0) -> bool:
+        """Hand every buffered row over now; with a timeout, wait (bounded) until the
+        background thread has passed everything to the sinks. Whether it has.
+
+        For a figure that must be complete at a given moment (`dropped` in a final report).
+        """
+        with self._wake:
+            for key in list(self._rows):
+                self._flush(key)
+        deadline = time.monotonic() + timeout_s
+        while self._outbox or self._busy:
+            if time.monotonic() >= deadline:
+                return False
+            time.sleep(0.01)
+        return True
+
     def close(self) -> None:
         """Drain what is queued (bounded), flush and finalize every sink; safe twice."""
         if self._closed:
             return
+        with self._wake:
+            for key in list(self._rows):
+                self._flush(key)
         extent = self._extent.framed()
         if self._layout_ids is not None and extent is not None:
             self.send_blueprint(self._layout_ids, extent_m=extent)  # the whole run in view
@@ -602,21 +562,6 @@ class Telemetry:
         tb: TracebackType | None,
     ) -> None:
         self.close()
-
-
-def _log_scalars(
-    rec: Any, base: str, cmd: Twist2D, measured: Twist2D, errors: tuple[float, float, float] | None
-) -> None:
-    rr = _rr()
-    rec.log(f"{base}/cmd/v_mps", rr.Scalars(cmd.v_mps))
-    rec.log(f"{base}/cmd/omega_degps", rr.Scalars(math.degrees(cmd.omega_radps)))
-    rec.log(f"{base}/measured/v_mps", rr.Scalars(measured.v_mps))
-    rec.log(f"{base}/measured/omega_degps", rr.Scalars(math.degrees(measured.omega_radps)))
-    if errors is not None:
-        for name, value in zip(
-            ("linear_pct", "angular_pct", "orientation_deg"), errors, strict=True
-        ):
-            rec.log(f"{base}/errors/{name}", rr.Scalars(value))
 
 
 def sonar_rays(

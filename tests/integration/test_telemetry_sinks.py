@@ -80,10 +80,6 @@ def log_steps(tel: Telemetry, first: int, count: int) -> int:
     return first + count
 
 
-def drained(tel: Telemetry) -> Callable[[], bool]:
-    return lambda: len(tel._outbox) == 0
-
-
 def test_absent_viewer_costs_nothing_but_counted_drops(tmp_path: Path) -> None:
     url = f"rerun+http://127.0.0.1:{free_tcp_port()}/proxy"
     tel = Telemetry(
@@ -91,7 +87,7 @@ def test_absent_viewer_costs_nothing_but_counted_drops(tmp_path: Path) -> None:
     )
     with tel:
         log_steps(tel, 0, 50)
-        wait_for(drained(tel), 10.0)
+        assert tel.flush(10.0)
         assert not tel.viewer_live
     assert tel.dropped == 50  # every entry missed the viewer ...
     assert summarize(tmp_path / "a.rrd").rows["/robots/r1/pose"] == 50  # ... none the file
@@ -109,10 +105,10 @@ def test_viewer_that_goes_and_comes_back(tmp_path: Path) -> None:
         tel.log_world(circles=[(3.0, 0.0, 0.5)], polygons=[])
         wait_for(lambda: tel.viewer_live, 10.0)
         k = log_steps(tel, 0, 40)
-        wait_for(drained(tel), 10.0)
+        assert tel.flush(10.0)
     wait_for(lambda: not tel.viewer_live, 10.0)
     k = log_steps(tel, k, 30)  # nobody listening: dropped and counted
-    wait_for(drained(tel), 10.0)
+    assert tel.flush(10.0)
     assert tel.dropped == 30
     with aggregator(port, second):
         wait_for(lambda: tel.viewer_live, 10.0)
@@ -145,7 +141,7 @@ def test_view_web_serves_the_viewer_on_loopback_and_takes_a_stream(tmp_path: Pat
         with tel:
             wait_for(lambda: tel.viewer_live, 10.0)
             log_steps(tel, 0, 20)
-            wait_for(drained(tel), 10.0)
+            assert tel.flush(10.0)
         assert tel.dropped == 0
         listening = subprocess.run(
             ["ss", "-ltnH", f"( sport = :{grpc} or sport = :{web} )"],
