@@ -19,16 +19,27 @@ ANY_STATE = "*"
 
 
 class State(StrEnum):
-    """Behaviour states of the formation and navigation layers."""
+    """Behaviour states of the navigation and formation layers (one machine per robot:
+    the leader runs navigation states, followers formation states, and leadership can
+    move a robot from one set to the other).
+    """
 
+    # navigation layer, the formation leader: its plan and the deadlock escape
+    NAVIGATE = "NAVIGATE"
+    WANDER = "WANDER"
+    ARRIVED = "ARRIVED"
+    DEADLOCK_REVERSE = "DEADLOCK_REVERSE"
+    DEADLOCK_TURN = "DEADLOCK_TURN"
+    # navigation layer, every robot: reactive avoidance and safety
+    AVOID = "AVOID"
+    EMERGENCY_STOP = "EMERGENCY_STOP"
+    STUCK = "STUCK"
     # formation layer, followers (figure 4a)
     FORMATION_TRACK = "FORMATION_TRACK"
     FORMATION_REVERSE = "FORMATION_REVERSE"
-    # the leader (navigation layer: scripted motion profile; the navigation issue adds more)
-    NAVIGATE = "NAVIGATE"
-    DEADLOCK_REVERSE = "DEADLOCK_REVERSE"
     # shared
     HOLD = "HOLD"
+    JOIN = "JOIN"
 
 
 @dataclass(frozen=True)
@@ -36,6 +47,7 @@ class Transition(Generic[C]):
     """`source -> target` when `guard(ctx)` holds; higher `priority` is tried first.
 
     `source` may be `ANY_STATE` ("*"), which never fires into the state it is already in.
+    `detail`, if given, adds the particulars of this firing to the logged reason.
     """
 
     source: str
@@ -43,6 +55,13 @@ class Transition(Generic[C]):
     guard: Callable[[C], bool]
     reason: str
     priority: int = 0
+    detail: Callable[[C], str] | None = None
+
+    def explain(self, ctx: C) -> str:
+        """The reason logged when this transition fires with `ctx`."""
+        if self.detail is None:
+            return self.reason
+        return f"{self.reason}: {self.detail(ctx)}"
 
 
 @dataclass(frozen=True, slots=True)
@@ -57,18 +76,23 @@ class TransitionEvent:
 
 @dataclass
 class StateMachine(Generic[C]):
-    """A flat state machine; call `update` once per control step."""
+    """A flat state machine; call `update` once per control step.
+
+    `absorbing` states are never left, not even by `ANY_STATE` transitions.
+    """
 
     initial: str
     transitions: Sequence[Transition[C]]
     on_entry: Mapping[str, Callable[[C], None]] = field(default_factory=dict)
     on_exit: Mapping[str, Callable[[C], None]] = field(default_factory=dict)
     log: list[TransitionEvent] = field(default_factory=list)
+    absorbing: frozenset[str] = frozenset()
 
     def __post_init__(self) -> None:
         self.state = self.initial
         self.entered_at_s = 0.0
         self._ordered = sorted(self.transitions, key=lambda tr: -tr.priority)
+        self._from: dict[str, list[Transition[C]]] = {}
 
     @property
     def states(self) -> tuple[str, ...]:
@@ -79,9 +103,15 @@ class StateMachine(Generic[C]):
         return tuple(names)
 
     def _candidates(self) -> Iterable[Transition[C]]:
-        for tr in self._ordered:
-            if tr.source == self.state or (tr.source == ANY_STATE and tr.target != self.state):
-                yield tr
+        if self.state in self.absorbing:
+            return ()
+        if self.state not in self._from:  # the same list every time: build it once
+            self._from[self.state] = [
+                tr
+                for tr in self._ordered
+                if tr.source == self.state or (tr.source == ANY_STATE and tr.target != self.state)
+            ]
+        return self._from[self.state]
 
     def update(self, ctx: C, t_s: float) -> TransitionEvent | None:
         """Take at most one transition (the highest-priority one whose guard holds)."""
@@ -97,9 +127,27 @@ class StateMachine(Generic[C]):
     def _take(self, tr: Transition[C], ctx: C, t_s: float) -> TransitionEvent:
         if (exit_action := self.on_exit.get(self.state)) is not None:
             exit_action(ctx)
-        event = TransitionEvent(t_s, self.state, tr.target, tr.reason)
+        event = TransitionEvent(t_s, self.state, tr.target, tr.explain(ctx))
         self.state, self.entered_at_s = tr.target, t_s
         self.log.append(event)
         if (entry_action := self.on_entry.get(tr.target)) is not None:
             entry_action(ctx)
         return event
+
+
+def to_mermaid(machine: StateMachine[C], *, notes: Mapping[str, str] | None = None) -> str:
+    """The machine as a Mermaid `stateDiagram-v2` (initial state, every transition with
+    its priority and reason; `*` transitions drawn from an "any state" node).
+    """
+    lines = ["stateDiagram-v2", f"    [*] --> {machine.initial}"]
+    if any(tr.source == ANY_STATE for tr in machine.transitions):
+        lines.append('    state "any state" as ANY')
+    for tr in sorted(machine.transitions, key=lambda t: (t.source, -t.priority, t.target)):
+        source = "ANY" if tr.source == ANY_STATE else tr.source
+        label = tr.reason.replace(":", " -").replace(";", ",")
+        lines.append(f"    {source} --> {tr.target} : [{tr.priority}] {label}")
+    for state in sorted(machine.absorbing):
+        lines.append(f"    {state} --> [*]")
+    for state, text in (notes or {}).items():
+        lines.append(f"    note right of {state} : {text}")
+    return "\n".join(lines) + "\n"

@@ -4,6 +4,16 @@ With the `sim` driver the world drives the clock: each SenseFrame is a tick, ans
 with a VelocityCommand for the same tick. In lockstep the agent first waits (bounded)
 for the peer states the batch runner would give it (published `comm_delay_s` earlier),
 which is what makes a multi-process run reproduce the in-process one.
+
+What a robot hears: every robot's small `RobotFlags` (leadership and deadlock are
+decided from them on every robot), and the full `RobotState` only of the robots it may
+track: those on its follow-tree path to the current leader, subscribed to as the
+leadership changes. Leader-state traffic so stays O(followers of each robot). In
+lockstep (one machine, deterministic runs) it takes every robot's state instead, so the
+robot it tracks after a leadership change has a state from the very same tick. A robot
+that takes the lead announces it on `phalanx/<fleet>/leader`. A robot started while its
+fleet is already running (its first tick is not 0) joins: it stays still until it has
+heard the fleet's leader and epoch.
 """
 
 from __future__ import annotations
@@ -13,14 +23,23 @@ import queue
 import threading
 import time
 from dataclasses import dataclass
-from typing import Literal
+from typing import Literal, TypeVar
 
 from phalanx.agents.core import Agent, Observation, StepOutput
+from phalanx.agents.leadership import leader_key
 from phalanx.config import RobotParams, Scenario
 from phalanx.drivers.base import Odometry, RobotStatus
 from phalanx.formation import Formation, scenario_formation
 from phalanx.geometry import Pose2D, Twist2D
-from phalanx.messages import AgentEvent, AgentReport, RobotState, SenseFrame, VelocityCommand
+from phalanx.messages import (
+    AgentEvent,
+    AgentReport,
+    LeaderAnnouncement,
+    RobotFlags,
+    RobotState,
+    SenseFrame,
+    VelocityCommand,
+)
 from phalanx.metrics import live_errors
 from phalanx.telemetry import Telemetry, sonar_rays
 from phalanx.transport import (
@@ -31,15 +50,18 @@ from phalanx.transport import (
     open_session,
     robot_key,
     robot_of,
+    robots_key,
     status_key,
 )
 
 log = logging.getLogger("phalanx.agent")
 ClockMode = Literal["lockstep", "realtime"]
 EPS_S = 1e-6
+REPORT_FLUSH_S = 2.0  # how long the final report waits for telemetry to go out
+S = TypeVar("S", RobotState, RobotFlags)
 
 
-def pick_state(states: list[RobotState], not_after_s: float) -> RobotState | None:
+def pick_state(states: list[S], not_after_s: float) -> S | None:
     """The newest state stamped no later than `not_after_s`."""
     chosen = None
     for state in states:
@@ -85,19 +107,32 @@ class AgentRuntime:
         self.step_times_s: list[float] = []
         self.telemetry = telemetry
         self.peers = History(depth=16)
+        self.flags = History(depth=16)
         self.frames: queue.Queue[SenseFrame] = queue.Queue()
         self.dead: set[str] = set()
         self.steps = 0
         self.late_peer_steps = 0
+        self.announcements: list[LeaderAnnouncement] = []
+        self._subscribed: set[str] = set()
         self._session: FleetSession | None = None
 
     @property
+    def lockstep(self) -> bool:
+        """Whether the fleet runs in lockstep (deterministic, one machine)."""
+        return self.options.clock == "lockstep"
+
+    @property
     def watched(self) -> tuple[str, ...]:
-        """Robots whose state this one needs: its leader, or everyone for the root."""
-        leader = self.formation.leader_of(self.robot_id)
-        if leader is None:
-            return tuple(r for r in self.formation.robot_ids if r != self.robot_id)
-        return (leader,)
+        """Robots whose full state this one needs: everyone in lockstep; else those on
+        its follow-tree path to the leader (any of them may become the one it tracks).
+        """
+        others = tuple(r for r in self.formation.robot_ids if r != self.robot_id)
+        if self.lockstep:
+            return others
+        leader = self.agent.leadership.leader_id
+        if leader == self.robot_id:
+            return ()
+        return self.formation.tree_path(self.robot_id, leader)
 
     def run(self, stop: threading.Event) -> AgentReport:
         """Serve ticks until the world's final frame, `stop`, or no frame for a while."""
@@ -118,23 +153,47 @@ class AgentRuntime:
             session.subscribe(
                 robot_key(fleet, rid, "sense"), SenseFrame, lambda _k, f: self.frames.put(f)
             )
-        for peer in self.watched:
-            session.subscribe(
-                robot_key(fleet, peer, "state"),
-                RobotState,
-                lambda _k, s: self.peers.push(s.robot_id, s),
-            )
+        if self.lockstep:  # every state (they carry the flags): as the batch runner has them
+            session.subscribe(robots_key(fleet, "state"), RobotState, self._on_state)
+        else:
+            session.subscribe(robots_key(fleet, "flags"), RobotFlags, self._on_flags)
+            self._follow_path()
+        session.subscribe(leader_key(fleet), LeaderAnnouncement, self._on_announcement)
         session.watch_alive(f"phalanx/{fleet}/alive/*", self._on_alive)
         session.serve_status(status_key(fleet, rid), self._status)
 
+    def _on_state(self, key: str, state: RobotState) -> None:
+        if robot_of(key) == state.robot_id and state.robot_id not in self.dead:
+            self.peers.push(state.robot_id, state)
+
+    def _on_flags(self, key: str, flags: RobotFlags) -> None:
+        if robot_of(key) == flags.robot_id and flags.robot_id not in self.dead:
+            self.flags.push(flags.robot_id, flags)
+
+    def _on_announcement(self, _key: str, message: LeaderAnnouncement) -> None:
+        self.announcements.append(message)  # a record: the flags carry the decision
+
+    def _follow_path(self) -> None:
+        """Subscribe to the states of robots on the path to the leader not yet heard."""
+        if self._session is None:
+            return
+        for peer in self.watched:
+            if peer not in self._subscribed:
+                self._subscribed.add(peer)
+                self._session.subscribe(
+                    robot_key(self.options.fleet, peer, "state"), RobotState, self._on_state
+                )
+
     def _on_alive(self, key: str, alive: bool) -> None:
         robot = key.rsplit("/", 1)[-1]
-        if robot in self.watched:
-            if alive:
-                self.dead.discard(robot)
-            else:
-                self.dead.add(robot)
-                self.peers.forget(robot)
+        if robot == self.robot_id or robot not in self.formation.positions:
+            return
+        if alive:
+            self.dead.discard(robot)
+        else:
+            self.dead.add(robot)
+            self.peers.forget(robot)
+            self.flags.forget(robot)
 
     def _status(self) -> dict[str, object]:
         stats = self._session.stats.as_dict() if self._session else {}
@@ -142,6 +201,8 @@ class AgentRuntime:
             "robot_id": self.robot_id,
             "steps": self.steps,
             "state": self.agent.state_name,
+            "leader": self.agent.leadership.leader_id,
+            "epoch": self.agent.leadership.epoch,
             "late_peer_steps": self.late_peer_steps,
             "decode": stats,
         }
@@ -165,23 +226,43 @@ class AgentRuntime:
                 return
             self.step(frame)
 
-    def _peers_for(self, frame: SenseFrame) -> dict[str, RobotState]:
+    def _peers_for(self, frame: SenseFrame) -> tuple[dict[str, RobotState], dict[str, RobotFlags]]:
+        """The states (and, in real time, flags) the agent core gets for this frame."""
         delay_s = max(self.scenario.comm_delay_s, frame.dt_s)
-        not_after = frame.t_s - delay_s if self.options.clock == "lockstep" else frame.t_s
-        needed = [p for p in self.watched if p not in self.dead]
-        if self.options.clock == "lockstep" and frame.t_s - delay_s >= -EPS_S:
+        if not self.lockstep:
+            states = {p: pick_state(self.peers.values(p), frame.t_s) for p in self.watched}
+            flags = {p: pick_state(self.flags.values(p), frame.t_s) for p in self._alive()}
+            return (
+                {p: s for p, s in states.items() if s is not None},
+                {p: f for p, f in flags.items() if f is not None},
+            )
+        not_after = frame.t_s - delay_s
+        needed = [p for p in self._alive() if p != self.robot_id]
+        if frame.t_s - delay_s >= -EPS_S:
 
             def ready() -> bool:
                 return all(_has_state(self.peers.values(p), not_after) for p in needed)
 
             if not self.peers.wait(ready, self.options.peer_wait_s):
                 self.late_peer_steps += 1
-        chosen = {p: pick_state(self.peers.values(p), not_after) for p in needed}
-        return {p: s for p, s in chosen.items() if s is not None}
+        chosen = {p: pick_state(self.peers.values(p), not_after) for p in self._alive()}
+        return {p: s for p, s in chosen.items() if s is not None}, {}
+
+    def _alive(self) -> list[str]:
+        return [r for r in self.formation.robot_ids if r not in self.dead]
 
     def step(self, frame: SenseFrame) -> StepOutput:
         """Answer one frame: step the agent core, publish state, events and command."""
-        peers = self._peers_for(frame)  # (the bounded wait for peers is not step time)
+        if self.steps == 0 and frame.tick > 0:
+            # The fleet started without this process (a restart): join, do not lead.
+            self.agent = Agent(
+                self.robot_id,
+                scenario=self.scenario,
+                robot=self.robot,
+                formation=self.formation,
+                joining=True,
+            )
+        peers, flags = self._peers_for(frame)  # (the bounded wait for peers is not step time)
         started = time.perf_counter()
         self._last_peers = peers
         odometry = Odometry(
@@ -192,16 +273,34 @@ class AgentRuntime:
         status = RobotStatus(
             sonar_ranges_m=frame.sonar_ranges_m, bumpers=frame.bumpers, motors_enabled=True
         )
-        out = self.agent.step(Observation(odometry, status), peers, frame.t_s)
+        observation = Observation(odometry, status)
+        out = self.agent.step(observation, peers, frame.t_s, None if self.lockstep else flags)
         self._publish(frame, out)
         self.steps += 1
         self.step_times_s.append(time.perf_counter() - started)
+        if not self.lockstep:
+            self._follow_path()  # the leader may have changed: hear the new path
         return out
 
     def _publish(self, frame: SenseFrame, out: StepOutput) -> None:
         assert self._session is not None  # noqa: S101 - only called inside run()
         fleet, rid = self.options.fleet, self.robot_id
         self._session.publish(robot_key(fleet, rid, "state"), out.state)
+        flags = out.flags
+        self._session.publish(robot_key(fleet, rid, "flags"), flags)
+        # Its own flags and state, as published, are part of what the next step decides on.
+        self.flags.push(rid, flags)
+        self.peers.push(rid, out.state)
+        if out.leadership is not None:
+            change = out.leadership
+            announcement = LeaderAnnouncement(
+                leader_id=change.leader_id,
+                epoch=change.epoch,
+                stamp_s=change.t_s,
+                previous_id=change.previous_id,
+                reason=change.reason,
+            )
+            self._session.publish(leader_key(fleet), announcement, reliable_block=True)
         for event in out.events:
             message = AgentEvent(
                 robot_id=rid,
@@ -262,6 +361,8 @@ class AgentRuntime:
     def _report(self) -> AgentReport:
         dropped = self._session.stats.dropped if self._session else 0
         times = sorted(self.step_times_s) or [0.0]
+        if self.telemetry is not None:  # the count is final once the last rows went out
+            self.telemetry.flush(REPORT_FLUSH_S)
         return AgentReport(
             robot_id=self.robot_id,
             steps=self.steps,

@@ -186,18 +186,88 @@ class LeaderProfile(Model):
 
 
 class DeadlockConfig(Model):
-    """The group's backward escape when every robot reports an obstacle.
+    """The group's backward escape when no robot can lead forwards (the paper's deadlock).
 
-    `retrace` backs along the arc just driven (same curvature, so the path behind is the
-    one known to be free, and the rigid formation's headings do not change);
-    `fixed` backs with `reverse_omega_degps`.
+    A deadlock is every robot reporting an obstacle on its path (the paper, section 1);
+    for a navigating leader also: the leader blocked for `leadership.confirm_s` with no
+    follower clear to take over, or in a dead end (its route leads back the way it came
+    and the shape has no room to turn round). The leader stands still `pause_s` (the
+    followers settle on their slots; 0 as the paper), backs the group off
+    `safe_distance_m` in formation (or until an obstacle behind stops it), then turns:
+    towards its route if its map has one, else by `turn_away_deg` (times the deadlocks
+    so far at this waypoint) towards the more open side and drives `escape_distance_m`
+    that way. It reverses at most `max_retries` times at one waypoint; the next deadlock
+    there stops every robot in STUCK. A scripted leader (the paper's runs) resumes its
+    script without turning.
+
+    `path` backs along the path the leader actually drove (recorded from its odometry):
+    the rigid formation then sweeps back through the very ground it came over, known to
+    be free; `retrace` backs along the arc just driven (same curvature: the paper's
+    scripted arcs); `fixed` backs with `reverse_omega_degps` (the paper: straight back).
     """
 
-    reverse_mode: Literal["retrace", "fixed"] = "retrace"
+    reverse_mode: Literal["path", "retrace", "fixed"] = "path"
     reverse_speed_mps: PositiveFloat = 0.15
     reverse_omega_degps: float = 0.0
+    pause_s: NonNegativeFloat = 0.0
     safe_distance_m: PositiveFloat = 1.5
     obstacle_range_m: PositiveFloat = 0.5
+    turn_away_deg: Annotated[float, Field(ge=0.0, le=180.0)] = 60.0
+    escape_distance_m: NonNegativeFloat = 2.0
+    max_retries: int = Field(default=3, ge=0, le=100)
+
+
+class NavigationConfig(Model):
+    """The navigation layer of whichever robot leads: go-to-goal over `waypoints` (world
+    frame, m), or wander when there are none and no scripted `leader_profile`; reactive
+    obstacle avoidance on every robot from its sonar ring; the emergency stop.
+
+    Ranges are gaps between the robot's disc and an obstacle along a straight corridor
+    `radius + body_margin_m` wide, measured in the direction of motion. A leader that
+    gets no further than 0.3 m in `stall_s` counts as blocked.
+
+    `reactive = false` switches avoidance and the emergency stop off (deadlocks and
+    leadership still work): for studies whose obstacles are scripted sensor events, such
+    as the paper's (its signal builder), where the controllers alone are measured.
+    Never on a real robot.
+    """
+
+    reactive: bool = True
+    waypoints: tuple[tuple[float, float], ...] = ()
+    goal_tolerance_m: PositiveFloat = 0.5
+    cruise_mps: PositiveFloat = 0.2
+    heading_gain_per_s: PositiveFloat = 1.0
+    min_turn_radius_m: NonNegativeFloat = 2.5
+    lookahead_m: PositiveFloat = 3.0
+    clear_range_m: PositiveFloat = 2.5
+    avoid_range_m: PositiveFloat = 0.8
+    body_margin_m: NonNegativeFloat = 0.05
+    stop_margin_m: NonNegativeFloat = 0.08
+    confirm_s: PositiveFloat = 0.2
+    stall_s: PositiveFloat = 10.0
+    slowdown: Annotated[float, Field(gt=0.0, le=1.0)] = 0.5
+    wander_period_s: PositiveFloat = 10.0
+    wander_turn_deg: NonNegativeFloat = 45.0
+
+
+class LeadershipConfig(Model):
+    """When and how leadership passes (a formation is a shape: any robot can lead).
+
+    `handover`: the leader blocked for `confirm_s` hands over to a follower whose path
+    is clear. `min_tenure_s`: no handover sooner after the last change. `loss_grace_s`:
+    after the leader's state goes stale (followers hold), wait this long before electing
+    a new one. `formed_m`: a robot that left its slot (avoiding, stopped, rejoining) is
+    back in formation, and may be tracked again, once within this of its slot.
+    `join_timeout_s`: a restarted robot waits this long to hear the fleet (JOIN) before
+    it acts on its own view.
+    """
+
+    handover: bool = True
+    confirm_s: PositiveFloat = 0.2
+    min_tenure_s: NonNegativeFloat = 3.0
+    loss_grace_s: NonNegativeFloat = 1.0
+    formed_m: PositiveFloat = 0.1
+    join_timeout_s: PositiveFloat = 2.0
 
 
 class SensorEvent(Model):
@@ -224,11 +294,39 @@ class PolygonObstacle(Model):
     vertices_m: tuple[tuple[float, float], ...] = Field(min_length=3)
 
 
+class ObstacleField(Model):
+    """Circular obstacles scattered from a seed over a rectangle (a Monte-Carlo world).
+
+    Obstacles never overlap a `keep_clear` circle (start and goal areas) and keep
+    `min_gap_m` from each other; placement gives up after `count * 50` tries.
+    """
+
+    seed: int = 0
+    count: int = Field(default=20, ge=0, le=10_000)
+    radius_min_m: PositiveFloat = 0.2
+    radius_max_m: PositiveFloat = 0.5
+    x_min_m: float = 0.0
+    x_max_m: float = 20.0
+    y_min_m: float = -5.0
+    y_max_m: float = 5.0
+    min_gap_m: NonNegativeFloat = 0.0
+    keep_clear: tuple[CircleObstacle, ...] = ()
+
+    @model_validator(mode="after")
+    def _ordered(self) -> Self:
+        if self.radius_min_m > self.radius_max_m:
+            raise ValueError("radius_min_m must not exceed radius_max_m")
+        if self.x_min_m >= self.x_max_m or self.y_min_m >= self.y_max_m:
+            raise ValueError("the field's rectangle is empty")
+        return self
+
+
 class WorldConfig(Model):
-    """Static obstacles of the world."""
+    """Static obstacles of the world, plus an optional seeded obstacle field."""
 
     circles: tuple[CircleObstacle, ...] = ()
     polygons: tuple[PolygonObstacle, ...] = ()
+    field: ObstacleField | None = None
     substeps: int = Field(default=4, ge=1, le=100)
 
 
@@ -241,7 +339,11 @@ class NoiseConfig(Model):
 
 
 class Scenario(Model):
-    """A whole run: robots, formation, leader script, events, world, controller."""
+    """A whole run: robots, formation, leader script or waypoints, events, world, controller.
+
+    The leader follows `leader_profile` when one is given (the paper's runs), otherwise
+    `navigation.waypoints`, otherwise it wanders.
+    """
 
     name: str
     description: str = ""
@@ -254,7 +356,9 @@ class Scenario(Model):
     controller: ControllerConfig = ControllerConfig()
     formation: FormationConfig
     robots: tuple[RobotEntry, ...] = Field(min_length=1)
-    leader_profile: LeaderProfile
+    leader_profile: LeaderProfile | None = None
+    navigation: NavigationConfig = NavigationConfig()
+    leadership: LeadershipConfig = LeadershipConfig()
     deadlock: DeadlockConfig = DeadlockConfig()
     events: tuple[SensorEvent, ...] = ()
     world: WorldConfig = WorldConfig()

@@ -42,6 +42,35 @@ class Formation:
         """The robots that track `robot_id`."""
         return tuple(r for r, p in self.parents.items() if p == robot_id)
 
+    def neighbours(self, robot_id: str) -> tuple[str, ...]:
+        """Robots joined to `robot_id` in the follow tree, either way (its parent first)."""
+        parent = self.parents[robot_id]
+        return ((parent,) if parent is not None else ()) + self.followers_of(robot_id)
+
+    def tree_path(self, start: str, goal: str) -> tuple[str, ...]:
+        """The robots on the follow tree's path from `start` to `goal`, `goal` included and
+        `start` not. Re-rooting the tree at `goal` makes the first of them `start`'s parent.
+        """
+        previous: dict[str, str] = {}
+        frontier, seen = [start], {start}
+        while frontier and goal not in seen:
+            here = frontier.pop(0)
+            for nxt in self.neighbours(here):
+                if nxt not in seen:
+                    seen.add(nxt)
+                    previous[nxt] = here
+                    frontier.append(nxt)
+        if goal not in seen:
+            raise ValueError(f"{goal!r} is not connected to {start!r} in the follow tree")
+        path = [goal]
+        while path[-1] != start:
+            path.append(previous[path[-1]])
+        return tuple(reversed(path[:-1]))
+
+    def reroot(self, leader: str) -> dict[str, str | None]:
+        """The follow tree re-rooted at `leader`: every robot's parent on its path there."""
+        return {r: (None if r == leader else self.tree_path(r, leader)[0]) for r in self.parents}
+
     def slot_of(self, follower: str, leader: str) -> Vec2:
         """`follower`'s slot in `leader`'s body frame, m (any pair, not only tree edges)."""
         return self.positions[follower] - self.positions[leader]

@@ -31,6 +31,9 @@ class RobotState(Message):
     Pose in the shared world frame (m, rad) at `stamp_s` on the fleet clock (sim time in
     lockstep, Unix time in real time); twist (m/s, rad/s) is the command the robot
     executes from `stamp_s` on, so a receiver can dead-reckon the pose to its own time.
+    `leader_id` is the robot this one tracks ("" while it leads the formation); the
+    rest are its behaviour flags (see `RobotFlags`), the state carries them too so a
+    robot that tracks this one needs only this message.
     """
 
     version: Literal[1] = 1
@@ -47,6 +50,14 @@ class RobotState(Message):
     direction: Literal[-1, 1] = 1
     leader_id: str = ""
     epoch: int = Field(default=0, ge=0)
+    formation_leader_id: str = ""
+    clear: bool = False
+    formed: bool = True
+    blocked_s: float = Field(default=0.0, ge=0.0)
+    dead_end: bool = False
+    waypoint: int = Field(default=0, ge=0)
+    deadlocks: int = Field(default=0, ge=0)
+    profile_s: float = Field(default=0.0, ge=0.0)
 
     @property
     def pose(self) -> Pose2D:
@@ -57,6 +68,61 @@ class RobotState(Message):
     def twist(self) -> Twist2D:
         """The robot's twist."""
         return Twist2D(self.v_mps, self.omega_radps)
+
+    def flags(self) -> RobotFlags:
+        """The behaviour flags in this state (what every other robot needs)."""
+        # Every value was validated when this state was built: no need to again.
+        return RobotFlags.model_construct(**{name: getattr(self, name) for name in _FLAG_FIELDS})
+
+
+class RobotFlags(Message):
+    """A robot's small behaviour flags, every control step on `.../robot/<id>/flags`, to
+    every robot of the fleet: enough to take the leadership and deadlock decisions the
+    same way on every robot (`phalanx.agents.leadership`), without anyone's pose.
+
+    `obstacle`: its path is blocked (in its direction of motion), for `blocked_s`;
+    `dead_end`: (a leader) its route leads back the way it came and the shape has no room
+    to turn, so only the group's reverse helps, not a new leader;
+    `clear`: its path ahead is free far enough to lead; `formed`: it is in its slot (a
+    robot that is not may not be tracked); `formation_leader_id`/`epoch`: who it thinks
+    leads, and under which epoch; `waypoint`, `deadlocks`, `profile_s`: the group's
+    progress (next waypoint, deadlocks at it, scripted profile clock in s).
+    """
+
+    version: Literal[1] = 1
+    robot_id: str
+    seq: int = Field(ge=0)
+    stamp_s: float
+    fsm_state: str
+    obstacle: bool = False
+    direction: Literal[-1, 1] = 1
+    epoch: int = Field(default=0, ge=0)
+    formation_leader_id: str = ""
+    clear: bool = False
+    formed: bool = True
+    blocked_s: float = Field(default=0.0, ge=0.0)
+    dead_end: bool = False
+    waypoint: int = Field(default=0, ge=0)
+    deadlocks: int = Field(default=0, ge=0)
+    profile_s: float = Field(default=0.0, ge=0.0)
+
+
+_FLAG_FIELDS = tuple(RobotFlags.model_fields)
+
+
+class LeaderAnnouncement(Message):
+    """A leadership change on `phalanx/<fleet>/leader`: who leads from `stamp_s` on,
+    under which `epoch`, and why. Sent by the new leader; every robot reaches the same
+    decision from the flags on its own, so this is the fleet's record of it (and what a
+    tool watches), not a command.
+    """
+
+    version: Literal[1] = 1
+    leader_id: str
+    epoch: int = Field(ge=0)
+    stamp_s: float
+    previous_id: str = ""
+    reason: str = ""
 
 
 class ClockTick(Message):

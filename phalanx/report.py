@@ -131,6 +131,20 @@ def print_summary(metrics: dict[str, Any]) -> None:
         f"{metrics['deadlock_reverses']}, wall time {metrics['wall_time_s']:.2f} s "
         f"({metrics['realtime_factor']:.0f}x real time)"
     )
+    nav = metrics.get("navigation")
+    if nav:
+        reached = (
+            f"goal reached at {nav['time_to_goal_s']:.1f} s"
+            if nav["goal_reached"]
+            else ("goal not reached")
+        )
+        calm = nav["calm"]["linear_pct"]
+        console.print(
+            f"{reached}; leadership changes: {nav['leadership_changes']}; time in "
+            f"avoidance episodes {100 * nav['episode_share']:.0f} %; calm linear error "
+            f"mean {calm['mean']:.3g} % max {calm['max']:.3g} %"
+            + (f"; STUCK: {nav['stuck_reason']}" if nav["stuck"] else "")
+        )
 
 
 def matrix_rows(cases: Sequence[Case], results: Sequence[dict[str, Any]]) -> list[str]:
@@ -252,9 +266,37 @@ def default_cases() -> list[Case]:
 
 
 def write_report(docs: Path, out_root: Path, *, workers: int = 2) -> list[dict[str, Any]]:
-    """Run the matrix and write docs/RESULTS.md with its figures."""
+    """Run the matrix and write docs/RESULTS.md with its figures (keeping the navigation
+    benchmark's section, which `bench/bench_montecarlo.py` writes).
+    """
     cases = default_cases()
     results = run_matrix(cases, out_root, workers=workers)
     figures = copy_figures(cases, out_root, docs)
-    (docs / "RESULTS.md").write_text(results_markdown(cases, results, figures), encoding="utf-8")
+    path = docs / "RESULTS.md"
+    kept = section_of(path.read_text(encoding="utf-8")) if path.exists() else ""
+    text = results_markdown(cases, results, figures)
+    path.write_text(with_section(text, kept) if kept else text, encoding="utf-8")
     return results
+
+
+# docs/RESULTS.md holds two generated parts: the paper matrix (`phalanx report`) and,
+# between these markers, the navigation benchmark (`bench/bench_montecarlo.py`). Each
+# tool rewrites its own part and keeps the other.
+SECTION_BEGIN = "<!-- navigation benchmark: written by bench/bench_montecarlo.py -->"
+SECTION_END = "<!-- end of navigation benchmark -->"
+
+
+def section_of(text: str) -> str:
+    """The navigation benchmark's part of a RESULTS.md text, markers included ("" if none)."""
+    start, end = text.find(SECTION_BEGIN), text.find(SECTION_END)
+    if start < 0 or end < start:
+        return ""
+    return text[start : end + len(SECTION_END)]
+
+
+def with_section(text: str, section: str) -> str:
+    """`text` with its navigation benchmark part replaced by (or ended with) `section`."""
+    old = section_of(text)
+    if old:
+        return text.replace(old, section)
+    return text.rstrip() + "\n\n" + section + "\n"

@@ -15,7 +15,8 @@ import numpy as np
 
 from phalanx.agents.control.limits import KinematicLimits
 from phalanx.figures import write_figures
-from phalanx.metrics import error_series, run_metrics
+from phalanx.metrics import error_series, is_follower, run_metrics
+from phalanx.scenarios import resolve_world
 from phalanx.simulator.batch import RunLog
 
 
@@ -46,9 +47,10 @@ def write_recording(log: RunLog, path: Path, *, recording_id: str | None = None)
 
     sink = TelemetrySink(kind="file", path=path)
     with Telemetry(recording_id=recording_id or str(uuid.uuid4()), sink=sink) as tel:
+        world = resolve_world(log.scenario.world)  # a seeded field as its circles
         tel.log_world(
-            circles=[(c.x_m, c.y_m, c.radius_m) for c in log.scenario.world.circles],
-            polygons=[list(p.vertices_m) for p in log.scenario.world.polygons],
+            circles=[(c.x_m, c.y_m, c.radius_m) for c in world.circles],
+            polygons=[list(p.vertices_m) for p in world.polygons],
         )
         limits = KinematicLimits.from_params(log.robot, log.scenario.limits)
         tel.log_bounds(
@@ -60,7 +62,7 @@ def write_recording(log: RunLog, path: Path, *, recording_id: str | None = None)
         )
         for rid, tr in log.traces.items():
             nan = np.full(len(log.t_s), np.nan)
-            if log.formation.leader_of(rid) is None:
+            if not is_follower(log, rid):
                 errors = (nan, nan, nan)
             else:
                 s = error_series(log, rid)

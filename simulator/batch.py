@@ -28,6 +28,7 @@ from phalanx.simulator.world import Collision, World
 
 FloatArray = npt.NDArray[np.float64]
 ProgressCallback = Callable[[int, int], None]
+StopCondition = Callable[["BatchRunner"], bool]
 
 
 @dataclass
@@ -43,12 +44,34 @@ class RobotTrace:
     cmd_omega_radps: FloatArray
     direction: npt.NDArray[np.int8]
     states: list[str] = field(default_factory=list)
+    tracked: list[str] = field(default_factory=list)  # whom it tracked ("" while leading)
+    leaders: list[str] = field(default_factory=list)  # who led the formation, in its view
+    epochs: list[int] = field(default_factory=list)
+    formed: list[bool] = field(default_factory=list)  # in its slot (not off avoiding)
 
     @classmethod
     def empty(cls, n: int) -> RobotTrace:
         """Zeroed arrays for `n` steps."""
         z = np.zeros
         return cls(z(n), z(n), z(n), z(n), z(n), z(n), z(n), np.ones(n, dtype=np.int8))
+
+    def truncated(self, n: int) -> RobotTrace:
+        """The first `n` steps."""
+        return RobotTrace(
+            self.x_m[:n],
+            self.y_m[:n],
+            self.theta_rad[:n],
+            self.v_mps[:n],
+            self.omega_radps[:n],
+            self.cmd_v_mps[:n],
+            self.cmd_omega_radps[:n],
+            self.direction[:n],
+            self.states[:n],
+            self.tracked[:n],
+            self.leaders[:n],
+            self.epochs[:n],
+            self.formed[:n],
+        )
 
     def pose(self, k: int) -> Pose2D:
         """Ground-truth pose at step `k`."""
@@ -113,19 +136,25 @@ class BatchRunner:
         self.t_s = np.arange(self.steps, dtype=np.float64) * scenario.dt_s
         self.traces = {rid: RobotTrace.empty(self.steps) for rid in self.agents}
         self._published: deque[dict[str, RobotState]] = deque(maxlen=self.delay_ticks)
+        self.done = 0
 
-    def run(self, progress: ProgressCallback | None = None) -> RunLog:
-        """Step every robot to the end of the scenario."""
+    def run(
+        self, progress: ProgressCallback | None = None, *, until: StopCondition | None = None
+    ) -> RunLog:
+        """Step every robot to the end of the scenario (or until `until(self)` holds)."""
         started = time.perf_counter()
         for k in range(self.steps):
             self.step(k)
             if progress is not None:
                 progress(k + 1, self.steps)
+            if until is not None and until(self):
+                break
         return self._log(time.perf_counter() - started)
 
     def step(self, k: int) -> None:
         """Control step `k`: sense, think, record, then integrate the world."""
         t_s = float(self.t_s[k])
+        # Every robot's state carries its flags: peers and flags are the same mapping.
         peers = self._published[0] if len(self._published) == self.delay_ticks else {}
         commands: dict[str, Twist2D] = {}
         states: dict[str, RobotState] = {}
@@ -136,6 +165,7 @@ class BatchRunner:
             self._record(rid, k, out.command, agent)
         self._published.append(states)
         self.world.step(commands, self.scenario.dt_s)
+        self.done = k + 1
 
     def _record(self, rid: str, k: int, command: Twist2D, agent: Agent) -> None:
         pose, twist = self.world.truth(rid)
@@ -145,14 +175,19 @@ class BatchRunner:
         tr.cmd_v_mps[k], tr.cmd_omega_radps[k] = command.v_mps, command.omega_radps
         tr.direction[k] = agent.direction
         tr.states.append(agent.state_name)
+        tr.tracked.append(agent.parent_id or "")
+        tr.leaders.append(agent.leader_id)
+        tr.epochs.append(agent.leadership.epoch)
+        tr.formed.append(agent.formed)
 
     def _log(self, wall_time_s: float) -> RunLog:
+        n = self.done
         return RunLog(
             scenario=self.scenario,
             robot=self.robot,
             formation=self.formation,
-            t_s=self.t_s,
-            traces=self.traces,
+            t_s=self.t_s[:n],
+            traces={rid: tr.truncated(n) for rid, tr in self.traces.items()},
             transitions={rid: list(a.transitions) for rid, a in self.agents.items()},
             collisions=list(self.world.collisions),
             saturations={rid: a.limiter.saturations for rid, a in self.agents.items()},

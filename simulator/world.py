@@ -18,6 +18,7 @@ import numpy.typing as npt
 from phalanx.config import NoiseConfig, RobotParams, SensorEvent, WorldConfig
 from phalanx.drivers.base import Odometry, RobotStatus
 from phalanx.geometry import Pose2D, Twist2D, Vec2
+from phalanx.scenarios import resolve_world
 from phalanx.simulator.kinematics import apply_robot_limits, integrate_arcs
 from phalanx.simulator.sonar import SonarRing, ray_circle_hits, ray_segment_hits
 
@@ -87,6 +88,7 @@ class World:
         events: Sequence[SensorEvent] = (),
         seed: int = 0,
     ) -> None:
+        world = resolve_world(world)  # a seeded field becomes plain circles
         self.robot, self.config, self.noise, self.events = robot, world, noise, tuple(events)
         self.rng = np.random.default_rng(seed)
         self.ring = SonarRing.from_params(robot.sonar)

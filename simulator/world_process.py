@@ -21,10 +21,18 @@ import numpy as np
 
 from phalanx.agents.control.limits import KinematicLimits
 from phalanx.agents.fsm import State, TransitionEvent
+from phalanx.agents.leadership import leader_key
 from phalanx.config import RobotParams, Scenario
 from phalanx.formation import scenario_formation
 from phalanx.geometry import ZERO_TWIST, Twist2D
-from phalanx.messages import AgentEvent, AgentReport, RobotState, SenseFrame, VelocityCommand
+from phalanx.messages import (
+    AgentEvent,
+    AgentReport,
+    LeaderAnnouncement,
+    RobotState,
+    SenseFrame,
+    VelocityCommand,
+)
 from phalanx.simulator.batch import RobotTrace, RunLog, build_world
 from phalanx.telemetry import PAPER_ANGULAR_BOUND_PCT, PAPER_LINEAR_BOUND_PCT, Telemetry
 from phalanx.transport import (
@@ -69,6 +77,7 @@ class _Inbox:
     events: list[AgentEvent] = field(default_factory=list)
     reports: dict[str, AgentReport] = field(default_factory=dict)
     alive: set[str] = field(default_factory=set)
+    leaders: list[LeaderAnnouncement] = field(default_factory=list)
 
 
 class WorldProcess:
@@ -134,6 +143,9 @@ class WorldProcess:
             robots_key(fleet, "event"), AgentEvent, lambda _k, e: self._put(box.events.append, e)
         )
         session.subscribe(robots_key(fleet, "report"), AgentReport, self._on_report)
+        session.subscribe(
+            leader_key(fleet), LeaderAnnouncement, lambda _k, a: self._put(box.leaders.append, a)
+        )
         session.watch_alive(f"phalanx/{fleet}/alive/*", self._on_alive)
         session.serve_status(status_key(fleet, WORLD_ID), self._status)
 
@@ -169,6 +181,8 @@ class WorldProcess:
         robot = key.rsplit("/", 1)[-1]
         with self.inbox.cond:
             (self.inbox.alive.add if alive else self.inbox.alive.discard)(robot)
+            if not alive:  # a restarted process must not inherit its predecessor's command
+                self.inbox.latest.pop(robot, None)
             self.inbox.cond.notify_all()
         if not alive and robot in self.traces:
             log.warning("robot %s is gone (liveliness lost)", robot)
@@ -331,15 +345,21 @@ class WorldProcess:
             "missed_deadlines": dict(self.missed),
             "overruns": self.overruns,
             "agents": {rid: r.model_dump() for rid, r in self.inbox.reports.items()},
+            "leadership": [a.model_dump() for a in self.inbox.leaders],
         }
 
     def _fill_states(self) -> None:
+        root = self.formation.root
         for rid in self.ids:
             states, tr = self.inbox.states[rid], self.traces[rid]
-            last_name, last_dir = str(State.HOLD), 1
-            tr.states.clear()
+            last = None
+            for trace_list in (tr.states, tr.tracked, tr.leaders, tr.epochs, tr.formed):
+                trace_list.clear()
             for k in range(self.steps):
-                if k in states:
-                    last_name, last_dir = states[k].fsm_state, states[k].direction
-                tr.states.append(last_name)
-                tr.direction[k] = last_dir
+                last = states.get(k, last)
+                tr.states.append(last.fsm_state if last else str(State.HOLD))
+                tr.direction[k] = last.direction if last else 1
+                tr.tracked.append(last.leader_id if last else (self.formation.leader_of(rid) or ""))
+                tr.leaders.append(last.formation_leader_id or root if last else root)
+                tr.epochs.append(last.epoch if last else 0)
+                tr.formed.append(last.formed if last else True)

@@ -94,6 +94,11 @@ class CommandLimiter:
         self.accel_limited = 0
         self._last = ZERO_TWIST
 
+    @property
+    def last(self) -> Twist2D:
+        """The last command applied (what the robot is executing now)."""
+        return self._last
+
     def apply(self, command: Twist2D, dt_s: float) -> Twist2D:
         """The command the robot may execute this step."""
         v, w = command.v_mps, command.omega_radps

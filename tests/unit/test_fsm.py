@@ -1,9 +1,25 @@
-from dataclasses import dataclass
+"""The behaviour state machine: the generic machine, and every transition of the stack
+pinned by a context that fires it (a transition added without a case here fails)."""
 
-from phalanx.agents.behaviours.formation import FollowerBehaviour
-from phalanx.agents.behaviours.leader import LeaderBehaviour, ScriptedProfile
-from phalanx.agents.fsm import ANY_STATE, State, StateMachine, Transition
-from phalanx.config import DeadlockConfig, LeaderProfile, Segment
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from typing import Any
+
+import pytest
+
+from phalanx.agents.behaviours.navigation import ScriptedProfile
+from phalanx.agents.behaviours.stack import (
+    ARBITRATION,
+    STATE_NOTES,
+    StackContext,
+    behaviour_machine,
+    behaviour_transitions,
+)
+from phalanx.agents.fsm import ANY_STATE, State, StateMachine, Transition, to_mermaid
+from phalanx.config import LeaderProfile, Segment
+
+S = State
 
 
 @dataclass
@@ -35,37 +51,20 @@ def test_priority_entry_exit_and_log() -> None:
     assert fsm.states == ("A", "B", "C")
 
 
-def test_follower_switches_on_leader_velocity_with_hysteresis() -> None:
-    b = FollowerBehaviour(threshold_mps=0.02)
-    b.observe(leader_v_mps=0.15, leader_direction=1, leader_fresh=True)
-    b.update(0.0)
-    assert b.fsm.state == State.FORMATION_TRACK
-    assert b.direction == 1
-    b.observe(leader_v_mps=-0.01, leader_direction=-1, leader_fresh=True)
-    assert b.update(1.0) is None  # inside the band: no chatter
-    b.observe(leader_v_mps=-0.05, leader_direction=-1, leader_fresh=True)
-    assert b.update(2.0) is not None
-    assert b.fsm.state == State.FORMATION_REVERSE
-    assert b.direction == -1
-    b.observe(leader_v_mps=0.05, leader_direction=1, leader_fresh=True)
-    b.update(3.0)
-    assert b.fsm.state == State.FORMATION_TRACK
-
-
-def test_follower_holds_when_the_leader_goes_stale_and_resumes() -> None:
-    b = FollowerBehaviour(threshold_mps=0.02)
-    b.observe(leader_v_mps=-0.1, leader_direction=-1, leader_fresh=True)
-    b.update(0.0)
-    b.update(0.1)
-    assert b.fsm.state == State.FORMATION_REVERSE
-    b.observe(leader_v_mps=-0.1, leader_direction=-1, leader_fresh=False)
-    event = b.update(0.2)
+def test_absorbing_state_is_never_left_and_details_reach_the_log() -> None:
+    fsm: StateMachine[Ctx] = StateMachine(
+        initial="A",
+        transitions=[
+            Transition("A", "END", lambda c: c.x == 1, "done", detail=lambda c: f"x={c.x}"),
+            Transition(ANY_STATE, "A", lambda c: True, "always"),
+        ],
+        absorbing=frozenset({"END"}),
+    )
+    event = fsm.update(Ctx(1), 0.0)
     assert event is not None
-    assert event.target == State.HOLD
-    assert "stale" in event.reason
-    b.observe(leader_v_mps=-0.1, leader_direction=-1, leader_fresh=True)
-    b.update(0.3)
-    assert b.fsm.state == State.FORMATION_REVERSE
+    assert event.reason == "done: x=1"
+    assert fsm.update(Ctx(1), 1.0) is None
+    assert fsm.state == "END"
 
 
 def test_profile_segments_and_end() -> None:
@@ -82,21 +81,147 @@ def test_profile_segments_and_end() -> None:
     assert profile.twist_at(3.5).v_mps == 0.0
 
 
-def test_leader_reverses_a_safe_distance_when_everyone_is_blocked() -> None:
-    b = LeaderBehaviour(
-        LeaderProfile(segments=(Segment(duration_s=100.0, v_mps=0.15),)),
-        DeadlockConfig(reverse_speed_mps=0.1, safe_distance_m=0.5),
+# --- every transition of the behaviour stack ---------------------------------------------
+
+FOLLOWER = StackContext(is_leader=False, plan="goto", parent_fresh=True)
+LEADER = StackContext(is_leader=True, plan="goto")
+LEADS: dict[str, dict[str, Any]] = {
+    S.NAVIGATE: {"is_leader": True, "plan": "goto"},
+    S.WANDER: {"is_leader": True, "plan": "wander"},
+    S.ARRIVED: {"is_leader": True, "arrived": True},
+}
+
+
+def _took(source: str) -> list[tuple[str, str, str, StackContext]]:
+    return [
+        (source, target, "took the lead", replace(FOLLOWER, **kw)) for target, kw in LEADS.items()
+    ]
+
+
+def _plan(source: str, reason: str, **extra: Any) -> list[tuple[str, str, str, StackContext]]:
+    return [
+        (source, target, reason, replace(LEADER, **{**kw, **extra})) for target, kw in LEADS.items()
+    ]
+
+
+CASES: list[tuple[str, str, str, StackContext]] = [
+    # safety and shared
+    (ANY_STATE, S.EMERGENCY_STOP, "bumper", replace(FOLLOWER, imminent=True)),
+    (ANY_STATE, S.STUCK, "the formation leader is STUCK", replace(FOLLOWER, leader_state=S.STUCK)),
+    (S.EMERGENCY_STOP, S.AVOID, "came to a standstill, way ahead blocked",
+     replace(FOLLOWER, blocked_s=0.1)),
+    (S.EMERGENCY_STOP, S.FORMATION_TRACK, "came to a standstill, way clear", FOLLOWER),
+    *_plan(S.EMERGENCY_STOP, "came to a standstill, way clear: back to the plan"),
+    (S.EMERGENCY_STOP, S.DEADLOCK_REVERSE, "deadlock", replace(LEADER, deadlock=True)),
+    (S.EMERGENCY_STOP, S.STUCK, "deadlock and no retries left",
+     replace(LEADER, deadlock=True, retries_left=False)),
+    # leadership
+    *_took(S.FORMATION_TRACK),
+    *_took(S.FORMATION_REVERSE),
+    *_took(S.AVOID),
+    *_took(S.HOLD),
+    *[(s, S.FORMATION_TRACK, "handed the lead on", FOLLOWER)
+      for s in (S.NAVIGATE, S.WANDER, S.ARRIVED, S.DEADLOCK_REVERSE, S.DEADLOCK_TURN)],
+    *[(S.JOIN, t, "joined the fleet", replace(FOLLOWER, **kw)) for t, kw in LEADS.items()],
+    (S.JOIN, S.FORMATION_TRACK, "joined the fleet", FOLLOWER),
+    # formation layer
+    *[(s, S.HOLD, "leader or tracked robot missing", replace(FOLLOWER, leader_lost=True))
+      for s in (S.FORMATION_TRACK, S.FORMATION_REVERSE, S.AVOID)],
+    (S.HOLD, S.FORMATION_REVERSE, "leader heard again, moving backwards",
+     replace(FOLLOWER, parent_direction=-1)),
+    (S.HOLD, S.FORMATION_TRACK, "leader heard again", FOLLOWER),
+    (S.FORMATION_TRACK, S.FORMATION_REVERSE, "tracked robot moves backwards",
+     replace(FOLLOWER, parent_v_mps=-0.1)),
+    (S.FORMATION_REVERSE, S.FORMATION_TRACK, "tracked robot moves forwards",
+     replace(FOLLOWER, parent_v_mps=0.1)),
+    (S.FORMATION_TRACK, S.AVOID, "own path blocked while the leader's is clear",
+     replace(FOLLOWER, blocked_s=0.3)),
+    (S.AVOID, S.FORMATION_REVERSE, "the group reverses", replace(FOLLOWER, parent_v_mps=-0.1)),
+    (S.AVOID, S.FORMATION_TRACK, "way back to the slot is free", replace(FOLLOWER, way_free_s=0.3)),
+    # navigation layer
+    (S.NAVIGATE, S.ARRIVED, "last waypoint reached", replace(LEADER, arrived=True)),
+    *[(s, S.DEADLOCK_REVERSE, "deadlock", replace(LEADER, deadlock=True))
+      for s in (S.NAVIGATE, S.WANDER)],
+    *[(s, S.STUCK, "deadlock and no retries left",
+       replace(LEADER, deadlock=True, retries_left=False)) for s in (S.NAVIGATE, S.WANDER)],
+    (S.DEADLOCK_REVERSE, S.NAVIGATE, "backed off: the script resumes",
+     replace(LEADER, plan="scripted", reversed_m=2.0)),
+    (S.DEADLOCK_REVERSE, S.DEADLOCK_TURN, "obstacle behind", replace(LEADER, someone_stopped=True)),
+    (S.DEADLOCK_REVERSE, S.DEADLOCK_TURN, "backed off the safe distance",
+     replace(LEADER, path_used_up=True)),
+    *_plan(S.DEADLOCK_TURN, "turned away", turned=True),
+    *_plan(S.DEADLOCK_TURN, "a robot stopped for an obstacle", someone_stopped=True),
+]  # fmt: skip
+
+
+def _initial(source: str) -> str:
+    return S.FORMATION_TRACK if source == ANY_STATE else source
+
+
+@pytest.mark.parametrize(
+    ("source", "target", "reason", "ctx"),
+    CASES,
+    ids=[f"{c[0]}->{c[1]}:{c[2][:20]}" for c in CASES],
+)
+def test_transition_fires(source: str, target: str, reason: str, ctx: StackContext) -> None:
+    fsm = behaviour_machine(_initial(source))
+    event = fsm.update(ctx, 1.0)
+    assert event is not None, f"nothing fired from {source}"
+    assert (event.source, event.target) == (_initial(source), target)
+    assert event.reason.startswith(reason), event.reason
+
+
+def test_every_transition_has_a_case() -> None:
+    pinned = {(source, target, reason.split(":")[0]) for source, target, reason, _ in CASES}
+    for tr in behaviour_transitions():
+        key = (tr.source, tr.target)
+        assert any((s, t) == key and tr.reason.startswith(r) for s, t, r in pinned), (
+            f"no test pins {tr.source} -> {tr.target} ({tr.reason})"
+        )
+
+
+def test_stuck_is_absorbing() -> None:
+    fsm = behaviour_machine(S.STUCK)
+    for ctx in (replace(LEADER, imminent=True), replace(FOLLOWER, parent_v_mps=-1.0)):
+        assert fsm.update(ctx, 1.0) is None
+
+
+def test_emergency_stop_outranks_avoidance_and_formation() -> None:
+    fsm = behaviour_machine(S.FORMATION_TRACK)
+    ctx = replace(FOLLOWER, imminent=True, blocked_s=1.0, parent_v_mps=-0.2)
+    event = fsm.update(ctx, 0.0)
+    assert event is not None
+    assert event.target == S.EMERGENCY_STOP
+
+
+def test_followers_keep_with_a_blocked_or_reversing_leader() -> None:
+    fsm = behaviour_machine(S.FORMATION_TRACK)
+    for ctx in (
+        replace(FOLLOWER, blocked_s=1.0, leader_blocked=True),
+        replace(FOLLOWER, blocked_s=1.0, leader_state=S.DEADLOCK_REVERSE),
+        replace(FOLLOWER, blocked_s=1.0, reactive=False),
+    ):
+        assert fsm.update(ctx, 0.0) is None
+
+
+def test_hysteresis_band_keeps_the_switch_from_chattering() -> None:
+    fsm = behaviour_machine(S.FORMATION_TRACK)
+    assert fsm.update(replace(FOLLOWER, parent_v_mps=-0.01), 0.0) is None
+
+
+def test_arbitration_table_matches_the_transitions() -> None:
+    used = {tr.priority for tr in behaviour_transitions()}
+    assert {rule.priority for rule in ARBITRATION} <= used
+    assert [r.priority for r in ARBITRATION] == sorted(
+        (r.priority for r in ARBITRATION), reverse=True
     )
-    b.observe(blocked=("r1",), everyone_blocked=False, odometry_step_m=0.0)
-    assert b.update(0.0) is None
-    b.observe(blocked=("r1", "r2"), everyone_blocked=True, odometry_step_m=0.0)
-    assert b.update(0.1) is not None
-    assert b.direction == -1
-    assert b.wanted_twist(0.1).v_mps == -0.1
-    t = 0.1
-    while b.fsm.state == State.DEADLOCK_REVERSE and t < 20.0:
-        t += 0.1
-        b.observe(blocked=(), everyone_blocked=False, odometry_step_m=0.01)
-        b.update(t)
-    assert b.fsm.state == State.NAVIGATE
-    assert t == __import__("pytest").approx(5.1, abs=0.15)  # 0.5 m at 0.01 m a step
+
+
+def test_mermaid_names_every_state_and_transition() -> None:
+    machine = behaviour_machine()
+    text = to_mermaid(machine, notes=STATE_NOTES)
+    assert text.startswith("stateDiagram-v2\n    [*] --> HOLD\n")
+    for state in State:
+        assert state.value in text
+    assert text.count(" --> ") >= len(machine.transitions)
+    assert "STUCK --> [*]" in text

@@ -1,0 +1,285 @@
+"""What a robot's sonar ring says about the space around it, as geometry in its body frame.
+
+Each reading becomes obstacle points across the transducer's beam (a sonar only knows
+that something lies somewhere on the arc at that range, so the whole arc is treated as
+occupied). From the points: the free distance along a straight corridor as wide as the
+robot (plus a margin) in any heading, for the robot alone or for a whole formation, and
+the heading a reactive navigator should take towards a goal.
+
+Pure numpy, no I/O: the same numbers in the batch runner and on a robot.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+
+from phalanx.config import RobotParams
+from phalanx.geometry import Vec2
+
+FloatArray = npt.NDArray[np.float64]
+BoolArray = npt.NDArray[np.bool_]
+NO_OBSTACLE_M = math.inf
+# Candidate headings of the reactive navigator, body frame: every 7.5 deg all round.
+HEADINGS_RAD: FloatArray = np.radians(np.arange(-180.0, 180.0, 7.5))
+_AT_MAX_RANGE_M = 1e-6
+# Blind gaps between beams are filled with the neighbours' echoes within this range (m).
+GAP_FILL_RANGE_M = 1.5
+# Lateral spread an echo's arc is narrowed to when far (m).
+ARC_SPREAD_M = 0.3
+# Free way enough to head straight for where one wants to go (m).
+NEAR_NEED_M = 2.0
+# Weight of "close to the last choice" against "close to the goal" (choose_heading).
+STICKINESS = 0.5
+
+
+@dataclass(frozen=True)
+class SonarGeometry:
+    """Beam geometry of a sonar ring: one row per transducer, and `RAYS_PER_BEAM` rays
+    across each beam for the obstacle points (body frame).
+    """
+
+    unit_x_m: FloatArray
+    unit_y_m: FloatArray
+    unit_heading_rad: FloatArray
+    half_beam_rad: float
+    reach_left_rad: FloatArray
+    reach_right_rad: FloatArray
+    origin_x_m: FloatArray  # per ray
+    origin_y_m: FloatArray
+    angle_rad: FloatArray
+    unit_of_ray: npt.NDArray[np.intp]
+    offset_rad: FloatArray  # each ray's angle off its beam's axis
+    gap_fill: BoolArray  # rays that stand in for a blind gap beside the beam
+    max_range_m: float
+    radius_m: float
+
+    @classmethod
+    def from_params(cls, robot: RobotParams) -> SonarGeometry:
+        """The ring of a robot parameter file.
+
+        Each beam's rays also cover half the blind gap to each neighbouring beam (the
+        P3DX's ring leaves 25 deg unseen between its 50 and 90 deg sonars): what no sonar
+        sees is taken to be as near as what its neighbours see, never as free.
+        """
+        units = robot.sonar.units
+        half = math.radians(robot.sonar.beam_width_deg) / 2
+        headings = [math.radians(u.heading_deg) for u in units]
+        rows = []
+        reach = [_reach(headings, i, half) for i in range(len(units))]
+        for i, u in enumerate(units):
+            left, right = reach[i]
+            fan = (
+                (-right, right > half),
+                (-half, False),
+                (0.0, False),
+                (half, False),
+                (left, left > half),
+            )
+            rows += [(u.x_m, u.y_m, headings[i] + offset, i, offset, fill) for offset, fill in fan]
+        ox, oy, angle, unit, offset, fill = zip(*rows, strict=True)
+        return cls(
+            np.array([u.x_m for u in units]),
+            np.array([u.y_m for u in units]),
+            np.array(headings),
+            half,
+            np.array([left for left, _ in reach]),
+            np.array([right for _, right in reach]),
+            np.array(ox),
+            np.array(oy),
+            np.array(angle),
+            np.array(unit, dtype=np.intp),
+            np.array(offset),
+            np.array(fill, dtype=bool),
+            robot.sonar.max_range_m,
+            robot.radius_m,
+        )
+
+    def points(
+        self, ranges_m: Sequence[float], known: Sequence[tuple[Vec2, float]] = ()
+    ) -> tuple[FloatArray, FloatArray]:
+        """Obstacle points (x, y in m, body frame) of a reading.
+
+        Max-range readings carry no echo. An echo whose arc passes within a `known`
+        `(centre, radius_m)` disc (a robot of the formation) is that robot, not an
+        obstacle, and is dropped whole: a sonar cannot tell where on its arc it was hit.
+        """
+        ranges = np.asarray(ranges_m, dtype=np.float64)
+        if ranges.size < self.unit_x_m.size:
+            return np.zeros(0), np.zeros(0)
+        echo = ranges[: self.unit_x_m.size] < self.max_range_m - _AT_MAX_RANGE_M
+        for centre, radius_m in known:
+            echo &= ~self.arc_meets(ranges, centre, radius_m)
+        r = ranges[self.unit_of_ray]
+        # A blind gap is assumed as near as its neighbour only close by, where it matters
+        # for safety; far off it would close every opening the robot aims for.
+        seen = echo[self.unit_of_ray] & (~self.gap_fill | (r < GAP_FILL_RANGE_M))
+        # Far off, the beam's arc is narrowed to `ARC_SPREAD_M` across: a wall's edge
+        # grazed by the side of a beam 4 m off would otherwise seem to close a doorway.
+        # Closer in the arc widens again, so what is really there is seen in time.
+        spread = np.arctan2(ARC_SPREAD_M, np.maximum(r, 1e-6))
+        offset = np.where(self.gap_fill, self.offset_rad, np.clip(self.offset_rad, -spread, spread))
+        angle = self.angle_rad - self.offset_rad + offset
+        x = self.origin_x_m + r * np.cos(angle)
+        y = self.origin_y_m + r * np.sin(angle)
+        return x[seen], y[seen]
+
+    def arc_meets(self, ranges: FloatArray, centre: Vec2, radius_m: float) -> BoolArray:
+        """Per transducer: whether its echo's arc passes within `radius_m` of `centre`."""
+        r = ranges[: self.unit_x_m.size]
+        towards = np.arctan2(centre.y_m - self.unit_y_m, centre.x_m - self.unit_x_m)
+        off = np.mod(towards - self.unit_heading_rad + math.pi, 2.0 * math.pi) - math.pi
+        nearest = self.unit_heading_rad + np.clip(off, -self.reach_right_rad, self.reach_left_rad)
+        px = self.unit_x_m + r * np.cos(nearest)
+        py = self.unit_y_m + r * np.sin(nearest)
+        meets: BoolArray = np.hypot(px - centre.x_m, py - centre.y_m) < radius_m
+        return meets
+
+
+def _reach(headings: Sequence[float], i: int, half_beam_rad: float) -> tuple[float, float]:
+    """How far beam `i` is taken to reach (left, right of its axis, rad): its half-width
+    plus half of any blind gap to the nearest beam on that side.
+    """
+    h = headings[i]
+    offsets = [
+        (other - h + math.pi) % (2.0 * math.pi) - math.pi
+        for j, other in enumerate(headings)
+        if j != i
+    ]
+    left = min((o for o in offsets if o > 1e-9), default=2.0 * half_beam_rad)
+    right = min((-o for o in offsets if o < -1e-9), default=2.0 * half_beam_rad)
+    return (
+        half_beam_rad + max(0.0, left / 2 - half_beam_rad),
+        half_beam_rad + max(0.0, right / 2 - half_beam_rad),
+    )
+
+
+def nearest_m(points: tuple[FloatArray, FloatArray]) -> float:
+    """Distance from the body origin to the nearest point (inf if none)."""
+    x, y = points
+    return float(np.sqrt(np.min(x * x + y * y))) if x.size else NO_OBSTACLE_M
+
+
+def corridor_clearance(
+    points: tuple[FloatArray, FloatArray],
+    headings_rad: FloatArray,
+    *,
+    half_width_m: float,
+    origins: Sequence[Vec2] = (Vec2(0.0, 0.0),),
+    turning: bool = True,
+) -> FloatArray:
+    """Free distance (m) along each heading before a disc of radius `half_width_m` at any
+    of `origins` (body frame; the formation's slots, all moving together) touches a point.
+    With `turning`, the shape is first turned to face each heading (it drives that way);
+    without, it slides that way as it stands.
+
+    A disc at `o` moving along unit `u` touches point `p` after `f - sqrt(w^2 - l^2)`,
+    with `f`, `l` the along and across components of `p - o` and `w` the half-width;
+    a point already inside the disc gives 0, a point behind it never counts.
+    """
+    x, y = points
+    out = np.full(headings_rad.shape, NO_OBSTACLE_M)
+    if x.size == 0:
+        return out
+    c, s = np.cos(headings_rad)[:, None], np.sin(headings_rad)[:, None]
+    w2 = half_width_m * half_width_m
+    for o in origins:
+        # the slot rotates with the formation: origin o is given for heading 0
+        ox = c * o.x_m - s * o.y_m if turning else np.full_like(c, o.x_m)
+        oy = s * o.x_m + c * o.y_m if turning else np.full_like(s, o.y_m)
+        dx, dy = x[None, :] - ox, y[None, :] - oy
+        f = dx * c + dy * s
+        lat = -dx * s + dy * c
+        inside = lat * lat < w2
+        half_chord = np.sqrt(np.maximum(w2 - lat * lat, 0.0))
+        ahead = inside & (f + half_chord > 0.0)
+        hit = np.where(ahead, np.maximum(f - half_chord, 0.0), np.inf)
+        out = np.minimum(out, hit.min(axis=1))
+    return out
+
+
+def clearance_along(
+    points: tuple[FloatArray, FloatArray], heading_rad: float, *, half_width_m: float
+) -> float:
+    """`corridor_clearance` of the robot alone along one heading (the fast path)."""
+    x, y = points
+    if x.size == 0:
+        return NO_OBSTACLE_M
+    c, s = math.cos(heading_rad), math.sin(heading_rad)
+    f = x * c + y * s
+    lat2 = np.square(y * c - x * s)
+    w2 = half_width_m * half_width_m
+    half_chord = np.sqrt(np.maximum(w2 - lat2, 0.0))
+    ahead = (lat2 < w2) & (f + half_chord > 0.0)
+    if not ahead.any():
+        return NO_OBSTACLE_M
+    return max(0.0, float(np.min(f[ahead] - half_chord[ahead])))
+
+
+def choose_heading(
+    desired_rad: float,
+    *,
+    wide: FloatArray,
+    narrow: FloatArray,
+    need_m: float,
+    window_rad: float = math.pi,
+    previous_rad: float | None = None,
+    reach_rad: float = math.pi,
+    headings_rad: FloatArray = HEADINGS_RAD,
+) -> int:
+    """Index of the heading to take, among those within `window_rad` of `desired_rad`:
+    the one nearest `desired_rad` whose whole-formation corridor (`wide`) is free for
+    `need_m`; else whose own corridor (`narrow`) is; else straight for the goal. Ties
+    go to the smaller turn, then to the left. With `previous_rad` (the last choice), a
+    heading near it costs less: a navigator facing an obstacle head-on picks a side and
+    keeps to it instead of dithering between two equally good ways round.
+
+    The window keeps a navigator from turning its back on the goal: what cannot be got
+    round within it is a dead end, the deadlock escape's business. `reach_rad` also
+    keeps the choice within that much of straight ahead (a shape with no room to turn
+    on the spot can only bend its course).
+    """
+    off = _angle_between(headings_rad, desired_rad)
+    inside = (off <= window_rad + 1e-9) & (np.abs(headings_rad) <= reach_rad + 1e-9)
+    if not inside.any():
+        inside = off <= off.min() + 1e-9
+    turn = np.abs(headings_rad)
+    # Going the desired way needs only room to make progress; turning away from it
+    # needs the full `need_m`, or a narrow opening towards the goal would lose to any
+    # wide-open side.
+    need = np.minimum(need_m, NEAR_NEED_M + (need_m - NEAR_NEED_M) * off / max(window_rad, 1e-9))
+    if previous_rad is not None:
+        off = off + STICKINESS * _angle_between(headings_rad, previous_rad)
+    for free in (inside & (wide >= need), inside & (narrow >= need)):
+        if free.any():
+            return _first(np.lexsort((-headings_rad, turn, np.where(free, off, np.inf))))
+    # No way round within the window: keep heading for the goal and let the robot creep
+    # up to the obstacle, where being blocked hands the problem to the group's rules
+    # (handover, deadlock) instead of turning the formation about in a tight spot.
+    return _first(np.lexsort((-headings_rad, off)))
+
+
+def _angle_between(headings_rad: FloatArray, angle_rad: float) -> FloatArray:
+    return np.abs(np.mod(headings_rad - angle_rad + math.pi, 2.0 * math.pi) - math.pi)
+
+
+def _first(order: npt.NDArray[np.intp]) -> int:
+    return int(order[0])
+
+
+def open_side(points: tuple[FloatArray, FloatArray], *, half_width_m: float) -> int:
+    """+1 if the left half (counter-clockwise) is freer than the right, else -1."""
+    clear = np.minimum(corridor_clearance(points, HEADINGS_RAD, half_width_m=half_width_m), 5.0)
+    left = float(clear[HEADINGS_RAD > 0.0].sum())
+    right = float(clear[HEADINGS_RAD < 0.0].sum())
+    return 1 if left >= right else -1
+
+
+def braking_gap_m(speed_mps: float, *, decel_mps2: float, latency_s: float) -> float:
+    """Distance covered while a command to stop takes effect and the robot brakes."""
+    v = abs(speed_mps)
+    return v * latency_s + v * v / (2.0 * decel_mps2)

@@ -1,0 +1,135 @@
+"""Property tests of the navigation and leadership math (hypothesis)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from phalanx.agents.leadership import Leadership, newer
+from phalanx.agents.perception import (
+    HEADINGS_RAD,
+    NEAR_NEED_M,
+    choose_heading,
+    corridor_clearance,
+)
+from phalanx.config import FormationConfig, LeadershipConfig, SlotConfig
+from phalanx.formation import Formation, resolve_formation
+from phalanx.messages import RobotFlags
+
+
+@st.composite
+def trees(draw: st.DrawFn) -> Formation:
+    """A random follow tree of 2-8 robots, slots at random bearings."""
+    n = draw(st.integers(2, 8))
+    slots = [SlotConfig(robot="r1", x_m=0.0, y_m=0.0)]
+    for i in range(2, n + 1):
+        parent = draw(st.integers(1, i - 1))
+        phi = draw(st.floats(0.0, 359.0))
+        slots.append(SlotConfig(robot=f"r{i}", follows=f"r{parent}", l_m=1.0, phi_deg=phi))
+    return resolve_formation(FormationConfig(slots=tuple(slots)))
+
+
+@settings(max_examples=60, deadline=None)
+@given(trees(), st.data())
+def test_rerooting_gives_a_tree_of_neighbours(formation: Formation, data: st.DataObject) -> None:
+    leader = data.draw(st.sampled_from(formation.robot_ids))
+    parents = formation.reroot(leader)
+    assert [r for r, p in parents.items() if p is None] == [leader]
+    for robot, parent in parents.items():
+        if parent is not None:
+            assert parent in formation.neighbours(robot)  # still a neighbour it tracks
+        hops, at = 0, robot
+        while at != leader:  # every chain ends at the leader: no cycle
+            at = parents[at]  # type: ignore[assignment]
+            hops += 1
+            assert hops < len(parents)
+
+
+@settings(max_examples=60, deadline=None)
+@given(trees(), st.data())
+def test_slots_compose_along_any_path(formation: Formation, data: st.DataObject) -> None:
+    a, b, c = (data.draw(st.sampled_from(formation.robot_ids)) for _ in range(3))
+    direct = formation.slot_of(a, c)
+    composed = formation.slot_of(a, b) + formation.slot_of(b, c)
+    assert math.isclose(direct.x_m, composed.x_m, abs_tol=1e-9)
+    assert math.isclose(direct.y_m, composed.y_m, abs_tol=1e-9)
+
+
+claims = st.lists(
+    st.tuples(st.integers(0, 5), st.sampled_from(["r1", "r2", "r3", "r4"])), min_size=1, max_size=12
+)
+
+
+@settings(max_examples=80, deadline=None)
+@given(claims, st.randoms())
+def test_epochs_converge_whatever_the_order_and_never_go_back(
+    heard: list[tuple[int, str]], rng: object
+) -> None:
+    formation = resolve_formation(
+        FormationConfig(
+            slots=(
+                SlotConfig(robot="r1", x_m=0.0, y_m=0.0),
+                *(SlotConfig(robot=f"r{i}", follows="r1", l_m=1.0, phi_deg=180.0 + 20 * i)
+                  for i in range(2, 5)),
+            )
+        )
+    )  # fmt: skip
+    finals = set()
+    for shuffle in range(3):
+        order = list(heard)
+        if shuffle:
+            rng.shuffle(order)  # type: ignore[attr-defined]
+        view = Leadership("r4", formation, LeadershipConfig(handover=False), timeout_s=1e9)
+        epochs = [view.epoch]
+        for epoch, leader in order:
+            message = RobotFlags(
+                robot_id="r2", seq=0, stamp_s=0.0, fsm_state="FORMATION_TRACK",
+                formation_leader_id=leader, epoch=epoch,
+            )  # fmt: skip
+            view.update(
+                {"r2": message, leader: message.model_copy(update={"robot_id": leader})}, 0.0
+            )
+            epochs.append(view.epoch)
+        assert epochs == sorted(epochs)
+        finals.add((view.epoch, view.leader_id))
+    assert len(finals) == 1
+    best = (0, "r1")
+    for claim in heard:
+        if newer(claim, best, formation):
+            best = claim
+    assert finals == {best}
+
+
+points = st.lists(st.tuples(st.floats(-4, 4), st.floats(-4, 4)), min_size=1, max_size=30)
+
+
+@settings(max_examples=60, deadline=None)
+@given(points, st.floats(0.1, 0.6), st.floats(0.0, 0.4))
+def test_a_wider_corridor_is_never_freer(
+    xy: list[tuple[float, float]], w: float, dw: float
+) -> None:
+    p = (np.array([a for a, _ in xy]), np.array([b for _, b in xy]))
+    narrow = corridor_clearance(p, HEADINGS_RAD, half_width_m=w)
+    wide = corridor_clearance(p, HEADINGS_RAD, half_width_m=w + dw)
+    assert np.all(wide <= narrow + 1e-9)
+    assert np.all(narrow >= 0.0)
+
+
+@settings(max_examples=60, deadline=None)
+@given(points, st.floats(-math.pi, math.pi), st.floats(0.3, math.pi))
+def test_the_chosen_heading_lies_within_the_window(
+    xy: list[tuple[float, float]], desired: float, window: float
+) -> None:
+    p = (np.array([a for a, _ in xy]), np.array([b for _, b in xy]))
+    clear = corridor_clearance(p, HEADINGS_RAD, half_width_m=0.3)
+    index = choose_heading(desired, wide=clear, narrow=clear, need_m=2.0, window_rad=window)
+    off = abs((HEADINGS_RAD[index] - desired + math.pi) % (2 * math.pi) - math.pi)
+    step = float(HEADINGS_RAD[1] - HEADINGS_RAD[0])
+    assert off <= max(window, step / 2) + 1e-9
+    offs = np.abs((HEADINGS_RAD - desired + math.pi) % (2 * math.pi) - math.pi)
+    need = np.minimum(2.0, NEAR_NEED_M + (2.0 - NEAR_NEED_M) * offs / window)
+    if ((clear >= need) & (offs <= window)).any():  # a way exists: the choice is one of them
+        assert clear[index] >= need[index] - 1e-9

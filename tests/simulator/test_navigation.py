@@ -1,0 +1,139 @@
+"""The behaviour stack in the simulated world: handover, leader loss, deadlock reverse
+out of a dead end, the STUCK stop, wandering."""
+
+from __future__ import annotations
+
+from collections import deque
+
+import numpy as np
+import pytest
+
+from phalanx.agents.core import Observation
+from phalanx.agents.fsm import State
+from phalanx.config import CONFIG_ROOT, PolygonObstacle, apply_overrides, load_scenario
+from phalanx.geometry import ZERO_TWIST
+from phalanx.messages import RobotState
+from phalanx.metrics import error_series, navigation_metrics, phase_masks, run_metrics
+from phalanx.scenarios import navigation_scenario
+from phalanx.simulator.batch import BatchRunner, run_batch
+
+SCENARIOS = CONFIG_ROOT / "scenarios"
+
+
+def test_a_blocked_leader_hands_over_and_every_robot_agrees() -> None:
+    # The paper's signal builder, for the leader alone: its sonars read 0.3 m at 10 s.
+    scenario = apply_overrides(
+        load_scenario(SCENARIOS / "paper_wedge.toml"),
+        ["duration_s=20", "events.0.start_s=10", 'events.0.robots=["r1"]'],
+    )
+    log = run_batch(scenario)
+    k = len(log.t_s) - 1
+    assert {tr.leaders[k] for tr in log.traces.values()} == {"r2"}
+    assert {tr.epochs[k] for tr in log.traces.values()} == {1}
+    assert log.traces["r1"].tracked[k] == "r2"  # the old leader now follows
+    assert log.traces["r3"].tracked[k] == "r1"  # r3 keeps its neighbour: re-rooted tree
+    change = next(e for e in log.transitions["r2"] if e.target == State.NAVIGATE)
+    assert 10.1 < change.t_s < 10.6
+    assert "r1 blocked" in change.reason
+    assert "epoch 1" in change.reason
+    assert not log.collisions
+    # The shape holds through the handover: errors against whoever is tracked stay small.
+    late = log.t_s > 15.0
+    for rid in ("r1", "r3"):
+        assert np.nanmax(error_series(log, rid).linear_pct[late]) < 2.0
+
+
+def test_a_lost_leader_stops_the_followers_then_the_best_robot_leads() -> None:
+    runner = BatchRunner(
+        apply_overrides(load_scenario(SCENARIOS / "paper_wedge.toml"), ["duration_s=12"])
+    )
+    published: deque[dict[str, RobotState]] = deque(maxlen=1)
+    states_at: dict[float, dict[str, str]] = {}
+    for k in range(round(12.0 / runner.scenario.dt_s)):
+        t_s = float(runner.t_s[k])
+        alive = {r: a for r, a in runner.agents.items() if r != "r1" or t_s < 5.0}
+        peers = published[0] if published else {}
+        commands, states = {"r1": ZERO_TWIST}, {}
+        for rid, agent in alive.items():
+            obs = Observation(runner.world.odometry(rid), runner.world.status(rid))
+            out = agent.step(obs, {r: s for r, s in peers.items() if r in alive}, t_s)
+            commands[rid], states[rid] = out.command, out.state
+        published.append(states)
+        runner.world.step(commands, runner.scenario.dt_s)
+        states_at[round(t_s, 1)] = {r: s.fsm_state for r, s in states.items()}
+    assert states_at[5.2] == {"r2": State.HOLD, "r3": State.HOLD}  # within 0.5 s
+    r2, r3 = runner.agents["r2"], runner.agents["r3"]
+    assert (r2.leader_id, r2.leadership.epoch) == ("r2", 1)
+    assert (r3.leader_id, r3.leadership.epoch, r3.parent_id) == ("r2", 1, "r2")
+    assert states_at[11.9] == {"r2": State.NAVIGATE, "r3": State.FORMATION_TRACK}
+    assert not runner.world.collisions
+
+
+@pytest.mark.slow
+def test_the_group_backs_out_of_the_dead_end_in_formation() -> None:
+    scenario = load_scenario(SCENARIOS / "nav_deadend_wedge3.toml")
+    runner = BatchRunner(scenario)
+
+    def turned(b: BatchRunner) -> bool:
+        return any(
+            e.target == State.DEADLOCK_TURN for a in b.agents.values() for e in a.transitions
+        )
+
+    log = runner.run(until=turned)
+    assert not log.collisions
+    reverses = [e for e in log.transitions["r1"] if e.target == State.DEADLOCK_REVERSE]
+    assert len(reverses) == 1
+    assert "dead end" in reverses[0].reason
+    _, backward = phase_masks(log)
+    assert backward.sum() * scenario.dt_s > 20.0  # > 20 s of settled reverse
+    for rid in ("r2", "r3"):
+        series = error_series(log, rid)
+        assert series.linear_pct[backward].max() < 0.5
+        assert series.angular_pct[backward].max() < 0.3
+        assert series.orientation_deg[backward].max() < 0.5
+
+
+def test_a_boxed_in_group_stops_for_good_and_says_why() -> None:
+    walls = [
+        PolygonObstacle(vertices_m=v).model_dump()
+        for v in (
+            ((-3.0, 2.5), (3.5, 2.5), (3.5, 2.8), (-3.0, 2.8)),
+            ((-3.0, -2.8), (3.5, -2.8), (3.5, -2.5), (-3.0, -2.5)),
+            ((3.2, -2.5), (3.5, -2.5), (3.5, 2.5), (3.2, 2.5)),
+            ((-3.3, -2.5), (-3.0, -2.5), (-3.0, 2.5), (-3.3, 2.5)),
+        )
+    ]
+    scenario = navigation_scenario(
+        "corridor",
+        "wedge",
+        3,
+        overrides={
+            "world": {"polygons": walls},
+            "duration_s": 150.0,
+            "deadlock.max_retries": 1,
+            "deadlock.safe_distance_m": 1.0,
+            "navigation.stall_s": 5.0,
+        },
+    )
+    log = run_batch(scenario)
+    nav = navigation_metrics(log)
+    assert nav["stuck"]
+    assert "deadlock" in nav["stuck_reason"]
+    assert "max_retries = 1" in nav["stuck_reason"]
+    assert nav["deadlock_reverses"] == 1
+    assert not log.collisions
+    for rid, tr in log.traces.items():
+        assert tr.states[-1] == State.STUCK, rid
+        assert tr.cmd_v_mps[-1] == 0.0, rid
+        assert abs(tr.v_mps[-1]) < 1e-9, rid
+    assert run_metrics(log)["navigation"]["stuck"]
+
+
+def test_without_a_goal_the_leader_wanders_and_nobody_collides() -> None:
+    scenario = navigation_scenario(
+        "corridor", "wedge", 3, overrides={"navigation.waypoints": [], "duration_s": 40.0}
+    )
+    log = run_batch(scenario)
+    assert State.WANDER in log.traces["r1"].states
+    assert not log.collisions
+    assert np.hypot(log.traces["r1"].x_m[-1], log.traces["r1"].y_m[-1]) > 3.0

@@ -1,0 +1,165 @@
+"""Leadership over shared flags: the re-rooted tracking tree, handover, loss, the epoch
+rule, and the deadlock rule; every robot deciding alike from the same flags."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import pytest
+
+from phalanx.agents.fsm import State
+from phalanx.agents.leadership import Leadership, group_deadlock, leader_key, newer
+from phalanx.config import LeadershipConfig
+from phalanx.formation import Formation, resolve_formation
+from phalanx.messages import RobotFlags
+from phalanx.scenarios import formation_shape
+
+WEDGE = resolve_formation(formation_shape("wedge", 3))
+INLINE = resolve_formation(formation_shape("inline", 3))
+CONFIG = LeadershipConfig()
+TIMEOUT_S = 0.5
+
+
+def flags(rid: str, t_s: float = 10.0, **kw: Any) -> RobotFlags:
+    base: dict[str, Any] = {
+        "robot_id": rid,
+        "seq": 1,
+        "stamp_s": t_s,
+        "fsm_state": State.NAVIGATE if rid == "r1" else State.FORMATION_TRACK,
+        "formation_leader_id": "r1",
+        "clear": True,
+    }
+    return RobotFlags(**{**base, **kw})
+
+
+def views(formation: Formation, **kw: Any) -> dict[str, Leadership]:
+    out = {}
+    for rid in formation.robot_ids:
+        view = Leadership(rid, formation, LeadershipConfig(**kw), timeout_s=TIMEOUT_S)
+        view.since_s = -100.0  # long in office: tenure never the reason in these tests
+        out[rid] = view
+    return out
+
+
+def blocked_leader(t_s: float = 10.0) -> dict[str, RobotFlags]:
+    return {
+        "r1": flags("r1", t_s, obstacle=True, blocked_s=0.5, clear=False),
+        "r2": flags("r2", t_s),
+        "r3": flags("r3", t_s),
+    }
+
+
+def test_tree_is_rerooted_at_any_leader() -> None:
+    assert INLINE.reroot("r3") == {"r1": "r2", "r2": "r3", "r3": None}
+    assert WEDGE.reroot("r2") == {"r1": "r2", "r2": None, "r3": "r1"}
+    assert WEDGE.tree_path("r3", "r2") == ("r1", "r2")
+
+
+def test_tracking_skips_gone_and_out_of_formation_robots() -> None:
+    view = views(INLINE)["r3"]
+    everyone = {r: flags(r) for r in INLINE.robot_ids}
+    assert view.tracked(everyone) == "r2"
+    avoiding = everyone | {"r2": flags("r2", fsm_state=State.AVOID, formed=False)}
+    assert view.tracked(avoiding) == "r1"  # r2 left its slot: track its leader instead
+    gone = {r: f for r, f in everyone.items() if r != "r2"}
+    assert view.tracked(gone) == "r1"
+    assert views(INLINE)["r1"].tracked(everyone) is None
+
+
+def test_every_robot_hands_over_to_the_same_clear_follower() -> None:
+    decisions = set()
+    for rid, view in views(WEDGE).items():
+        change = view.update(view.live(blocked_leader(), 10.05), 10.05)
+        assert change is not None, rid
+        decisions.add((view.leader_id, view.epoch))
+    # r2 and r3 are equally clear and forward: the formation's order decides.
+    assert decisions == {("r2", 1)}
+
+
+def test_the_new_tree_tracks_neighbours() -> None:
+    view = views(WEDGE)["r3"]
+    view.update(view.live(blocked_leader(), 10.05), 10.05)
+    after = blocked_leader() | {"r1": flags("r1", fsm_state=State.FORMATION_TRACK)}
+    assert view.tracked(after) == "r1"  # r3 keeps its neighbour r1, now following r2
+
+
+@pytest.mark.parametrize(
+    ("why", "overrides", "kw"),
+    [
+        ("not blocked long enough", {"r1": {"blocked_s": 0.1}}, {}),
+        ("every robot blocked", {"r2": {"obstacle": True}, "r3": {"obstacle": True}}, {}),
+        ("nobody clear", {"r2": {"clear": False}, "r3": {"clear": False}}, {}),
+        ("a dead end, not a local obstacle", {"r1": {"dead_end": True}}, {}),
+        ("the leader is reversing", {"r1": {"fsm_state": State.DEADLOCK_REVERSE}}, {}),
+        ("handover switched off", {}, {"handover": False}),
+    ],
+)
+def test_no_handover(why: str, overrides: dict[str, dict[str, Any]], kw: dict[str, Any]) -> None:
+    shared = blocked_leader()
+    for rid, changes in overrides.items():
+        shared[rid] = shared[rid].model_copy(update=changes)
+    view = views(WEDGE, **kw)["r2"]
+    assert view.update(view.live(shared, 10.05), 10.05) is None, why
+    assert (view.leader_id, view.epoch) == ("r1", 0)
+
+
+def test_no_handover_within_the_tenure() -> None:
+    view = Leadership("r2", WEDGE, CONFIG, timeout_s=TIMEOUT_S)
+    view.since_s = 9.0  # leader since 1 s ago, min_tenure_s = 3
+    assert view.update(view.live(blocked_leader(), 10.05), 10.05) is None
+
+
+def test_a_late_message_cannot_flip_leadership_back() -> None:
+    view = views(WEDGE)["r3"]
+    view.update({"r2": flags("r2", formation_leader_id="r2", epoch=2)}, 10.0)
+    assert (view.leader_id, view.epoch) == ("r2", 2)
+    late = {"r1": flags("r1", formation_leader_id="r1", epoch=1, fsm_state=State.NAVIGATE)}
+    assert view.update(late | {"r2": flags("r2", formation_leader_id="r2", epoch=2)}, 10.1) is None
+    assert (view.leader_id, view.epoch) == ("r2", 2)
+
+
+def test_same_epoch_two_claims_converge_on_the_formation_order() -> None:
+    assert newer((3, "r2"), (3, "r3"), WEDGE)
+    assert not newer((3, "r3"), (3, "r2"), WEDGE)
+    assert newer((4, "r3"), (3, "r2"), WEDGE)
+    assert not newer((4, "nobody"), (3, "r2"), WEDGE)
+
+
+def test_a_lost_leader_is_replaced_after_the_grace_by_the_best_live_robot() -> None:
+    shared = {"r2": flags("r2", clear=False), "r3": flags("r3", clear=True)}
+    view = views(WEDGE)["r2"]
+    view.leader_heard_s = 10.0
+    assert view.leader_lost(view.live(shared, 10.1))
+    assert view.update(view.live(shared, 10.1), 10.1) is None  # within timeout + grace
+    change = view.update(
+        view.live({r: flags(r, 11.6, clear=(r == "r3")) for r in shared}, 11.6), 11.6
+    )
+    assert change is not None
+    assert (change.leader_id, change.epoch, change.previous_id) == ("r3", 1, "r1")
+    assert "silent" in change.reason
+
+
+def test_a_robot_never_declares_itself_lost() -> None:
+    view = views(WEDGE)["r1"]
+    assert not view.leader_lost({})
+    assert view.update({}, 100.0) is None
+
+
+def test_stale_flags_do_not_count() -> None:
+    view = views(WEDGE)["r2"]
+    assert set(view.live(blocked_leader(10.0), 10.0 + TIMEOUT_S + 0.01)) == set()
+
+
+def test_deadlock_rule() -> None:
+    everyone = {r: flags(r, obstacle=True, blocked_s=0.1, clear=False) for r in WEDGE.robot_ids}
+    assert "every robot blocked" in group_deadlock(everyone, "r1", confirm_s=0.2)
+    lonely = blocked_leader() | {r: flags(r, clear=False) for r in ("r2", "r3")}
+    assert "no robot clear" in group_deadlock(lonely, "r1", confirm_s=0.2)
+    assert group_deadlock(lonely, "r1", confirm_s=0.2, widened=False) == ""  # the paper's
+    assert group_deadlock(blocked_leader(), "r1", confirm_s=0.2) == ""  # someone can lead
+    dead_end = blocked_leader() | {"r1": flags("r1", obstacle=True, blocked_s=0.5, dead_end=True)}
+    assert "dead end" in group_deadlock(dead_end, "r1", confirm_s=0.2)
+
+
+def test_leader_key() -> None:
+    assert leader_key("lab") == "phalanx/lab/leader"
