@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import logging
 import math
-import threading
 import time
 
 from phalanx.agents.core import StepOutput
@@ -24,6 +23,7 @@ from phalanx.drivers.safety import SafeDriver
 from phalanx.errors import DriverError
 from phalanx.geometry import Pose2D
 from phalanx.messages import SenseFrame
+from phalanx.signals import Stoppable
 from phalanx.telemetry import Telemetry
 
 log = logging.getLogger("phalanx.agent")
@@ -58,7 +58,7 @@ class DriverRuntime(AgentRuntime):
         self.driver_errors = 0
         self.overruns = 0
 
-    def _loop(self, stop: threading.Event) -> None:
+    def _loop(self, stop: Stoppable) -> None:
         dt_s = self.scenario.dt_s
         steps = round(self.scenario.duration_s / dt_s)
         if self.epoch_s > time.time() and stop.wait(self.epoch_s - time.time()):

@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import logging
 import queue
-import threading
 import time
 from dataclasses import dataclass
 from typing import Literal, TypeVar
@@ -41,6 +40,7 @@ from phalanx.messages import (
     VelocityCommand,
 )
 from phalanx.metrics import live_errors
+from phalanx.signals import Stoppable
 from phalanx.telemetry import Telemetry, sonar_rays
 from phalanx.transport import (
     FleetSession,
@@ -134,7 +134,7 @@ class AgentRuntime:
             return ()
         return self.formation.tree_path(self.robot_id, leader)
 
-    def run(self, stop: threading.Event) -> AgentReport:
+    def run(self, stop: Stoppable) -> AgentReport:
         """Serve ticks until the world's final frame, `stop`, or no frame for a while."""
         fleet = self.options.fleet
         with open_session(self.options.transport) as session:
@@ -207,7 +207,7 @@ class AgentRuntime:
             "decode": stats,
         }
 
-    def _loop(self, stop: threading.Event) -> None:
+    def _loop(self, stop: Stoppable) -> None:
         last_frame = time.monotonic()
         while not stop.is_set():
             try:
@@ -340,8 +340,9 @@ class AgentRuntime:
         leader = self._last_peers.get(out.state.leader_id) if out.state.leader_id else None
         errors = None
         if leader is not None:
-            live = live_errors(self.formation, self.robot_id, out.state.pose, leader)
-            errors = live
+            errors = live_errors(
+                self.formation, self.robot_id, out.state.pose, leader, t_s=frame.t_s
+            )
         self.telemetry.log_step(
             self.robot_id,
             t_s=frame.t_s,

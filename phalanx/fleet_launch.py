@@ -41,8 +41,8 @@ from phalanx.hostproto import (
     hosts_key,
     logs_key,
 )
-from phalanx.launch import Stoppable
 from phalanx.messages import RobotState
+from phalanx.signals import Stoppable
 from phalanx.transport import FleetSession, TransportConfig, open_session, robots_key, status_key
 
 RATE_WINDOW_S = 2.0

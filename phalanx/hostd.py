@@ -62,7 +62,8 @@ from phalanx.hostproto import (
     line_level,
     log_key,
 )
-from phalanx.launch import GRACE_S, Stoppable
+from phalanx.launch import GRACE_S
+from phalanx.signals import Stoppable
 from phalanx.transport import FleetSession, TransportConfig, open_session
 
 log = logging.getLogger("phalanx.host")

@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from phalanx.agents.control.common import rigid_body_target
+from phalanx.agents.control.common import predict_leader, rigid_body_target
 from phalanx.formation import Formation
 from phalanx.geometry import Pose2D, Twist2D, wrap_angle
 from phalanx.messages import RobotState
@@ -156,18 +156,20 @@ class LiveErrors:
 
 
 def live_errors(
-    formation: Formation, follower: str, pose: Pose2D, leader: RobotState
+    formation: Formation, follower: str, pose: Pose2D, leader: RobotState, *, t_s: float
 ) -> LiveErrors:
-    """The paper's errors of `follower` at `pose` against `leader`'s published state
-    (what a robot can know on its own, for live telemetry; `error_series` uses truth).
+    """The paper's errors of `follower` at `pose` and fleet time `t_s` against `leader`'s
+    published state, dead-reckoned over its age as the controller does (what a robot can
+    know on its own, for live telemetry; `error_series` uses ground truth).
     """
     l_d, phi_d = formation.polar_of(follower, leader.robot_id)
-    local = leader.pose.to_body(pose.position)
+    leader_pose = predict_leader(leader.pose, leader.twist, t_s - leader.stamp_s)
+    local = leader_pose.to_body(pose.position)
     l_m = local.norm()
     phi = math.atan2(local.y_m, local.x_m) % (2 * math.pi)
     dphi = abs((phi - phi_d + math.pi) % (2 * math.pi) - math.pi)
     slot = formation.slot_of(follower, leader.robot_id)
-    target, _ = rigid_body_target(leader.pose, leader.twist, slot)
+    target, _ = rigid_body_target(leader_pose, leader.twist, slot)
     return LiveErrors(
         slot_target=target,
         linear_pct=100.0 * abs(l_m - l_d) / l_d,

@@ -33,6 +33,7 @@ from phalanx.messages import (
     SenseFrame,
     VelocityCommand,
 )
+from phalanx.signals import Stoppable
 from phalanx.simulator.batch import RobotTrace, RunLog, build_world
 from phalanx.telemetry import PAPER_ANGULAR_BOUND_PCT, PAPER_LINEAR_BOUND_PCT, Telemetry
 from phalanx.transport import (
@@ -107,7 +108,7 @@ class WorldProcess:
         self.response_s: list[float] = []  # frame published -> command received, per command
         self.overruns = 0  # real time: ticks whose work outlasted the period
 
-    def run(self, stop: threading.Event) -> RunLog:
+    def run(self, stop: Stoppable) -> RunLog:
         """Run the scenario to its end (or `stop`) and return the log."""
         with open_session(self.options.transport) as session:
             self._wire(session)
@@ -190,7 +191,7 @@ class WorldProcess:
     def _status(self) -> dict[str, object]:
         return {"tick": self.tick, "missed": self.missed, "alive": sorted(self.inbox.alive)}
 
-    def _await_agents(self, stop: threading.Event) -> None:
+    def _await_agents(self, stop: Stoppable) -> None:
         deadline = time.monotonic() + self.options.startup_timeout_s
         with self.inbox.cond:
             while not set(self.ids) <= self.inbox.alive and not stop.is_set():

@@ -14,7 +14,8 @@ from phalanx.commands.host import DeploymentArg, load_or_exit
 if TYPE_CHECKING:
     from phalanx.deployment import LoadedDeployment
     from phalanx.fleet_launch import LaunchOptions, Output
-    from phalanx.launch import Child, Stoppable
+    from phalanx.launch import Child
+    from phalanx.signals import Stoppable
     from phalanx.transport import TransportConfig
 
 ConnectOpt = Annotated[
@@ -85,7 +86,7 @@ def launch(
         timeout_s=timeout,
         detach=detach,
     )
-    from phalanx.launch import stop_on_signals
+    from phalanx.signals import stop_on_signals
 
     stop = stop_on_signals()
     daemons = _start_local_daemons(loaded) if local else []

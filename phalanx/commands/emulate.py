@@ -3,8 +3,6 @@
 from __future__ import annotations
 
 import logging
-import signal
-import threading
 import time
 from pathlib import Path
 from typing import Annotated
@@ -35,6 +33,7 @@ def emulate(
 ) -> None:
     """Emulate a robot: stand-alone, or moved by a world process over Zenoh."""
     from phalanx.config import load_robot, load_scenario
+    from phalanx.signals import stop_on_signals
     from phalanx.simulator.arcos_bridge import WorldBody, WorldBridge
     from phalanx.simulator.arcos_emulator import ArcosEmulator, EmulatorOptions, PtyLink, TcpLink
     from phalanx.simulator.body import Body
@@ -58,9 +57,7 @@ def emulate(
         transport = TransportConfig(mode="client", connect=tuple(connect or ()))
         bridge = WorldBridge(body, robot, fleet).open(transport)
     link = PtyLink() if pty else TcpLink(tcp or 8101, host)
-    stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
+    stop = stop_on_signals()
     options = EmulatorOptions(subtype=subtype, watchdog_s=watchdog)
     try:
         with ArcosEmulator(link, params, options, body) as emulator:

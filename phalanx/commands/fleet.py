@@ -4,8 +4,6 @@ from __future__ import annotations
 
 import logging
 import math
-import signal
-import threading
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Literal
 
@@ -16,6 +14,7 @@ if TYPE_CHECKING:
     from phalanx.drivers.base import Driver
     from phalanx.drivers.safety import SafeDriver
     from phalanx.messages import AgentReport
+    from phalanx.signals import Stoppable
     from phalanx.telemetry import Telemetry
     from phalanx.transport import TransportConfig
 
@@ -62,11 +61,10 @@ def _transport(mode: str, listen: list[str] | None, connect: list[str] | None) -
     return TransportConfig(mode=mode, listen=tuple(listen or ()), connect=tuple(connect or ()))
 
 
-def _stop_on_signals() -> threading.Event:
-    stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
-    return stop
+def _stop_on_signals() -> Stoppable:
+    from phalanx.signals import stop_on_signals
+
+    return stop_on_signals()
 
 
 def _clock(value: str) -> Literal["lockstep", "realtime"]:
@@ -153,7 +151,7 @@ def _run_agent(
     transport: TransportConfig,
     fleet: str,
     clock: str,
-    stop: threading.Event,
+    stop: Stoppable,
     telemetry: Telemetry,
     backend: Driver | None,
     epoch: float | None,
@@ -187,7 +185,7 @@ def _run_agent(
         return runtime.run(stop)
 
 
-def _connect_with_retry(driver: SafeDriver, stop: threading.Event, timeout_s: float = 15.0) -> None:
+def _connect_with_retry(driver: SafeDriver, stop: Stoppable, timeout_s: float = 15.0) -> None:
     """Connect, retrying while the robot (or its emulator) comes up; exit 2 if it never does."""
     import time
 

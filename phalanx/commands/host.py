@@ -40,7 +40,7 @@ def host(
     """Run this host's daemon: spawn, supervise and stop the fleet's processes on request."""
     from phalanx.errors import ConfigError, TransportError
     from phalanx.hostd import DaemonOptions, HostDaemon
-    from phalanx.launch import stop_on_signals
+    from phalanx.signals import stop_on_signals
 
     level = logging.WARNING if quiet else logging.INFO
     logging.basicConfig(level=level, format="%(asctime)s %(levelname)s %(message)s")
@@ -66,7 +66,7 @@ def router(
     """Run a Zenoh router, for hosts that cannot reach each other directly."""
     from phalanx.deployment import router_transport
     from phalanx.errors import ConfigError, TransportError
-    from phalanx.launch import stop_on_signals
+    from phalanx.signals import stop_on_signals
     from phalanx.transport import TransportConfig, open_session
 
     if deployment is None and not listen:

@@ -29,7 +29,7 @@ from phalanx.deployment import (
 from phalanx.errors import ConfigError
 from phalanx.hostd import HostDaemon, backoff_delay_s, exit_reason
 from phalanx.hostproto import HostReply, SpawnRequest, line_level
-from phalanx.launch import SignalStop
+from phalanx.signals import SignalStop
 
 WEDGE = CONFIG_ROOT / "scenarios" / "paper_wedge.toml"
 EXAMPLES = CONFIG_ROOT / "deployments"
