@@ -42,7 +42,13 @@ from phalanx.agents.control import make_controller
 from phalanx.agents.control.common import FollowerInput, predict_leader, rigid_body_target
 from phalanx.agents.control.limits import CommandLimiter, KinematicLimits
 from phalanx.agents.fsm import State, TransitionEvent
-from phalanx.agents.leadership import Flags, Leadership, LeadershipChange, group_deadlock
+from phalanx.agents.leadership import (
+    Flags,
+    Leadership,
+    LeadershipChange,
+    LiveFlags,
+    group_deadlock,
+)
 from phalanx.agents.mapping import OccupancyMap
 from phalanx.agents.perception import (
     HEADINGS_RAD,
@@ -203,7 +209,7 @@ class Agent:
         self._turn_side = 1
         self._escape: Vec2 | None = None
         self._others_busy = False
-        self._stopped_before: set[str] = set()
+        self._stopped_before: frozenset[str] = frozenset()
         self._pausing = False  # the deadlock reverse standing still before it backs off
         self._leader_still_s = 0.0  # how long the tracked robot has stood still
         self._chosen: float | None = None  # last heading steered for (world frame, rad)
@@ -213,6 +219,9 @@ class Agent:
         self.map: OccupancyMap | None = None  # built from the sonar unless scripted
         self._carrot: Vec2 | None = None  # where the route leads next (world frame)
         self._planned_s = -math.inf
+        # The robots near enough in the shape for the sonar to hear (only these are masked).
+        audible_m = self.sonar.mount_m + self.sonar.max_range_m + self.radius_m + EXPECTED_MASK_M
+        self._maskable = {r: o for r, o in self._offsets.items() if o.norm() < audible_m + 1.0}
         # How far the shape reaches from this robot (what turning on the spot sweeps).
         self._reach_m = max((o.norm() for o in self._offsets.values()), default=0.0)
         self._half_span_m = self._span_from_centre()
@@ -299,9 +308,9 @@ class Agent:
             return None
         return state
 
-    def _hear(self, live: Flags, t_s: float) -> None:
+    def _hear(self, live: LiveFlags, t_s: float) -> None:
         """Join once anyone is heard; followers take the group's progress from the leader."""
-        others = [r for r in live if r != self.robot_id]
+        others = len(live) - (self.robot_id in live)
         waited_s = t_s - (self._started_s or t_s)
         if others or waited_s >= self.scenario.leadership.join_timeout_s:
             self.ctx.joined = True
@@ -349,7 +358,7 @@ class Agent:
             known.append((pose.to_body(predicted.position), self.radius_m + TRACKED_MASK_M))
         if self.fsm.state not in OUT_OF_FORMATION:
             radius_m = self.radius_m + EXPECTED_MASK_M
-            for rid, offset in self._offsets.items():
+            for rid, offset in self._maskable.items():
                 flags = live.get(rid)
                 # Not heard yet (starting up) counts as in its slot, as the scenario has it.
                 in_slot = flags.formed if flags is not None else t_s < self._startup_until_s
@@ -365,13 +374,14 @@ class Agent:
         t_s: float,
     ) -> Sensing:
         status, odometry = observation.status, observation.odometry
-        raw = self.sonar.points(status.sonar_ranges_m)
-        known = self._known_robots(lead, live, t_s, odometry.pose)
-        masked = self.sonar.points(status.sonar_ranges_m, known)
+        ranges = np.asarray(status.sonar_ranges_m, dtype=np.float64)
+        raw = self.sonar.points(ranges)
+        echo = self.sonar.echoes(ranges, self._known_robots(lead, live, t_s, odometry.pose))
+        masked = self.sonar.points_of(ranges, echo)
         if self.plan != "scripted" and self.nav.reactive:
             if self.map is None:
                 self.map = OccupancyMap(odometry.pose.position)
-            self.map.update(odometry.pose, self.sonar, status.sonar_ranges_m, known)
+            self.map.update(odometry.pose, self.sonar, ranges, echo)
         half_width = self.radius_m + self.nav.body_margin_m
         ahead_m = clearance_along(masked, 0.0, half_width_m=half_width)
         behind_m = clearance_along(masked, math.pi, half_width_m=half_width)
@@ -482,7 +492,7 @@ class Agent:
         observation: Observation,
         sensing: Sensing,
         lead: RobotState | None,
-        live: Flags,
+        live: LiveFlags,
         change: LeadershipChange | None,
         t_s: float,
     ) -> None:
@@ -507,14 +517,11 @@ class Agent:
         c.parent_fresh = lead is not None
         c.parent_v_mps = lead.v_mps if lead else 0.0
         c.parent_direction = lead.direction if lead else 1
-        others = {r: f for r, f in live.items() if r != self.robot_id}
-        stopped = {r for r, f in others.items() if f.fsm_state == State.EMERGENCY_STOP}
+        stopped = live.stopped - {self.robot_id}
         if self.fsm.state != State.DEADLOCK_REVERSE:
             self._stopped_before = stopped  # stops for what lay ahead are not a reason
         c.someone_stopped = bool(stopped - self._stopped_before)
-        self._others_busy = any(
-            f.fsm_state in OUT_OF_FORMATION | {State.HOLD} for f in others.values()
-        )
+        self._others_busy = len(live.busy) > (self.robot_id in live.busy)
         self._refresh_deadlock(live)
         self._refresh_motion(observation.odometry)
 

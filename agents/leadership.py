@@ -29,6 +29,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass
+from functools import cached_property
 from typing import Protocol
 
 from phalanx.agents.behaviours.stack import DEADLOCK_STATES, OUT_OF_FORMATION
@@ -76,6 +77,7 @@ _HANDING_STATES = frozenset({State.NAVIGATE, State.WANDER})
 _CANDIDATE_STATES = frozenset({State.FORMATION_TRACK, State.FORMATION_REVERSE})
 # A deadlock is a leader stuck while going forwards (its flags then say what lies ahead).
 _DEADLOCK_FROM = _HANDING_STATES | {State.EMERGENCY_STOP}
+_BUSY_STATES = OUT_OF_FORMATION | {State.HOLD}
 
 
 @dataclass(frozen=True, slots=True)
@@ -91,11 +93,53 @@ class LeadershipChange:
 
 def newer(a: tuple[int, str], b: tuple[int, str], formation: Formation) -> bool:
     """Whether `(epoch, leader)` pair `a` supersedes `b` (rule 1)."""
-    order = formation.robot_ids
-    if a[1] not in order:
+    rank = formation.rank
+    if a[1] not in rank:
         return False
-    rank_b = order.index(b[1]) if b[1] in order else len(order)
-    return (a[0], -order.index(a[1])) > (b[0], -rank_b)
+    return (a[0], -rank[a[1]]) > (b[0], -rank.get(b[1], len(rank)))
+
+
+class LiveFlags(dict[str, FlagsView]):
+    """The flags of the robots heard lately, with the group-wide summaries every robot
+    asks of them worked out once: robots stepped in one process (the batch runner) share
+    one per control step, so a step costs each of them O(1) in the group's size, not O(n).
+    """
+
+    def __init__(self, flags: Mapping[str, FlagsView], formation: Formation) -> None:
+        super().__init__(flags)
+        self.formation = formation
+
+    @cached_property
+    def newest(self) -> tuple[int, str] | None:
+        """The newest `(epoch, leader)` claim among the flags (rule 1), None if none."""
+        rank = self.formation.rank
+        claims = [(f.epoch, f.formation_leader_id) for f in self.values()]
+        valid = [c for c in claims if c[1] in rank]
+        return max(valid, key=lambda c: (c[0], -rank[c[1]])) if valid else None
+
+    @cached_property
+    def all_blocked(self) -> bool:
+        """Whether every robot heard reports an obstacle on its path."""
+        return all(f.obstacle for f in self.values())
+
+    @cached_property
+    def stopped(self) -> frozenset[str]:
+        """The robots in an emergency stop."""
+        return frozenset(r for r, f in self.items() if f.fsm_state == State.EMERGENCY_STOP)
+
+    @cached_property
+    def busy(self) -> frozenset[str]:
+        """The robots out of formation or holding still."""
+        return frozenset(r for r, f in self.items() if f.fsm_state in _BUSY_STATES)
+
+
+class _LastLive:
+    """The last `LiveFlags` built, kept for the next robot of the same step to reuse: same
+    flags object, time, formation and timeout give the same live flags.
+    """
+
+    key: tuple[object, float, object, float] | None = None
+    value: LiveFlags | None = None
 
 
 def best(formation: Formation, candidates: Flags, others: tuple[str, ...] = ()) -> str | None:
@@ -143,16 +187,35 @@ class Leadership:
         """Whether this robot leads the formation."""
         return self.leader_id == self.robot_id
 
-    def live(self, flags: Flags, t_s: float) -> dict[str, FlagsView]:
+    def live(self, flags: Flags, t_s: float) -> LiveFlags:
         """The flags of robots of this formation heard within `timeout_s` of `t_s`."""
-        return {
-            r: f
-            for r, f in flags.items()
-            if r in self.formation.positions and t_s - f.stamp_s <= self.timeout_s + _EPS_S
-        }
+        key = (flags, t_s, self.formation, self.timeout_s)
+        last = _LastLive.key
+        if (
+            last is not None
+            and last[0] is flags
+            and last[1] == t_s
+            and last[2] is self.formation
+            and last[3] == self.timeout_s
+            and _LastLive.value is not None
+        ):
+            return _LastLive.value
+        positions = self.formation.positions
+        live = LiveFlags(
+            {
+                r: f
+                for r, f in flags.items()
+                if r in positions and t_s - f.stamp_s <= self.timeout_s + _EPS_S
+            },
+            self.formation,
+        )
+        _LastLive.key, _LastLive.value = key, live
+        return live
 
     def update(self, live: Flags, t_s: float) -> LeadershipChange | None:
         """Adopt newer epochs, then apply the loss and handover rules; the change, if any."""
+        if not isinstance(live, LiveFlags):
+            live = LiveFlags(live, self.formation)
         adopted = self._adopt(live, t_s)
         if self.leader_id in live:
             self.leader_heard_s = max(self.leader_heard_s, live[self.leader_id].stamp_s)
@@ -163,14 +226,9 @@ class Leadership:
         """Whether the leader is gone from this robot's view (followers hold)."""
         return not self.is_leader and self.leader_id not in live
 
-    def _adopt(self, live: Flags, t_s: float) -> LeadershipChange | None:
-        mine = (self.epoch, self.leader_id)
-        newest = mine
-        for f in live.values():
-            theirs = (f.epoch, f.formation_leader_id)
-            if newer(theirs, newest, self.formation):
-                newest = theirs
-        if newest == mine:
+    def _adopt(self, live: LiveFlags, t_s: float) -> LeadershipChange | None:
+        newest = live.newest
+        if newest is None or not newer(newest, (self.epoch, self.leader_id), self.formation):
             return None
         return self._set(newest[1], newest[0], t_s, "newer epoch heard")
 
@@ -195,7 +253,7 @@ class Leadership:
         why = f"leader {self.leader_id} silent for {silent_s:.1f} s"
         return self._set(chosen, self.epoch + 1, t_s, why)
 
-    def _handover(self, live: Flags, t_s: float) -> LeadershipChange | None:
+    def _handover(self, live: LiveFlags, t_s: float) -> LeadershipChange | None:
         lead = live.get(self.leader_id)
         if (
             not self.config.handover
@@ -205,7 +263,7 @@ class Leadership:
             or lead.fsm_state not in _HANDING_STATES
             or lead.dead_end
             or t_s - self.since_s < self.config.min_tenure_s - _EPS_S
-            or all(f.obstacle for f in live.values())
+            or live.all_blocked
         ):
             return None
         clear = {r: f for r, f in live.items() if r != self.leader_id and can_lead(f)}

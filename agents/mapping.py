@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from phalanx.agents.perception import ARC_SPREAD_M, SonarGeometry
+from phalanx.agents.perception import ARC_SPREAD_M, BoolArray, SonarGeometry
 from phalanx.geometry import Pose2D, Vec2
 
 FloatArray = npt.NDArray[np.float64]
@@ -68,18 +68,19 @@ class OccupancyMap:
         self,
         pose: Pose2D,
         sonar: SonarGeometry,
-        ranges_m: Sequence[float],
-        known: Sequence[tuple[Vec2, float]] = (),
+        ranges_m: Sequence[float] | FloatArray,
+        echo: BoolArray | None = None,
     ) -> None:
-        """Add one reading taken at `pose` (echoes of `known` robots left out)."""
+        """Add one reading taken at `pose`: the echoes `echo` marks (`sonar.echoes`: the
+        formation's robots left out), every echo if not given.
+        """
         ranges = np.asarray(ranges_m, dtype=np.float64)
         units = sonar.unit_x_m.size
         if ranges.size < units:
             return
         r = ranges[:units]
-        echo = r < sonar.max_range_m - 1e-6
-        for centre, radius_m in known:
-            echo &= ~sonar.arc_meets(ranges, centre, radius_m)
+        if echo is None:
+            echo = sonar.echoes(ranges)
         c, s = math.cos(pose.theta_rad), math.sin(pose.theta_rad)
         ox = pose.x_m + c * sonar.unit_x_m - s * sonar.unit_y_m
         oy = pose.y_m + s * sonar.unit_x_m + c * sonar.unit_y_m

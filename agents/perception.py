@@ -14,6 +14,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 import numpy.typing as npt
@@ -27,6 +28,7 @@ NO_OBSTACLE_M = math.inf
 # Candidate headings of the reactive navigator, body frame: every 7.5 deg all round.
 HEADINGS_RAD: FloatArray = np.radians(np.arange(-180.0, 180.0, 7.5))
 _AT_MAX_RANGE_M = 1e-6
+_REACH_MARGIN_M = 1e-3
 # Blind gaps between beams are filled with the neighbours' echoes within this range (m).
 GAP_FILL_RANGE_M = 1.5
 # Lateral spread an echo's arc is narrowed to when far (m).
@@ -100,7 +102,7 @@ class SonarGeometry:
         )
 
     def points(
-        self, ranges_m: Sequence[float], known: Sequence[tuple[Vec2, float]] = ()
+        self, ranges_m: Sequence[float] | FloatArray, known: Sequence[tuple[Vec2, float]] = ()
     ) -> tuple[FloatArray, FloatArray]:
         """Obstacle points (x, y in m, body frame) of a reading.
 
@@ -111,13 +113,16 @@ class SonarGeometry:
         ranges = np.asarray(ranges_m, dtype=np.float64)
         if ranges.size < self.unit_x_m.size:
             return np.zeros(0), np.zeros(0)
-        echo = ranges[: self.unit_x_m.size] < self.max_range_m - _AT_MAX_RANGE_M
-        for centre, radius_m in known:
-            echo &= ~self.arc_meets(ranges, centre, radius_m)
+        return self.points_of(ranges, self.echoes(ranges, known))
+
+    def points_of(self, ranges: FloatArray, echo: BoolArray) -> tuple[FloatArray, FloatArray]:
+        """Obstacle points of the transducers `echo` marks (see `echoes`)."""
         r = ranges[self.unit_of_ray]
         # A blind gap is assumed as near as its neighbour only close by, where it matters
         # for safety; far off it would close every opening the robot aims for.
         seen = echo[self.unit_of_ray] & (~self.gap_fill | (r < GAP_FILL_RANGE_M))
+        if not seen.any():
+            return np.zeros(0), np.zeros(0)
         # Far off, the beam's arc is narrowed to `ARC_SPREAD_M` across: a wall's edge
         # grazed by the side of a beam 4 m off would otherwise seem to close a doorway.
         # Closer in the arc widens again, so what is really there is seen in time.
@@ -128,16 +133,43 @@ class SonarGeometry:
         y = self.origin_y_m + r * np.sin(angle)
         return x[seen], y[seen]
 
-    def arc_meets(self, ranges: FloatArray, centre: Vec2, radius_m: float) -> BoolArray:
-        """Per transducer: whether its echo's arc passes within `radius_m` of `centre`."""
+    def echoes(self, ranges: FloatArray, known: Sequence[tuple[Vec2, float]] = ()) -> BoolArray:
+        """Per transducer: an echo (short of max range) that is not one of the `known`
+        discs (see `points`). `ranges` holds at least one reading per transducer.
+        """
         r = ranges[: self.unit_x_m.size]
-        towards = np.arctan2(centre.y_m - self.unit_y_m, centre.x_m - self.unit_x_m)
+        echo: BoolArray = r < self.max_range_m - _AT_MAX_RANGE_M
+        if not known or not echo.any():
+            return echo
+        # No echo's arc reaches further from the body origin than this: a disc wholly
+        # beyond it cannot be met (the margin keeps rounding on the safe side).
+        reach_m = self.mount_m + float(r[echo].max()) + _REACH_MARGIN_M
+        near = [(c, rad) for c, rad in known if math.hypot(c.x_m, c.y_m) - rad < reach_m]
+        if near:
+            echo &= ~self.arcs_meet(r, near).any(axis=0)
+        return echo
+
+    def arcs_meet(self, r: FloatArray, discs: Sequence[tuple[Vec2, float]]) -> BoolArray:
+        """Per disc (row) and transducer (column): whether the transducer's echo arc at
+        range `r` passes within the disc (`(centre, radius_m)`, body frame).
+        """
+        cx = np.array([[c.x_m] for c, _ in discs])
+        cy = np.array([[c.y_m] for c, _ in discs])
+        radius = np.array([[rad] for _, rad in discs])
+        towards = np.arctan2(cy - self.unit_y_m, cx - self.unit_x_m)
         off = np.mod(towards - self.unit_heading_rad + math.pi, 2.0 * math.pi) - math.pi
-        nearest = self.unit_heading_rad + np.clip(off, -self.reach_right_rad, self.reach_left_rad)
+        nearest = self.unit_heading_rad + np.minimum(
+            np.maximum(off, -self.reach_right_rad), self.reach_left_rad
+        )
         px = self.unit_x_m + r * np.cos(nearest)
         py = self.unit_y_m + r * np.sin(nearest)
-        meets: BoolArray = np.hypot(px - centre.x_m, py - centre.y_m) < radius_m
+        meets: BoolArray = np.hypot(px - cx, py - cy) < radius
         return meets
+
+    @cached_property
+    def mount_m(self) -> float:
+        """The furthest transducer from the body origin (m)."""
+        return float(np.hypot(self.unit_x_m, self.unit_y_m).max())
 
 
 def _reach(headings: Sequence[float], i: int, half_beam_rad: float) -> tuple[float, float]:

@@ -9,8 +9,10 @@ slot positions. That is what lets leadership pass to any robot (DESIGN.md).
 from __future__ import annotations
 
 import math
+from collections import deque
 from collections.abc import Mapping
 from dataclasses import dataclass
+from functools import cached_property
 
 from phalanx.config import FormationConfig, Scenario
 from phalanx.errors import ConfigError
@@ -29,10 +31,15 @@ class Formation:
         """The robot that follows nobody (the formation leader)."""
         return next(r for r, p in self.parents.items() if p is None)
 
-    @property
+    @cached_property
     def robot_ids(self) -> tuple[str, ...]:
         """Every robot, in definition order."""
         return tuple(self.positions)
+
+    @cached_property
+    def rank(self) -> Mapping[str, int]:
+        """Every robot's place in definition order (0 first)."""
+        return {r: i for i, r in enumerate(self.positions)}
 
     def leader_of(self, robot_id: str) -> str | None:
         """The robot `robot_id` tracks, or None for the root."""
@@ -40,7 +47,15 @@ class Formation:
 
     def followers_of(self, robot_id: str) -> tuple[str, ...]:
         """The robots that track `robot_id`."""
-        return tuple(r for r, p in self.parents.items() if p == robot_id)
+        return self._followers.get(robot_id, ())
+
+    @cached_property
+    def _followers(self) -> Mapping[str, tuple[str, ...]]:
+        children: dict[str, list[str]] = {}
+        for r, p in self.parents.items():
+            if p is not None:
+                children.setdefault(p, []).append(r)
+        return {p: tuple(c) for p, c in children.items()}
 
     def neighbours(self, robot_id: str) -> tuple[str, ...]:
         """Robots joined to `robot_id` in the follow tree, either way (its parent first)."""
@@ -52,9 +67,9 @@ class Formation:
         `start` not. Re-rooting the tree at `goal` makes the first of them `start`'s parent.
         """
         previous: dict[str, str] = {}
-        frontier, seen = [start], {start}
+        frontier, seen = deque([start]), {start}
         while frontier and goal not in seen:
-            here = frontier.pop(0)
+            here = frontier.popleft()
             for nxt in self.neighbours(here):
                 if nxt not in seen:
                     seen.add(nxt)

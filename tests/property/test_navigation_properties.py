@@ -8,16 +8,20 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from phalanx.agents.leadership import Leadership, newer
+from phalanx.agents.leadership import Leadership, LiveFlags, newer
 from phalanx.agents.perception import (
     HEADINGS_RAD,
     NEAR_NEED_M,
+    SonarGeometry,
     choose_heading,
     corridor_clearance,
 )
-from phalanx.config import FormationConfig, LeadershipConfig, SlotConfig
+from phalanx.config import FormationConfig, LeadershipConfig, SlotConfig, load_robot
 from phalanx.formation import Formation, resolve_formation
+from phalanx.geometry import Vec2
 from phalanx.messages import RobotFlags
+
+SONAR = SonarGeometry.from_params(load_robot("p3dx"))
 
 
 @st.composite
@@ -133,3 +137,57 @@ def test_the_chosen_heading_lies_within_the_window(
     need = np.minimum(2.0, NEAR_NEED_M + (2.0 - NEAR_NEED_M) * offs / window)
     if ((clear >= need) & (offs <= window)).any():  # a way exists: the choice is one of them
         assert clear[index] >= need[index] - 1e-9
+
+
+@settings(max_examples=80, deadline=None)
+@given(trees(), st.data())
+def test_newest_claim_is_the_one_a_fold_of_newer_adopts(
+    formation: Formation, data: st.DataObject
+) -> None:
+    """`LiveFlags.newest`, worked out once for the whole group, picks what folding rule 1
+    over every robot's flags from any robot's own view would."""
+    ids = list(formation.robot_ids)
+    claims = {
+        r: RobotFlags(
+            robot_id=r,
+            seq=1,
+            stamp_s=1.0,
+            fsm_state="FORMATION_TRACK",
+            epoch=data.draw(st.integers(0, 3)),
+            formation_leader_id=data.draw(st.sampled_from([*ids, "stranger"])),
+        )
+        for r in ids
+    }
+    live = LiveFlags(claims, formation)
+    mine = (data.draw(st.integers(0, 3)), data.draw(st.sampled_from(ids)))
+    folded = mine
+    for f in claims.values():
+        if newer((f.epoch, f.formation_leader_id), folded, formation):
+            folded = (f.epoch, f.formation_leader_id)
+    adopted = live.newest if live.newest and newer(live.newest, mine, formation) else mine
+    assert adopted == folded
+
+
+@settings(max_examples=150, deadline=None)
+@given(st.lists(st.floats(0.2, 5.5), min_size=16, max_size=16), st.data())
+def test_echoes_of_known_robots_match_the_disc_by_disc_test(
+    ranges: list[float], data: st.DataObject
+) -> None:
+    """Dropping far discs before the vectorised test changes nothing: every echo is kept
+    or dropped exactly as testing each disc on its own would. Discs sit anywhere, and
+    near some echo's arc (where a wrong cut-off would show)."""
+    r = np.clip(np.array(ranges), 0.0, SONAR.max_range_m)
+    known = []
+    for _ in range(data.draw(st.integers(0, 6))):
+        k = data.draw(st.integers(0, 15))
+        along = float(r[k]) + data.draw(st.floats(-0.7, 0.7))
+        bearing = float(SONAR.unit_heading_rad[k]) + data.draw(st.floats(-0.5, 0.5))
+        centre = Vec2(
+            float(SONAR.unit_x_m[k]) + along * math.cos(bearing),
+            float(SONAR.unit_y_m[k]) + along * math.sin(bearing),
+        )
+        known.append((centre, data.draw(st.floats(0.1, 0.6))))
+    expected = r < SONAR.max_range_m - 1e-6
+    for centre, radius_m in known:
+        expected &= ~SONAR.arcs_meet(r, [(centre, radius_m)])[0]
+    assert np.array_equal(SONAR.echoes(r, known), expected)
