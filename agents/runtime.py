@@ -45,6 +45,7 @@ from phalanx.telemetry import Telemetry, sonar_rays
 from phalanx.transport import (
     FleetSession,
     History,
+    Polled,
     TransportConfig,
     alive_key,
     open_session,
@@ -57,6 +58,11 @@ from phalanx.transport import (
 log = logging.getLogger("phalanx.agent")
 ClockMode = Literal["lockstep", "realtime"]
 EPS_S = 1e-6
+# Flags (or states) held per robot between two steps before the oldest are dropped (one
+# arrives per robot and control period; the ring absorbs a late step).
+FLAGS_RING_PER_ROBOT = 8
+# Unchanged flags go out at least this often (and three times per leader timeout).
+FLAGS_HEARTBEAT_S = 0.2
 REPORT_FLUSH_S = 2.0  # how long the final report waits for telemetry to go out
 S = TypeVar("S", RobotState, RobotFlags)
 
@@ -70,6 +76,41 @@ def pick_state(states: list[S], not_after_s: float) -> S | None:
         ):
             chosen = state
     return chosen
+
+
+# What flags say, as far as other robots decide on it: not who sent them, their sequence
+# number or stamp, nor a follower's copy of the leader's profile clock (only the leader's
+# is read).
+_FLAGS_VOLATILE = frozenset({"version", "robot_id", "seq", "stamp_s", "profile_s"})
+_FLAGS_DECISIVE = tuple(f for f in RobotFlags.model_fields if f not in _FLAGS_VOLATILE)
+
+
+class FlagsThrottle:
+    """Decides which flags go out: those that say something new, and unchanged ones as a
+    heartbeat every `heartbeat_s` (every robot hears every robot: unchanged flags at
+    every step would cost the fleet n^2 messages a period for nothing).
+    """
+
+    def __init__(self, heartbeat_s: float) -> None:
+        self.heartbeat_s = heartbeat_s
+        self.skipped = 0
+        self._sent: tuple[float, tuple[object, ...]] | None = None  # when, what
+
+    def due(self, flags: RobotFlags) -> bool:
+        """Whether to publish `flags` (if so, they count as sent)."""
+        content = tuple(getattr(flags, f) for f in _FLAGS_DECISIVE)
+        if flags.formation_leader_id == flags.robot_id:
+            content += (flags.profile_s,)
+        sent = self._sent
+        if (
+            sent is None
+            or content != sent[1]
+            or flags.stamp_s - sent[0] >= self.heartbeat_s - EPS_S
+        ):
+            self._sent = (flags.stamp_s, content)
+            return True
+        self.skipped += 1
+        return False
 
 
 @dataclass
@@ -107,7 +148,7 @@ class AgentRuntime:
         self.step_times_s: list[float] = []
         self.telemetry = telemetry
         self.peers = History(depth=16)
-        self.flags = History(depth=16)
+        self.flags = History(depth=4)  # one a period per robot; real time needs the newest
         self.frames: queue.Queue[SenseFrame] = queue.Queue()
         self.dead: set[str] = set()
         self.steps = 0
@@ -115,6 +156,9 @@ class AgentRuntime:
         self.announcements: list[LeaderAnnouncement] = []
         self._subscribed: set[str] = set()
         self._session: FleetSession | None = None
+        self._flag_ring: Polled[RobotFlags] | None = None
+        self._state_rings: list[Polled[RobotState]] = []
+        self.flags_out = FlagsThrottle(min(FLAGS_HEARTBEAT_S, scenario.leader_timeout_s / 3))
 
     @property
     def lockstep(self) -> bool:
@@ -132,7 +176,7 @@ class AgentRuntime:
         leader = self.agent.leadership.leader_id
         if leader == self.robot_id:
             return ()
-        return self.formation.tree_path(self.robot_id, leader)
+        return self.agent.leadership.path(self.robot_id)
 
     def run(self, stop: Stoppable) -> AgentReport:
         """Serve ticks until the world's final frame, `stop`, or no frame for a while."""
@@ -156,7 +200,11 @@ class AgentRuntime:
         if self.lockstep:  # every state (they carry the flags): as the batch runner has them
             session.subscribe(robots_key(fleet, "state"), RobotState, self._on_state)
         else:
-            session.subscribe(robots_key(fleet, "flags"), RobotFlags, self._on_flags)
+            # Every robot hears every robot: drained once per step, not a wake-up each.
+            capacity = FLAGS_RING_PER_ROBOT * len(self.formation.robot_ids)
+            self._flag_ring = session.subscribe_polled(
+                robots_key(fleet, "flags"), RobotFlags, capacity
+            )
             self._follow_path()
         session.subscribe(leader_key(fleet), LeaderAnnouncement, self._on_announcement)
         session.watch_alive(f"phalanx/{fleet}/alive/*", self._on_alive)
@@ -180,9 +228,9 @@ class AgentRuntime:
         for peer in self.watched:
             if peer not in self._subscribed:
                 self._subscribed.add(peer)
-                self._session.subscribe(
-                    robot_key(self.options.fleet, peer, "state"), RobotState, self._on_state
-                )
+                key = robot_key(self.options.fleet, peer, "state")
+                ring = self._session.subscribe_polled(key, RobotState, FLAGS_RING_PER_ROBOT)
+                self._state_rings.append(ring)
 
     def _on_alive(self, key: str, alive: bool) -> None:
         robot = key.rsplit("/", 1)[-1]
@@ -204,6 +252,7 @@ class AgentRuntime:
             "leader": self.agent.leadership.leader_id,
             "epoch": self.agent.leadership.epoch,
             "late_peer_steps": self.late_peer_steps,
+            "flags_skipped": self.flags_out.skipped,
             "decode": stats,
         }
 
@@ -262,6 +311,10 @@ class AgentRuntime:
                 formation=self.formation,
                 joining=True,
             )
+        if self._flag_ring is not None:
+            self._flag_ring.drain(self._on_flags)
+        for ring in self._state_rings:
+            ring.drain(self._on_state)
         peers, flags = self._peers_for(frame)  # (the bounded wait for peers is not step time)
         started = time.perf_counter()
         self._last_peers = peers
@@ -285,9 +338,19 @@ class AgentRuntime:
     def _publish(self, frame: SenseFrame, out: StepOutput) -> None:
         assert self._session is not None  # noqa: S101 - only called inside run()
         fleet, rid = self.options.fleet, self.robot_id
+        if self.publish_commands:  # first: the world (lockstep) waits on it
+            command = VelocityCommand(
+                robot_id=rid,
+                tick=frame.tick,
+                stamp_s=frame.t_s,
+                v_mps=out.command.v_mps,
+                omega_radps=out.command.omega_radps,
+            )
+            self._session.publish(robot_key(fleet, rid, "cmd"), command, reliable_block=True)
         self._session.publish(robot_key(fleet, rid, "state"), out.state)
         flags = out.flags
-        self._session.publish(robot_key(fleet, rid, "flags"), flags)
+        if self.flags_out.due(flags):
+            self._session.publish(robot_key(fleet, rid, "flags"), flags)
         # Its own flags and state, as published, are part of what the next step decides on.
         self.flags.push(rid, flags)
         self.peers.push(rid, out.state)
@@ -318,15 +381,6 @@ class AgentRuntime:
                     target=event.target,
                     reason=event.reason,
                 )
-        command = VelocityCommand(
-            robot_id=rid,
-            tick=frame.tick,
-            stamp_s=frame.t_s,
-            v_mps=out.command.v_mps,
-            omega_radps=out.command.omega_radps,
-        )
-        if self.publish_commands:
-            self._session.publish(robot_key(fleet, rid, "cmd"), command, reliable_block=True)
         if self.telemetry is not None:
             self._log_step(frame, out)
 

@@ -24,7 +24,7 @@ import time
 from collections import deque
 from collections.abc import Callable, Iterable
 from types import TracebackType
-from typing import Any, Literal, Self, TypeVar
+from typing import Any, Generic, Literal, Self, TypeVar
 
 from pydantic import BaseModel, ConfigDict, Field
 
@@ -167,6 +167,29 @@ class History:
             self._values.pop(robot_id, None)
 
 
+class Polled(Generic[M]):
+    """A subscription whose messages wait in a ring until `drain` (see
+    `FleetSession.subscribe_polled`).
+    """
+
+    def __init__(self, subscriber: Any, model: type[M], stats: DecodeStats) -> None:
+        self._subscriber = subscriber
+        self._model = model
+        self._stats = stats
+
+    def drain(self, on_message: Callable[[str, M], None]) -> int:
+        """Call `on_message(key, value)` for every valid message waiting (malformed ones
+        counted); how many samples were taken.
+        """
+        taken = 0
+        while (sample := self._subscriber.try_recv()) is not None:
+            taken += 1
+            value = decode(self._model, sample.payload.to_bytes(), self._stats)
+            if value is not None:
+                on_message(str(sample.key_expr), value)
+        return taken
+
+
 class FleetSession:
     """A Zenoh session with phalanx's codec, drop counting and liveliness; context manager."""
 
@@ -229,6 +252,19 @@ class FleetSession:
                 on_message(str(sample.key_expr), value)
 
         self._keep.append(self._session.declare_subscriber(key_expr, callback))
+
+    def subscribe_polled(self, key_expr: str, model: type[M], capacity: int) -> Polled[M]:
+        """Hold arriving messages in a ring of `capacity` (the oldest dropped when full)
+        until the owner drains them on its own thread: no Zenoh thread wakes Python per
+        message, which is what a subscription every robot hears from every robot needs.
+        """
+        import zenoh
+
+        subscriber = self._session.declare_subscriber(
+            key_expr, zenoh.handlers.RingChannel(capacity)
+        )
+        self._keep.append(subscriber)
+        return Polled(subscriber, model, self.stats)
 
     def declare_alive(self, key: str) -> None:
         """Hold a liveliness token on `key` while the session lives."""

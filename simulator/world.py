@@ -177,9 +177,11 @@ class World:
         self.bumped |= blocked
         # An episode lasts until the robot has backed CONTACT_RELEASE_M away, so a robot
         # pushing against a wall is one collision, not one per sub-step.
-        loose = self._touching(self.x, self.y, self.robot.radius_m + CONTACT_RELEASE_M)
-        still = {(self._ids[i], o) for i, o in loose}
-        self._contacts = (self._contacts & still) | {(self._ids[i], o) for i, o in touching}
+        if self._contacts:  # (none under way, the usual case: nothing to release)
+            loose = self._touching(self.x, self.y, self.robot.radius_m + CONTACT_RELEASE_M)
+            still = {(self._ids[i], o) for i, o in loose}
+            self._contacts &= still
+        self._contacts |= {(self._ids[i], o) for i, o in touching}
 
     def _record_contact(self, rid: str, other: str) -> None:
         if (rid, other) not in self._contacts:
