@@ -76,9 +76,10 @@ class RobotState(Message):
 
 
 class RobotFlags(Message):
-    """A robot's small behaviour flags, every control step on `.../robot/<id>/flags`, to
-    every robot of the fleet: enough to take the leadership and deadlock decisions the
-    same way on every robot (`phalanx.agents.leadership`), without anyone's pose.
+    """A robot's small behaviour flags on `.../robot/<id>/flags`, to every robot of the
+    fleet, when they change and otherwise as a heartbeat (`agents.runtime.FlagsThrottle`):
+    enough to take the leadership and deadlock decisions the same way on every robot
+    (`phalanx.agents.leadership`), without anyone's pose.
 
     `obstacle`: its path is blocked (in its direction of motion), for `blocked_s`;
     `dead_end`: (a leader) its route leads back the way it came and the shape has no room
