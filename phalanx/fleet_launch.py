@@ -20,8 +20,7 @@ import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from types import TracebackType
-from typing import Any, Protocol, Self
+from typing import Any, Protocol
 
 from pydantic import ValidationError
 
@@ -41,6 +40,7 @@ from phalanx.hostproto import (
     hosts_key,
     logs_key,
 )
+from phalanx.lifecycle import Closing
 from phalanx.messages import RobotState
 from phalanx.signals import Stoppable
 from phalanx.transport import FleetSession, TransportConfig, open_session, robots_key, status_key
@@ -144,7 +144,7 @@ class FleetWatch:
             return all(self.first_seen.get(r, -1.0) >= since for r in robot_ids)
 
 
-class FleetClient:
+class FleetClient(Closing):
     """A client session on a deployment's fabric; asks its hosts; context manager."""
 
     def __init__(self, loaded: LoadedDeployment, transport: TransportConfig) -> None:
@@ -308,17 +308,6 @@ class FleetClient:
     def close(self) -> None:
         """Close the session; safe twice."""
         self.session.close()
-
-    def __enter__(self) -> Self:
-        return self
-
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        self.close()
 
 
 def _first_reply(replies: Any) -> HostReply | None:
@@ -595,7 +584,7 @@ def _styled(process: str) -> str:
     return f"[{colour[process]}]{process}[/]" if process in colour else process
 
 
-class LiveOutput:
+class LiveOutput(Closing):
     """A live rich table; events and log lines scroll above it. Context manager."""
 
     def __init__(self, title: str, *, logs: bool = True) -> None:
@@ -630,17 +619,6 @@ class LiveOutput:
     def close(self) -> None:
         """Stop redrawing; safe twice."""
         self.live.stop()
-
-    def __enter__(self) -> Self:
-        return self
-
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        self.close()
 
 
 def status_document(

@@ -32,8 +32,7 @@ from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from types import TracebackType
-from typing import Any, Literal, Self
+from typing import Any, Literal
 from urllib.parse import urlparse
 
 import numpy as np
@@ -42,6 +41,7 @@ from pydantic import BaseModel, ConfigDict
 
 from phalanx.config import RobotParams
 from phalanx.geometry import Pose2D, Twist2D, Vec2
+from phalanx.lifecycle import Closing
 from phalanx.rerun_layout import (
     StepRow,
     TruthRow,
@@ -169,7 +169,7 @@ class _Batch:
     started_s: float = field(default_factory=time.monotonic)
 
 
-class Telemetry:
+class Telemetry(Closing):
     """phalanx's entity layout over one recording id, to a file, a viewer, both, or memory.
 
     Every call only appends to a bounded outbox; a background thread hands entries to the
@@ -551,17 +551,6 @@ class Telemetry:
         if stream.kind == "file":
             stream.rec.disconnect()  # finalizes the .rrd footer
         stream.rec = None
-
-    def __enter__(self) -> Self:
-        return self
-
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        self.close()
 
 
 def sonar_rays(

@@ -23,13 +23,13 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable, Iterable
-from types import TracebackType
-from typing import Any, Generic, Literal, Self, TypeVar
+from typing import Any, Generic, Literal, TypeVar
 
 from pydantic import BaseModel, ConfigDict, Field
 
 from phalanx.codec import DecodeStats, decode, encode
 from phalanx.errors import TransportError
+from phalanx.lifecycle import Closing
 from phalanx.messages import Message
 
 M = TypeVar("M", bound=Message)
@@ -190,7 +190,7 @@ class Polled(Generic[M]):
         return taken
 
 
-class FleetSession:
+class FleetSession(Closing):
     """A Zenoh session with phalanx's codec, drop counting and liveliness; context manager."""
 
     def __init__(self, cfg: TransportConfig) -> None:
@@ -313,17 +313,6 @@ class FleetSession:
         self._session.close()
         with _registry_lock:
             _open_sessions.discard(id(self))
-
-    def __enter__(self) -> Self:
-        return self
-
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        self.close()
 
 
 def _quietly(action: Callable[[], object]) -> None:

@@ -29,6 +29,7 @@ from phalanx.drivers.cia402 import (
     drive_od,
 )
 from phalanx.errors import DriverError
+from phalanx.lifecycle import Closing
 
 
 def next_state(state: int, controlword: int, previous_controlword: int) -> int:
@@ -183,7 +184,7 @@ class SimulatedDrive:
         self.node.emcy.send(code, 0x01)
 
 
-class SimulatedDiffDrive:
+class SimulatedDiffDrive(Closing):
     """Two simulated drives (left, right) on a python-can bus, stepped at `rate_hz` (the
     TPDO rate) by one thread.
     """
@@ -234,9 +235,3 @@ class SimulatedDiffDrive:
         for drive in self.drives:
             drive.node.nmt.stop_heartbeat()
         self.network.disconnect()
-
-    def __enter__(self) -> SimulatedDiffDrive:
-        return self
-
-    def __exit__(self, *_exc: object) -> None:
-        self.close()

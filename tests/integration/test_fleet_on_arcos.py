@@ -21,9 +21,11 @@ WEDGE = CONFIG_ROOT / "scenarios" / "paper_wedge.toml"
 SHORT = ["duration_s=45", "events.0.start_s=20", "deadlock.safe_distance_m=1.5"]
 # ARCOS quantises what the agents see and send (1 mm, 0.088 deg and 1 mm/s in SIPs; VEL in
 # mm/s, RVEL in whole deg/s), adds up to a 100 ms SIP cycle of delay, and runs on the wall
-# clock of a shared machine: the backward maxima may differ from the sim driver's lockstep
-# run by this much (measured differences are about a quarter of it, docs/PERFORMANCE.md),
-# and must stay within the paper's bounds.
+# clock of a shared machine: the backward RMS errors may differ from the sim driver's
+# lockstep run by this much, and the maxima must stay within the paper's bounds. (Maxima
+# against the sim run differ by about a quarter of this on a quiet machine,
+# docs/PERFORMANCE.md; one scheduling hiccup of the shared machine can put a single sample
+# 1 % off, which is why the comparison with the sim run is on the RMS.)
 TOLERANCE = {"linear_pct": 0.5, "angular_pct": 0.3, "orientation_deg": 0.5}
 BOUNDS = {"linear_pct": 2.0, "angular_pct": 0.8, "orientation_deg": 1.3}
 
@@ -42,11 +44,12 @@ def test_up_on_arcos_emulators_keeps_the_formation(tmp_path: Path) -> None:
     assert arcos["deadlock_reverses"] == sim["deadlock_reverses"] == 1
     assert arcos["collisions"] == []
     for rid in ("r2", "r3"):
+        got, want = arcos["followers"][rid]["backward"], sim["followers"][rid]["backward"]
         for key, bound in BOUNDS.items():
-            got = arcos["followers"][rid]["backward"][key]["max"]
-            want = sim["followers"][rid]["backward"][key]["max"]
-            assert got < bound, (rid, key, got)
-            assert abs(got - want) < TOLERANCE[key], (rid, key, got, want)
+            assert got[key]["max"] < bound, (rid, key, got[key], want[key])
+            assert abs(got[key]["rms"] - want[key]["rms"]) < TOLERANCE[key], (
+                rid, key, got[key], want[key],
+            )  # fmt: skip
     reports = arcos["runtime"]["agents"]
     assert sorted(reports) == ["r1", "r2", "r3"]
     assert all(r["steps"] >= 400 for r in reports.values())
