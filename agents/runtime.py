@@ -156,6 +156,7 @@ class AgentRuntime:
         self.announcements: list[LeaderAnnouncement] = []
         self._subscribed: set[str] = set()
         self._session: FleetSession | None = None
+        self.world_lost = False  # ended because the world's frames stopped coming
         self._flag_ring: Polled[RobotFlags] | None = None
         self._state_rings: list[Polled[RobotState]] = []
         self.flags_out = FlagsThrottle(min(FLAGS_HEARTBEAT_S, scenario.leader_timeout_s / 3))
@@ -264,10 +265,12 @@ class AgentRuntime:
             except queue.Empty:
                 if time.monotonic() - last_frame > self.options.frame_timeout_s:
                     log.warning(
-                        "%s: no frame for %.0f s, stopping",
+                        "%s: no frame from the world for %.0f s, stopping (a host daemon "
+                        "restarts it to rejoin)",
                         self.robot_id,
                         self.options.frame_timeout_s,
                     )
+                    self.world_lost = True
                     return
                 continue
             last_frame = time.monotonic()

@@ -18,6 +18,10 @@ if TYPE_CHECKING:
     from phalanx.telemetry import Telemetry
     from phalanx.transport import TransportConfig
 
+# `phalanx agent`'s exit code when the world's frames stopped coming (sim driver): not a
+# finished run, so a supervisor restarts it and it rejoins once the world is back.
+EXIT_WORLD_LOST = 3
+
 ScenarioArg = Annotated[
     Path, typer.Argument(help="Scenario TOML file.", exists=True, dir_okay=False)
 ]
@@ -107,6 +111,14 @@ def agent(
     watchdog: Annotated[
         float, typer.Option(help="Robot drivers: stop if no command for this long (s).")
     ] = 0.5,
+    frame_timeout: Annotated[
+        float,
+        typer.Option(
+            help="sim driver: give up (exit code 3) after this long without a frame from "
+            "the world (s).",
+            min=0.1,
+        ),
+    ] = 30.0,
     recording_id: RecordingIdOpt = None,
     telemetry_file: TelemetryFileOpt = None,
     telemetry_url: TelemetryUrlOpt = None,
@@ -122,15 +134,18 @@ def agent(
     params = load_robot(config.robot)
     stop = _stop_on_signals()
     with _telemetry(recording_id, telemetry_file, telemetry_url, robot) as telemetry:
-        report = _run_agent(
+        report, world_lost = _run_agent(
             robot, config, params, transport, fleet, clock, stop, telemetry,
             _backend(driver, arcos_port, arcos_tcp, baud, can_channel, can_interface),
-            epoch, watchdog,
+            epoch, watchdog, frame_timeout,
         )  # fmt: skip
     typer.echo(
         f"{robot}: {report.steps} steps, {report.saturations} saturations, "
         f"{report.dropped_messages} dropped messages"
     )
+    if world_lost:  # not a finished run: a supervisor (phalanx host) restarts it to rejoin
+        typer.echo(f"{robot}: no frame from the world for {frame_timeout:g} s", err=True)
+        raise typer.Exit(EXIT_WORLD_LOST)
 
 
 def _telemetry(
@@ -156,15 +171,20 @@ def _run_agent(
     backend: Driver | None,
     epoch: float | None,
     watchdog: float,
-) -> AgentReport:
+    frame_timeout_s: float,
+) -> tuple[AgentReport, bool]:
+    """Run the agent to its end: its report, and whether the world's frames stopped."""
     import time
 
     from phalanx.agents.runtime import AgentRuntime, RuntimeOptions
 
     tel = telemetry if telemetry.sink.kind != "off" else None
     if backend is None:
-        options = RuntimeOptions(fleet=fleet, transport=transport, clock=_clock(clock))
-        return AgentRuntime(robot, config, params, options, telemetry=tel).run(stop)
+        options = RuntimeOptions(
+            fleet=fleet, transport=transport, clock=_clock(clock), frame_timeout_s=frame_timeout_s
+        )
+        runtime = AgentRuntime(robot, config, params, options, telemetry=tel)
+        return runtime.run(stop), runtime.world_lost
     # A robot driver: the agent keeps its own clock; commands go through the safety layer.
     from phalanx.agents.driver_runtime import DriverRuntime
     from phalanx.drivers.safety import SafeDriver, SafetyLimits
@@ -182,7 +202,7 @@ def _run_agent(
         runtime = DriverRuntime(
             robot, config, params, options, safe, epoch_s=epoch or time.time(), telemetry=tel
         )
-        return runtime.run(stop)
+        return runtime.run(stop), False
 
 
 def _connect_with_retry(driver: SafeDriver, stop: Stoppable, timeout_s: float = 15.0) -> None:

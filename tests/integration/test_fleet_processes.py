@@ -273,7 +273,7 @@ def test_malformed_payloads_on_every_key_are_counted_and_ignored(
             bytes(range(256)),
         ]
         for rid in ("r1", "r2", "r3"):
-            for topic in ("state", "sense", "cmd", "event", "report"):
+            for topic in ("state", "flags", "sense", "cmd", "event", "report"):
                 for payload in garbage:
                     session.publish_raw(robot_key("junk", rid, topic), payload)
         time.sleep(1.0)
@@ -289,3 +289,20 @@ def test_malformed_payloads_on_every_key_are_counted_and_ignored(
         assert sum(decode["malformed"].values()) + sum(decode["unknown_version"].values()) >= len(
             garbage
         )
+
+
+def test_an_agent_whose_world_is_gone_exits_with_its_own_code(
+    processes: list[subprocess.Popen[bytes]],
+) -> None:
+    """No frame from the world for --frame-timeout: the agent stops its robot and exits 3,
+    not 0, so a host daemon restarts it to rejoin rather than taking the run as done."""
+    endpoint = loopback_endpoint(free_tcp_port())
+    argv = [*CLI, "agent", str(WEDGE), "--robot", "r2", "--fleet", "lost", "--mode", "peer",
+            "--listen", endpoint, "--frame-timeout", "1.5"]  # fmt: skip
+    started = time.monotonic()
+    proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    processes.append(proc)
+    _out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 3, err.decode()[-2000:]
+    assert b"no frame from the world for 1.5 s" in err
+    assert time.monotonic() - started < 30.0
