@@ -135,11 +135,12 @@ class LiveFlags(dict[str, FlagsView]):
 
 class _LastLive:
     """The last `LiveFlags` built, kept for the next robot of the same step to reuse: same
-    flags object, time, formation and timeout give the same live flags.
+    flags object (a step's mapping, never changed once handed out), time, formation and
+    timeout give the same live flags. One tuple, swapped whole: threads running separate
+    fleets never see one fleet's key with another's flags.
     """
 
-    key: tuple[object, float, object, float] | None = None
-    value: LiveFlags | None = None
+    entry: tuple[object, float, object, float, LiveFlags] | None = None
 
 
 def best(formation: Formation, candidates: Flags, others: tuple[str, ...] = ()) -> str | None:
@@ -189,17 +190,15 @@ class Leadership:
 
     def live(self, flags: Flags, t_s: float) -> LiveFlags:
         """The flags of robots of this formation heard within `timeout_s` of `t_s`."""
-        key = (flags, t_s, self.formation, self.timeout_s)
-        last = _LastLive.key
+        last = _LastLive.entry
         if (
             last is not None
             and last[0] is flags
             and last[1] == t_s
             and last[2] is self.formation
             and last[3] == self.timeout_s
-            and _LastLive.value is not None
         ):
-            return _LastLive.value
+            return last[4]
         positions = self.formation.positions
         live = LiveFlags(
             {
@@ -209,7 +208,7 @@ class Leadership:
             },
             self.formation,
         )
-        _LastLive.key, _LastLive.value = key, live
+        _LastLive.entry = (flags, t_s, self.formation, self.timeout_s, live)
         return live
 
     def update(self, live: Flags, t_s: float) -> LeadershipChange | None:
