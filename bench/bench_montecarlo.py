@@ -228,14 +228,20 @@ def section(
 
 DEADEND_NOTES = [
     "- **wedge** (the paper's shape): in, out in reverse within the bounds, round, goal.",
-    "- **inline** (a chain: r3 tracks r2 tracks r1): linear and angular within the bounds; "
-    "the last robot's heading lags its tracked robot's through the switch to reverse, "
-    "so 5 s after it the orientation error is still above the 0.5 deg bound (it decays "
-    "below it within the next second).",
-    "- **collateral** (a 2.5 m wide line): its first reverse is cut short after about "
-    "2 m, when a follower stops for the U's wall behind it, and the group does not find "
-    "its way out of the U within the run (a navigation failure: a line this wide turns "
-    "poorly in a U 0.6 m wider than itself; what it did reverse stayed within 0.4 %).",
+    "- **inline** (a chain: r3 tracks r2 tracks r1): linear and angular within the "
+    "bounds; the last robot reaches the deadlock with its heading far off (heading "
+    "swings on the way in grow along the chain, and the 3 s pause does not settle a "
+    "heading: the point tracker aims positions), so 5 s into the reverse its "
+    "orientation error is still 0.86 deg, above the 0.5 deg bound (it decays below it "
+    "within the next second).",
+    "- **collateral** (a 2.5 m wide line): the deadlock is declared while the leader is "
+    "turning the line on the spot at the end of the U, 18 deg off the U's axis; the "
+    "fixed reverse backs out straight along that heading, diagonally across the U, so "
+    "after 1.9 m the outer follower is 0.3 m from the side wall and stops, the later "
+    "reverses fare no better and the group ends STUCK, without a collision (what it did "
+    "reverse stayed within 0.4 %). Backing out along the path it came "
+    "(`deadlock.reverse_mode = 'path'`) gets out without a stop but steers in reverse: "
+    "1.3 % and 4.7 deg, outside the bounds.",
 ]
 
 
