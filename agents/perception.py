@@ -111,12 +111,12 @@ class SonarGeometry:
         obstacle, and is dropped whole: a sonar cannot tell where on its arc it was hit.
         """
         ranges = np.asarray(ranges_m, dtype=np.float64)
-        if ranges.size < self.unit_x_m.size:
-            return np.zeros(0), np.zeros(0)
         return self.points_of(ranges, self.echoes(ranges, known))
 
     def points_of(self, ranges: FloatArray, echo: BoolArray) -> tuple[FloatArray, FloatArray]:
         """Obstacle points of the transducers `echo` marks (see `echoes`)."""
+        if not echo.any():  # (also a reading short of the ring: `echoes` marks none)
+            return np.zeros(0), np.zeros(0)
         r = ranges[self.unit_of_ray]
         # A blind gap is assumed as near as its neighbour only close by, where it matters
         # for safety; far off it would close every opening the robot aims for.
@@ -135,8 +135,11 @@ class SonarGeometry:
 
     def echoes(self, ranges: FloatArray, known: Sequence[tuple[Vec2, float]] = ()) -> BoolArray:
         """Per transducer: an echo (short of max range) that is not one of the `known`
-        discs (see `points`). `ranges` holds at least one reading per transducer.
+        discs (see `points`). A reading with fewer ranges than the ring has transducers
+        (a robot whose sonar is not as its parameter file says) has no echo at all.
         """
+        if ranges.size < self.unit_x_m.size:
+            return np.zeros(self.unit_x_m.size, dtype=bool)
         r = ranges[: self.unit_x_m.size]
         echo: BoolArray = r < self.max_range_m - _AT_MAX_RANGE_M
         if not known or not echo.any():

@@ -120,3 +120,14 @@ def test_unknown_space_is_free_and_an_enclosed_goal_has_no_route() -> None:
     ring = np.linspace(0, 2 * math.pi, 80)
     grid._add(5 + 1.0 * np.cos(ring), 1.0 * np.sin(ring), 6)
     assert grid.route(Vec2(0, 0), Vec2(5, 0), keep_off_m=0.0, ahead_m=1.0) is None
+
+
+def test_a_reading_short_of_the_ring_has_no_echo_and_raises_nothing() -> None:
+    short = np.full(8, 0.5)  # a robot reporting 8 sonars where its parameter file has 16
+    echo = SONAR.echoes(short, [(Vec2(1.0, 0.0), 0.35)])
+    assert echo.shape == (16,)
+    assert not echo.any()
+    assert SONAR.points_of(short, echo)[0].size == 0
+    assert SONAR.points(short)[0].size == 0
+    grid = OccupancyMap(Vec2(0.0, 0.0))
+    grid.update(Pose2D(0.0, 0.0, 0.0), SONAR, short, echo)
