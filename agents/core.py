@@ -375,9 +375,11 @@ class Agent:
     ) -> Sensing:
         status, odometry = observation.status, observation.odometry
         ranges = np.asarray(status.sonar_ranges_m, dtype=np.float64)
-        raw = self.sonar.points(ranges)
+        every_echo = self.sonar.echoes(ranges)
+        raw = self.sonar.points_of(ranges, every_echo)
         echo = self.sonar.echoes(ranges, self._known_robots(lead, live, t_s, odometry.pose))
-        masked = self.sonar.points_of(ranges, echo)
+        # (the usual case, no echo of a robot: the same points, not worked out twice)
+        masked = raw if np.array_equal(echo, every_echo) else self.sonar.points_of(ranges, echo)
         if self.plan != "scripted" and self.nav.reactive:
             if self.map is None:
                 self.map = OccupancyMap(odometry.pose.position)

@@ -27,7 +27,7 @@ The rules:
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from functools import cached_property
 from typing import Protocol
@@ -105,7 +105,11 @@ class LiveFlags(dict[str, FlagsView]):
     one per control step, so a step costs each of them O(1) in the group's size, not O(n).
     """
 
-    def __init__(self, flags: Mapping[str, FlagsView], formation: Formation) -> None:
+    def __init__(
+        self,
+        flags: Mapping[str, FlagsView] | Iterable[tuple[str, FlagsView]],
+        formation: Formation,
+    ) -> None:
         super().__init__(flags)
         self.formation = formation
 
@@ -201,11 +205,11 @@ class Leadership:
             return last[4]
         positions = self.formation.positions
         live = LiveFlags(
-            {
-                r: f
+            (
+                (r, f)
                 for r, f in flags.items()
                 if r in positions and t_s - f.stamp_s <= self.timeout_s + _EPS_S
-            },
+            ),
             self.formation,
         )
         _LastLive.entry = (flags, t_s, self.formation, self.timeout_s, live)

@@ -184,10 +184,17 @@ class Polled(Generic[M]):
         taken = 0
         while (sample := self._subscriber.try_recv()) is not None:
             taken += 1
-            value = decode(self._model, sample.payload.to_bytes(), self._stats)
-            if value is not None:
-                on_message(str(sample.key_expr), value)
+            _deliver(sample, self._model, self._stats, on_message)
         return taken
+
+
+def _deliver(
+    sample: Any, model: type[M], stats: DecodeStats, on_message: Callable[[str, M], None]
+) -> None:
+    """Decode a Zenoh sample as `model` and hand it on, or count it as malformed."""
+    value = decode(model, sample.payload.to_bytes(), stats)
+    if value is not None:
+        on_message(str(sample.key_expr), value)
 
 
 class FleetSession(Closing):
@@ -247,9 +254,7 @@ class FleetSession(Closing):
         stats = self.stats
 
         def callback(sample: Any) -> None:
-            value = decode(model, sample.payload.to_bytes(), stats)
-            if value is not None:
-                on_message(str(sample.key_expr), value)
+            _deliver(sample, model, stats, on_message)
 
         self._keep.append(self._session.declare_subscriber(key_expr, callback))
 
