@@ -48,6 +48,7 @@ from phalanx.drivers.arcos_protocol import (
 from phalanx.drivers.base import Odometry, RobotStatus
 from phalanx.errors import DriverError, DriverTimeout, DriverUnavailable, ProtocolError
 from phalanx.geometry import Pose2D, Twist2D, wrap_angle
+from phalanx.lifecycle import Closing
 
 log = logging.getLogger("phalanx.arcos")
 N_SONARS = 16
@@ -157,7 +158,7 @@ class ArcosStats:
     commands_sent: int = 0
 
 
-class ArcosDriver:
+class ArcosDriver(Closing):
     """A P3DX over ARCOS; implements the Driver protocol."""
 
     name = "arcos"
@@ -259,9 +260,6 @@ class ArcosDriver:
     def __enter__(self) -> ArcosDriver:
         self.connect()
         return self
-
-    def __exit__(self, *_exc: object) -> None:
-        self.close()
 
     # -- extras -----------------------------------------------------------------------
 

@@ -26,6 +26,7 @@ from phalanx.drivers.base import Odometry, RobotStatus
 from phalanx.drivers.cia402 import Cw, drive_od
 from phalanx.errors import DriverError, DriverTimeout, DriverUnavailable
 from phalanx.geometry import Pose2D, Twist2D, integrate_unicycle
+from phalanx.lifecycle import Closing
 
 log = logging.getLogger("phalanx.canopen")
 STATE_MASK = 0x6F
@@ -78,7 +79,7 @@ class CanopenStats:
     faults: list[str] = field(default_factory=list)
 
 
-class CanopenDriver:
+class CanopenDriver(Closing):
     """Two CiA 402 drives as one differential-drive robot; implements the Driver protocol."""
 
     name = "canopen"
@@ -198,9 +199,6 @@ class CanopenDriver:
     def __enter__(self) -> CanopenDriver:
         self.connect()
         return self
-
-    def __exit__(self, *_exc: object) -> None:
-        self.close()
 
     # -- bus -------------------------------------------------------------------------
 

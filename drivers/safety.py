@@ -22,6 +22,7 @@ from dataclasses import dataclass
 from phalanx.drivers.base import Driver, Odometry, RobotStatus
 from phalanx.errors import DriverError
 from phalanx.geometry import Twist2D
+from phalanx.lifecycle import Closing
 
 log = logging.getLogger("phalanx.safety")
 
@@ -59,7 +60,7 @@ def clamp_twist(twist: Twist2D, v_max_mps: float, omega_max_radps: float) -> Twi
     return Twist2D(v * scale, w * scale)
 
 
-class SafeDriver:
+class SafeDriver(Closing):
     """A Driver with limits, a watchdog and a latched E-stop around another Driver."""
 
     def __init__(self, driver: Driver, limits: SafetyLimits) -> None:
@@ -168,9 +169,6 @@ class SafeDriver:
     def __enter__(self) -> SafeDriver:
         self.connect()
         return self
-
-    def __exit__(self, *_exc: object) -> None:
-        self.close()
 
     def _stop_locked(self) -> None:
         self._moving = False

@@ -28,8 +28,9 @@ import sys
 import threading
 import time
 from collections.abc import Sequence
-from types import TracebackType
 from typing import Any, Self
+
+from phalanx.lifecycle import Closing
 
 PREFIX = "phxlab"
 _counter = itertools.count()
@@ -90,7 +91,7 @@ def _kill_inside(namespace: str) -> None:
             os.kill(int(pid), signal.SIGKILL)
 
 
-class NetLab:
+class NetLab(Closing):
     """Hosts in network namespaces on one bridge; context manager, `close()` safe twice."""
 
     def __init__(self, hosts: Sequence[str], *, subnet: str = "10.77.0") -> None:
@@ -181,14 +182,6 @@ class NetLab:
 
     def __enter__(self) -> Self:
         return self.open()
-
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        self.close()
 
 
 # --- the observer -------------------------------------------------------------------------

@@ -41,6 +41,7 @@ from phalanx.drivers.arcos_protocol import (
     sync2_reply,
 )
 from phalanx.geometry import Twist2D
+from phalanx.lifecycle import Closing
 from phalanx.simulator.body import Body
 
 log = logging.getLogger("phalanx.emulator")
@@ -195,7 +196,7 @@ class _Faults:
     unplugged: bool = False
 
 
-class ArcosEmulator:
+class ArcosEmulator(Closing):
     """Runs the robot side of ARCOS on `link` in a thread, moving `body`."""
 
     def __init__(
@@ -236,9 +237,6 @@ class ArcosEmulator:
 
     def __enter__(self) -> ArcosEmulator:
         return self.start()
-
-    def __exit__(self, *_exc: object) -> None:
-        self.close()
 
     # -- fault injection -------------------------------------------------------------
 
