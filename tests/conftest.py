@@ -3,8 +3,9 @@
 from __future__ import annotations
 
 import os
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -51,3 +52,23 @@ def _no_leaked_sessions() -> Iterator[None]:
     leaked = open_session_count() - before
     if leaked:
         pytest.fail(f"test leaked {leaked} Zenoh session(s)")
+
+
+def _assert_same_follower_metrics(multi: dict[str, Any], single: dict[str, Any]) -> None:
+    """A fleet run in processes (`metrics.json`) against the same scenario in process
+    (`run_metrics`): one deadlock reverse each, every follower's maximum errors in both
+    phases within 1e-6, the same saturation counts."""
+    assert multi["deadlock_reverses"] == single["deadlock_reverses"] == 1
+    for rid in ("r2", "r3"):
+        for phase in ("forward", "backward"):
+            for key in ("linear_pct", "angular_pct", "orientation_deg"):
+                got = multi["followers"][rid][phase][key]["max"]
+                want = single["followers"][rid][phase][key]["max"]
+                assert got == pytest.approx(want, rel=1e-6, abs=1e-9), (rid, phase, key)
+        assert multi["followers"][rid]["saturations"] == single["followers"][rid]["saturations"]
+
+
+@pytest.fixture
+def same_follower_metrics() -> Callable[[dict[str, Any], dict[str, Any]], None]:
+    """The check that a multi-process run reproduced the in-process one."""
+    return _assert_same_follower_metrics

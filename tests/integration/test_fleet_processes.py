@@ -8,7 +8,7 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
@@ -51,7 +51,9 @@ def processes() -> Iterator[list[subprocess.Popen[bytes]]]:
     _stop(procs)
 
 
-def test_up_reproduces_the_in_process_run(tmp_path: Path) -> None:
+def test_up_reproduces_the_in_process_run(
+    tmp_path: Path, same_follower_metrics: Callable[..., None]
+) -> None:
     """Lockstep over Zenoh gives the batch runner's metrics: both give every agent the
     peer states published one tick (100 ms) earlier, so they agree to rounding."""
     out = tmp_path / "up"
@@ -76,14 +78,7 @@ def test_up_reproduces_the_in_process_run(tmp_path: Path) -> None:
     assert proc.returncode == 0, proc.stderr[-2000:]
     multi = json.loads((out / "metrics.json").read_text())
     single = run_metrics(run_batch(load_scenario(WEDGE)))
-    assert multi["deadlock_reverses"] == single["deadlock_reverses"] == 1
-    for rid in ("r2", "r3"):
-        for phase in ("forward", "backward"):
-            for key in ("linear_pct", "angular_pct", "orientation_deg"):
-                got = multi["followers"][rid][phase][key]["max"]
-                want = single["followers"][rid][phase][key]["max"]
-                assert got == pytest.approx(want, rel=1e-6, abs=1e-9), (rid, phase, key)
-        assert multi["followers"][rid]["saturations"] == single["followers"][rid]["saturations"]
+    same_follower_metrics(multi, single)
     assert [e["target"] for e in multi["transitions"]["r1"]] == [
         e["target"] for e in single["transitions"]["r1"]
     ]

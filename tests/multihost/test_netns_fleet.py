@@ -12,6 +12,7 @@ import json
 import signal
 import subprocess
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -36,7 +37,7 @@ def _write_deployment(kit: Any, lab: NetLab, tmp_path: Path, name: str, clock: s
 
 
 def test_lockstep_across_namespaces_gives_the_single_host_metrics(
-    kit: Any, lab: NetLab, tmp_path: Path
+    kit: Any, lab: NetLab, tmp_path: Path, same_follower_metrics: Callable[..., None]
 ) -> None:
     deployment = _write_deployment(kit, lab, tmp_path, "nslock", "lockstep")
     daemons = kit.start_daemons(deployment, kit.LAB_HOSTS, tmp_path / "logs", wrap=lab.command)
@@ -57,14 +58,7 @@ def test_lockstep_across_namespaces_gives_the_single_host_metrics(
     multi = json.loads((tmp_path / "results" / "lock1" / "metrics.json").read_text())
     scenario = apply_overrides(load_scenario(kit.WEDGE), [f"duration_s={DURATION_S}"])
     single = run_metrics(run_batch(scenario))
-    assert multi["deadlock_reverses"] == single["deadlock_reverses"] == 1
-    for rid in ("r2", "r3"):
-        for phase in ("forward", "backward"):
-            for key in ("linear_pct", "angular_pct", "orientation_deg"):
-                got = multi["followers"][rid][phase][key]["max"]
-                want = single["followers"][rid][phase][key]["max"]
-                assert got == pytest.approx(want, rel=1e-6, abs=1e-9), (rid, phase, key)
-        assert multi["followers"][rid]["saturations"] == single["followers"][rid]["saturations"]
+    same_follower_metrics(multi, single)
     assert multi["collisions"] == single["collisions"]
 
 
