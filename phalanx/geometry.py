@@ -104,6 +104,18 @@ def integrate_unicycle(pose: Pose2D, twist: Twist2D, dt_s: float) -> Pose2D:
     )
 
 
+def dead_reckon(pose: Pose2D, twist: Twist2D, age_s: float, max_age_s: float) -> Pose2D:
+    """`pose`, measured `age_s` ago, carried forward along `twist` to now.
+
+    A reading is carried forward at most `max_age_s` (a stale one is not extrapolated
+    without bound) and never backwards (a stamp slightly ahead of the clock is now).
+    """
+    age_s = min(age_s, max_age_s)
+    if age_s <= 0.0:
+        return pose
+    return integrate_unicycle(pose, twist, age_s)
+
+
 def polar_to_slot(l_m: float, phi_rad: float) -> Vec2:
     """A slot at distance `l_m` and bearing `phi_rad` in a leader's body frame.
 

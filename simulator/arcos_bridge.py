@@ -13,23 +13,39 @@ from __future__ import annotations
 import logging
 import math
 import threading
+import time
+from collections.abc import Callable
 
 from phalanx.config import RobotParams
-from phalanx.geometry import Pose2D, Twist2D
+from phalanx.geometry import Pose2D, Twist2D, dead_reckon
 from phalanx.messages import SenseFrame, VelocityCommand
 from phalanx.simulator.body import Body, BodyState
 from phalanx.transport import FleetSession, TransportConfig, open_session, robot_key
 
 log = logging.getLogger("phalanx.emulator")
+# A world frame is carried forward at most this long (a world that stopped sending frames
+# leaves the body where its last one put it, plus this much of its motion).
+MAX_FRAME_AGE_S = 0.25
 
 
 class WorldBody(Body):
-    """A Body whose motion comes from the world's sense frames, not from integration."""
+    """A Body whose motion comes from the world's sense frames, not from integration.
 
-    def __init__(self, robot: RobotParams, origin: Pose2D) -> None:
+    Between frames the pose is carried forward along the frame's twist, as a robot's
+    firmware integrates its encoders continuously: a SIP reports where the body is when
+    the SIP is sent, not where the world's last tick put it (up to a tick earlier, by an
+    amount fixed by the phase between the emulator's SIP cycle and the world's clock,
+    which the agents would otherwise see as a steady lag of their own robot).
+    """
+
+    def __init__(
+        self, robot: RobotParams, origin: Pose2D, clock: Callable[[], float] = time.monotonic
+    ) -> None:
         super().__init__(robot)
         self.origin = origin
+        self.clock = clock
         self._sonar: tuple[float, ...] = super().sonar_ranges_m()
+        self._frame_s = clock()
         self.frames = 0
         self.final = threading.Event()
 
@@ -39,6 +55,7 @@ class WorldBody(Body):
         with self._lock:
             self._pose = local
             self._twist = Twist2D(frame.v_mps, frame.omega_radps)
+            self._frame_s = self.clock()
             if frame.sonar_ranges_m:
                 self._sonar = frame.sonar_ranges_m
             self.frames += 1
@@ -48,6 +65,14 @@ class WorldBody(Body):
         """The world integrates: nothing to do here."""
         del dt_s
         return self.state()
+
+    def state(self) -> BodyState:
+        """The snapshot, its pose carried forward from the last frame to now."""
+        with self._lock:
+            snapshot = self._snapshot()
+            age_s = self.clock() - self._frame_s
+        snapshot.pose = dead_reckon(snapshot.pose, snapshot.twist, age_s, MAX_FRAME_AGE_S)
+        return snapshot
 
     def sonar_ranges_m(self) -> tuple[float, ...]:
         """The world's latest sonar ranges for this robot."""

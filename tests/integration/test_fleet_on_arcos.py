@@ -20,13 +20,12 @@ WEDGE = CONFIG_ROOT / "scenarios" / "paper_wedge.toml"
 # 45 s of real time: the deadlock at 20 s, a 1.5 m reverse, forwards again.
 SHORT = ["duration_s=45", "events.0.start_s=20", "deadlock.safe_distance_m=1.5"]
 # ARCOS quantises what the agents see and send (1 mm, 0.088 deg and 1 mm/s in SIPs; VEL in
-# mm/s, RVEL in whole deg/s), adds up to a 100 ms SIP cycle of delay, and runs on the wall
-# clock of a shared machine: the backward RMS errors may differ from the sim driver's
-# lockstep run by this much, and the maxima must stay within the paper's bounds. (Maxima
-# against the sim run differ by about a quarter of this on a quiet machine,
-# docs/PERFORMANCE.md; one scheduling hiccup of the shared machine can put a single sample
-# 1 % off, which is why the comparison with the sim run is on the RMS.)
-TOLERANCE = {"linear_pct": 0.5, "angular_pct": 0.3, "orientation_deg": 0.5}
+# mm/s, RVEL in whole deg/s) and runs on the wall clock of a shared machine; a SIP is up to
+# 100 ms old when a step reads it, which the agent dead-reckons away (and the emulator
+# reports the body where it is when the SIP goes, not at the world's last tick). Measured
+# over 3 runs: backward RMS within 0.05 of the sim driver's lockstep run; without either
+# correction a follower keeps a steady lag set by the SIP phase, up to 0.8 % linear.
+TOLERANCE = {"linear_pct": 0.2, "angular_pct": 0.1, "orientation_deg": 0.3}
 BOUNDS = {"linear_pct": 2.0, "angular_pct": 0.8, "orientation_deg": 1.3}
 
 
