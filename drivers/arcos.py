@@ -16,6 +16,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import math
+import os
 import socket
 import termios
 import threading
@@ -52,6 +53,7 @@ from phalanx.lifecycle import Closing
 
 log = logging.getLogger("phalanx.arcos")
 N_SONARS = 16
+FRAME_OVERHEAD_BYTES = 5  # FA FB, the length byte, the two checksum bytes
 
 
 class ArcosSettings(BaseModel):
@@ -82,13 +84,27 @@ class ArcosSettings(BaseModel):
 
 
 class _Link(Protocol):
+    # How long one byte takes on the wire: a SIP's pose is this much per byte older than
+    # the moment its last byte arrived.
+    byte_time_s: float
+
     def read(self, timeout_s: float) -> bytes: ...
     def write(self, data: bytes) -> None: ...
     def close(self) -> None: ...
 
 
+def byte_time_s(port: str, baud: int) -> float:
+    """How long one byte takes on serial `port` at `baud` (8N1: 10 bits a byte).
+
+    Zero for a pseudo-terminal (an emulator): it moves bytes at memory speed whatever
+    its nominal baud rate.
+    """
+    return 0.0 if os.path.realpath(port).startswith("/dev/pts/") else 10.0 / baud
+
+
 class _SerialLink:
     def __init__(self, port: str, baud: int) -> None:
+        self.byte_time_s = byte_time_s(port, baud)
         try:
             self._serial = serial.Serial(port, baud, timeout=0.0, write_timeout=1.0)
         except (serial.SerialException, OSError) as exc:
@@ -115,6 +131,8 @@ class _SerialLink:
 
 
 class _TcpLink:
+    byte_time_s = 0.0
+
     def __init__(self, address: str, timeout_s: float) -> None:
         host, _, port = address.rpartition(":")
         try:
@@ -207,7 +225,11 @@ class ArcosDriver(Closing):
         self._send(command(Cmd.RVEL, w_deg))
 
     def read_odometry(self) -> Odometry:
-        """The pose integrated from SIPs since connect (odometry frame) and the twist."""
+        """The pose integrated from SIPs since connect (odometry frame) and the twist.
+
+        Stamped when the robot sent the SIP: its arrival less its time on the wire (at
+        9600 baud a SIP with the sonar ring takes most of a 100 ms cycle to arrive).
+        """
         with self._lock:
             if self._odometry is None:
                 raise DriverTimeout("no SIP received yet")
@@ -444,7 +466,7 @@ class ArcosDriver(Closing):
             except ProtocolError:
                 self.stats.bad_sips += 1
                 return
-            self._on_sip(sip)
+            self._on_sip(sip, time.monotonic() - self._wire_time_s(body))
         elif kind == CONFIG_PAC:
             try:
                 self.config = decode_config(body)
@@ -453,7 +475,12 @@ class ArcosDriver(Closing):
         else:
             self.stats.other_frames += 1
 
-    def _on_sip(self, sip: Sip) -> None:
+    def _wire_time_s(self, body: bytes) -> float:
+        """How long the frame around `body` took to arrive (header, length, checksum)."""
+        byte_time_s = self._link.byte_time_s if self._link is not None else 0.0
+        return (len(body) + FRAME_OVERHEAD_BYTES) * byte_time_s
+
+    def _on_sip(self, sip: Sip, measured_s: float) -> None:
         f = self.factors
         now = time.monotonic()
         th = wrap_angle(sip.th * f.angle_rad)
@@ -473,7 +500,7 @@ class ArcosDriver(Closing):
         v = (sip.left_vel + sip.right_vel) / 2.0 * f.vel_mmps / 1000.0
         w = (sip.right_vel - sip.left_vel) / 2.0 * f.vel_mmps * f.diff
         self._pose = pose
-        self._odometry = Odometry(pose, Twist2D(v, w), now)
+        self._odometry = Odometry(pose, Twist2D(v, w), measured_s)
         ranges = list(self._sonar_m)
         for index, range_raw in sip.sonars:
             if 0 <= index < N_SONARS:

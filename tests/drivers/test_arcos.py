@@ -14,7 +14,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from phalanx.config import load_robot
-from phalanx.drivers.arcos import ArcosDriver, ArcosSettings
+from phalanx.drivers.arcos import ArcosDriver, ArcosSettings, byte_time_s
 from phalanx.drivers.arcos_protocol import (
     Cmd,
     FrameParser,
@@ -164,6 +164,17 @@ def test_handshake_reads_name_subtype_and_limits(pty_emulator: ArcosEmulator) ->
         status = driver.read_status()
         assert status.battery_v == pytest.approx(12.5)
         assert len(status.sonar_ranges_m) == 16
+
+
+def test_a_sip_is_stamped_when_it_was_sent_not_when_its_last_byte_came() -> None:
+    # A SIP with the sonar ring is about 80 bytes: most of a 100 ms cycle at 9600 baud.
+    assert 80 * byte_time_s("/dev/ttyUSB0", 9600) == pytest.approx(0.0833, abs=1e-4)
+    assert 80 * byte_time_s("/dev/ttyUSB0", 115200) == pytest.approx(0.0069, abs=1e-4)
+    link = PtyLink()
+    try:
+        assert byte_time_s(link.device, 9600) == 0.0  # an emulator: no time on the wire
+    finally:
+        link.close()
 
 
 def test_odometry_crosses_the_counter_wrap_without_a_jump() -> None:
