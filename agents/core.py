@@ -102,6 +102,11 @@ REPLAN_S = 1.0
 ROUTE_AHEAD_M = 2.0
 # A turn on the spot is done within this of the heading it was for.
 REORIENTED_RAD = math.radians(10.0)
+# The fixed deadlock reverse first turns the shape back to the way it came in (measured
+# over this much path) to within this, for at most this long.
+CAME_IN_OVER_M = 2.0
+REALIGNED_RAD = math.radians(1.0)
+REALIGN_MAX_S = 20.0
 # A navigating leader that has not got this far from where it was in `stall_s` is stuck.
 PROGRESS_M = 0.3
 Points = tuple[FloatArray, FloatArray]
@@ -211,6 +216,7 @@ class Agent:
         self._others_busy = False
         self._stopped_before: frozenset[str] = frozenset()
         self._pausing = False  # the deadlock reverse standing still before it backs off
+        self._realigned_s = -math.inf  # when the deadlock reverse's turn back was done
         self._leader_still_s = 0.0  # how long the tracked robot has stood still
         self._chosen: float | None = None  # last heading steered for (world frame, rad)
         self._turn_to: float | None = None  # a turn on the spot under way (world frame)
@@ -579,6 +585,7 @@ class Agent:
         if state in OUT_OF_FORMATION:
             self.formed = False
         if state == State.DEADLOCK_REVERSE:
+            self._realigned_s = t_s
             self.ctx.reversed_m = 0.0
             self.ctx.path_used_up = False
             self.deadlocks += 1
@@ -699,7 +706,12 @@ class Agent:
 
     def _reverse(self, pose: Pose2D, t_s: float) -> Twist2D:
         deadlock = self.scenario.deadlock
-        self._pausing = t_s - self.fsm.entered_at_s < deadlock.pause_s - 1e-9
+        realign = self._realign(pose, t_s)
+        if realign is not None:
+            self._pausing = True
+            self._realigned_s = t_s
+            return realign
+        self._pausing = t_s - self._realigned_s < deadlock.pause_s - 1e-9
         if self._pausing:
             return ZERO_TWIST  # stand still first: the followers settle on their slots
         if deadlock.reverse_mode != "path":
@@ -709,6 +721,24 @@ class Agent:
             self.ctx.path_used_up = True
             return ZERO_TWIST
         return twist
+
+    def _realign(self, pose: Pose2D, t_s: float) -> Twist2D | None:
+        """A navigating group caught in a deadlock while turning: turn the shape back to
+        the way it came in before backing out straight (else it backs out diagonally).
+        """
+        deadlock = self.scenario.deadlock
+        if deadlock.reverse_mode != "fixed" or self.plan != "goto":
+            return None
+        if t_s - self._realigned_s >= deadlock.pause_s:
+            return None  # backing out already
+        came_in = self.crumbs.heading_in_rad(CAME_IN_OVER_M)
+        if came_in is None or t_s - self.fsm.entered_at_s > REALIGN_MAX_S:
+            return None
+        error = wrap_angle(came_in - pose.theta_rad)
+        if abs(error) <= REALIGNED_RAD:
+            return None
+        rate = min(self._turn_rate(), self.nav.heading_gain_per_s * abs(error))
+        return Twist2D(0.0, math.copysign(rate, error))
 
     def _route(self, pose: Pose2D, goal: Vec2, t_s: float) -> Vec2:
         """Where to head for next: along the cheapest route round everything the sonar

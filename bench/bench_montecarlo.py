@@ -208,7 +208,9 @@ def section(
         "`configs/scenarios/nav_deadend_*3.toml`: a U 1.2 m wider than the shape, 8 m deep "
         "(its end out of sonar range from the mouth), the goal behind it. The group drives "
         "in; once the leader's map shows its route leading back the way it came and no room "
-        "to turn the shape round, the group is in deadlock: it stands still 3 s "
+        "to turn the shape round, the group is in deadlock: it turns the shape back to the "
+        "way it came in (the heading of the leader's last 2 m of path: a leader caught "
+        "turning would otherwise back out diagonally), stands still 3 s "
         "(`deadlock.pause_s`: the followers settle on their slots), backs out straight in "
         "formation (`deadlock.reverse_mode = 'fixed'`, as the paper) for 10 m, turns "
         "towards the route and goes round. Backward-phase errors are measured from 5 s "
@@ -232,16 +234,20 @@ DEADEND_NOTES = [
     "bounds; the last robot reaches the deadlock with its heading far off (heading "
     "swings on the way in grow along the chain, and the 3 s pause does not settle a "
     "heading: the point tracker aims positions), so 5 s into the reverse its "
-    "orientation error is still 0.86 deg, above the 0.5 deg bound (it decays below it "
-    "within the next second).",
+    "orientation error is still 0.62 deg, above the 0.5 deg bound, and it stays near "
+    "0.5 deg for 3 s more before it decays.",
     "- **collateral** (a 2.5 m wide line): the deadlock is declared while the leader is "
-    "turning the line on the spot at the end of the U, 18 deg off the U's axis; the "
-    "fixed reverse backs out straight along that heading, diagonally across the U, so "
-    "after 1.9 m the outer follower is 0.3 m from the side wall and stops, the later "
-    "reverses fare no better and the group ends STUCK, without a collision (what it did "
-    "reverse stayed within 0.4 %). Backing out along the path it came "
-    "(`deadlock.reverse_mode = 'path'`) gets out without a stop but steers in reverse: "
-    "1.3 % and 4.7 deg, outside the bounds.",
+    "turning the line on the spot at the end of the U, 16 deg off the U's axis. The "
+    "group turns back to the axis, backs out 10 m straight, turns and goes round the U "
+    "to the goal (in 322 s: the dead-end scenarios allow 360 s). Without the turn back "
+    "it backed out diagonally, stopped 0.3 m from the side wall and ended STUCK. The "
+    "turn back leaves the followers 4-5 cm off their slots, which the reverse "
+    "controller removes over about 6 s: 5 s into the reverse the orientation error is "
+    "0.68 deg, above the 0.5 deg bound.",
+    "- **5 robots** (`nav_deadend_*5.toml`, not in the table): the wedge backs out and "
+    "reaches the goal (it ended STUCK before the turn back), outside the bounds (2.1 %, "
+    "3.0 deg); the inline chain goes round without a deadlock; the collateral line "
+    "still ends STUCK, without a collision.",
 ]
 
 

@@ -203,7 +203,9 @@ class DeadlockConfig(Model):
     `path` backs along the path the leader actually drove (recorded from its odometry):
     the rigid formation then sweeps back through the very ground it came over, known to
     be free; `retrace` backs along the arc just driven (same curvature: the paper's
-    scripted arcs); `fixed` backs with `reverse_omega_degps` (the paper: straight back).
+    scripted arcs); `fixed` backs with `reverse_omega_degps` (the paper: straight back),
+    a navigating leader first turning the shape back to the way it came in (its last 2 m
+    of path), since one caught turning on the spot would otherwise back out diagonally.
     """
 
     reverse_mode: Literal["path", "retrace", "fixed"] = "path"

@@ -229,7 +229,9 @@ def navigation_scenario(
     data: dict[str, Any] = {
         "name": f"nav-{course}-{shape}{n}" + (f"-s{seed}" if course == "field" else ""),
         "description": f"{n} robots, {shape}, to ({goal[0]:g}, {goal[1]:g}) {_THROUGH[course]}",
-        "duration_s": 240.0,
+        # A line as wide as a collateral shape takes over 300 s to back out of the dead
+        # end and go round it.
+        "duration_s": 360.0 if course == "deadend" else 240.0,
         "seed": seed,
         "settle_s": 5.0,
         "initial_settle_s": 5.0,
@@ -242,8 +244,9 @@ def navigation_scenario(
         "navigation": {"waypoints": [list(goal)]},
         "deadlock": {
             # Out of a dead end straight back, as the paper (the way in was straight, and
-            # a leader that does not turn keeps the followers' headings exact); elsewhere
-            # back along the path driven, which is known to be free.
+            # a leader that does not turn keeps the followers' headings exact), once the
+            # shape is turned back to the way it came in; elsewhere back along the path
+            # driven, which is known to be free.
             "reverse_mode": "fixed" if course == "deadend" else "path",
             "pause_s": 3.0,
             "safe_distance_m": 10.0 if course == "deadend" else 2.0,

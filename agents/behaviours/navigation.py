@@ -85,6 +85,17 @@ class Breadcrumbs:
         """Forget the path (a new leader starts its own)."""
         self._points.clear()
 
+    def heading_in_rad(self, over_m: float) -> float | None:
+        """The direction the path came in over its last `over_m` (world frame), or None
+        when it is shorter than that.
+        """
+        pts = self._points
+        last = pts[-1] if pts else None
+        start = next((p for p in reversed(pts) if last and (last - p).norm() >= over_m), None)
+        if last is None or start is None:
+            return None
+        return math.atan2(last.y_m - start.y_m, last.x_m - start.x_m)
+
     def back_along(self, pose: Pose2D, speed_mps: float, lookback_m: float) -> Twist2D | None:
         """Pure pursuit backwards to the recorded point `lookback_m` behind, eating the
         path as the robot passes it; None once it is used up.

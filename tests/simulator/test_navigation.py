@@ -3,15 +3,17 @@ out of a dead end, the STUCK stop, wandering."""
 
 from __future__ import annotations
 
+import math
 from collections import deque
 
 import numpy as np
 import pytest
 
+from phalanx.agents.behaviours.navigation import Breadcrumbs
 from phalanx.agents.core import Observation
 from phalanx.agents.fsm import State
 from phalanx.config import CONFIG_ROOT, PolygonObstacle, apply_overrides, load_scenario
-from phalanx.geometry import ZERO_TWIST
+from phalanx.geometry import ZERO_TWIST, Vec2
 from phalanx.messages import RobotState
 from phalanx.metrics import error_series, navigation_metrics, phase_masks, run_metrics
 from phalanx.scenarios import navigation_scenario
@@ -93,6 +95,39 @@ def test_the_group_backs_out_of_the_dead_end_in_formation() -> None:
         assert series.orientation_deg[backward].max() < 0.5
 
 
+@pytest.mark.slow
+def test_a_line_caught_turning_turns_back_before_it_backs_out() -> None:
+    # The collateral line is turning on the spot at the end of the U when the deadlock
+    # is declared: backing out along that heading would run it into the side wall.
+    scenario = load_scenario(SCENARIOS / "nav_deadend_collateral3.toml")
+    runner = BatchRunner(scenario)
+
+    def turned(b: BatchRunner) -> bool:
+        return any(e.target == State.DEADLOCK_TURN for e in b.agents["r1"].transitions)
+
+    log = runner.run(until=turned)
+    assert not log.collisions
+    leader = log.traces["r1"]
+    states = list(leader.states)
+    start = states.index(State.DEADLOCK_REVERSE)
+    assert abs(math.degrees(leader.theta_rad[start])) > 10.0  # caught mid-turn
+    backing = [
+        k for k, s in enumerate(states) if s == State.DEADLOCK_REVERSE and leader.v_mps[k] < -0.05
+    ]
+    assert backing, "the group never backed out"
+    headings_deg = [math.degrees(leader.theta_rad[k]) for k in backing]
+    assert max(abs(h) for h in headings_deg) < 2.0  # straight back along the U's axis
+    reverses = [e for e in log.transitions["r1"] if e.target == State.DEADLOCK_REVERSE]
+    assert len(reverses) == 1
+    done = next(e for e in log.transitions["r1"] if e.source == State.DEADLOCK_REVERSE)
+    assert "safe distance" in done.reason
+    _, backward = phase_masks(log)
+    for rid in ("r2", "r3"):
+        series = error_series(log, rid)
+        assert series.linear_pct[backward].max() < 0.5
+        assert series.angular_pct[backward].max() < 0.3
+
+
 def test_a_boxed_in_group_stops_for_good_and_says_why() -> None:
     walls = [
         PolygonObstacle(vertices_m=v).model_dump()
@@ -137,3 +172,15 @@ def test_without_a_goal_the_leader_wanders_and_nobody_collides() -> None:
     assert State.WANDER in log.traces["r1"].states
     assert not log.collisions
     assert np.hypot(log.traces["r1"].x_m[-1], log.traces["r1"].y_m[-1]) > 3.0
+
+
+def test_breadcrumbs_know_the_way_they_came_in() -> None:
+    crumbs = Breadcrumbs(length_m=5.0)
+    heading = math.radians(30.0)
+    for k in range(31):  # 1.5 m in at 30 deg
+        crumbs.drop(Vec2(0.05 * k * math.cos(heading), 0.05 * k * math.sin(heading)))
+    assert crumbs.heading_in_rad(2.0) is None  # not that much path yet
+    assert crumbs.heading_in_rad(1.0) == pytest.approx(heading)
+    for _ in range(40):  # turning on the spot drops nothing
+        crumbs.drop(Vec2(1.5 * math.cos(heading), 1.5 * math.sin(heading)))
+    assert crumbs.heading_in_rad(1.0) == pytest.approx(heading)
