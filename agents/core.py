@@ -103,10 +103,12 @@ ROUTE_AHEAD_M = 2.0
 # A turn on the spot is done within this of the heading it was for.
 REORIENTED_RAD = math.radians(10.0)
 # The fixed deadlock reverse first turns the shape back to the way it came in (measured
-# over this much path) to within this, for at most this long.
+# over this much path) to within this, for at most this long; only from at most this far
+# round, which the shape has just swept through (a larger turn back is not known free).
 CAME_IN_OVER_M = 2.0
 REALIGNED_RAD = math.radians(1.0)
 REALIGN_MAX_S = 20.0
+REALIGN_MAX_RAD = math.radians(45.0)
 # A navigating leader that has not got this far from where it was in `stall_s` is stuck.
 PROGRESS_M = 0.3
 Points = tuple[FloatArray, FloatArray]
@@ -735,7 +737,7 @@ class Agent:
         if came_in is None or t_s - self.fsm.entered_at_s > REALIGN_MAX_S:
             return None
         error = wrap_angle(came_in - pose.theta_rad)
-        if abs(error) <= REALIGNED_RAD:
+        if not REALIGNED_RAD < abs(error) <= REALIGN_MAX_RAD:
             return None
         rate = min(self._turn_rate(), self.nav.heading_gain_per_s * abs(error))
         return Twist2D(0.0, math.copysign(rate, error))
