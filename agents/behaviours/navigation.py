@@ -89,10 +89,11 @@ class Breadcrumbs:
         """The direction the path came in over its last `over_m` (world frame), or None
         when it is shorter than that.
         """
-        pts = self._points
-        last = pts[-1] if pts else None
-        start = next((p for p in reversed(pts) if last and (last - p).norm() >= over_m), None)
-        if last is None or start is None:
+        if not self._points:
+            return None
+        last = self._points[-1]
+        start = next((p for p in reversed(self._points) if (last - p).norm() >= over_m), None)
+        if start is None:
             return None
         return math.atan2(last.y_m - start.y_m, last.x_m - start.x_m)
 

@@ -10,7 +10,7 @@ import math
 from dataclasses import dataclass
 from typing import Protocol
 
-from phalanx.geometry import Pose2D, Twist2D, Vec2, integrate_unicycle, wrap_angle
+from phalanx.geometry import Pose2D, Twist2D, Vec2, dead_reckon, wrap_angle
 
 # Below this slot speed (m/s) the heading offset beta fades to zero, so the target heading
 # has no jump when the leader stops and reverses.
@@ -45,9 +45,7 @@ class FollowerController(Protocol):
 
 def predict_leader(leader: Pose2D, twist: Twist2D, age_s: float) -> Pose2D:
     """Dead-reckon the leader's pose `age_s` seconds ahead along its twist (exact arc)."""
-    if age_s <= 0.0:
-        return leader
-    return integrate_unicycle(leader, twist, age_s)
+    return dead_reckon(leader, twist, age_s, math.inf)
 
 
 def slot_velocity(twist: Twist2D, slot: Vec2) -> Vec2:
