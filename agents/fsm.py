@@ -10,36 +10,13 @@ from __future__ import annotations
 
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
-from enum import StrEnum
 from typing import Generic, TypeVar
+
+from phalanx.core.states import TransitionEvent
 
 C = TypeVar("C")
 
 ANY_STATE = "*"
-
-
-class State(StrEnum):
-    """Behaviour states of the navigation and formation layers (one machine per robot:
-    the leader runs navigation states, followers formation states, and leadership can
-    move a robot from one set to the other).
-    """
-
-    # navigation layer, the formation leader: its plan and the deadlock escape
-    NAVIGATE = "NAVIGATE"
-    WANDER = "WANDER"
-    ARRIVED = "ARRIVED"
-    DEADLOCK_REVERSE = "DEADLOCK_REVERSE"
-    DEADLOCK_TURN = "DEADLOCK_TURN"
-    # navigation layer, every robot: reactive avoidance and safety
-    AVOID = "AVOID"
-    EMERGENCY_STOP = "EMERGENCY_STOP"
-    STUCK = "STUCK"
-    # formation layer, followers (figure 4a)
-    FORMATION_TRACK = "FORMATION_TRACK"
-    FORMATION_REVERSE = "FORMATION_REVERSE"
-    # shared
-    HOLD = "HOLD"
-    JOIN = "JOIN"
 
 
 @dataclass(frozen=True)
@@ -62,16 +39,6 @@ class Transition(Generic[C]):
         if self.detail is None:
             return self.reason
         return f"{self.reason}: {self.detail(ctx)}"
-
-
-@dataclass(frozen=True, slots=True)
-class TransitionEvent:
-    """One logged transition: when (s), from, to, and why."""
-
-    t_s: float
-    source: str
-    target: str
-    reason: str
 
 
 @dataclass

@@ -33,10 +33,9 @@ from functools import cached_property
 from typing import Protocol
 
 from phalanx.agents.behaviours.stack import DEADLOCK_STATES, OUT_OF_FORMATION
-from phalanx.agents.fsm import State
-from phalanx.config import LeadershipConfig
-from phalanx.formation import Formation
-from phalanx.transport import alive_key
+from phalanx.core.config import LeadershipConfig
+from phalanx.core.formation import Formation
+from phalanx.core.states import State
 
 
 class FlagsView(Protocol):
@@ -293,11 +292,6 @@ class Leadership:
             if robot == self.leader_id or usable:
                 return robot
         return self.leader_id
-
-
-def leader_key(fleet: str) -> str:
-    """`phalanx/<fleet>/leader`, where a robot that takes the lead announces it."""
-    return alive_key(fleet, "leader").rsplit("/alive/", 1)[0] + "/leader"
 
 
 def group_deadlock(live: Flags, leader_id: str, *, confirm_s: float, widened: bool = True) -> str:

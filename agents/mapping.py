@@ -23,7 +23,7 @@ import numpy as np
 import numpy.typing as npt
 
 from phalanx.agents.perception import ARC_SPREAD_M, BoolArray, SonarGeometry
-from phalanx.geometry import Pose2D, Vec2
+from phalanx.core.geometry import Pose2D, Vec2
 
 FloatArray = npt.NDArray[np.float64]
 CELL_M = 0.5

@@ -19,8 +19,8 @@ from functools import cached_property
 import numpy as np
 import numpy.typing as npt
 
-from phalanx.config import RobotParams
-from phalanx.geometry import Vec2
+from phalanx.core.config import RobotParams
+from phalanx.core.geometry import Vec2
 
 FloatArray = npt.NDArray[np.float64]
 BoolArray = npt.NDArray[np.bool_]

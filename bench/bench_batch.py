@@ -11,9 +11,9 @@ from __future__ import annotations
 import argparse
 import time
 
-from phalanx.config import CONFIG_ROOT, load_scenario
-from phalanx.scenarios import grid_scenario
-from phalanx.simulator.batch import run_batch
+from phalanx.core.config import CONFIG_ROOT, load_scenario
+from phalanx.core.scenarios import grid_scenario
+from phalanx.runtime.batch import run_batch
 
 
 def timed(scenario):  # type: ignore[no-untyped-def]

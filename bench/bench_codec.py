@@ -13,8 +13,8 @@ import argparse
 import time
 from collections.abc import Callable
 
-from phalanx.codec import decode, encode
-from phalanx.messages import Message, RobotState, SenseFrame, VelocityCommand
+from phalanx.wire.codec import decode, encode
+from phalanx.wire.messages import Message, RobotState, SenseFrame, VelocityCommand
 
 
 def samples() -> list[Message]:

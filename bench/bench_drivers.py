@@ -22,11 +22,11 @@ import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 
-from phalanx.config import load_robot
+from phalanx.core.config import load_robot
+from phalanx.core.geometry import Twist2D
 from phalanx.drivers.arcos import ArcosDriver, ArcosSettings
-from phalanx.drivers.arcos_protocol import FrameParser, Sip, decode_sip, encode_sip
 from phalanx.drivers.canopen import CanopenDriver, CanopenSettings
-from phalanx.geometry import Twist2D
+from phalanx.protocols.arcos import FrameParser, Sip, decode_sip, encode_sip
 from phalanx.simulator.arcos_emulator import ArcosEmulator, Link, PtyLink, TcpLink
 from phalanx.simulator.cia402 import SimulatedDiffDrive
 

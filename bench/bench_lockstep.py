@@ -20,8 +20,8 @@ import tempfile
 import time
 from pathlib import Path
 
-from phalanx.config import CONFIG_ROOT, load_scenario
-from phalanx.simulator.batch import run_batch
+from phalanx.core.config import CONFIG_ROOT, load_scenario
+from phalanx.runtime.batch import run_batch
 
 WEDGE = CONFIG_ROOT / "scenarios" / "paper_wedge.toml"
 

@@ -25,11 +25,12 @@ from typing import Any
 
 import numpy as np
 
-from phalanx.config import CONFIG_ROOT, load_scenario
-from phalanx.metrics import error_series, is_follower, navigation_metrics, phase_masks
-from phalanx.report import SECTION_BEGIN, SECTION_END, with_section
-from phalanx.scenarios import SHAPES, navigation_scenario
-from phalanx.simulator.batch import BatchRunner, RunLog
+from phalanx.analysis.metrics import error_series, is_follower, navigation_metrics, phase_masks
+from phalanx.analysis.report import SECTION_BEGIN, SECTION_END, with_section
+from phalanx.core.config import CONFIG_ROOT, load_scenario
+from phalanx.core.runlog import RunLog
+from phalanx.core.scenarios import SHAPES, navigation_scenario
+from phalanx.runtime.batch import BatchRunner
 
 REPO = Path(__file__).resolve().parent.parent
 SETTLE_AFTER_END_S = 10.0
@@ -274,7 +275,7 @@ def main() -> None:
         failed = [r["seed"] for r in rows if r["shape"] == s and not r["goal_reached"]]
         print(f"{s}: seeds not reaching the goal: {failed}")
     if args.write:
-        from phalanx.figures import deadend_escape, save_figure, states
+        from phalanx.analysis.figures import deadend_escape, save_figure, states
 
         figures = REPO / "docs" / "figures"
         wedge = next(log for log, d in deadends_out if d["shape"] == "wedge")

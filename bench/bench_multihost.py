@@ -36,8 +36,11 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from phalanx.config import CONFIG_ROOT
-from phalanx.netlab import NetLab, unavailable
+from phalanx.core.config import CONFIG_ROOT
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests" / "multihost"))
+import netlab
+from netlab import NetLab, unavailable
 
 HOSTS = ("world", "robot-a", "robot-b")
 PLACEMENT = {"r1": "robot-a", "r2": "robot-b", "r3": "robot-b"}
@@ -95,10 +98,10 @@ class Daemons:
 
 
 class Observer:
-    """`python -m phalanx.netlab observe` in a namespace, its records as they come."""
+    """`python netlab.py observe` in a namespace, its records as they come."""
 
     def __init__(self, lab: NetLab, host: str, fleet: str) -> None:
-        argv = [sys.executable, "-m", "phalanx.netlab", "observe", "--fleet", fleet]
+        argv = [sys.executable, netlab.__file__, "observe", "--fleet", fleet]
         argv += ["--connect", f"tcp/127.0.0.1:{PORT}", "--seconds", "900"]
         self.proc = lab.popen(host, argv, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL)
         self.records: list[dict[str, Any]] = []
@@ -204,8 +207,9 @@ def _phase(text: str, pattern: str) -> float:
 
 
 def probe_pub(connect: str, seconds: float) -> None:
-    from phalanx.messages import RobotState
-    from phalanx.transport import TransportConfig, open_session, robot_key
+    from phalanx.wire.keys import robot_key
+    from phalanx.wire.messages import RobotState
+    from phalanx.wire.transport import TransportConfig, open_session
 
     with open_session(TransportConfig(mode="client", connect=(connect,))) as session:
         time.sleep(1.0)  # the subscribers' interest reaches this side
@@ -232,8 +236,9 @@ def probe_pub(connect: str, seconds: float) -> None:
 
 
 def probe_sub(connect: str, seconds: float) -> None:
-    from phalanx.messages import RobotState
-    from phalanx.transport import TransportConfig, open_session, robot_key
+    from phalanx.wire.keys import robot_key
+    from phalanx.wire.messages import RobotState
+    from phalanx.wire.transport import TransportConfig, open_session
 
     latencies: list[tuple[float, float]] = []
     with open_session(TransportConfig(mode="client", connect=(connect,))) as session:

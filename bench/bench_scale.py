@@ -22,8 +22,8 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from phalanx.config import CONFIG_ROOT, apply_overrides, load_scenario
-from phalanx.scenarios import grid_scenario
+from phalanx.core.config import CONFIG_ROOT, apply_overrides, load_scenario
+from phalanx.core.scenarios import grid_scenario
 
 CLK_TCK = os.sysconf("SC_CLK_TCK")
 PAGE_B = os.sysconf("SC_PAGE_SIZE")

@@ -24,20 +24,15 @@ import statistics
 import time
 from typing import Any
 
-from phalanx.agents.core import Agent, Observation
-from phalanx.config import CONFIG_ROOT, Scenario, apply_overrides, load_robot, load_scenario
-from phalanx.drivers.base import Odometry, RobotStatus
-from phalanx.formation import scenario_formation
-from phalanx.geometry import Pose2D, Twist2D
-from phalanx.messages import RobotState, VelocityCommand
-from phalanx.scenarios import grid_scenario
-from phalanx.transport import (
-    TransportConfig,
-    free_tcp_port,
-    loopback_endpoint,
-    open_session,
-    robot_key,
-)
+from phalanx.agents.agent import Agent, Observation
+from phalanx.core.config import CONFIG_ROOT, Scenario, apply_overrides, load_robot, load_scenario
+from phalanx.core.formation import scenario_formation
+from phalanx.core.geometry import Pose2D, Twist2D
+from phalanx.core.robot import Odometry, RobotStatus
+from phalanx.core.scenarios import grid_scenario
+from phalanx.wire.keys import robot_key
+from phalanx.wire.messages import RobotState, VelocityCommand
+from phalanx.wire.transport import TransportConfig, free_tcp_port, loopback_endpoint, open_session
 
 RATE_HZ = 20.0
 WARMUP_S = 1.0  # connection set-up and first-call costs are not steady state

@@ -21,7 +21,7 @@ import urllib.request
 from pathlib import Path
 from urllib.parse import quote
 
-from phalanx.transport import free_tcp_port
+from phalanx.wire.transport import free_tcp_port
 
 REPO = Path(__file__).resolve().parent.parent
 # What this machine's closed network needs (no background fetches), plus software WebGL.

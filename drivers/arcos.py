@@ -27,7 +27,11 @@ from typing import Protocol
 import serial
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from phalanx.drivers.arcos_protocol import (
+from phalanx.core.errors import DriverError, DriverTimeout, DriverUnavailable, ProtocolError
+from phalanx.core.geometry import Pose2D, Twist2D, wrap_angle
+from phalanx.core.lifecycle import Closing
+from phalanx.core.robot import Odometry, RobotStatus
+from phalanx.protocols.arcos import (
     CONFIG_PAC,
     SIP_MOVING,
     SIP_STOPPED,
@@ -46,10 +50,6 @@ from phalanx.drivers.arcos_protocol import (
     parse_sync2,
     wrap_delta,
 )
-from phalanx.drivers.base import Odometry, RobotStatus
-from phalanx.errors import DriverError, DriverTimeout, DriverUnavailable, ProtocolError
-from phalanx.geometry import Pose2D, Twist2D, wrap_angle
-from phalanx.lifecycle import Closing
 
 log = logging.getLogger("phalanx.arcos")
 N_SONARS = 16

@@ -7,32 +7,10 @@ CAN). Shared safety (clamping, the command watchdog, stop on close) lives in
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
 from typing import Protocol, runtime_checkable
 
-from phalanx.geometry import Pose2D, Twist2D
-
-
-@dataclass(frozen=True, slots=True)
-class Odometry:
-    """Dead-reckoned pose (odometry frame) and measured twist, at `stamp_s` (monotonic)."""
-
-    pose: Pose2D
-    twist: Twist2D
-    stamp_s: float
-
-
-@dataclass(frozen=True, slots=True)
-class RobotStatus:
-    """Everything a driver reads from a robot besides odometry."""
-
-    sonar_ranges_m: tuple[float, ...] = ()
-    bumpers: tuple[bool, ...] = ()
-    battery_v: float | None = None
-    motors_enabled: bool = False
-    estopped: bool = False
-    stalled: bool = False
-    faults: tuple[str, ...] = field(default_factory=tuple)
+from phalanx.core.geometry import Twist2D
+from phalanx.core.robot import Odometry, RobotStatus
 
 
 @runtime_checkable

@@ -22,11 +22,11 @@ from dataclasses import dataclass, field
 import canopen
 from pydantic import BaseModel, ConfigDict, Field
 
-from phalanx.drivers.base import Odometry, RobotStatus
-from phalanx.drivers.cia402 import Cw, drive_od
-from phalanx.errors import DriverError, DriverTimeout, DriverUnavailable
-from phalanx.geometry import Pose2D, Twist2D, integrate_unicycle
-from phalanx.lifecycle import Closing
+from phalanx.core.errors import DriverError, DriverTimeout, DriverUnavailable
+from phalanx.core.geometry import Pose2D, Twist2D, integrate_unicycle
+from phalanx.core.lifecycle import Closing
+from phalanx.core.robot import Odometry, RobotStatus
+from phalanx.protocols.cia402 import Cw, drive_od
 
 log = logging.getLogger("phalanx.canopen")
 STATE_MASK = 0x6F

@@ -19,10 +19,11 @@ import threading
 import time
 from dataclasses import dataclass
 
-from phalanx.drivers.base import Driver, Odometry, RobotStatus
-from phalanx.errors import DriverError
-from phalanx.geometry import Twist2D
-from phalanx.lifecycle import Closing
+from phalanx.core.errors import DriverError
+from phalanx.core.geometry import Twist2D
+from phalanx.core.lifecycle import Closing
+from phalanx.core.robot import Odometry, RobotStatus
+from phalanx.drivers.base import Driver
 
 log = logging.getLogger("phalanx.safety")
 

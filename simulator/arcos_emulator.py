@@ -24,8 +24,11 @@ import tty
 from dataclasses import dataclass, field
 from typing import Protocol
 
-from phalanx.config import RobotParams
-from phalanx.drivers.arcos_protocol import (
+from phalanx.core.config import RobotParams
+from phalanx.core.geometry import Twist2D
+from phalanx.core.lifecycle import Closing
+from phalanx.core.motion import Body
+from phalanx.protocols.arcos import (
     SYNC0,
     SYNC1,
     SYNC2,
@@ -40,9 +43,6 @@ from phalanx.drivers.arcos_protocol import (
     int_arg,
     sync2_reply,
 )
-from phalanx.geometry import Twist2D
-from phalanx.lifecycle import Closing
-from phalanx.simulator.body import Body
 
 log = logging.getLogger("phalanx.emulator")
 

@@ -17,7 +17,9 @@ from dataclasses import dataclass, field
 
 import canopen
 
-from phalanx.drivers.cia402 import (
+from phalanx.core.errors import DriverError
+from phalanx.core.lifecycle import Closing
+from phalanx.protocols.cia402 import (
     SW_FAULT,
     SW_OPERATION_ENABLED,
     SW_QUICK_STOP,
@@ -28,8 +30,6 @@ from phalanx.drivers.cia402 import (
     Cw,
     drive_od,
 )
-from phalanx.errors import DriverError
-from phalanx.lifecycle import Closing
 
 
 def next_state(state: int, controlword: int, previous_controlword: int) -> int:

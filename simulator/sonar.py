@@ -10,7 +10,7 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-from phalanx.config import SonarParams
+from phalanx.core.config import SonarParams
 
 FloatArray = npt.NDArray[np.float64]
 

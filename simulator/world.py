@@ -15,25 +15,17 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-from phalanx.config import NoiseConfig, RobotParams, SensorEvent, WorldConfig
-from phalanx.drivers.base import Odometry, RobotStatus
-from phalanx.geometry import Pose2D, Twist2D, Vec2
-from phalanx.scenarios import resolve_world
+from phalanx.core.config import NoiseConfig, RobotParams, SensorEvent, WorldConfig
+from phalanx.core.geometry import Pose2D, Twist2D, Vec2
+from phalanx.core.robot import Odometry, RobotStatus
+from phalanx.core.runlog import Collision
+from phalanx.core.scenarios import resolve_world
 from phalanx.simulator.kinematics import apply_robot_limits, integrate_arcs
 from phalanx.simulator.sonar import SonarRing, ray_circle_hits, ray_segment_hits
 
 FloatArray = npt.NDArray[np.float64]
 _GRID_CELL_M = 1.0
 CONTACT_RELEASE_M = 0.05
-
-
-@dataclass(frozen=True, slots=True)
-class Collision:
-    """A contact that began at `t_s` between a robot and a robot or `obstacle:<i>`."""
-
-    t_s: float
-    robot_id: str
-    other: str
 
 
 @dataclass(frozen=True)

@@ -9,7 +9,7 @@ from typing import Any
 
 import pytest
 
-from phalanx.transport import open_session_count
+from phalanx.wire.transport import open_session_count
 
 REPO = Path(__file__).resolve().parent.parent
 SCENARIOS = REPO / "configs" / "scenarios"

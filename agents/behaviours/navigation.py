@@ -16,8 +16,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from phalanx.agents.perception import HEADINGS_RAD, FloatArray, choose_heading
-from phalanx.config import DeadlockConfig, LeaderProfile, NavigationConfig
-from phalanx.geometry import ZERO_TWIST, Pose2D, Twist2D, Vec2, wrap_angle
+from phalanx.core.config import DeadlockConfig, LeaderProfile, NavigationConfig
+from phalanx.core.geometry import ZERO_TWIST, Pose2D, Twist2D, Vec2, wrap_angle
 
 # Fraction of the run's speed limit a follower's slot may need: the rest is its margin
 # to catch up. The leader slows a turn so that no slot of the rigid shape needs more.

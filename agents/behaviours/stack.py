@@ -17,7 +17,8 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Literal
 
-from phalanx.agents.fsm import ANY_STATE, State, StateMachine, Transition
+from phalanx.agents.fsm import ANY_STATE, StateMachine, Transition
+from phalanx.core.states import State
 
 Plan = Literal["scripted", "goto", "wander"]
 

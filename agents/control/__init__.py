@@ -5,7 +5,7 @@ from __future__ import annotations
 from phalanx.agents.control.common import FollowerController, FollowerInput
 from phalanx.agents.control.ours import OursController
 from phalanx.agents.control.paper import PaperIcr, PaperSwitching, PaperTracking
-from phalanx.config import ControllerConfig
+from phalanx.core.config import ControllerConfig
 
 __all__ = [
     "FollowerController",

@@ -9,45 +9,11 @@ yaw rate leaving the 40 deg/s bound, so the counts belong in every report.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 
-from phalanx.config import LimitsOverride, RobotParams
-from phalanx.geometry import ZERO_TWIST, Twist2D
+from phalanx.core.geometry import ZERO_TWIST, Twist2D
+from phalanx.core.limits import KinematicLimits
 
 _EPS = 1e-12
-
-
-@dataclass(frozen=True, slots=True)
-class KinematicLimits:
-    """Velocity and acceleration bounds of a differential-drive robot (SI)."""
-
-    v_max_mps: float
-    omega_max_radps: float
-    wheel_v_max_mps: float
-    track_width_m: float
-    accel_mps2: float
-    decel_mps2: float
-    rot_accel_radps2: float
-
-    @classmethod
-    def from_params(
-        cls, robot: RobotParams, override: LimitsOverride | None = None
-    ) -> KinematicLimits:
-        """The robot's limits, tightened by a scenario's run bounds where given."""
-        v_max, w_max = robot.v_max_mps, robot.omega_max_radps
-        if override is not None and override.v_max_mps is not None:
-            v_max = min(v_max, override.v_max_mps)
-        if override is not None and override.omega_max_degps is not None:
-            w_max = min(w_max, math.radians(override.omega_max_degps))
-        return cls(
-            v_max_mps=v_max,
-            omega_max_radps=w_max,
-            wheel_v_max_mps=robot.wheel_v_max_mps,
-            track_width_m=robot.track_width_m,
-            accel_mps2=robot.accel_mps2,
-            decel_mps2=robot.decel_mps2,
-            rot_accel_radps2=robot.rot_accel_radps2,
-        )
 
 
 def saturation_scale(command: Twist2D, limits: KinematicLimits) -> float:

@@ -18,8 +18,9 @@ from __future__ import annotations
 
 import math
 
-from phalanx.agents.control.common import FollowerInput, predict_leader, rigid_body_target
-from phalanx.geometry import Twist2D, Vec2
+from phalanx.agents.control.common import FollowerInput
+from phalanx.core.geometry import Twist2D, Vec2
+from phalanx.core.rigid_body import predict_leader, rigid_body_target
 
 SIGN_HYSTERESIS_MPS = 0.01
 

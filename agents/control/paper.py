@@ -7,7 +7,7 @@ from __future__ import annotations
 import math
 
 from phalanx.agents.control.common import FollowerInput
-from phalanx.geometry import Twist2D
+from phalanx.core.geometry import Twist2D
 
 
 class PaperTracking:

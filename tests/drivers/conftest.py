@@ -11,13 +11,13 @@ from typing import Any
 
 import pytest
 
-from phalanx.config import load_robot
+from phalanx.core.config import load_robot
+from phalanx.core.geometry import Twist2D
 from phalanx.drivers.arcos import ArcosDriver, ArcosSettings
 from phalanx.drivers.base import Driver
 from phalanx.drivers.canopen import CanopenDriver, CanopenSettings
 from phalanx.drivers.safety import SafetyLimits
 from phalanx.drivers.sim import SimDriver
-from phalanx.geometry import Twist2D
 from phalanx.simulator.arcos_emulator import ArcosEmulator, PtyLink, TcpLink
 from phalanx.simulator.cia402 import SimulatedDiffDrive
 

@@ -13,9 +13,12 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from phalanx.config import load_robot
+from phalanx.core.config import load_robot
+from phalanx.core.geometry import Pose2D, Twist2D
+from phalanx.core.motion import Body
 from phalanx.drivers.arcos import ArcosDriver, ArcosSettings, byte_time_s
-from phalanx.drivers.arcos_protocol import (
+from phalanx.drivers.safety import SafeDriver, SafetyLimits
+from phalanx.protocols.arcos import (
     Cmd,
     FrameParser,
     Sip,
@@ -26,10 +29,7 @@ from phalanx.drivers.arcos_protocol import (
     frame,
     wrap_delta,
 )
-from phalanx.drivers.safety import SafeDriver, SafetyLimits
-from phalanx.geometry import Pose2D, Twist2D
 from phalanx.simulator.arcos_emulator import ArcosEmulator, EmulatorOptions, PtyLink, TcpLink
-from phalanx.simulator.body import Body
 
 pytestmark = pytest.mark.drivers
 ROBOT = load_robot("p3dx")

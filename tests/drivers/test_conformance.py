@@ -10,10 +10,10 @@ from typing import Any
 
 import pytest
 
+from phalanx.core.errors import DriverError
+from phalanx.core.geometry import Twist2D
 from phalanx.drivers.base import Driver
 from phalanx.drivers.safety import SafeDriver
-from phalanx.errors import DriverError
-from phalanx.geometry import Twist2D
 
 Rig = Any  # the `rig` fixture of conftest.py: .driver, .robot_side, .limits
 

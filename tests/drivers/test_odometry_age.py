@@ -9,9 +9,9 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from phalanx.agents.driver_runtime import MAX_ODOMETRY_AGE_S, pose_now
-from phalanx.drivers.base import Odometry
-from phalanx.geometry import Pose2D, Twist2D
+from phalanx.core.geometry import Pose2D, Twist2D
+from phalanx.core.robot import Odometry
+from phalanx.runtime.driver_agent import MAX_ODOMETRY_AGE_S, pose_now
 
 finite = st.floats(min_value=-10.0, max_value=10.0, allow_nan=False)
 

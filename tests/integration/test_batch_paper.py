@@ -13,11 +13,12 @@ from typing import Any
 import numpy as np
 import pytest
 
-from phalanx.config import CONFIG_ROOT, apply_overrides, load_scenario
-from phalanx.metrics import error_series, run_metrics
-from phalanx.report import worst
-from phalanx.rrd import summarize
-from phalanx.simulator.batch import RunLog, run_batch
+from phalanx.analysis.metrics import error_series, run_metrics
+from phalanx.analysis.report import worst
+from phalanx.core.config import CONFIG_ROOT, apply_overrides, load_scenario
+from phalanx.core.runlog import RunLog
+from phalanx.runtime.batch import run_batch
+from phalanx.telemetry.rrd import summarize
 
 SCENARIOS = CONFIG_ROOT / "scenarios"
 

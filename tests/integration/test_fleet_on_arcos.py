@@ -11,9 +11,9 @@ from pathlib import Path
 
 import pytest
 
-from phalanx.config import CONFIG_ROOT, apply_overrides, load_scenario
-from phalanx.metrics import run_metrics
-from phalanx.simulator.batch import run_batch
+from phalanx.analysis.metrics import run_metrics
+from phalanx.core.config import CONFIG_ROOT, apply_overrides, load_scenario
+from phalanx.runtime.batch import run_batch
 
 pytestmark = [pytest.mark.integration, pytest.mark.drivers]
 WEDGE = CONFIG_ROOT / "scenarios" / "paper_wedge.toml"

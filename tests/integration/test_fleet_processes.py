@@ -13,19 +13,12 @@ from pathlib import Path
 
 import pytest
 
-from phalanx.agents.leadership import leader_key
-from phalanx.config import CONFIG_ROOT, apply_overrides, load_scenario
-from phalanx.messages import LeaderAnnouncement, RobotState
-from phalanx.metrics import run_metrics
-from phalanx.simulator.batch import run_batch
-from phalanx.transport import (
-    TransportConfig,
-    free_tcp_port,
-    loopback_endpoint,
-    open_session,
-    robot_key,
-    robots_key,
-)
+from phalanx.analysis.metrics import run_metrics
+from phalanx.core.config import CONFIG_ROOT, apply_overrides, load_scenario
+from phalanx.runtime.batch import run_batch
+from phalanx.wire.keys import leader_key, robot_key, robots_key
+from phalanx.wire.messages import LeaderAnnouncement, RobotState
+from phalanx.wire.transport import TransportConfig, free_tcp_port, loopback_endpoint, open_session
 
 pytestmark = pytest.mark.integration
 WEDGE = CONFIG_ROOT / "scenarios" / "paper_wedge.toml"

@@ -11,9 +11,9 @@ from pathlib import Path
 
 import pytest
 
-from phalanx.config import CONFIG_ROOT
-from phalanx.rrd import summarize
-from phalanx.transport import free_tcp_port
+from phalanx.core.config import CONFIG_ROOT
+from phalanx.telemetry.rrd import summarize
+from phalanx.wire.transport import free_tcp_port
 
 pytestmark = pytest.mark.integration
 WEDGE = CONFIG_ROOT / "scenarios" / "paper_wedge.toml"

@@ -15,10 +15,10 @@ from pathlib import Path
 
 import pytest
 
-from phalanx.geometry import Pose2D, Twist2D
-from phalanx.rrd import summarize
-from phalanx.telemetry import Telemetry, TelemetrySink, rerun_executable, viewer_reachable
-from phalanx.transport import free_tcp_port
+from phalanx.core.geometry import Pose2D, Twist2D
+from phalanx.telemetry.rrd import summarize
+from phalanx.telemetry.stream import Telemetry, TelemetrySink, rerun_executable, viewer_reachable
+from phalanx.wire.transport import free_tcp_port
 
 pytestmark = [
     pytest.mark.integration,

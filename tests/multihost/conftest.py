@@ -13,14 +13,16 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import netlab
 import pytest
+from netlab import NetLab, unavailable
 
-from phalanx.config import CONFIG_ROOT
-from phalanx.netlab import NetLab, unavailable
+from phalanx.core.config import CONFIG_ROOT
 
 WEDGE = CONFIG_ROOT / "scenarios" / "paper_wedge.toml"
 PYTHON = sys.executable
 CLI = [PYTHON, "-m", "phalanx"]
+NETLAB = netlab.__file__  # run as a script: `python netlab.py observe ...`
 LAB_HOSTS = ("world", "robot-a", "robot-b")
 PLACEMENT = {"r1": "robot-a", "r2": "robot-b", "r3": "robot-b"}
 
@@ -118,7 +120,7 @@ def lab() -> Iterator[NetLab]:
 
 
 class Observer:
-    """`python -m phalanx.netlab observe` in a namespace; its JSON lines, as they come."""
+    """`python netlab.py observe` in a namespace; its JSON lines, as they come."""
 
     def __init__(self, argv: list[str]) -> None:
         self.proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL)
@@ -170,6 +172,7 @@ class Kit:
 
     CLI = CLI
     PYTHON = PYTHON
+    NETLAB = NETLAB
     WEDGE = WEDGE
     LAB_HOSTS = LAB_HOSTS
     deployment_text = staticmethod(deployment_text)

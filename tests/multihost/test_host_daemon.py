@@ -15,11 +15,12 @@ from typing import Any
 
 import pytest
 
-from phalanx.deployment import client_transport, load_deployment
-from phalanx.fleet_launch import FleetClient
-from phalanx.hostd import DaemonOptions, HostDaemon, ManagedChild
-from phalanx.hostproto import ChildStatus, HostStatus, LogLine
-from phalanx.transport import alive_key, free_tcp_port
+from phalanx.hosts.daemon import DaemonOptions, HostDaemon, ManagedChild
+from phalanx.hosts.deployment import client_transport, load_deployment
+from phalanx.hosts.fleet_client import FleetClient
+from phalanx.hosts.protocol import ChildStatus, HostStatus, LogLine
+from phalanx.wire.keys import alive_key
+from phalanx.wire.transport import free_tcp_port
 
 pytestmark = pytest.mark.integration
 PLACEMENT = {"r1": "h1", "r2": "h2", "r3": "h2"}

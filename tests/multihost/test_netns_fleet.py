@@ -17,11 +17,11 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from netlab import NetLab
 
-from phalanx.config import apply_overrides, load_scenario
-from phalanx.metrics import run_metrics
-from phalanx.netlab import NetLab
-from phalanx.simulator.batch import run_batch
+from phalanx.analysis.metrics import run_metrics
+from phalanx.core.config import apply_overrides, load_scenario
+from phalanx.runtime.batch import run_batch
 
 pytestmark = pytest.mark.integration
 PORT = 7447  # every namespace has its own port space
@@ -116,7 +116,7 @@ def test_a_host_that_loses_its_link_stops_its_robots_and_they_rejoin(
                 stdout=sink, stderr=subprocess.STDOUT,
             )  # fmt: skip
         observer = kit.Observer(lab.command("world", [
-            kit.PYTHON, "-m", "phalanx.netlab", "observe", "--fleet", "nsreal",
+            kit.PYTHON, kit.NETLAB, "observe", "--fleet", "nsreal",
             "--connect", f"tcp/127.0.0.1:{PORT}", "--seconds", "120",
         ]))  # fmt: skip
 

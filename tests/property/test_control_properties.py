@@ -8,10 +8,18 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from phalanx.agents.control import FollowerInput, OursController, PaperIcr, PaperTracking
-from phalanx.agents.control.common import rigid_body_target
-from phalanx.agents.control.limits import CommandLimiter, KinematicLimits
-from phalanx.config import LimitsOverride, load_robot
-from phalanx.geometry import Pose2D, Twist2D, Vec2, integrate_unicycle, polar_to_slot, wrap_angle
+from phalanx.agents.control.limits import CommandLimiter
+from phalanx.core.config import LimitsOverride, load_robot
+from phalanx.core.geometry import (
+    Pose2D,
+    Twist2D,
+    Vec2,
+    integrate_unicycle,
+    polar_to_slot,
+    wrap_angle,
+)
+from phalanx.core.limits import KinematicLimits
+from phalanx.core.rigid_body import rigid_body_target
 
 DT_S = 0.1
 PAPER_LIMITS = KinematicLimits.from_params(

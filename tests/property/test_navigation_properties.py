@@ -16,10 +16,10 @@ from phalanx.agents.perception import (
     choose_heading,
     corridor_clearance,
 )
-from phalanx.config import FormationConfig, LeadershipConfig, SlotConfig, load_robot
-from phalanx.formation import Formation, resolve_formation
-from phalanx.geometry import Vec2
-from phalanx.messages import RobotFlags
+from phalanx.core.config import FormationConfig, LeadershipConfig, SlotConfig, load_robot
+from phalanx.core.formation import Formation, resolve_formation
+from phalanx.core.geometry import Vec2
+from phalanx.wire.messages import RobotFlags
 
 SONAR = SonarGeometry.from_params(load_robot("p3dx"))
 

@@ -6,10 +6,10 @@ import math
 
 import pytest
 
-from phalanx.config import load_robot
-from phalanx.geometry import Pose2D
-from phalanx.messages import SenseFrame
-from phalanx.simulator.arcos_bridge import MAX_FRAME_AGE_S, WorldBody
+from phalanx.core.config import load_robot
+from phalanx.core.geometry import Pose2D
+from phalanx.runtime.arcos_bridge import MAX_FRAME_AGE_S, WorldBody
+from phalanx.wire.messages import SenseFrame
 
 ROBOT = load_robot("p3dx")
 ORIGIN = Pose2D(1.0, 2.0, math.pi / 2)

@@ -9,15 +9,15 @@ from collections import deque
 import numpy as np
 import pytest
 
+from phalanx.agents.agent import Observation
 from phalanx.agents.behaviours.navigation import Breadcrumbs
-from phalanx.agents.core import Observation
-from phalanx.agents.fsm import State
-from phalanx.config import CONFIG_ROOT, PolygonObstacle, apply_overrides, load_scenario
-from phalanx.geometry import ZERO_TWIST, Vec2
-from phalanx.messages import RobotState
-from phalanx.metrics import error_series, navigation_metrics, phase_masks, run_metrics
-from phalanx.scenarios import navigation_scenario
-from phalanx.simulator.batch import BatchRunner, run_batch
+from phalanx.analysis.metrics import error_series, navigation_metrics, phase_masks, run_metrics
+from phalanx.core.config import CONFIG_ROOT, PolygonObstacle, apply_overrides, load_scenario
+from phalanx.core.geometry import ZERO_TWIST, Vec2
+from phalanx.core.scenarios import navigation_scenario
+from phalanx.core.states import State
+from phalanx.runtime.batch import BatchRunner, run_batch
+from phalanx.wire.messages import RobotState
 
 SCENARIOS = CONFIG_ROOT / "scenarios"
 

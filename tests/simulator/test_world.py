@@ -9,7 +9,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from phalanx.config import (
+from phalanx.core.config import (
     CircleObstacle,
     NoiseConfig,
     PolygonObstacle,
@@ -17,7 +17,7 @@ from phalanx.config import (
     WorldConfig,
     load_robot,
 )
-from phalanx.geometry import Pose2D, Twist2D, integrate_unicycle
+from phalanx.core.geometry import Pose2D, Twist2D, integrate_unicycle
 from phalanx.simulator.world import World
 
 ROBOT = load_robot("p3dx")

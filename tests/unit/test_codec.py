@@ -8,8 +8,8 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from phalanx.codec import DecodeStats, decode, encode
-from phalanx.messages import RobotState, SenseFrame, VelocityCommand
+from phalanx.wire.codec import DecodeStats, decode, encode
+from phalanx.wire.messages import RobotState, SenseFrame, VelocityCommand
 
 finite = st.floats(min_value=-1e6, max_value=1e6, allow_nan=False)
 names = st.text(min_size=1, max_size=12)

@@ -2,7 +2,7 @@ from pathlib import Path
 
 import pytest
 
-from phalanx.config import (
+from phalanx.core.config import (
     CONFIG_ROOT,
     Scenario,
     apply_overrides,
@@ -10,7 +10,7 @@ from phalanx.config import (
     load_scenario,
     validate_data,
 )
-from phalanx.errors import ConfigError
+from phalanx.core.errors import ConfigError
 
 SCENARIOS = CONFIG_ROOT / "scenarios"
 

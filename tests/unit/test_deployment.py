@@ -12,8 +12,10 @@ from pydantic import ValidationError
 from typer.testing import CliRunner
 
 from phalanx.cli import app
-from phalanx.config import CONFIG_ROOT
-from phalanx.deployment import (
+from phalanx.core.config import CONFIG_ROOT
+from phalanx.core.errors import ConfigError
+from phalanx.hosts.daemon import HostDaemon, backoff_delay_s, exit_reason
+from phalanx.hosts.deployment import (
     RunParameters,
     agent_argv,
     client_transport,
@@ -26,10 +28,8 @@ from phalanx.deployment import (
     router_transport,
     world_argv,
 )
-from phalanx.errors import ConfigError
-from phalanx.hostd import HostDaemon, backoff_delay_s, exit_reason
-from phalanx.hostproto import HostReply, SpawnRequest, line_level
-from phalanx.signals import SignalStop
+from phalanx.hosts.protocol import HostReply, SpawnRequest, line_level
+from phalanx.runtime.signals import SignalStop
 
 WEDGE = CONFIG_ROOT / "scenarios" / "paper_wedge.toml"
 EXAMPLES = CONFIG_ROOT / "deployments"

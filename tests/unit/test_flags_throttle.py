@@ -4,8 +4,8 @@ from __future__ import annotations
 
 from typing import Any
 
-from phalanx.agents.runtime import FlagsThrottle
-from phalanx.messages import RobotFlags
+from phalanx.runtime.agent import FlagsThrottle
+from phalanx.wire.messages import RobotFlags
 
 
 def flags(t_s: float, robot_id: str = "r2", **kw: Any) -> RobotFlags:

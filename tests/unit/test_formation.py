@@ -2,10 +2,10 @@ import math
 
 import pytest
 
-from phalanx.config import FormationConfig, SlotConfig
-from phalanx.errors import ConfigError
-from phalanx.formation import resolve_formation
-from phalanx.geometry import Pose2D
+from phalanx.core.config import FormationConfig, SlotConfig
+from phalanx.core.errors import ConfigError
+from phalanx.core.formation import resolve_formation
+from phalanx.core.geometry import Pose2D
 
 
 def _wedge() -> FormationConfig:

@@ -16,8 +16,9 @@ from phalanx.agents.behaviours.stack import (
     behaviour_machine,
     behaviour_transitions,
 )
-from phalanx.agents.fsm import ANY_STATE, State, StateMachine, Transition, to_mermaid
-from phalanx.config import LeaderProfile, Segment
+from phalanx.agents.fsm import ANY_STATE, StateMachine, Transition, to_mermaid
+from phalanx.core.config import LeaderProfile, Segment
+from phalanx.core.states import State
 
 S = State
 

@@ -7,12 +7,13 @@ from typing import Any
 
 import pytest
 
-from phalanx.agents.fsm import State
-from phalanx.agents.leadership import Leadership, group_deadlock, leader_key, newer
-from phalanx.config import LeadershipConfig
-from phalanx.formation import Formation, resolve_formation
-from phalanx.messages import RobotFlags
-from phalanx.scenarios import formation_shape
+from phalanx.agents.leadership import Leadership, group_deadlock, newer
+from phalanx.core.config import LeadershipConfig
+from phalanx.core.formation import Formation, resolve_formation
+from phalanx.core.scenarios import formation_shape
+from phalanx.core.states import State
+from phalanx.wire.keys import leader_key
+from phalanx.wire.messages import RobotFlags
 
 WEDGE = resolve_formation(formation_shape("wedge", 3))
 INLINE = resolve_formation(formation_shape("inline", 3))

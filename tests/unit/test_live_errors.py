@@ -9,12 +9,11 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from phalanx.agents.control.common import predict_leader, rigid_body_target
-from phalanx.config import FormationConfig, SlotConfig
-from phalanx.formation import resolve_formation
-from phalanx.geometry import Twist2D
-from phalanx.messages import RobotState
-from phalanx.metrics import live_errors
+from phalanx.core.config import FormationConfig, SlotConfig
+from phalanx.core.formation import resolve_formation
+from phalanx.core.geometry import Twist2D
+from phalanx.core.rigid_body import live_errors, predict_leader, rigid_body_target
+from phalanx.wire.messages import RobotState
 
 WEDGE = resolve_formation(
     FormationConfig(

@@ -16,8 +16,8 @@ from phalanx.agents.perception import (
     clearance_along,
     corridor_clearance,
 )
-from phalanx.config import load_robot
-from phalanx.geometry import Pose2D, Vec2
+from phalanx.core.config import load_robot
+from phalanx.core.geometry import Pose2D, Vec2
 
 ROBOT = load_robot("p3dx")
 SONAR = SonarGeometry.from_params(ROBOT)

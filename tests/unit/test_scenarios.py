@@ -7,10 +7,10 @@ from pathlib import Path
 
 import pytest
 
-from phalanx.config import CONFIG_ROOT, load_scenario, validate_data
-from phalanx.config import Scenario as ScenarioModel
-from phalanx.formation import resolve_formation
-from phalanx.scenarios import (
+from phalanx.core.config import CONFIG_ROOT, load_scenario, validate_data
+from phalanx.core.config import Scenario as ScenarioModel
+from phalanx.core.formation import resolve_formation
+from phalanx.core.scenarios import (
     COURSES,
     SHAPES,
     formation_shape,

@@ -1,0 +1,378 @@
+"""PNG figures of a run, the counterparts of the paper's figures 4a, 4b, 5, 6 and 7.
+
+fig4a: the behaviour state machine (`state_machine`, drawn by `phalanx fsm`); fig4b:
+behaviour state over time, with who led; fig5: trajectories (and obstacles) with the
+reverse phase marked; fig6: linear and angular separations against their desired
+values; fig7: velocity profiles against the run's limits; and the dead-end escape
+(`deadend_escape`: the way in and back out, and the errors while reversing).
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any
+
+import matplotlib as mpl
+
+mpl.use("Agg")
+import matplotlib.pyplot as plt
+import numpy as np
+from matplotlib.axes import Axes
+from matplotlib.figure import Figure
+from matplotlib.patches import Circle, FancyBboxPatch, Polygon
+
+from phalanx.agents.fsm import ANY_STATE, StateMachine
+from phalanx.analysis.metrics import (
+    error_series,
+    is_follower,
+    leader_direction,
+    leader_series,
+    phase_masks,
+    tracked_series,
+)
+from phalanx.core.limits import KinematicLimits
+from phalanx.core.runlog import RunLog
+from phalanx.core.scenarios import resolve_world
+from phalanx.core.states import State
+
+COLOURS = ("tab:red", "tab:blue", "tab:green", "tab:purple", "tab:orange", "tab:brown")
+
+
+def _followers(log: RunLog) -> list[str]:
+    return [r for r in log.formation.robot_ids if is_follower(log, r)]
+
+
+def _reverse_spans(log: RunLog) -> list[tuple[float, float]]:
+    direction = leader_direction(log)
+    spans, start = [], None
+    for k, d in enumerate(direction):
+        if d < 0 and start is None:
+            start = float(log.t_s[k])
+        if d > 0 and start is not None:
+            spans.append((start, float(log.t_s[k])))
+            start = None
+    if start is not None:
+        spans.append((start, float(log.t_s[-1])))
+    return spans
+
+
+def _shade(ax: Axes, log: RunLog) -> None:
+    for i, (a, b) in enumerate(_reverse_spans(log)):
+        ax.axvspan(a, b, color="0.85", label="reverse" if i == 0 else None)
+
+
+def draw_world(ax: Axes, log: RunLog) -> None:
+    """The run's obstacles (a seeded field included) in grey."""
+    world = resolve_world(log.scenario.world)
+    for c in world.circles:
+        ax.add_patch(Circle((c.x_m, c.y_m), c.radius_m, color="0.65", zorder=0))
+    for poly in world.polygons:
+        ax.add_patch(Polygon(poly.vertices_m, closed=True, color="0.65", zorder=0))
+    for x, y in log.scenario.navigation.waypoints:
+        ax.plot(x, y, "k*", ms=12, zorder=3)
+
+
+def trajectories(log: RunLog) -> Figure:
+    """Figure 5: every robot's path; the reverse phase drawn thick and dashed."""
+    fig, ax = plt.subplots(figsize=(8, 7))
+    draw_world(ax, log)
+    for i, (rid, tr) in enumerate(log.traces.items()):
+        colour = COLOURS[i % len(COLOURS)]
+        ax.plot(tr.x_m, tr.y_m, color=colour, lw=1.0, label=rid)
+        back = np.where(tr.direction < 0, tr.y_m, np.nan)
+        ax.plot(tr.x_m, back, color=colour, lw=2.5, ls="--")
+        ax.plot(tr.x_m[0], tr.y_m[0], "o", color=colour)
+        ax.plot(tr.x_m[-1], tr.y_m[-1], "s", color=colour)
+    ax.set(xlabel="x (m)", ylabel="y (m)", aspect="equal")
+    ax.set_title(
+        f"{log.scenario.name} / {log.scenario.controller.kind}: trajectories "
+        "(dashed = reverse; o start, s end)"
+    )
+    ax.legend()
+    ax.grid(True, alpha=0.3)
+    return fig
+
+
+def separations(log: RunLog) -> Figure:
+    """Figure 6: l and phi of every follower against l_d and phi_d."""
+    fig, (ax_l, ax_p) = plt.subplots(2, 1, figsize=(9, 7), sharex=True)
+    for i, rid in enumerate(_followers(log)):
+        parents = [p for p in tracked_series(log, rid) if p]
+        leader = max(set(parents), key=parents.count)  # the robot it tracked most
+        series = error_series(log, rid)
+        l_d, phi_d = log.formation.polar_of(rid, leader)
+        colour = COLOURS[(i + 1) % len(COLOURS)]
+        ax_l.plot(log.t_s, series.l_m, color=colour, label=f"{rid} to {leader}")
+        ax_l.axhline(l_d, color=colour, ls=":", lw=1)
+        ax_p.plot(log.t_s, np.degrees(series.phi_rad), color=colour, label=rid)
+        ax_p.axhline(math.degrees(phi_d), color=colour, ls=":", lw=1)
+    for ax in (ax_l, ax_p):
+        _shade(ax, log)
+        ax.grid(True, alpha=0.3)
+        ax.legend(loc="upper right")
+    ax_l.set(ylabel="l (m)", title="separations (dotted = desired; grey = reverse)")
+    ax_p.set(ylabel="phi (deg)", xlabel="t (s)")
+    return fig
+
+
+def velocities(log: RunLog) -> Figure:
+    """Figure 7: translational and rotational velocities against the run's limits."""
+    limits = KinematicLimits.from_params(log.robot, log.scenario.limits)
+    fig, (ax_v, ax_w) = plt.subplots(2, 1, figsize=(9, 7), sharex=True)
+    for i, (rid, tr) in enumerate(log.traces.items()):
+        colour = COLOURS[i % len(COLOURS)]
+        ax_v.plot(log.t_s, tr.v_mps, color=colour, label=rid)
+        ax_w.plot(log.t_s, np.degrees(tr.omega_radps), color=colour, label=rid)
+    for ax, bound in ((ax_v, limits.v_max_mps), (ax_w, math.degrees(limits.omega_max_radps))):
+        ax.axhline(bound, color="k", ls="--", lw=1)
+        ax.axhline(-bound, color="k", ls="--", lw=1)
+        _shade(ax, log)
+        ax.grid(True, alpha=0.3)
+        ax.legend(loc="upper right")
+    ax_v.set(ylabel="v (m/s)", title="velocity profiles (dashed = limits)")
+    ax_w.set(ylabel="omega (deg/s)", xlabel="t (s)")
+    return fig
+
+
+# Rows of figure 4b, top to bottom: the navigation layer over the formation layer.
+STATE_ROWS = (
+    State.STUCK,
+    State.EMERGENCY_STOP,
+    State.ARRIVED,
+    State.DEADLOCK_TURN,
+    State.DEADLOCK_REVERSE,
+    State.WANDER,
+    State.NAVIGATE,
+    State.AVOID,
+    State.JOIN,
+    State.HOLD,
+    State.FORMATION_REVERSE,
+    State.FORMATION_TRACK,
+)
+
+
+def states(log: RunLog) -> Figure:
+    """Figure 4b: each robot's behaviour state over time (navigation layer above the
+    formation layer), and below it which robot led, epoch by epoch.
+    """
+    seen = {s for tr in log.traces.values() for s in tr.states}
+    names = [str(s) for s in reversed(STATE_ROWS) if s in seen]
+    names += sorted(seen - set(names))
+    index = {name: i for i, name in enumerate(names)}
+    fig, (ax, ax_lead) = plt.subplots(
+        2,
+        1,
+        figsize=(10, 1.6 + 0.45 * len(names) + 1.0),
+        sharex=True,
+        gridspec_kw={"height_ratios": [max(2, len(names)), 1.5]},
+    )
+    for i, (rid, tr) in enumerate(log.traces.items()):
+        level = [index[s] + 0.08 * i for s in tr.states]
+        ax.step(log.t_s, level, where="post", color=COLOURS[i % len(COLOURS)], label=rid)
+    ax.set_yticks(range(len(names)), names)
+    ax.set(title="behaviour states over time (figure 4b)")
+    ax.grid(True, alpha=0.3)
+    ax.legend(loc="upper right")
+    _leadership_panel(ax_lead, log)
+    fig.tight_layout()
+    return fig
+
+
+def _leadership_panel(ax: Axes, log: RunLog) -> None:
+    leaders = leader_series(log)
+    ids = list(log.formation.robot_ids)
+    colour = {rid: COLOURS[i % len(COLOURS)] for i, rid in enumerate(ids)}
+    start = 0
+    for k in range(1, len(leaders) + 1):
+        if k == len(leaders) or leaders[k] != leaders[start]:
+            t0, t1 = float(log.t_s[start]), float(log.t_s[min(k, len(leaders) - 1)])
+            ax.axvspan(t0, t1, color=colour[leaders[start]], alpha=0.35, lw=0)
+            ax.text((t0 + t1) / 2, 0.5, leaders[start], ha="center", va="center", fontsize=8)
+            start = k
+    epochs = np.array([max(tr.epochs[k] for tr in log.traces.values() if tr.epochs)
+                       if any(tr.epochs for tr in log.traces.values()) else 0
+                       for k in range(len(log.t_s))])  # fmt: skip
+    for k in np.flatnonzero(np.diff(epochs) > 0).tolist():
+        ax.axvline(float(log.t_s[k + 1]), color="k", lw=1)
+        ax.text(float(log.t_s[k + 1]), 0.9, f" epoch {int(epochs[k + 1])}", fontsize=7, va="top")
+    ax.set(yticks=[], xlabel="t (s)", ylabel="leader")
+
+
+def deadend_escape(log: RunLog) -> Figure:
+    """The dead-end escape: the way in, the deadlock reverse back out (dashed), the way
+    round; and the errors of every follower while the group reverses, against the
+    formation-core bounds (measured from `settle_s` after the switch, shaded before).
+    """
+    fig, (ax_map, ax_err) = plt.subplots(1, 2, figsize=(15, 6), width_ratios=[1.3, 1])
+    draw_world(ax_map, log)
+    for i, (rid, tr) in enumerate(log.traces.items()):
+        colour = COLOURS[i % len(COLOURS)]
+        ax_map.plot(tr.x_m, tr.y_m, color=colour, lw=1.0, label=rid)
+        back = np.where(tr.direction < 0, tr.y_m, np.nan)
+        ax_map.plot(tr.x_m, back, color=colour, lw=2.5, ls="--")
+        ax_map.plot(tr.x_m[0], tr.y_m[0], "o", color=colour)
+    ax_map.set(xlabel="x (m)", ylabel="y (m)", aspect="equal",
+               title=f"{log.scenario.name}: in, back out in formation (dashed), round")  # fmt: skip
+    ax_map.legend(loc="upper left")
+    ax_map.grid(True, alpha=0.3)
+    _, backward = phase_masks(log)
+    direction = leader_direction(log)
+    reversing = direction < 0
+    for i, rid in enumerate(_followers(log)):
+        series = error_series(log, rid)
+        colour = COLOURS[(i + 1) % len(COLOURS)]
+        ax_err.plot(log.t_s, np.where(reversing, series.linear_pct, np.nan), color=colour,
+                    label=f"{rid} linear %")  # fmt: skip
+        ax_err.plot(log.t_s, np.where(reversing, series.angular_pct, np.nan), color=colour,
+                    ls="--", label=f"{rid} angular %")  # fmt: skip
+        ax_err.plot(log.t_s, np.where(reversing, series.orientation_deg, np.nan), color=colour,
+                    ls=":", label=f"{rid} orientation deg")  # fmt: skip
+    spans = np.flatnonzero(reversing)
+    label_t = float(log.t_s[spans[-1]]) if spans.size else float(log.t_s[0])
+    for bound, text in (
+        (0.5, "bound 0.5 (linear %, orientation deg)"),
+        (0.3, "bound 0.3 (angular %)"),
+    ):
+        ax_err.axhline(bound, color="k", lw=0.8, ls="-.")
+        ax_err.text(label_t, bound, text, fontsize=7, va="bottom", ha="right")
+    settling = reversing & ~backward
+    for k in np.flatnonzero(settling).tolist():
+        ax_err.axvspan(float(log.t_s[k]), float(log.t_s[k]) + log.scenario.dt_s,
+                       color="0.9", lw=0)  # fmt: skip
+    if spans.size:
+        ax_err.set_xlim(float(log.t_s[spans[0]]) - 2, float(log.t_s[spans[-1]]) + 2)
+    ax_err.set_yscale("symlog", linthresh=0.01)
+    ax_err.set(xlabel="t (s)", ylabel="error (% or deg)",
+               title="errors while reversing (grey: first settle_s, not measured)")  # fmt: skip
+    ax_err.grid(True, alpha=0.3)
+    ax_err.legend(fontsize=7, loc="upper right")
+    fig.tight_layout()
+    return fig
+
+
+# Where each state sits in the drawing of the state machine (x, y): the navigation
+# layer on top, safety and shared states in the middle, the formation layer below.
+FSM_LAYOUT: dict[str, tuple[float, float]] = {
+    ANY_STATE: (0.0, 2.0),
+    State.WANDER: (1.0, 3.2),
+    State.NAVIGATE: (3.0, 3.2),
+    State.ARRIVED: (5.0, 3.2),
+    State.DEADLOCK_REVERSE: (7.0, 3.2),
+    State.DEADLOCK_TURN: (9.0, 3.2),
+    State.STUCK: (11.0, 2.0),
+    State.EMERGENCY_STOP: (3.0, 1.8),
+    State.JOIN: (6.0, 1.5),
+    State.AVOID: (9.0, 1.0),
+    State.HOLD: (1.0, 0.0),
+    State.FORMATION_TRACK: (4.5, 0.0),
+    State.FORMATION_REVERSE: (8.0, 0.0),
+}
+BOX_HALF = (0.6, 0.3)  # half width and height of a state's box, plot units
+LAYER_COLOURS = {"navigation": "#dbe9f6", "formation": "#e3f2d9", "shared": "#f6ecd9"}
+_FORMATION_ROW = {State.FORMATION_TRACK, State.FORMATION_REVERSE, State.HOLD}
+_SHARED_ROW = {State.JOIN, ANY_STATE}
+
+
+def state_machine(machine: StateMachine[Any], *, title: str = "") -> Figure:
+    """Figure 4a: the behaviour state machine, states as boxes (blue: navigation layer,
+    green: formation layer, sand: shared), every transition as an arrow labelled with
+    its priority (the arbitration: higher wins); a dotted arrow marks the initial state.
+    """
+    fig, ax = plt.subplots(figsize=(16, 8.5))
+    names = list(dict.fromkeys([*FSM_LAYOUT, *machine.states]))
+    pos = {n: FSM_LAYOUT.get(n, (12.0, 3.0 - i * 0.8)) for i, n in enumerate(names)}
+    used = {tr.source for tr in machine.transitions} | {tr.target for tr in machine.transitions}
+    for name in names:
+        if name in used or name == machine.initial:
+            _state_box(ax, name, pos[name])
+    pairs: dict[tuple[str, str], list[int]] = {}
+    for tr in machine.transitions:
+        pairs.setdefault((tr.source, tr.target), []).append(tr.priority)
+    for (source, target), priorities in sorted(pairs.items()):
+        _arrow(ax, pos[source], pos[target], "/".join(str(p) for p in sorted(set(priorities))))
+    x0, y0 = pos[machine.initial]
+    ax.annotate("", xy=(x0 - 0.55, y0), xytext=(x0 - 1.2, y0 - 0.6),
+                arrowprops={"arrowstyle": "->", "ls": ":", "lw": 1.2})  # fmt: skip
+    ax.set(xlim=(-1.2, 12.4), ylim=(-0.8, 3.9), title=title or "behaviour state machine")
+    ax.axis("off")
+    fig.tight_layout()
+    return fig
+
+
+def _state_box(ax: Axes, name: str, xy: tuple[float, float]) -> None:
+    layer = (
+        "formation" if name in _FORMATION_ROW else "shared" if name in _SHARED_ROW
+        else "navigation"
+    )  # fmt: skip
+    label = "any state" if name == ANY_STATE else name.replace("_", "\n", 1)
+    x, y = xy
+    ax.add_patch(FancyBboxPatch((x - 0.55, y - 0.25), 1.1, 0.5, boxstyle="round,pad=0.05",
+                                fc=LAYER_COLOURS[layer], ec="k", lw=1.0, zorder=2))  # fmt: skip
+    ax.text(x, y, label, ha="center", va="center", fontsize=8, zorder=3)
+
+
+def _on_box(a: tuple[float, float], b: tuple[float, float]) -> tuple[float, float]:
+    """Where the line from box centre `a` towards `b` leaves `a`'s box."""
+    dx, dy = b[0] - a[0], b[1] - a[1]
+    scale = min(
+        BOX_HALF[0] / abs(dx) if dx else math.inf, BOX_HALF[1] / abs(dy) if dy else math.inf
+    )
+    return a[0] + dx * scale, a[1] + dy * scale
+
+
+def _arrow(ax: Axes, a: tuple[float, float], b: tuple[float, float], label: str) -> None:
+    bend = 0.18 if a[0] <= b[0] else -0.18
+    start, end = _on_box(a, b), _on_box(b, a)
+    ax.annotate(
+        "",
+        xy=end,
+        xytext=start,
+        arrowprops={"arrowstyle": "-|>", "lw": 0.6, "color": "0.35", "shrinkA": 0,
+                    "shrinkB": 1, "mutation_scale": 9, "connectionstyle": f"arc3,rad={bend}"},
+        zorder=1,
+    )  # fmt: skip
+    # arc3 bends the line through a point offset by `rad` times its length, sideways:
+    # the curve's middle is half that way off the straight line's middle.
+    dx, dy = end[0] - start[0], end[1] - start[1]
+    lx, ly = (start[0] + end[0]) / 2 + bend * dy / 2, (start[1] + end[1]) / 2 - bend * dx / 2
+    ax.text(lx, ly, label, fontsize=6, color="0.15", ha="center", va="center",
+            bbox={"fc": "white", "ec": "none", "pad": 0.5, "alpha": 0.8}, zorder=4)  # fmt: skip
+
+
+def save_state_machine(machine: StateMachine[Any], path: Path) -> Path:
+    """Draw `machine` (figure 4a) into a PNG at `path`."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig = state_machine(machine)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+FIGURES = {
+    "fig4b_states.png": states,
+    "fig5_trajectories.png": trajectories,
+    "fig6_separations.png": separations,
+    "fig7_velocities.png": velocities,
+}
+
+
+def write_figures(log: RunLog, folder: Path) -> list[Path]:
+    """Draw every figure of `log` into `folder`; returns the files written."""
+    folder.mkdir(parents=True, exist_ok=True)
+    written = []
+    for name, draw in FIGURES.items():
+        fig = draw(log)
+        path = folder / name
+        fig.savefig(path, dpi=90)
+        plt.close(fig)
+        written.append(path)
+    return written
+
+
+def save_figure(fig: Figure, path: Path, *, dpi: int = 90) -> Path:
+    """Write `fig` as a PNG at `path` and close it."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=dpi)
+    plt.close(fig)
+    return path

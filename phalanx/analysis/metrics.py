@@ -1,0 +1,330 @@
+"""Formation errors as the paper reports them (section 5), from a run's ground truth.
+
+For each follower against the robot it tracks:
+- linear error `|l - l_d| / l_d` (and `|l - l_d|` in m),
+- angular error `|phi - phi_d| / phi_d` (and `|phi - phi_d|` in deg),
+- orientation error: the follower's heading against the heading a rigid formation
+  would give it (theta_L + beta, DESIGN.md), in deg.
+Split into the forward and the backward phase of the formation (its leader's direction);
+each phase is measured from `settle_s` after the switch (and the forward phase also from
+`initial_settle_s`, so the convergence from the start offsets is not counted).
+
+Leadership can pass, and a robot tracks whichever neighbour the re-rooted follow tree
+gives it (`RobotTrace.tracked`): errors are taken against the robot tracked at each step,
+and a robot is measured only while it follows. Navigation runs add `navigation_metrics`:
+goal, time to goal, collisions by kind, deadlock reverses, leadership changes, why a
+group got stuck, and the formation error outside obstacle-avoidance episodes.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from phalanx.core.geometry import Twist2D, wrap_angle
+from phalanx.core.rigid_body import rigid_body_target
+from phalanx.core.runlog import RunLog
+
+FloatArray = npt.NDArray[np.float64]
+BoolArray = npt.NDArray[np.bool_]
+
+
+@dataclass(frozen=True)
+class Stat:
+    """Max, mean and RMS of an error series."""
+
+    max: float
+    mean: float
+    rms: float
+
+    @classmethod
+    def of(cls, values: FloatArray) -> Stat:
+        """Statistics of `values` (NaN-filled when empty)."""
+        if values.size == 0:
+            return cls(math.nan, math.nan, math.nan)
+        return cls(
+            float(np.max(values)), float(np.mean(values)), float(np.sqrt(np.mean(values**2)))
+        )
+
+
+@dataclass(frozen=True)
+class PhaseErrors:
+    """One phase's errors, in % (as the paper) and in absolute units."""
+
+    samples: int
+    duration_s: float
+    linear_pct: Stat
+    angular_pct: Stat
+    orientation_deg: Stat
+    linear_m: Stat
+    angular_deg: Stat
+
+
+@dataclass(frozen=True)
+class ErrorSeries:
+    """Per-step error series of one follower."""
+
+    l_m: FloatArray
+    phi_rad: FloatArray
+    linear_pct: FloatArray
+    angular_pct: FloatArray
+    orientation_deg: FloatArray
+    linear_m: FloatArray
+    angular_deg: FloatArray
+
+
+def error_series(log: RunLog, follower: str) -> ErrorSeries:
+    """Errors of `follower` against the robot it tracked at every step (ground truth);
+    NaN while it led the formation.
+    """
+    parents = tracked_series(log, follower)
+    distinct = set(parents)
+    if "" not in distinct and len(distinct) == 1:
+        return _series_against(log, follower, parents[0], np.ones(len(log.t_s), dtype=bool))
+    if distinct == {""}:
+        raise ValueError(f"{follower!r} led the formation throughout; it has no formation error")
+    n = len(log.t_s)
+    parts = {
+        name: np.full(n, np.nan)
+        for name in ("l_m", "phi_rad", "linear_pct", "angular_pct", "orientation_deg")
+    }
+    parts |= {"linear_m": np.full(n, np.nan), "angular_deg": np.full(n, np.nan)}
+    for parent in sorted(distinct - {""}):
+        mask = np.array([p == parent for p in parents])
+        part = _series_against(log, follower, parent, mask)
+        for name, values in parts.items():
+            values[mask] = getattr(part, name)[mask]
+    return ErrorSeries(**parts)
+
+
+def tracked_series(log: RunLog, robot: str) -> list[str]:
+    """Whom `robot` tracked at each step ("" while leading): recorded, else configured."""
+    tracked = log.traces[robot].tracked
+    if len(tracked) == len(log.t_s):
+        return list(tracked)
+    return [log.formation.leader_of(robot) or ""] * len(log.t_s)
+
+
+def leader_series(log: RunLog) -> list[str]:
+    """The robot leading the formation at each step (the first that tracked nobody)."""
+    ids = log.formation.robot_ids
+    tracked = {rid: tracked_series(log, rid) for rid in ids}
+    root = log.formation.root
+    return [next((r for r in ids if tracked[r][k] == ""), root) for k in range(len(log.t_s))]
+
+
+def is_follower(log: RunLog, robot: str) -> bool:
+    """Whether `robot` followed at some step."""
+    return any(tracked_series(log, robot))
+
+
+def _series_against(log: RunLog, follower: str, leader: str, mask: BoolArray) -> ErrorSeries:
+    lt, ft = log.traces[leader], log.traces[follower]
+    l_d, phi_d = log.formation.polar_of(follower, leader)
+    dx, dy = ft.x_m - lt.x_m, ft.y_m - lt.y_m
+    c, s = np.cos(lt.theta_rad), np.sin(lt.theta_rad)
+    bx, by = c * dx + s * dy, -s * dx + c * dy
+    l_m = np.hypot(bx, by)
+    phi = np.mod(np.arctan2(by, bx), 2 * math.pi)
+    dphi = np.abs(np.mod(phi - phi_d + math.pi, 2 * math.pi) - math.pi)
+    orient = np.abs(_orientation_error_rad(log, leader, follower, mask))
+    return ErrorSeries(
+        l_m=l_m,
+        phi_rad=phi,
+        linear_pct=100.0 * np.abs(l_m - l_d) / l_d,
+        angular_pct=100.0 * dphi / phi_d,
+        orientation_deg=np.degrees(orient),
+        linear_m=np.abs(l_m - l_d),
+        angular_deg=np.degrees(dphi),
+    )
+
+
+def _orientation_error_rad(log: RunLog, leader: str, follower: str, mask: BoolArray) -> FloatArray:
+    lt, ft = log.traces[leader], log.traces[follower]
+    slot = log.formation.slot_of(follower, leader)
+    out = np.full(len(log.t_s), np.nan)
+    for k in np.flatnonzero(mask).tolist():
+        twist = Twist2D(float(lt.cmd_v_mps[k]), float(lt.cmd_omega_radps[k]))
+        target, _ = rigid_body_target(lt.pose(k), twist, slot)
+        out[k] = wrap_angle(float(ft.theta_rad[k]) - target.theta_rad)
+    return out
+
+
+def phase_masks(log: RunLog) -> tuple[BoolArray, BoolArray]:
+    """(forward, backward) masks of settled steps.
+
+    The phase is the formation's direction of travel, i.e. its leader's (the leader
+    switches first; its followers switch as its velocity changes sign, inside the
+    settling time).
+    """
+    direction = leader_direction(log)
+    t = log.t_s
+    switch_t = np.zeros_like(t)
+    last = 0.0
+    for k in range(1, len(t)):
+        if direction[k] != direction[k - 1]:
+            last = float(t[k])
+        switch_t[k] = last
+    settled = t - switch_t >= log.scenario.settle_s
+    forward = settled & (direction > 0) & (t >= log.scenario.initial_settle_s)
+    backward = settled & (direction < 0)
+    return forward, backward
+
+
+def leader_direction(log: RunLog) -> npt.NDArray[np.int8]:
+    """The direction of whichever robot led the formation, at each step."""
+    leaders = leader_series(log)
+    if len(set(leaders)) == 1:
+        return log.traces[leaders[0]].direction
+    return np.array([log.traces[r].direction[k] for k, r in enumerate(leaders)], dtype=np.int8)
+
+
+def _phase(series: ErrorSeries, mask: BoolArray, dt_s: float) -> PhaseErrors:
+    mask = mask & np.isfinite(series.linear_pct)  # steps it led: nothing to measure
+    return PhaseErrors(
+        samples=int(mask.sum()),
+        duration_s=float(mask.sum()) * dt_s,
+        linear_pct=Stat.of(series.linear_pct[mask]),
+        angular_pct=Stat.of(series.angular_pct[mask]),
+        orientation_deg=Stat.of(series.orientation_deg[mask]),
+        linear_m=Stat.of(series.linear_m[mask]),
+        angular_deg=Stat.of(series.angular_deg[mask]),
+    )
+
+
+def follower_metrics(log: RunLog, follower: str) -> dict[str, Any]:
+    """Errors per phase plus limiter counters for one follower."""
+    parents = [p for p in tracked_series(log, follower) if p]
+    leader = max(set(parents), key=parents.count)  # the robot it tracked most
+    series = error_series(log, follower)
+    forward, backward = phase_masks(log)
+    l_d, phi_d = log.formation.polar_of(follower, leader)
+    return {
+        "leader": leader,
+        "l_d_m": l_d,
+        "phi_d_deg": math.degrees(phi_d),
+        "forward": asdict(_phase(series, forward, log.scenario.dt_s)),
+        "backward": asdict(_phase(series, backward, log.scenario.dt_s)),
+        "saturations": log.saturations[follower],
+        "accel_limited": log.accel_limited[follower],
+    }
+
+
+# States in which a robot is off its slot on purpose, or the shape is being turned about:
+# a formation's error is not measured then, nor for `settle_s` after.
+EPISODE_STATES = frozenset({"AVOID", "EMERGENCY_STOP", "HOLD", "JOIN", "DEADLOCK_TURN", "STUCK"})
+TURNING_ON_THE_SPOT_MPS = 0.005
+
+
+def episode_mask(log: RunLog) -> BoolArray:
+    """Steps inside an obstacle-avoidance (or stop, or turn-away) episode of any robot:
+    from leaving its slot until it is back in it (`formed`), or the leader turning the
+    shape on the spot to get round something; each episode extended by `settle_s`; and
+    the first `initial_settle_s`.
+    """
+    t = log.t_s
+    busy = np.zeros(len(t), dtype=bool)
+    for tr in log.traces.values():
+        busy |= np.array([s in EPISODE_STATES for s in tr.states], dtype=bool)
+        if len(tr.formed) == len(t):
+            busy |= ~np.array(tr.formed, dtype=bool)
+    for k, rid in enumerate(leader_series(log)):
+        tr = log.traces[rid]
+        spinning = (
+            abs(tr.cmd_v_mps[k]) < TURNING_ON_THE_SPOT_MPS and abs(tr.cmd_omega_radps[k]) > 0.01
+        )
+        busy[k] |= bool(spinning) and tr.states[k] in ("NAVIGATE", "WANDER")
+    settle_steps = round(log.scenario.settle_s / log.scenario.dt_s)
+    out = busy.copy()
+    ends = np.flatnonzero(busy[:-1] & ~busy[1:]) + 1
+    for end in ends:
+        out[end : end + settle_steps] = True
+    return out | (t < log.scenario.initial_settle_s)
+
+
+def navigation_metrics(log: RunLog) -> dict[str, Any]:
+    """Goal, time to goal, collisions by kind, deadlocks, leadership, stuck, and the
+    formation error outside avoidance episodes (worst follower, all followers' steps).
+    """
+    transitions = [e for events in log.transitions.values() for e in events]
+    arrived = sorted(e.t_s for e in transitions if e.target == "ARRIVED")
+    stuck = sorted((e.t_s, e.reason) for e in transitions if e.target == "STUCK")
+    robots = set(log.traces)
+    obstacle_hits = [c for c in log.collisions if c.other not in robots]
+    robot_hits = {tuple(sorted((c.robot_id, c.other))) for c in log.collisions if c.other in robots}
+    calm = ~episode_mask(log)
+    followers = [r for r in log.formation.robot_ids if is_follower(log, r)]
+    errors = _calm_errors(log, followers, calm)
+    busy_share = 1.0 - float(calm.mean()) if calm.size else math.nan
+    epochs = [max(tr.epochs, default=0) for tr in log.traces.values()]
+    return {
+        "goal_reached": bool(arrived),
+        "time_to_goal_s": arrived[0] if arrived else None,
+        "collisions_obstacle": len(obstacle_hits),
+        "collisions_robot": len(robot_hits),
+        "deadlock_reverses": sum(1 for e in transitions if e.target == "DEADLOCK_REVERSE"),
+        "leadership_changes": max(epochs, default=0),
+        "stuck": bool(stuck),
+        "stuck_reason": stuck[0][1] if stuck else "",
+        "episode_share": busy_share,
+        "calm": errors,
+    }
+
+
+def _calm_errors(log: RunLog, followers: list[str], calm: BoolArray) -> dict[str, Any]:
+    """Mean and max of the paper's errors over every follower's calm steps."""
+    keys = ("linear_pct", "angular_pct", "orientation_deg", "linear_m", "angular_deg")
+    pooled: dict[str, list[FloatArray]] = {k: [] for k in keys}
+    for rid in followers:
+        series = error_series(log, rid)
+        mask = calm & np.isfinite(series.linear_pct)
+        for k in keys:
+            pooled[k].append(getattr(series, k)[mask])
+    out: dict[str, Any] = {"samples": int(sum(a.size for a in pooled["linear_pct"]))}
+    for k in keys:
+        values = np.concatenate(pooled[k]) if pooled[k] else np.zeros(0)
+        out[k] = {
+            "mean": float(values.mean()) if values.size else math.nan,
+            "max": float(values.max()) if values.size else math.nan,
+        }
+    return out
+
+
+def run_metrics(log: RunLog) -> dict[str, Any]:
+    """The whole `metrics.json` of a run."""
+    followers = [r for r in log.formation.robot_ids if is_follower(log, r)]
+    root = log.formation.root
+    metrics = {
+        "scenario": log.scenario.name,
+        "controller": log.scenario.controller.kind,
+        "robots": len(log.traces),
+        "duration_s": log.scenario.duration_s,
+        "control_rate_hz": log.scenario.control_rate_hz,
+        "comm_delay_s": log.scenario.comm_delay_s,
+        "wall_time_s": log.wall_time_s,
+        "realtime_factor": log.scenario.duration_s / max(log.wall_time_s, 1e-9),
+        "runtime": log.runtime,
+        "followers": {f: follower_metrics(log, f) for f in followers},
+        "leader": {
+            "id": root,
+            "saturations": log.saturations[root],
+            "accel_limited": log.accel_limited[root],
+        },
+        "collisions": [asdict(c) for c in log.collisions],
+        "transitions": {
+            rid: [asdict(e) for e in events] for rid, events in log.transitions.items()
+        },
+        "deadlock_reverses": sum(
+            1
+            for events in log.transitions.values()
+            for e in events
+            if e.target == "DEADLOCK_REVERSE"
+        ),
+    }
+    if log.scenario.leader_profile is None:
+        metrics["navigation"] = navigation_metrics(log)
+    return metrics

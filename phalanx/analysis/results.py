@@ -1,0 +1,103 @@
+"""A run's results folder: `metrics.json`, the paper's figures as PNGs, a Rerun `.rrd`.
+
+`phalanx run` (in process) and `phalanx up` (one process per robot) both write it.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import uuid
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from phalanx.analysis.figures import write_figures
+from phalanx.analysis.metrics import error_series, is_follower, run_metrics
+from phalanx.core.limits import KinematicLimits
+from phalanx.core.runlog import RunLog
+from phalanx.core.scenarios import resolve_world
+
+
+def _finite(value: Any) -> Any:
+    """JSON has no NaN: empty statistics become null."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, dict):
+        return {k: _finite(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_finite(v) for v in value]
+    return value
+
+
+def write_metrics(metrics: dict[str, Any], path: Path) -> None:
+    """Write metrics as JSON (NaN as null)."""
+    path.write_text(json.dumps(_finite(metrics), indent=2) + "\n", encoding="utf-8")
+
+
+def write_recording(log: RunLog, path: Path, *, recording_id: str | None = None) -> None:
+    """Log the whole run to an `.rrd` file in columns (world, every robot, transitions)."""
+    from phalanx.telemetry.stream import (
+        PAPER_ANGULAR_BOUND_PCT,
+        PAPER_LINEAR_BOUND_PCT,
+        Telemetry,
+        TelemetrySink,
+    )
+
+    sink = TelemetrySink(kind="file", path=path)
+    with Telemetry(recording_id=recording_id or str(uuid.uuid4()), sink=sink) as tel:
+        world = resolve_world(log.scenario.world)  # a seeded field as its circles
+        tel.log_world(
+            circles=[(c.x_m, c.y_m, c.radius_m) for c in world.circles],
+            polygons=[list(p.vertices_m) for p in world.polygons],
+        )
+        limits = KinematicLimits.from_params(log.robot, log.scenario.limits)
+        tel.log_bounds(
+            t_s=[float(log.t_s[0]), float(log.t_s[-1])],
+            linear_pct=PAPER_LINEAR_BOUND_PCT,
+            angular_pct=PAPER_ANGULAR_BOUND_PCT,
+            v_max_mps=limits.v_max_mps,
+            omega_max_radps=limits.omega_max_radps,
+        )
+        for rid, tr in log.traces.items():
+            nan = np.full(len(log.t_s), np.nan)
+            if not is_follower(log, rid):
+                errors = (nan, nan, nan)
+            else:
+                s = error_series(log, rid)
+                errors = (s.linear_pct, s.angular_pct, s.orientation_deg)
+            tel.log_columns(
+                rid,
+                t_s=log.t_s,
+                x_m=tr.x_m,
+                y_m=tr.y_m,
+                theta_rad=tr.theta_rad,
+                cmd_v=tr.cmd_v_mps,
+                cmd_omega=tr.cmd_omega_radps,
+                meas_v=tr.v_mps,
+                meas_omega=tr.omega_radps,
+                linear_pct=errors[0],
+                angular_pct=errors[1],
+                orientation_deg=errors[2],
+            )
+            for event in log.transitions[rid]:
+                tel.log_transition(
+                    rid,
+                    t_s=event.t_s,
+                    source=event.source,
+                    target=event.target,
+                    reason=event.reason,
+                )
+        tel.send_blueprint()
+
+
+def write_results(log: RunLog, folder: Path, *, recording: bool = True) -> dict[str, Any]:
+    """Write the results folder of `log`; returns the metrics."""
+    folder.mkdir(parents=True, exist_ok=True)
+    metrics = run_metrics(log)
+    write_metrics(metrics, folder / "metrics.json")
+    write_figures(log, folder)
+    if recording:
+        write_recording(log, folder / "run.rrd")
+    return metrics

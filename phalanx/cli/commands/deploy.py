@@ -1,0 +1,241 @@
+"""`phalanx launch`, `phalanx status`, `phalanx stop`: a fleet across hosts."""
+
+from __future__ import annotations
+
+import secrets
+import sys
+import time
+from typing import TYPE_CHECKING, Annotated
+
+import typer
+
+from phalanx.cli.commands.host import DeploymentArg, load_or_exit
+
+if TYPE_CHECKING:
+    from phalanx.hosts.deployment import LoadedDeployment
+    from phalanx.hosts.fleet_client import LaunchOptions, Output
+    from phalanx.runtime.local_fleet import Child
+    from phalanx.runtime.signals import Stoppable
+    from phalanx.wire.transport import TransportConfig
+
+ConnectOpt = Annotated[
+    list[str] | None,
+    typer.Option("--connect", help="Join the fabric here instead (Zenoh endpoint, repeatable)."),
+]
+ViaOpt = Annotated[
+    str | None, typer.Option(help="Join through this host's daemon (default: this machine's).")
+]
+SetOpt = Annotated[
+    list[str] | None,
+    typer.Option("--set", help="Override a scenario field for this run, e.g. duration_s=60."),
+]
+
+
+def _transport(
+    loaded: LoadedDeployment, via: str | None, connect: list[str] | None
+) -> TransportConfig:
+    from phalanx.hosts.deployment import client_transport
+
+    return client_transport(loaded.spec, via=via, connect=tuple(connect or ()))
+
+
+def _new_run_id() -> str:
+    return time.strftime("%Y%m%d-%H%M%S-") + secrets.token_hex(2)
+
+
+def launch(
+    deployment: DeploymentArg,
+    set_: SetOpt = None,
+    run_id: Annotated[
+        str | None, typer.Option(help="Name of this run (default: date-time-random).")
+    ] = None,
+    host_wait: Annotated[
+        float, typer.Option(help="Seconds to wait for every host's daemon.")
+    ] = 30.0,
+    timeout: Annotated[
+        float | None, typer.Option(help="Stop the fleet after this many seconds.")
+    ] = None,
+    detach: Annotated[
+        bool, typer.Option(help="Return once the fleet is up; end it with `phalanx stop`.")
+    ] = False,
+    table: Annotated[
+        bool | None, typer.Option(help="Live status table (default: on a terminal).")
+    ] = None,
+    logs: Annotated[bool, typer.Option(help="Show the processes' output.")] = True,
+    local: Annotated[
+        bool, typer.Option(help="Also start the daemons of hosts on 127.x (all on this machine).")
+    ] = False,
+    via: ViaOpt = None,
+    connect: ConnectOpt = None,
+) -> None:
+    """Start a deployment on its hosts, follow it live, stop it on Ctrl-C or at its end."""
+    from phalanx.core.errors import DeploymentError
+    from phalanx.hosts.fleet_client import LaunchOptions
+    from phalanx.hosts.protocol import OVERRIDE_PATTERN, RUN_ID_PATTERN
+
+    loaded = load_or_exit(deployment)
+    run = run_id or _new_run_id()
+    _check_pattern(run, RUN_ID_PATTERN, "--run-id")
+    for override in set_ or ():
+        _check_pattern(override, OVERRIDE_PATTERN, "--set")
+    _check_overrides(loaded, set_ or [])
+    options = LaunchOptions(
+        run_id=run,
+        overrides=tuple(set_ or ()),
+        host_wait_s=host_wait,
+        timeout_s=timeout,
+        detach=detach,
+    )
+    from phalanx.runtime.signals import stop_on_signals
+
+    stop = stop_on_signals()
+    daemons = _start_local_daemons(loaded) if local else []
+    try:
+        code = _run(loaded, options, _transport(loaded, via, connect), table, logs, stop)
+    except DeploymentError as exc:
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(2) from exc
+    finally:
+        _stop_local_daemons(daemons)
+    raise typer.Exit(code)
+
+
+def _check_pattern(value: str, pattern: str, what: str) -> None:
+    import re
+
+    if not re.match(pattern, value):
+        raise typer.BadParameter(f"{what} {value!r} does not match {pattern}")
+
+
+def _check_overrides(loaded: LoadedDeployment, overrides: list[str]) -> None:
+    from phalanx.core.config import apply_overrides
+    from phalanx.core.errors import ConfigError
+
+    if overrides:
+        try:
+            apply_overrides(loaded.scenario, overrides)
+        except ConfigError as exc:
+            raise typer.BadParameter(str(exc)) from exc
+
+
+def _run(
+    loaded: LoadedDeployment,
+    options: LaunchOptions,
+    transport: TransportConfig,
+    table: bool | None,
+    logs: bool,
+    stop: Stoppable,
+) -> int:
+    from phalanx.hosts.fleet_client import LiveOutput, PlainOutput, launch
+
+    title = f"{loaded.spec.name} · fleet {loaded.spec.fleet} · run {options.run_id}"
+    if table if table is not None else sys.stdout.isatty():
+        with LiveOutput(title, logs=logs) as live:
+            return launch(loaded, options, transport=transport, output=live, stop=stop)
+    output: Output = PlainOutput(lambda text: typer.echo(text), logs=logs)
+    output.event(f"launching {title}")
+    return launch(loaded, options, transport=transport, output=output, stop=stop)
+
+
+def _start_local_daemons(loaded: LoadedDeployment) -> list[Child]:
+    from phalanx.hosts.deployment import loopback_hosts
+    from phalanx.runtime.local_fleet import Child
+
+    daemons = []
+    for name in loopback_hosts(loaded.spec):
+        argv = [sys.executable, "-m", "phalanx", "host", str(loaded.path), "--name", name]
+        child = Child(f"host-{name}", [*argv, "--quiet"])
+        child.start()
+        daemons.append(child)
+    return daemons
+
+
+def _stop_local_daemons(daemons: list[Child]) -> None:
+    from phalanx.runtime.local_fleet import stop_all
+
+    stop_all(daemons)
+
+
+def status(
+    deployment: DeploymentArg,
+    json_: Annotated[bool, typer.Option("--json", help="Print JSON instead of a table.")] = False,
+    listen_s: Annotated[
+        float, typer.Option("--listen-s", help="Seconds to listen to the robots' states.")
+    ] = 1.5,
+    via: ViaOpt = None,
+    connect: ConnectOpt = None,
+) -> None:
+    """Show a running fleet: every host's processes and every robot's state."""
+    from phalanx.core.errors import DeploymentError
+    from phalanx.hosts.fleet_client import FleetClient, fleet_rows, render_table, status_document
+
+    loaded = load_or_exit(deployment)
+    try:
+        with FleetClient(loaded, _transport(loaded, via, connect)) as client:
+            time.sleep(listen_s)
+            statuses = client.statuses()
+            skews = client.clock_skews()
+            rows = fleet_rows(loaded, statuses, client.watch, world=client.world_status())
+    except DeploymentError as exc:
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(2) from exc
+    missing = [h for h, s in statuses.items() if s is None]
+    if json_:
+        typer.echo(status_document(statuses, rows, skews))
+    else:
+        from rich.console import Console
+
+        Console().print(render_table(rows, title=f"{loaded.spec.name} · fleet {loaded.spec.fleet}"))
+        for host_name, s in statuses.items():
+            line = f"host {host_name}: " + (
+                f"run {s.run_id or '-'}, {s.requests} requests, {s.refused} refused, "
+                f"clock {skews.get(host_name, 0.0) * 1e3:+.0f} ms"
+                if s is not None
+                else "not present"
+            )
+            typer.echo(line)
+    raise typer.Exit(1 if missing else 0)
+
+
+def stop(
+    deployment: DeploymentArg,
+    run_id: Annotated[
+        str | None, typer.Option(help="Only if this run is the hosts' current one.")
+    ] = None,
+    via: ViaOpt = None,
+    connect: ConnectOpt = None,
+    wait: Annotated[float, typer.Option(help="Seconds to wait for every process to end.")] = 15.0,
+    host_wait: Annotated[float, typer.Option(help="Seconds to wait for the hosts.")] = 2.0,
+) -> None:
+    """Stop a running fleet on every host (SIGTERM, then SIGKILL after a grace period)."""
+    from phalanx.core.errors import DeploymentError
+    from phalanx.hosts.fleet_client import FleetClient
+
+    loaded = load_or_exit(deployment)
+    try:
+        with FleetClient(loaded, _transport(loaded, via, connect)) as client:
+            deadline = time.monotonic() + host_wait
+            while time.monotonic() < deadline and client.watch.present() != set(client.host_names):
+                time.sleep(0.1)
+            replies = client.stop(run_id)
+            left = client.wait_stopped(wait)
+    except DeploymentError as exc:
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(2) from exc
+    absent = [h for h in loaded.spec.hosts if h.name not in replies]
+    for host_name, reply in replies.items():
+        verdict = "no answer" if reply is None else ("stopping" if reply.ok else reply.error)
+        typer.echo(f"host {host_name}: {verdict}")
+    for entry in absent:
+        typer.echo(f"host {entry.name}: not present")
+    if left:
+        typer.echo(f"still running: {', '.join(left)}", err=True)
+    failed = left or absent or any(r is None or not r.ok for r in replies.values())
+    raise typer.Exit(1 if failed else 0)
+
+
+def register(app: typer.Typer) -> None:
+    """Add `phalanx launch`, `phalanx status` and `phalanx stop`."""
+    app.command("launch")(launch)
+    app.command("status")(status)
+    app.command("stop")(stop)

@@ -1,0 +1,78 @@
+"""`phalanx run`: a whole scenario in one process, with a results folder."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from phalanx.core.config import ControllerKind
+
+ScenarioArg = Annotated[
+    Path, typer.Argument(help="Scenario TOML file.", exists=True, dir_okay=False)
+]
+OutOpt = Annotated[Path | None, typer.Option("--out", "-o", help="Results folder.")]
+ControllerOpt = Annotated[
+    str | None, typer.Option(help="Override the controller: tracking, switching, icr, ours.")
+]
+SetOpt = Annotated[
+    list[str] | None,
+    typer.Option("--set", help="Override a field, e.g. --set noise.sonar_std_m=0.02 (repeatable)."),
+]
+
+
+def run(
+    scenario: ScenarioArg,
+    out: OutOpt = None,
+    controller: ControllerOpt = None,
+    set_: SetOpt = None,
+    recording: Annotated[bool, typer.Option(help="Write a Rerun .rrd of the run.")] = True,
+    progress: Annotated[bool, typer.Option(help="Show a progress bar.")] = True,
+) -> None:
+    """Run SCENARIO with every robot in this process; write metrics, figures and a recording."""
+    from phalanx.analysis.report import print_summary
+    from phalanx.analysis.results import write_results
+    from phalanx.core.config import apply_overrides, load_scenario
+    from phalanx.runtime.batch import run_batch
+
+    config = load_scenario(scenario)
+    overrides = list(set_ or [])
+    if controller is not None:
+        overrides.append(f'controller.kind="{_controller(controller)}"')
+    config = apply_overrides(config, overrides) if overrides else config
+    folder = out or Path("results") / f"{config.name}-{config.controller.kind}"
+    log = run_batch(config, progress=_progress_bar() if progress else None)
+    metrics = write_results(log, folder, recording=recording)
+    print_summary(metrics)
+    typer.echo(f"results: {folder}")
+
+
+def _controller(name: str) -> ControllerKind:
+    valid: tuple[ControllerKind, ...] = ("tracking", "switching", "icr", "ours")
+    for kind in valid:
+        if kind == name:
+            return kind
+    raise typer.BadParameter(f"expected one of {', '.join(valid)}, got {name!r}")
+
+
+def _progress_bar() -> Callable[[int, int], None]:
+    from rich.progress import Progress
+
+    bar = Progress(transient=True)
+    task = bar.add_task("simulating", total=None)
+
+    def update(done: int, total: int) -> None:
+        if done == 1:
+            bar.start()
+        bar.update(task, completed=done, total=total)
+        if done == total:
+            bar.stop()
+
+    return update
+
+
+def register(app: typer.Typer) -> None:
+    """Add `phalanx run`."""
+    app.command("run")(run)

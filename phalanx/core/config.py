@@ -1,0 +1,515 @@
+"""Configuration models (pydantic v2, TOML files) for robots and scenarios.
+
+Every model forbids unknown keys; `load_scenario` and `load_robot` turn validation errors
+into a `ConfigError` that names the file, the field path and, for a misspelt key, the
+closest valid name.
+"""
+
+from __future__ import annotations
+
+import difflib
+import json
+import math
+import tomllib
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Annotated, Any, Literal, Self, TypeVar
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from phalanx.core.errors import ConfigError
+
+CONFIG_ROOT = Path(__file__).resolve().parents[2] / "configs"
+ROBOTS_DIR = CONFIG_ROOT / "robots"
+
+PositiveFloat = Annotated[float, Field(gt=0.0)]
+NonNegativeFloat = Annotated[float, Field(ge=0.0)]
+
+
+class Model(BaseModel):
+    """Base of every config model: unknown keys rejected, values frozen."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+# --- robot parameter files (configs/robots/*.toml) ------------------------------------
+
+
+class SonarUnit(Model):
+    """One sonar transducer: position (m) and heading (deg) in the robot's body frame."""
+
+    x_m: float
+    y_m: float
+    heading_deg: float
+
+
+class SonarParams(Model):
+    """The sonar ring."""
+
+    max_range_m: PositiveFloat = 5.0
+    min_range_m: NonNegativeFloat = 0.1
+    beam_width_deg: PositiveFloat = 15.0
+    rays_per_beam: int = Field(default=3, ge=1, le=15)
+    units: tuple[SonarUnit, ...]
+
+
+class RobotParams(Model):
+    """Kinematic and physical parameters of a differential-drive robot (SI units)."""
+
+    name: str
+    track_width_m: PositiveFloat
+    wheel_radius_m: PositiveFloat
+    radius_m: PositiveFloat
+    v_max_mps: PositiveFloat
+    omega_max_degps: PositiveFloat
+    wheel_v_max_mps: PositiveFloat
+    accel_mps2: PositiveFloat
+    decel_mps2: PositiveFloat
+    rot_accel_degps2: PositiveFloat
+    sonar: SonarParams
+
+    @property
+    def omega_max_radps(self) -> float:
+        """Yaw-rate limit, rad/s."""
+        return math.radians(self.omega_max_degps)
+
+    @property
+    def rot_accel_radps2(self) -> float:
+        """Yaw acceleration limit, rad/s^2."""
+        return math.radians(self.rot_accel_degps2)
+
+
+# --- scenario files (configs/scenarios/*.toml) -----------------------------------------
+
+
+class LimitsOverride(Model):
+    """Run bounds tighter than the robot's own (the paper: 0.3 m/s, 40 deg/s)."""
+
+    v_max_mps: PositiveFloat | None = None
+    omega_max_degps: PositiveFloat | None = None
+
+
+ControllerKind = Literal["tracking", "switching", "icr", "ours"]
+
+
+class ControllerConfig(Model):
+    """Which follower controller runs, and its gains.
+
+    tracking: the paper's eq. (1)-(3) in both directions; icr: the paper's eq. (7) in both
+    directions; switching: the paper's strategy (tracking forwards, ICR backwards);
+    ours: closed loop both ways on the exact rigid-body slot motion.
+    """
+
+    kind: ControllerKind = "ours"
+    k1: PositiveFloat = 0.6
+    k2: PositiveFloat = 0.6
+    h_m: PositiveFloat = 0.2
+    gain_per_s: PositiveFloat = 1.0
+    control_point_m: PositiveFloat = 0.15
+    compensate_delay: bool = True
+    reverse_threshold_mps: NonNegativeFloat = 0.02
+
+
+class SlotConfig(Model):
+    """A robot's place in the formation.
+
+    Give either `x_m`/`y_m` (formation frame, origin at the formation leader, x along the
+    formation's heading) or `l_m`/`phi_deg` relative to the robot it `follows`
+    (phi counter-clockwise from that robot's heading, 180 = directly behind).
+    """
+
+    robot: str
+    follows: str | None = None
+    x_m: float | None = None
+    y_m: float | None = None
+    l_m: PositiveFloat | None = None
+    phi_deg: float | None = None
+
+    @model_validator(mode="after")
+    def _one_way_of_placing(self) -> Self:
+        cartesian = self.x_m is not None or self.y_m is not None
+        polar = self.l_m is not None or self.phi_deg is not None
+        if cartesian and polar:
+            raise ValueError("give either x_m/y_m or l_m/phi_deg, not both")
+        if polar and (self.l_m is None or self.phi_deg is None or self.follows is None):
+            raise ValueError("l_m/phi_deg need both values and `follows`")
+        if cartesian and (self.x_m is None or self.y_m is None):
+            raise ValueError("x_m/y_m need both values")
+        return self
+
+
+class FormationConfig(Model):
+    """The formation's shape: one slot per robot; exactly one slot follows nobody."""
+
+    slots: tuple[SlotConfig, ...] = Field(min_length=1)
+
+    @model_validator(mode="after")
+    def _one_root(self) -> Self:
+        roots = [s.robot for s in self.slots if s.follows is None]
+        if len(roots) != 1:
+            raise ValueError(f"exactly one slot must follow nobody, found {roots}")
+        return self
+
+
+class StartPose(Model):
+    """A start pose (config sugar: heading in degrees)."""
+
+    x_m: float = 0.0
+    y_m: float = 0.0
+    theta_deg: float = 0.0
+
+
+DriverKind = Literal["sim", "arcos", "canopen"]
+
+
+class RobotEntry(Model):
+    """One robot of the scenario."""
+
+    id: str = Field(pattern=r"^[A-Za-z0-9_-]{1,32}$")
+    start: StartPose = StartPose()
+    driver: DriverKind = "sim"
+
+
+class Segment(Model):
+    """A piece of the leader's scripted motion: constant twist for a duration."""
+
+    duration_s: PositiveFloat
+    v_mps: float
+    omega_degps: float = 0.0
+
+
+class LeaderProfile(Model):
+    """The leader's scripted motion (the paper's piecewise constant velocities)."""
+
+    segments: tuple[Segment, ...] = Field(min_length=1)
+    repeat: bool = False
+
+
+class DeadlockConfig(Model):
+    """The group's backward escape when no robot can lead forwards (the paper's deadlock).
+
+    A deadlock is every robot reporting an obstacle on its path (the paper, section 1);
+    for a navigating leader also: the leader blocked for `leadership.confirm_s` with no
+    follower clear to take over, or in a dead end (its route leads back the way it came
+    and the shape has no room to turn round). The leader stands still `pause_s` (the
+    followers settle on their slots; 0 as the paper), backs the group off
+    `safe_distance_m` in formation (or until an obstacle behind stops it), then turns:
+    towards its route if its map has one, else by `turn_away_deg` (times the deadlocks
+    so far at this waypoint) towards the more open side and drives `escape_distance_m`
+    that way. It reverses at most `max_retries` times at one waypoint; the next deadlock
+    there stops every robot in STUCK. A scripted leader (the paper's runs) resumes its
+    script without turning.
+
+    `path` backs along the path the leader actually drove (recorded from its odometry):
+    the rigid formation then sweeps back through the very ground it came over, known to
+    be free; `retrace` backs along the arc just driven (same curvature: the paper's
+    scripted arcs); `fixed` backs with `reverse_omega_degps` (the paper: straight back),
+    a navigating leader first turning the shape back to the way it came in (its last 2 m
+    of path), since one caught turning on the spot would otherwise back out diagonally.
+    """
+
+    reverse_mode: Literal["path", "retrace", "fixed"] = "path"
+    reverse_speed_mps: PositiveFloat = 0.15
+    reverse_omega_degps: float = 0.0
+    pause_s: NonNegativeFloat = 0.0
+    safe_distance_m: PositiveFloat = 1.5
+    obstacle_range_m: PositiveFloat = 0.5
+    turn_away_deg: Annotated[float, Field(ge=0.0, le=180.0)] = 60.0
+    escape_distance_m: NonNegativeFloat = 2.0
+    max_retries: int = Field(default=3, ge=0, le=100)
+
+
+class NavigationConfig(Model):
+    """The navigation layer of whichever robot leads: go-to-goal over `waypoints` (world
+    frame, m), or wander when there are none and no scripted `leader_profile`; reactive
+    obstacle avoidance on every robot from its sonar ring; the emergency stop.
+
+    Ranges are gaps between the robot's disc and an obstacle along a straight corridor
+    `radius + body_margin_m` wide, measured in the direction of motion. A leader that
+    gets no further than 0.3 m in `stall_s` counts as blocked.
+
+    `reactive = false` switches avoidance and the emergency stop off (deadlocks and
+    leadership still work): for studies whose obstacles are scripted sensor events, such
+    as the paper's (its signal builder), where the controllers alone are measured.
+    Never on a real robot.
+    """
+
+    reactive: bool = True
+    waypoints: tuple[tuple[float, float], ...] = ()
+    goal_tolerance_m: PositiveFloat = 0.5
+    cruise_mps: PositiveFloat = 0.2
+    heading_gain_per_s: PositiveFloat = 1.0
+    min_turn_radius_m: NonNegativeFloat = 2.5
+    lookahead_m: PositiveFloat = 3.0
+    clear_range_m: PositiveFloat = 2.5
+    avoid_range_m: PositiveFloat = 0.8
+    body_margin_m: NonNegativeFloat = 0.05
+    stop_margin_m: NonNegativeFloat = 0.08
+    confirm_s: PositiveFloat = 0.2
+    stall_s: PositiveFloat = 10.0
+    slowdown: Annotated[float, Field(gt=0.0, le=1.0)] = 0.5
+    wander_period_s: PositiveFloat = 10.0
+    wander_turn_deg: NonNegativeFloat = 45.0
+
+
+class LeadershipConfig(Model):
+    """When and how leadership passes (a formation is a shape: any robot can lead).
+
+    `handover`: the leader blocked for `confirm_s` hands over to a follower whose path
+    is clear. `min_tenure_s`: no handover sooner after the last change. `loss_grace_s`:
+    after the leader's state goes stale (followers hold), wait this long before electing
+    a new one. `formed_m`: a robot that left its slot (avoiding, stopped, rejoining) is
+    back in formation, and may be tracked again, once within this of its slot.
+    `join_timeout_s`: a restarted robot waits this long to hear the fleet (JOIN) before
+    it acts on its own view.
+    """
+
+    handover: bool = True
+    confirm_s: PositiveFloat = 0.2
+    min_tenure_s: NonNegativeFloat = 3.0
+    loss_grace_s: NonNegativeFloat = 1.0
+    formed_m: PositiveFloat = 0.1
+    join_timeout_s: PositiveFloat = 2.0
+
+
+class SensorEvent(Model):
+    """A scripted sensor event (the paper's Simulink signal builder)."""
+
+    kind: Literal["all_sonars_blocked", "bumper"] = "all_sonars_blocked"
+    start_s: NonNegativeFloat
+    duration_s: PositiveFloat
+    robots: tuple[str, ...] = ()
+    range_m: PositiveFloat = 0.3
+
+
+class CircleObstacle(Model):
+    """A circular obstacle."""
+
+    x_m: float
+    y_m: float
+    radius_m: PositiveFloat
+
+
+class PolygonObstacle(Model):
+    """A polygonal obstacle, vertices in order."""
+
+    vertices_m: tuple[tuple[float, float], ...] = Field(min_length=3)
+
+
+class ObstacleField(Model):
+    """Circular obstacles scattered from a seed over a rectangle (a Monte-Carlo world).
+
+    Obstacles never overlap a `keep_clear` circle (start and goal areas) and keep
+    `min_gap_m` from each other; placement gives up after `count * 50` tries.
+    """
+
+    seed: int = 0
+    count: int = Field(default=20, ge=0, le=10_000)
+    radius_min_m: PositiveFloat = 0.2
+    radius_max_m: PositiveFloat = 0.5
+    x_min_m: float = 0.0
+    x_max_m: float = 20.0
+    y_min_m: float = -5.0
+    y_max_m: float = 5.0
+    min_gap_m: NonNegativeFloat = 0.0
+    keep_clear: tuple[CircleObstacle, ...] = ()
+
+    @model_validator(mode="after")
+    def _ordered(self) -> Self:
+        if self.radius_min_m > self.radius_max_m:
+            raise ValueError("radius_min_m must not exceed radius_max_m")
+        if self.x_min_m >= self.x_max_m or self.y_min_m >= self.y_max_m:
+            raise ValueError("the field's rectangle is empty")
+        return self
+
+
+class WorldConfig(Model):
+    """Static obstacles of the world, plus an optional seeded obstacle field."""
+
+    circles: tuple[CircleObstacle, ...] = ()
+    polygons: tuple[PolygonObstacle, ...] = ()
+    field: ObstacleField | None = None
+    substeps: int = Field(default=4, ge=1, le=100)
+
+
+class NoiseConfig(Model):
+    """Seeded sensor noise; zero means a perfect sensor."""
+
+    odometry_v_std_frac: NonNegativeFloat = 0.0
+    odometry_omega_std_radps: NonNegativeFloat = 0.0
+    sonar_std_m: NonNegativeFloat = 0.0
+
+
+class Scenario(Model):
+    """A whole run: robots, formation, leader script or waypoints, events, world, controller.
+
+    The leader follows `leader_profile` when one is given (the paper's runs), otherwise
+    `navigation.waypoints`, otherwise it wanders.
+    """
+
+    name: str
+    description: str = ""
+    robot: str = "p3dx"
+    duration_s: PositiveFloat = 200.0
+    control_rate_hz: PositiveFloat = 10.0
+    comm_delay_s: NonNegativeFloat = 0.1
+    seed: int = 0
+    limits: LimitsOverride = LimitsOverride()
+    controller: ControllerConfig = ControllerConfig()
+    formation: FormationConfig
+    robots: tuple[RobotEntry, ...] = Field(min_length=1)
+    leader_profile: LeaderProfile | None = None
+    navigation: NavigationConfig = NavigationConfig()
+    leadership: LeadershipConfig = LeadershipConfig()
+    deadlock: DeadlockConfig = DeadlockConfig()
+    events: tuple[SensorEvent, ...] = ()
+    world: WorldConfig = WorldConfig()
+    noise: NoiseConfig = NoiseConfig()
+    settle_s: NonNegativeFloat = 5.0
+    initial_settle_s: NonNegativeFloat = 30.0
+    leader_timeout_s: PositiveFloat = 0.5
+
+    @model_validator(mode="after")
+    def _robots_match_slots(self) -> Self:
+        ids = [r.id for r in self.robots]
+        if len(set(ids)) != len(ids):
+            raise ValueError(f"robot ids must be unique, got {ids}")
+        slotted = {s.robot for s in self.formation.slots}
+        if slotted != set(ids):
+            raise ValueError(f"formation slots {sorted(slotted)} != robots {sorted(ids)}")
+        for slot in self.formation.slots:
+            if slot.follows is not None and slot.follows not in slotted:
+                raise ValueError(f"slot {slot.robot!r} follows unknown robot {slot.follows!r}")
+        return self
+
+    @property
+    def dt_s(self) -> float:
+        """Control period, s."""
+        return 1.0 / self.control_rate_hz
+
+
+# --- loading ---------------------------------------------------------------------------
+
+M = TypeVar("M", bound=BaseModel)
+
+
+def _field_names(model: type[BaseModel], loc: tuple[int | str, ...]) -> list[str]:
+    """Valid field names at the parent of an error location, for "did you mean"."""
+    current: Any = model
+    for part in loc[:-1]:
+        if isinstance(part, int):
+            continue
+        fields = getattr(current, "model_fields", {})
+        if part not in fields:
+            return []
+        annotation = fields[part].annotation
+        current = _innermost_model(annotation)
+        if current is None:
+            return []
+    return list(getattr(current, "model_fields", {}))
+
+
+def _innermost_model(annotation: Any) -> type[BaseModel] | None:
+    if isinstance(annotation, type) and issubclass(annotation, BaseModel):
+        return annotation
+    for arg in getattr(annotation, "__args__", ()):
+        found = _innermost_model(arg)
+        if found is not None:
+            return found
+    return None
+
+
+def _describe(error: Mapping[str, Any], model: type[BaseModel]) -> str:
+    loc = tuple(error["loc"])
+    path = ".".join(str(p) for p in loc) or "<root>"
+    message = f"{path}: {error['msg']}"
+    if error["type"] == "extra_forbidden" and loc:
+        hints = difflib.get_close_matches(str(loc[-1]), _field_names(model, loc), n=1)
+        if hints:
+            message += f" (did you mean {hints[0]!r}?)"
+    return message
+
+
+def validate_file(model: type[M], path: Path) -> M:
+    """Read a TOML file (or JSON, as tools write it) into `model`.
+
+    Raises ConfigError naming the file, the field path and a hint.
+    """
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError as exc:
+        raise ConfigError(f"{path}: no such file") from exc
+    try:
+        data = json.loads(text) if path.suffix == ".json" else tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{path}: not valid TOML: {exc}") from exc
+    except json.JSONDecodeError as exc:
+        raise ConfigError(f"{path}: not valid JSON: {exc}") from exc
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}: expected a table at the top level")
+    return validate_data(model, data, source=str(path))
+
+
+def validate_data(model: type[M], data: Mapping[str, Any], *, source: str) -> M:
+    """Validate a mapping into `model`, or raise ConfigError naming source and fields."""
+    try:
+        return model.model_validate(data)
+    except ValidationError as exc:
+        lines = [_describe(e, model) for e in exc.errors()]
+        raise ConfigError(f"{source}: invalid {model.__name__}:\n  " + "\n  ".join(lines)) from exc
+
+
+def load_robot(name_or_path: str | Path) -> RobotParams:
+    """Load a robot parameter file by name (configs/robots/NAME.toml) or path."""
+    path = Path(name_or_path)
+    if path.suffix != ".toml":
+        path = ROBOTS_DIR / f"{name_or_path}.toml"
+    return validate_file(RobotParams, path)
+
+
+def load_scenario(path: str | Path) -> Scenario:
+    """Load a scenario file (TOML; JSON is accepted for generated scenarios)."""
+    return validate_file(Scenario, Path(path))
+
+
+def apply_overrides(scenario: Scenario, assignments: list[str]) -> Scenario:
+    """A copy of `scenario` with dotted `path=value` assignments (TOML values) applied.
+
+    For example `controller.kind="ours"` or `noise.sonar_std_m=0.02`; bare words are taken
+    as strings, so `controller.kind=ours` works too. The result is validated again.
+    """
+    data = scenario.model_dump(mode="python")
+    for assignment in assignments:
+        path, sep, text = assignment.partition("=")
+        if not sep or not path.strip():
+            raise ConfigError(f"override {assignment!r}: expected PATH=VALUE")
+        _set_path(data, path.strip().split("."), _parse_value(text.strip()), assignment)
+    return validate_data(Scenario, data, source=f"{scenario.name} with overrides")
+
+
+def _parse_value(text: str) -> Any:
+    try:
+        return tomllib.loads(f"v = {text}")["v"]
+    except tomllib.TOMLDecodeError:
+        return text
+
+
+def _set_path(data: dict[str, Any], keys: list[str], value: Any, assignment: str) -> None:
+    node: Any = data
+    for key in keys[:-1]:
+        node = _child(node, key, assignment)
+    last = keys[-1]
+    if isinstance(node, list) and last.isdigit() and int(last) < len(node):
+        node[int(last)] = value
+    elif isinstance(node, dict):
+        node[last] = value
+    else:
+        raise ConfigError(f"override {assignment!r}: {'.'.join(keys[:-1])} is not a table")
+
+
+def _child(node: Any, key: str, assignment: str) -> Any:
+    if isinstance(node, dict) and key in node:
+        return node[key]
+    if isinstance(node, list | tuple) and key.isdigit() and int(key) < len(node):
+        return node[int(key)]
+    raise ConfigError(f"override {assignment!r}: no field {key!r}")

@@ -1,0 +1,586 @@
+"""`phalanx host`: the per-host daemon that starts and supervises a fleet's processes.
+
+The daemon is its host's Zenoh router (endpoints from the deployment file), holds a
+liveliness token `phalanx/<fleet>/host/<name>/alive`, and answers spawn, stop and status
+requests on its queryables (see `phalanx.hostproto`). It starts only what its own copy
+of the deployment assigns to its host: the agents of those robots and, if the world
+runs here, the world. Command lines are built from the deployment; a request names the
+deployment and carries a run id, an epoch and scenario overrides, all checked first.
+A malformed or refused request is answered with the reason and counted; it never ends
+the daemon.
+
+Children run in their own session (process group), with their output piped: every line
+is kept (last error, shown by `status`), echoed to the daemon's log, and published on
+`phalanx/<fleet>/host/<name>/log/<child>`. A crashed agent is restarted with exponential
+back-off; a crashed world is not (a new world would restart the scenario). On SIGINT or
+SIGTERM every child gets SIGTERM, then SIGKILL after a grace period, and the session is
+closed. (If the daemon itself is killed, systemd's control group takes the children
+down; and a robot whose liveliness token is still up is never started a second time.)
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import IO, Any, Literal
+
+from pydantic import ValidationError
+
+from phalanx.core.config import apply_overrides
+from phalanx.core.errors import PhalanxError, RequestRefused
+from phalanx.hosts.deployment import (
+    LoadedDeployment,
+    RestartPolicy,
+    RunParameters,
+    agent_argv,
+    did_you_mean,
+    host_transport,
+    world_argv,
+)
+from phalanx.hosts.protocol import (
+    ACTIVE_STATES,
+    MAX_LOG_LINE,
+    MAX_REQUEST_BYTES,
+    ChildState,
+    ChildStatus,
+    HostReply,
+    HostStatus,
+    LogLine,
+    SpawnRequest,
+    StopRequest,
+    line_level,
+)
+from phalanx.runtime.local_fleet import GRACE_S
+from phalanx.runtime.signals import Stoppable
+from phalanx.wire.keys import host_key, log_key
+from phalanx.wire.transport import FleetSession, TransportConfig, open_session
+
+log = logging.getLogger("phalanx.host")
+child_log = logging.getLogger("phalanx.host.child")
+TOPICS = ("spawn", "stop", "status")
+MAX_EPOCH_OFFSET_S = 86_400.0
+LOG_LINES_PER_S = 200.0
+
+LogLevel = Literal["info", "warning", "error"]
+LineSink = Callable[["ManagedChild", str, LogLevel], None]
+
+
+@dataclass
+class DaemonOptions:
+    """How a host daemon runs its children."""
+
+    python: str = sys.executable
+    workdir: Path = field(default_factory=Path.cwd)
+    echo: bool = True  # copy children's output to the daemon's log
+    grace_s: float = GRACE_S
+    tick_s: float = 0.05
+
+
+class ManagedChild:
+    """One supervised process: its state, restarts, output and last error."""
+
+    def __init__(
+        self,
+        name: str,
+        kind: Literal["agent", "world"],
+        argv: list[str],
+        *,
+        policy: RestartPolicy,
+        on_line: LineSink,
+    ) -> None:
+        self.name, self.kind, self.argv = name, kind, argv
+        self.policy = policy
+        self.on_line = on_line
+        self.process: subprocess.Popen[bytes] | None = None
+        self.state: ChildState = "starting"
+        self.restarts = 0
+        self.backoff_steps = 0
+        self.exit_code: int | None = None
+        self.last_error = ""
+        self.lines: deque[str] = deque(maxlen=50)
+        self.log_dropped = 0
+        self.started_at = 0.0
+        self.restart_at = 0.0
+        self.kill_at = 0.0
+        self._tokens = LOG_LINES_PER_S
+        self._refilled = time.monotonic()
+        self._pump: threading.Thread | None = None
+
+    @property
+    def active(self) -> bool:
+        """Running, starting, about to restart or being stopped."""
+        return self.state in ACTIVE_STATES
+
+    def start(self, *, workdir: Path) -> None:
+        """Start (again), output piped to a reader thread."""
+        env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+        self.process = subprocess.Popen(  # noqa: S603 - argv built from the deployment file
+            self.argv,
+            stdin=subprocess.DEVNULL,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            cwd=workdir,
+            env=env,
+            start_new_session=True,
+        )
+        self.state, self.exit_code = "starting", None
+        self.started_at = time.monotonic()
+        self._pump = threading.Thread(
+            target=self._read, args=(self.process.stdout,), name=f"log-{self.name}", daemon=True
+        )
+        self._pump.start()
+
+    def poll(self) -> int | None:
+        """The exit code, if the process has ended."""
+        return None if self.process is None else self.process.poll()
+
+    def signal(self, sig: signal.Signals) -> None:
+        """Signal the child's whole process group."""
+        if self.process is not None and self.process.poll() is None:
+            with contextlib.suppress(ProcessLookupError, PermissionError):
+                os.killpg(self.process.pid, sig)
+
+    def stop(self, now: float, grace_s: float) -> None:
+        """SIGTERM now, SIGKILL after `grace_s`; a pending restart is cancelled."""
+        if self.state in ("starting", "running"):
+            self.signal(signal.SIGTERM)
+            self.state, self.kill_at = "stopping", now + grace_s
+        elif self.state == "backoff":
+            self.state = "stopped"
+
+    def join_output(self, timeout_s: float) -> None:
+        """Wait (bounded) for the reader thread to see the end of the output."""
+        if self._pump is not None:
+            self._pump.join(timeout_s)
+
+    def status(self) -> ChildStatus:
+        """The child as the protocol reports it."""
+        pid = self.process.pid if self.process is not None and self.active else None
+        return ChildStatus(
+            name=self.name,
+            kind=self.kind,
+            state=self.state,
+            pid=pid,
+            restarts=self.restarts,
+            exit_code=self.exit_code,
+            last_error=self.last_error[-300:],
+            log_dropped=self.log_dropped,
+        )
+
+    def _read(self, stream: IO[bytes] | None) -> None:
+        if stream is None:
+            return
+        with stream, contextlib.suppress(OSError, ValueError):  # closed at EOF
+            for raw in stream:
+                line = raw.decode("utf-8", "replace").rstrip()[:MAX_LOG_LINE]
+                if line:
+                    self._take(line)
+
+    def _take(self, line: str) -> None:
+        self.lines.append(line)
+        level = line_level(line)
+        if level == "error":
+            self.last_error = line
+        now = time.monotonic()
+        self._tokens = min(LOG_LINES_PER_S, self._tokens + (now - self._refilled) * LOG_LINES_PER_S)
+        self._refilled = now
+        if self._tokens < 1.0:
+            self.log_dropped += 1
+            return
+        self._tokens -= 1.0
+        self.on_line(self, line, level)
+
+
+def exit_reason(code: int) -> str:
+    """`exit 2`, or `killed by SIGKILL` for a negative code."""
+    if code < 0:
+        with contextlib.suppress(ValueError):
+            return f"killed by {signal.Signals(-code).name}"
+    return f"exit {code}"
+
+
+def backoff_delay_s(policy: RestartPolicy, step: int) -> float:
+    """The delay before restart number `step + 1` of a crashing child."""
+    return float(min(policy.backoff_max_s, policy.backoff_s * 2.0**step))
+
+
+def validation_summary(exc: ValidationError, limit: int = 4) -> str:
+    """`field: message; ...` for the first few errors of `exc`."""
+    parts = []
+    for error in exc.errors()[:limit]:
+        path = ".".join(str(p) for p in error["loc"]) or "<payload>"
+        parts.append(f"{path}: {error['msg']}")
+    return "; ".join(parts)
+
+
+class HostDaemon:
+    """Serves one host of one deployment: requests in, supervised processes out."""
+
+    def __init__(
+        self, loaded: LoadedDeployment, name: str, options: DaemonOptions | None = None
+    ) -> None:
+        loaded.spec.host(name)  # ConfigError naming the hosts if `name` is not one
+        self.loaded, self.name = loaded, name
+        self.spec = loaded.spec
+        self.options = options or DaemonOptions()
+        self.children: dict[str, ManagedChild] = {}
+        self.run_id: str | None = None
+        self.requests = 0
+        self.refused = 0
+        self.started = time.monotonic()
+        self._alive: set[str] = set()
+        self._lock = threading.Lock()
+        self._queryables: dict[str, Any] = {}
+        self._publishers: dict[str, Any] = {}
+        self._session: FleetSession | None = None
+
+    # --- the loop -----------------------------------------------------------------------
+
+    def run(self, stop: Stoppable) -> None:
+        """Serve until `stop` is set; then stop every child and close the session."""
+        transport = host_transport(self.spec, self.name)
+        with open_session(transport) as session:
+            self._session = session
+            self._wire(session)
+            self._announce(transport)
+            try:
+                while not stop.is_set():
+                    self.serve_requests()
+                    self.supervise()
+                    stop.wait(self.options.tick_s)
+            finally:
+                self.shutdown()
+
+    def _announce(self, transport: TransportConfig) -> None:
+        robots = ", ".join(self.spec.robots_on(self.name)) or "none"
+        world = "; the world runs here" if self.spec.runs_world(self.name) else ""
+        log.info(
+            "host %s of fleet %s (deployment %s): listening on %s, connecting to %s; "
+            "robots here: %s%s",
+            self.name, self.spec.fleet, self.spec.name, ", ".join(transport.listen),
+            ", ".join(transport.connect) or "nobody (others connect here)", robots, world,
+        )  # fmt: skip
+
+    def _wire(self, session: FleetSession) -> None:
+        import zenoh
+
+        fleet = self.spec.fleet
+        session.declare_alive(host_key(fleet, self.name, "alive"))
+        session.watch_alive(f"phalanx/{fleet}/alive/*", self._on_alive)
+        for topic in TOPICS:
+            key = host_key(fleet, self.name, topic)
+            queryable = session.zenoh.declare_queryable(key, zenoh.handlers.RingChannel(64))
+            self._queryables[topic] = session.hold(queryable)
+
+    def _on_alive(self, key: str, alive: bool) -> None:
+        name = key.rsplit("/", 1)[-1]
+        with self._lock:
+            (self._alive.add if alive else self._alive.discard)(name)
+
+    def serve_requests(self) -> None:
+        """Answer every request waiting on the queryables."""
+        for topic, queryable in self._queryables.items():
+            while (query := queryable.try_recv()) is not None:
+                with query:
+                    reply = self.answer(topic, _payload(query))
+                    with contextlib.suppress(Exception):  # the asker may be gone
+                        query.reply(host_key(self.spec.fleet, self.name, topic), reply)
+
+    def answer(self, topic: str, payload: bytes) -> bytes:
+        """The JSON reply to a request on `topic`; refusals are counted, never raised."""
+        self.requests += 1
+        try:
+            self._handle(topic, payload)
+            reply = HostReply(ok=True, status=self.status())
+        except (PhalanxError, ValidationError) as exc:
+            reason = self._refusal(topic, exc)
+            reply = HostReply(ok=False, error=reason, status=self.status())
+        except Exception:  # the daemon must outlive any request
+            log.exception("host %s: a %s request failed", self.name, topic)
+            self.refused += 1
+            error = "internal error: see the host's log"
+            reply = HostReply(ok=False, error=error, status=self.status())
+        return reply.model_dump_json().encode("utf-8")
+
+    def _refusal(self, topic: str, exc: PhalanxError | ValidationError) -> str:
+        self.refused += 1
+        if isinstance(exc, ValidationError):
+            reason = f"malformed {topic} request: {validation_summary(exc)}"
+        else:
+            reason = str(exc)
+        log.warning("host %s refused a %s request: %s", self.name, topic, reason)
+        return reason
+
+    def _handle(self, topic: str, payload: bytes) -> None:
+        if len(payload) > MAX_REQUEST_BYTES:
+            raise RequestRefused(f"request of {len(payload)} bytes: at most {MAX_REQUEST_BYTES}")
+        if topic == "spawn":
+            self.spawn(SpawnRequest.model_validate_json(payload))
+        elif topic == "stop":
+            self.stop(StopRequest.model_validate_json(payload))
+
+    # --- requests -----------------------------------------------------------------------
+
+    def spawn(self, request: SpawnRequest) -> None:
+        """Start the requested processes of this host (idempotent for a running one)."""
+        self._check_deployment(request.deployment, request.digest)
+        robots = self._requested_robots(request.robots)
+        overrides = self._checked_overrides(request.overrides)
+        self._check_epoch(request.epoch_unix)
+        self._claim_run(request.run_id)
+        world = request.world and self.spec.runs_world(self.name)
+        self._check_not_elsewhere([*robots, *(["world"] if world else [])])
+        run = RunParameters(request.run_id, request.epoch_unix, overrides)
+        python = self.options.python
+        for rid in robots:
+            self._ensure(rid, "agent", agent_argv(self.loaded, rid, run=run, python=python))
+        if world:
+            out = self._results_dir(request.run_id)
+            self._ensure("world", "world", world_argv(self.loaded, run=run, out=out, python=python))
+
+    def stop(self, request: StopRequest) -> None:
+        """Stop some or all of this host's processes (SIGTERM, then SIGKILL)."""
+        if request.deployment != self.spec.name:
+            raise RequestRefused(self._wrong_deployment(request.deployment))
+        if request.run_id is not None and request.run_id != self.run_id:
+            raise RequestRefused(
+                f"run {request.run_id!r} is not this host's (its run: {self.run_id!r})"
+            )
+        names = list(self._requested_robots(request.robots))
+        if request.world:
+            names.append("world")
+        now = time.monotonic()
+        for name in names:
+            child = self.children.get(name)
+            if child is not None:
+                child.stop(now, self.options.grace_s)
+                log.info("host %s: stopping %s", self.name, name)
+
+    def _check_deployment(self, name: str, digest: str) -> None:
+        if name != self.spec.name:
+            raise RequestRefused(self._wrong_deployment(name))
+        if digest != self.loaded.digest:
+            raise RequestRefused(
+                f"deployment {name!r} differs on host {self.name!r} (digest "
+                f"{self.loaded.digest[:12]} here, {digest[:12]} asked): copy the same deployment "
+                "and scenario files to every host"
+            )
+
+    def _wrong_deployment(self, name: str) -> str:
+        return f"host {self.name!r} serves deployment {self.spec.name!r}, not {name!r}"
+
+    def _requested_robots(self, requested: tuple[str, ...]) -> tuple[str, ...]:
+        here = self.spec.robots_on(self.name)
+        everyone = [r.id for r in self.spec.robots]
+        for rid in requested:
+            if rid not in everyone:
+                raise RequestRefused(
+                    f"robot {rid!r} is not in deployment {self.spec.name!r}"
+                    + did_you_mean(rid, everyone)
+                )
+            if rid not in here:
+                other = self.spec.placement(rid).host
+                raise RequestRefused(f"robot {rid!r} runs on host {other!r}, not on {self.name!r}")
+        return requested or here
+
+    def _checked_overrides(self, overrides: tuple[str, ...]) -> tuple[str, ...]:
+        if not overrides:
+            return ()
+        if not self.spec.allow_overrides:
+            raise RequestRefused(
+                f"deployment {self.spec.name!r} does not allow overrides (allow_overrides = false)"
+            )
+        apply_overrides(self.loaded.scenario, list(overrides))  # ConfigError if invalid
+        return overrides
+
+    def _check_epoch(self, epoch_unix: float | None) -> None:
+        if epoch_unix is not None and abs(epoch_unix - time.time()) > MAX_EPOCH_OFFSET_S:
+            raise RequestRefused(f"epoch {epoch_unix:.3f}: more than a day from this host's clock")
+
+    def _claim_run(self, run_id: str) -> None:
+        busy = sorted(c.name for c in self.children.values() if c.active)
+        if busy and run_id != self.run_id:
+            raise RequestRefused(
+                f"host {self.name!r} is running run {self.run_id!r} ({', '.join(busy)}): "
+                "stop it first (phalanx stop)"
+            )
+        if run_id != self.run_id:
+            self.children.clear()
+            self.run_id = run_id
+
+    def _check_not_elsewhere(self, names: list[str]) -> None:
+        """Refuse to start what is already on the fabric but not our child.
+
+        That is an orphan of a previous daemon, or the same robot started by another host.
+        """
+        with self._lock:
+            alive = set(self._alive)
+        for name in names:
+            ours = self.children.get(name)
+            if name in alive and (ours is None or not ours.active):
+                raise RequestRefused(
+                    f"{name} is already on the fabric of fleet {self.spec.fleet!r} (its "
+                    "liveliness token is up) but not started by this host: stop it first"
+                )
+
+    def _results_dir(self, run_id: str) -> Path:
+        world = self.spec.world
+        base = Path(world.out_dir if world else "results")
+        return (base if base.is_absolute() else self.options.workdir / base) / run_id
+
+    def _ensure(self, name: str, kind: Literal["agent", "world"], argv: list[str]) -> None:
+        current = self.children.get(name)
+        if current is not None and current.active:
+            return
+        child = ManagedChild(name, kind, argv, policy=self.spec.restart, on_line=self._on_line)
+        self.children[name] = child
+        self._publisher(name)
+        self._start(child)
+
+    def _start(self, child: ManagedChild) -> None:
+        try:
+            child.start(workdir=self.options.workdir)
+        except OSError as exc:
+            child.state, child.last_error = "failed", f"cannot start: {exc}"
+            log.error("host %s: cannot start %s: %s", self.name, child.name, exc)
+            return
+        assert child.process is not None  # noqa: S101 - start() set it
+        log.info("host %s: started %s (pid %d)", self.name, child.name, child.process.pid)
+
+    # --- supervision --------------------------------------------------------------------
+
+    def supervise(self) -> None:
+        """Notice exits, restart crashed agents after their back-off, escalate stops."""
+        now = time.monotonic()
+        with self._lock:
+            alive = set(self._alive)
+        for child in list(self.children.values()):
+            self._supervise_one(child, now, alive)
+
+    def _supervise_one(self, child: ManagedChild, now: float, alive: set[str]) -> None:
+        code = child.poll()
+        if code is not None and child.state in ("starting", "running", "stopping"):
+            self._ended(child, code, now)
+        elif child.state == "starting" and child.name in alive:
+            child.state = "running"
+        elif child.state == "running" and now - child.started_at > child.policy.stable_s:
+            child.backoff_steps = 0
+        elif child.state == "stopping" and now > child.kill_at:
+            child.signal(signal.SIGKILL)
+        elif child.state == "backoff" and now >= child.restart_at:
+            child.restarts += 1
+            log.warning(
+                "host %s: restarting %s (restart %d)", self.name, child.name, child.restarts
+            )
+            self._start(child)
+
+    def _ended(self, child: ManagedChild, code: int, now: float) -> None:
+        child.exit_code = code
+        if child.state == "stopping":
+            child.state = "stopped"
+            return
+        if code == 0:
+            child.state = "finished"
+            log.info("host %s: %s finished", self.name, child.name)
+            return
+        child.join_output(0.5)  # its last words are the likely reason
+        last = child.last_error or (child.lines[-1] if child.lines else "")
+        child.last_error = f"{exit_reason(code)}: {last}" if last else exit_reason(code)
+        if child.kind == "agent" and child.backoff_steps < child.policy.max_restarts:
+            delay_s = backoff_delay_s(child.policy, child.backoff_steps)
+            child.backoff_steps += 1
+            child.state, child.restart_at = "backoff", now + delay_s
+            log.error(
+                "host %s: %s crashed (%s); restart in %.1f s",
+                self.name,
+                child.name,
+                exit_reason(code),
+                delay_s,
+            )
+        else:
+            child.state = "failed"
+            log.error("host %s: %s failed (%s)", self.name, child.name, exit_reason(code))
+
+    def shutdown(self) -> None:
+        """Stop every child: SIGTERM, SIGKILL after the grace period; bounded."""
+        now = time.monotonic()
+        for child in self.children.values():
+            child.stop(now, self.options.grace_s)
+        deadline = now + self.options.grace_s + 5.0
+        while any(c.poll() is None for c in self._started_children()):
+            if time.monotonic() > deadline:
+                break
+            self.supervise()  # escalates to SIGKILL after the grace period
+            time.sleep(0.05)
+        for child in self._started_children():
+            with contextlib.suppress(subprocess.TimeoutExpired):
+                if child.process is not None:
+                    child.process.wait(1.0)
+            child.join_output(0.5)
+        self.supervise()  # record the last exits
+
+    def _started_children(self) -> list[ManagedChild]:
+        return [c for c in self.children.values() if c.process is not None]
+
+    # --- output and status --------------------------------------------------------------
+
+    def _publisher(self, name: str) -> Any:
+        import zenoh
+
+        if name not in self._publishers and self._session is not None:
+            key = log_key(self.spec.fleet, self.name, name)
+            publisher = self._session.zenoh.declare_publisher(
+                key,
+                congestion_control=zenoh.CongestionControl.DROP,
+                priority=zenoh.Priority.DATA_LOW,
+            )
+            self._publishers[name] = self._session.hold(publisher)
+        return self._publishers.get(name)
+
+    def _on_line(self, child: ManagedChild, line: str, level: LogLevel) -> None:
+        if self.options.echo:
+            child_log.info("%s | %s", child.name, line)
+        message = LogLine(
+            host=self.name,
+            child=child.name,
+            run_id=self.run_id or "",
+            time_unix=time.time(),
+            level=level,
+            line=line,
+        )
+        publisher = self._publishers.get(child.name)
+        if publisher is not None:
+            with contextlib.suppress(Exception):  # the session may be closing
+                publisher.put(message.model_dump_json().encode("utf-8"))
+
+    def status(self) -> HostStatus:
+        """The host's status as the protocol reports it."""
+        return HostStatus(
+            host=self.name,
+            fleet=self.spec.fleet,
+            deployment=self.spec.name,
+            digest=self.loaded.digest,
+            time_unix=time.time(),
+            uptime_s=time.monotonic() - self.started,
+            run_id=self.run_id,
+            robots=self.spec.robots_on(self.name),
+            world=self.spec.runs_world(self.name),
+            children=tuple(c.status() for c in self.children.values()),
+            requests=self.requests,
+            refused=self.refused,
+        )
+
+
+def _payload(query: Any) -> bytes:
+    payload = query.payload
+    return b"" if payload is None else bytes(payload.to_bytes())

@@ -1,0 +1,358 @@
+"""The world as a process: owns ground truth, sensors and collisions; drives every robot
+on the `sim` driver over Zenoh; runs in lockstep or in real time; writes the run's log.
+
+Lockstep: for each tick the world sends every robot its SenseFrame, waits (bounded) for
+every live robot's VelocityCommand of that tick, then integrates. A robot that misses
+the deadline is reported and keeps its last command for that tick; nobody waits forever.
+Real time: the world integrates on the wall clock (optionally sped up) with the latest
+commands it has.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections import defaultdict
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+
+from phalanx.core.config import RobotParams, Scenario
+from phalanx.core.formation import scenario_formation
+from phalanx.core.geometry import ZERO_TWIST, Twist2D
+from phalanx.core.limits import KinematicLimits
+from phalanx.core.runlog import RobotTrace, RunLog
+from phalanx.core.states import State, TransitionEvent
+from phalanx.runtime.batch import build_world
+from phalanx.runtime.signals import Stoppable
+from phalanx.telemetry.stream import PAPER_ANGULAR_BOUND_PCT, PAPER_LINEAR_BOUND_PCT, Telemetry
+from phalanx.wire.keys import alive_key, leader_key, robot_key, robot_of, robots_key, status_key
+from phalanx.wire.messages import (
+    AgentEvent,
+    AgentReport,
+    LeaderAnnouncement,
+    RobotState,
+    SenseFrame,
+    VelocityCommand,
+)
+from phalanx.wire.transport import FleetSession, TransportConfig, open_session
+
+log = logging.getLogger("phalanx.world")
+WORLD_ID = "world"
+
+
+@dataclass
+class WorldOptions:
+    """How the world process runs."""
+
+    fleet: str
+    transport: TransportConfig
+    clock: Literal["lockstep", "realtime"] = "lockstep"
+    speed: float = 1.0
+    tick_timeout_s: float = 2.0
+    startup_timeout_s: float = 60.0
+    report_timeout_s: float = 5.0
+    epoch_s: float | None = None  # real time: tick 0 at this Unix time (shared with agents)
+
+
+@dataclass
+class _Inbox:
+    """What agents sent, filled by Zenoh callbacks (thread-safe via the condition)."""
+
+    cond: threading.Condition = field(default_factory=threading.Condition)
+    commands: dict[int, dict[str, VelocityCommand]] = field(
+        default_factory=lambda: defaultdict(dict)
+    )
+    latest: dict[str, VelocityCommand] = field(default_factory=dict)
+    states: dict[str, dict[int, RobotState]] = field(default_factory=lambda: defaultdict(dict))
+    events: list[AgentEvent] = field(default_factory=list)
+    reports: dict[str, AgentReport] = field(default_factory=dict)
+    alive: set[str] = field(default_factory=set)
+    leaders: list[LeaderAnnouncement] = field(default_factory=list)
+
+
+class WorldProcess:
+    """Simulates the scenario's world for agents in other processes."""
+
+    def __init__(
+        self,
+        scenario: Scenario,
+        robot: RobotParams,
+        options: WorldOptions,
+        *,
+        telemetry: Telemetry | None = None,
+    ) -> None:
+        self.scenario, self.robot, self.options = scenario, robot, options
+        self.telemetry = telemetry
+        self.world = build_world(scenario, robot)
+        self.formation = scenario_formation(scenario)
+        self.ids = tuple(r.id for r in scenario.robots)
+        self.steps = round(scenario.duration_s * scenario.control_rate_hz)
+        self.t_s = np.arange(self.steps, dtype=np.float64) * scenario.dt_s
+        self.traces = {rid: RobotTrace.empty(self.steps) for rid in self.ids}
+        self.inbox = _Inbox()
+        self.missed: dict[str, int] = dict.fromkeys(self.ids, 0)
+        self.tick = 0
+        self.wall_time_s = 0.0
+        self._sent_at: dict[int, float] = {}
+        self.response_s: list[float] = []  # frame published -> command received, per command
+        self.overruns = 0  # real time: ticks whose work outlasted the period
+
+    def run(self, stop: Stoppable) -> RunLog:
+        """Run the scenario to its end (or `stop`) and return the log."""
+        with open_session(self.options.transport) as session:
+            self._wire(session)
+            self._log_static()
+            self._await_agents(stop)
+            period_s = self.scenario.dt_s / self.options.speed
+            epoch = self.options.epoch_s
+            if self.options.clock == "realtime" and epoch is not None:
+                stop.wait(max(0.0, epoch - time.time()))
+            started = time.perf_counter()
+            next_tick = time.monotonic()
+            for k in range(self.steps):
+                if stop.is_set():
+                    break
+                self._tick(session, k)
+                if self.options.clock == "realtime":
+                    next_tick += period_s
+                    slack = next_tick - time.monotonic()
+                    if slack < 0.0:
+                        self.overruns += 1
+                        next_tick = time.monotonic()  # do not try to catch up in a burst
+                    time.sleep(max(0.0, slack))
+            self.wall_time_s = time.perf_counter() - started
+            self._finish(session)
+        return self._log()
+
+    def _wire(self, session: FleetSession) -> None:
+        fleet, box = self.options.fleet, self.inbox
+        session.declare_alive(alive_key(fleet, WORLD_ID))
+        session.subscribe(robots_key(fleet, "cmd"), VelocityCommand, self._on_command)
+        session.subscribe(robots_key(fleet, "state"), RobotState, self._on_state)
+        session.subscribe(
+            robots_key(fleet, "event"), AgentEvent, lambda _k, e: self._put(box.events.append, e)
+        )
+        session.subscribe(robots_key(fleet, "report"), AgentReport, self._on_report)
+        session.subscribe(
+            leader_key(fleet), LeaderAnnouncement, lambda _k, a: self._put(box.leaders.append, a)
+        )
+        session.watch_alive(f"phalanx/{fleet}/alive/*", self._on_alive)
+        session.serve_status(status_key(fleet, WORLD_ID), self._status)
+
+    def _put(self, action: object, value: object) -> None:
+        with self.inbox.cond:
+            action(value)  # type: ignore[operator]
+            self.inbox.cond.notify_all()
+
+    def _on_command(self, key: str, cmd: VelocityCommand) -> None:
+        if robot_of(key) != cmd.robot_id or cmd.robot_id not in self.traces:
+            return  # a command must come from the robot it names
+        received = time.monotonic()
+        with self.inbox.cond:
+            sent = self._sent_at.get(cmd.tick)
+            if sent is not None and cmd.robot_id not in self.inbox.commands[cmd.tick]:
+                self.response_s.append(received - sent)
+            self.inbox.commands[cmd.tick][cmd.robot_id] = cmd
+            self.inbox.latest[cmd.robot_id] = cmd
+            self.inbox.cond.notify_all()
+
+    def _on_state(self, key: str, state: RobotState) -> None:
+        if robot_of(key) == state.robot_id and state.robot_id in self.traces:
+            tick = round(state.stamp_s / self.scenario.dt_s)
+            with self.inbox.cond:
+                self.inbox.states[state.robot_id][tick] = state
+
+    def _on_report(self, _key: str, report: AgentReport) -> None:
+        with self.inbox.cond:
+            self.inbox.reports[report.robot_id] = report
+            self.inbox.cond.notify_all()
+
+    def _on_alive(self, key: str, alive: bool) -> None:
+        robot = key.rsplit("/", 1)[-1]
+        with self.inbox.cond:
+            (self.inbox.alive.add if alive else self.inbox.alive.discard)(robot)
+            if not alive:  # a restarted process must not inherit its predecessor's command
+                self.inbox.latest.pop(robot, None)
+            self.inbox.cond.notify_all()
+        if not alive and robot in self.traces:
+            log.warning("robot %s is gone (liveliness lost)", robot)
+
+    def _status(self) -> dict[str, object]:
+        return {"tick": self.tick, "missed": self.missed, "alive": sorted(self.inbox.alive)}
+
+    def _await_agents(self, stop: Stoppable) -> None:
+        deadline = time.monotonic() + self.options.startup_timeout_s
+        with self.inbox.cond:
+            while not set(self.ids) <= self.inbox.alive and not stop.is_set():
+                self.inbox.cond.wait(min(0.2, max(0.0, deadline - time.monotonic())))
+                if time.monotonic() > deadline:
+                    missing = sorted(set(self.ids) - self.inbox.alive)
+                    log.warning("starting without %s", missing)
+                    return
+        time.sleep(0.2)  # let the agents' subscriptions reach the world's publications
+
+    def _frame(self, rid: str, k: int, final: bool = False) -> SenseFrame:
+        odo, status = self.world.odometry(rid), self.world.status(rid)
+        return SenseFrame(
+            robot_id=rid,
+            tick=k,
+            t_s=float(k * self.scenario.dt_s),
+            dt_s=self.scenario.dt_s,
+            x_m=odo.pose.x_m,
+            y_m=odo.pose.y_m,
+            theta_rad=odo.pose.theta_rad,
+            v_mps=odo.twist.v_mps,
+            omega_radps=odo.twist.omega_radps,
+            sonar_ranges_m=status.sonar_ranges_m,
+            bumpers=status.bumpers,
+            final=final,
+        )
+
+    def _tick(self, session: FleetSession, k: int) -> None:
+        self.tick = k
+        with self.inbox.cond:
+            self._sent_at[k] = time.monotonic()
+            self._sent_at.pop(k - 50, None)
+        for rid in self.ids:
+            session.publish(
+                robot_key(self.options.fleet, rid, "sense"),
+                self._frame(rid, k),
+                reliable_block=True,
+            )
+        if self.options.clock == "lockstep":
+            self._await_commands(k)
+        commands = self._commands_for(k)
+        self._record(k, commands)
+        self.world.step(commands, self.scenario.dt_s)
+
+    def _await_commands(self, k: int) -> None:
+        box = self.inbox
+        deadline = time.monotonic() + self.options.tick_timeout_s
+        with box.cond:
+            while True:
+                expected = {r for r in self.ids if r in box.alive}
+                if expected <= set(box.commands[k]):
+                    return
+                remaining = deadline - time.monotonic()
+                if remaining <= 0.0:
+                    for rid in expected - set(box.commands[k]):
+                        self.missed[rid] += 1
+                        log.warning("robot %s missed the deadline of tick %d", rid, k)
+                    return
+                box.cond.wait(remaining)
+
+    def _commands_for(self, k: int) -> dict[str, Twist2D]:
+        with self.inbox.cond:
+            got = self.inbox.commands.pop(k, {})
+            latest = dict(self.inbox.latest)
+        out = {}
+        for rid in self.ids:
+            cmd = got.get(rid) if self.options.clock == "lockstep" else latest.get(rid)
+            alive = rid in self.inbox.alive
+            out[rid] = Twist2D(cmd.v_mps, cmd.omega_radps) if cmd and alive else ZERO_TWIST
+        return out
+
+    def _log_static(self) -> None:
+        """Obstacles, the paper's bounds and the velocity limits, the layout."""
+        if self.telemetry is None:
+            return
+        world = self.scenario.world
+        self.telemetry.log_world(
+            circles=[(c.x_m, c.y_m, c.radius_m) for c in world.circles],
+            polygons=[list(p.vertices_m) for p in world.polygons],
+        )
+        limits = KinematicLimits.from_params(self.robot, self.scenario.limits)
+        self.telemetry.log_bounds(
+            t_s=[0.0, self.scenario.duration_s],
+            linear_pct=PAPER_LINEAR_BOUND_PCT,
+            angular_pct=PAPER_ANGULAR_BOUND_PCT,
+            v_max_mps=limits.v_max_mps,
+            omega_max_radps=limits.omega_max_radps,
+        )
+        self.telemetry.send_blueprint(self.ids)
+
+    def _record(self, k: int, commands: dict[str, Twist2D]) -> None:
+        for rid in self.ids:
+            pose, twist = self.world.truth(rid)
+            tr = self.traces[rid]
+            tr.x_m[k], tr.y_m[k], tr.theta_rad[k] = pose.x_m, pose.y_m, pose.theta_rad
+            tr.v_mps[k], tr.omega_radps[k] = twist.v_mps, twist.omega_radps
+            tr.cmd_v_mps[k], tr.cmd_omega_radps[k] = commands[rid].v_mps, commands[rid].omega_radps
+            if self.telemetry is not None:
+                self.telemetry.log_truth(rid, t_s=float(self.t_s[k]), pose=pose)
+
+    def _finish(self, session: FleetSession) -> None:
+        for rid in self.ids:
+            session.publish(
+                robot_key(self.options.fleet, rid, "sense"),
+                self._frame(rid, self.tick, final=True),
+                reliable_block=True,
+            )
+        deadline = time.monotonic() + self.options.report_timeout_s
+        with self.inbox.cond:
+            self.inbox.cond.wait_for(
+                lambda: set(self.inbox.reports) >= {r for r in self.ids if r in self.inbox.alive},
+                max(0.0, deadline - time.monotonic()),
+            )
+
+    def _log(self) -> RunLog:
+        self._fill_states()
+        reports = self.inbox.reports
+        events: dict[str, list[TransitionEvent]] = {rid: [] for rid in self.ids}
+        for e in sorted(self.inbox.events, key=lambda e: e.t_s):
+            events[e.robot_id].append(TransitionEvent(e.t_s, e.source, e.target, e.reason))
+        return RunLog(
+            scenario=self.scenario,
+            robot=self.robot,
+            formation=self.formation,
+            t_s=self.t_s,
+            traces=self.traces,
+            transitions=events,
+            collisions=list(self.world.collisions),
+            saturations={r: reports[r].saturations if r in reports else 0 for r in self.ids},
+            accel_limited={r: reports[r].accel_limited if r in reports else 0 for r in self.ids},
+            wall_time_s=self.wall_time_s,
+            runtime=self._runtime(),
+        )
+
+    def _runtime(self) -> dict[str, object]:
+        """Figures of the run as processes: response times, deadlines, reports."""
+        period_s = self.scenario.dt_s / self.options.speed
+        response = np.asarray(self.response_s, dtype=np.float64)
+        quantiles: list[float | None] = (
+            np.quantile(response, [0.5, 0.99]).tolist() if response.size else [None, None]
+        )
+        expected = (self.tick + 1) * len(self.ids)
+        return {
+            "clock": self.options.clock,
+            "period_s": period_s,
+            "response_p50_s": quantiles[0],
+            "response_p99_s": quantiles[1],
+            "response_max_s": float(response.max()) if response.size else None,
+            "commands_expected": expected,
+            "commands_received": int(response.size),
+            "commands_late": int(np.count_nonzero(response > period_s)),
+            "missed_deadlines": dict(self.missed),
+            "overruns": self.overruns,
+            "agents": {rid: r.model_dump() for rid, r in self.inbox.reports.items()},
+            "leadership": [a.model_dump() for a in self.inbox.leaders],
+        }
+
+    def _fill_states(self) -> None:
+        root = self.formation.root
+        for rid in self.ids:
+            states, tr = self.inbox.states[rid], self.traces[rid]
+            last = None
+            for trace_list in (tr.states, tr.tracked, tr.leaders, tr.epochs, tr.formed):
+                trace_list.clear()
+            for k in range(self.steps):
+                last = states.get(k, last)
+                tr.states.append(last.fsm_state if last else str(State.HOLD))
+                tr.direction[k] = last.direction if last else 1
+                tr.tracked.append(last.leader_id if last else (self.formation.leader_of(rid) or ""))
+                tr.leaders.append(last.formation_leader_id or root if last else root)
+                tr.epochs.append(last.epoch if last else 0)
+                tr.formed.append(last.formed if last else True)

@@ -1,0 +1,216 @@
+"""What phalanx logs to Rerun, and how it is laid out: the blueprint, and per-step rows
+turned into columns (one `send_columns` per entity for a batch of steps costs a fraction
+of one `log` per entity per step; see docs/PERFORMANCE.md).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from phalanx.core.geometry import Pose2D, Twist2D
+
+FloatArray = npt.NDArray[np.float64]
+Point = tuple[float, float]
+POSE_RADIUS_M = 0.25
+HEADING_LENGTH_M = 0.4
+SONAR_RAY_RADIUS_M = 0.005
+ERROR_NAMES = ("linear_pct", "angular_pct", "orientation_deg")
+
+
+@dataclass(frozen=True, slots=True)
+class StepRow:
+    """One robot's control step as logged: where it is, what it does, how it does."""
+
+    t_s: float
+    step: int
+    pose: Pose2D
+    cmd: Twist2D
+    measured: Twist2D
+    label: str
+    slot_target: Pose2D | None = None
+    errors: tuple[float, float, float] | None = None
+    rays: tuple[tuple[Point, Point], ...] = ()
+    trail: tuple[Point, ...] | None = None  # the trail to redraw at this step, if any
+
+
+@dataclass(frozen=True, slots=True)
+class TruthRow:
+    """A robot's ground-truth position at one step (the world process)."""
+
+    t_s: float
+    x_m: float
+    y_m: float
+
+
+def _rr() -> Any:
+    import rerun  # heavy: imported only when telemetry is on
+
+    return rerun
+
+
+def _indexes(t_s: Sequence[float], steps: Sequence[int] | None = None) -> list[Any]:
+    rr = _rr()
+    times = [rr.TimeColumn("sim_time", duration=np.asarray(t_s, dtype=np.float64))]
+    if steps is not None:
+        times.append(rr.TimeColumn("step", sequence=np.asarray(steps, dtype=np.int64)))
+    return times
+
+
+def send_step_rows(rec: Any, robot_id: str, rows: Sequence[StepRow]) -> None:
+    """Every entity of `robots/<id>/` for a batch of steps, one column send per entity."""
+    rr, base = _rr(), f"robots/{robot_id}"
+    index = _indexes([r.t_s for r in rows], [r.step for r in rows])
+    xy = np.array([(r.pose.x_m, r.pose.y_m) for r in rows], dtype=np.float64)
+    theta = np.array([r.pose.theta_rad for r in rows], dtype=np.float64)
+    heading = HEADING_LENGTH_M * np.column_stack([np.cos(theta), np.sin(theta)])
+    pose = rr.Points2D.columns(
+        positions=xy, radii=np.full(len(rows), POSE_RADIUS_M), labels=[r.label for r in rows]
+    )
+    rec.send_columns(f"{base}/pose", indexes=index, columns=pose)
+    arrows = rr.Arrows2D.columns(vectors=heading, origins=xy)
+    rec.send_columns(f"{base}/heading", indexes=index, columns=arrows)
+    twists = {
+        "cmd/v_mps": [r.cmd.v_mps for r in rows],
+        "cmd/omega_degps": [math.degrees(r.cmd.omega_radps) for r in rows],
+        "measured/v_mps": [r.measured.v_mps for r in rows],
+        "measured/omega_degps": [math.degrees(r.measured.omega_radps) for r in rows],
+    }
+    for name, values in twists.items():
+        rec.send_columns(
+            f"{base}/{name}", indexes=index, columns=rr.Scalars.columns(scalars=values)
+        )
+    _send_rays(rec, base, rows, index)
+    _send_tracking(rec, base, rows)
+    for row in rows:
+        if row.trail is not None:
+            rec.set_time("sim_time", duration=row.t_s)
+            rec.set_time("step", sequence=row.step)
+            rec.log(f"{base}/trail", rr.LineStrips2D([list(row.trail)]))
+
+
+def _send_rays(rec: Any, base: str, rows: Sequence[StepRow], index: list[Any]) -> None:
+    """Sonar rays; a step that sees nothing clears the previous step's rays."""
+    strips = [[a, b] for r in rows for a, b in r.rays]
+    columns = _rr().LineStrips2D.columns(
+        strips=strips, radii=np.full(len(strips), SONAR_RAY_RADIUS_M)
+    )
+    rec.send_columns(
+        f"{base}/sonar", indexes=index, columns=columns.partition([len(r.rays) for r in rows])
+    )
+
+
+def _send_tracking(rec: Any, base: str, rows: Sequence[StepRow]) -> None:
+    """The slot target and the errors, at the steps that have a leader to track."""
+    rr = _rr()
+    tracked = [r for r in rows if r.slot_target is not None and r.errors is not None]
+    if not tracked:
+        return
+    index = _indexes([r.t_s for r in tracked], [r.step for r in tracked])
+    targets = np.array([(r.slot_target.x_m, r.slot_target.y_m) for r in tracked if r.slot_target])
+    slot = rr.Points2D.columns(positions=targets, radii=np.full(len(tracked), 0.05))
+    rec.send_columns(f"{base}/slot_target", indexes=index, columns=slot)
+    for k, name in enumerate(ERROR_NAMES):
+        values = [r.errors[k] for r in tracked if r.errors is not None]
+        rec.send_columns(
+            f"{base}/errors/{name}", indexes=index, columns=rr.Scalars.columns(scalars=values)
+        )
+
+
+def send_truth_rows(rec: Any, robot_id: str, rows: Sequence[TruthRow]) -> None:
+    """Ground-truth positions of one robot for a batch of steps."""
+    xy = np.array([(r.x_m, r.y_m) for r in rows], dtype=np.float64)
+    points = _rr().Points2D.columns(
+        positions=xy, radii=np.full(len(rows), 0.05), colors=np.zeros((len(rows), 3), np.uint8)
+    )
+    rec.send_columns(
+        f"world/truth/{robot_id}", indexes=_indexes([r.t_s for r in rows]), columns=points
+    )
+
+
+def make_blueprint(
+    robot_ids: Sequence[str], *, extent_m: tuple[float, float, float, float] | None = None
+) -> Any:
+    """Map of the fleet, error and velocity series, state log: figures 4b-7 live.
+
+    `extent_m` (x_min, x_max, y_min, y_max) frames the map; without it the viewer fits it.
+    """
+    import rerun.blueprint as rrb
+
+    bounds = None
+    if extent_m is not None:
+        x0, x1, y0, y1 = extent_m
+        bounds = rrb.VisualBounds2D(x_range=(x0, x1), y_range=(y0, y1))
+    whole_run = rrb.TimeAxis(
+        view_range=rrb.TimeRange(
+            start=rrb.TimeRangeBoundary.infinite(), end=rrb.TimeRangeBoundary.infinite()
+        )
+    )
+
+    def series(
+        name: str, paths: Sequence[str], bounds: Sequence[str], y_range: tuple[float, float] | None
+    ) -> Any:
+        contents = [f"robots/{rid}/{p}" for rid in robot_ids for p in paths]
+        return rrb.TimeSeriesView(
+            name=name,
+            origin="/",
+            contents=[*contents, *bounds],
+            axis_x=whole_run,
+            axis_y=rrb.ScalarAxis(range=y_range) if y_range else None,
+        )
+
+    # The error axes stop a little above the paper's bounds (the start offsets are tens of
+    # per cent and would flatten everything else); zoom out in the viewer to see them.
+    errors = rrb.Tabs(
+        series(
+            "separation errors (%)",
+            ["errors/linear_pct", "errors/angular_pct"],
+            ["bounds/errors/**"],
+            (0.0, 3.0),
+        ),
+        series("orientation error (deg)", ["errors/orientation_deg"], [], (0.0, 3.0)),
+    )
+    states = rrb.Tabs(
+        rrb.StateTimelineView(
+            name="behaviour states",
+            origin="/",
+            contents=[f"robots/{rid}/state" for rid in robot_ids],
+            time_view=whole_run,
+        ),
+        rrb.TextLogView(
+            name="transitions", origin="/", contents=[f"robots/{rid}/fsm" for rid in robot_ids]
+        ),
+    )
+    return rrb.Blueprint(
+        rrb.Horizontal(
+            rrb.Spatial2DView(
+                name="fleet map",
+                origin="/",
+                contents=["world/**", "robots/**"],
+                visual_bounds=bounds,
+            ),
+            rrb.Vertical(
+                errors,
+                series(
+                    "linear velocity (m/s)",
+                    ["cmd/v_mps", "measured/v_mps"],
+                    ["bounds/velocity/v_max_mps", "bounds/velocity/v_min_mps"],
+                    None,
+                ),
+                series(
+                    "yaw rate (deg/s)",
+                    ["cmd/omega_degps", "measured/omega_degps"],
+                    ["bounds/velocity/omega_max_degps", "bounds/velocity/omega_min_degps"],
+                    None,
+                ),
+                states,
+            ),
+            column_shares=[3, 2],
+        ),
+        collapse_panels=True,
+    )

@@ -1,0 +1,195 @@
+"""Versioned wire messages, one model per Zenoh key (see `phalanx.transport` for keys).
+
+Encoding and decoding (and the drop-and-count of malformed payloads) live in
+`phalanx.codec`; these are the values.
+"""
+
+from __future__ import annotations
+
+from typing import Final, Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from phalanx.core.geometry import Pose2D, Twist2D
+
+WIRE_VERSION: Final = 1
+
+
+class Message(BaseModel):
+    """Base of wire messages: frozen values, unknown fields and NaN/inf rejected.
+
+    A non-finite number from a peer must never reach a controller: it would turn into a
+    non-finite wheel command. Such a payload fails validation and is dropped and counted.
+    """
+
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+
+
+class RobotState(Message):
+    """What a robot publishes every control step on `.../robot/<id>/state`.
+
+    Pose in the shared world frame (m, rad) at `stamp_s` on the fleet clock (sim time in
+    lockstep, Unix time in real time); twist (m/s, rad/s) is the command the robot
+    executes from `stamp_s` on, so a receiver can dead-reckon the pose to its own time.
+    `leader_id` is the robot this one tracks ("" while it leads the formation); the
+    rest are its behaviour flags (see `RobotFlags`), the state carries them too so a
+    robot that tracks this one needs only this message.
+    """
+
+    version: Literal[1] = 1
+    robot_id: str
+    seq: int = Field(ge=0)
+    stamp_s: float
+    x_m: float
+    y_m: float
+    theta_rad: float
+    v_mps: float
+    omega_radps: float
+    fsm_state: str
+    obstacle: bool = False
+    direction: Literal[-1, 1] = 1
+    leader_id: str = ""
+    epoch: int = Field(default=0, ge=0)
+    formation_leader_id: str = ""
+    clear: bool = False
+    formed: bool = True
+    blocked_s: float = Field(default=0.0, ge=0.0)
+    dead_end: bool = False
+    waypoint: int = Field(default=0, ge=0)
+    deadlocks: int = Field(default=0, ge=0)
+    profile_s: float = Field(default=0.0, ge=0.0)
+
+    @property
+    def pose(self) -> Pose2D:
+        """The robot's pose."""
+        return Pose2D(self.x_m, self.y_m, self.theta_rad)
+
+    @property
+    def twist(self) -> Twist2D:
+        """The robot's twist."""
+        return Twist2D(self.v_mps, self.omega_radps)
+
+    def flags(self) -> RobotFlags:
+        """The behaviour flags in this state (what every other robot needs)."""
+        # Every value was validated when this state was built: no need to again.
+        return RobotFlags.model_construct(**{name: getattr(self, name) for name in _FLAG_FIELDS})
+
+
+class RobotFlags(Message):
+    """A robot's small behaviour flags on `.../robot/<id>/flags`, to every robot of the
+    fleet, when they change and otherwise as a heartbeat (`agents.runtime.FlagsThrottle`):
+    enough to take the leadership and deadlock decisions the same way on every robot
+    (`phalanx.agents.leadership`), without anyone's pose.
+
+    `obstacle`: its path is blocked (in its direction of motion), for `blocked_s`;
+    `dead_end`: (a leader) its route leads back the way it came and the shape has no room
+    to turn, so only the group's reverse helps, not a new leader;
+    `clear`: its path ahead is free far enough to lead; `formed`: it is in its slot (a
+    robot that is not may not be tracked); `formation_leader_id`/`epoch`: who it thinks
+    leads, and under which epoch; `waypoint`, `deadlocks`, `profile_s`: the group's
+    progress (next waypoint, deadlocks at it, scripted profile clock in s).
+    """
+
+    version: Literal[1] = 1
+    robot_id: str
+    seq: int = Field(ge=0)
+    stamp_s: float
+    fsm_state: str
+    obstacle: bool = False
+    direction: Literal[-1, 1] = 1
+    epoch: int = Field(default=0, ge=0)
+    formation_leader_id: str = ""
+    clear: bool = False
+    formed: bool = True
+    blocked_s: float = Field(default=0.0, ge=0.0)
+    dead_end: bool = False
+    waypoint: int = Field(default=0, ge=0)
+    deadlocks: int = Field(default=0, ge=0)
+    profile_s: float = Field(default=0.0, ge=0.0)
+
+
+_FLAG_FIELDS = tuple(RobotFlags.model_fields)
+
+
+class LeaderAnnouncement(Message):
+    """A leadership change on `phalanx/<fleet>/leader`: who leads from `stamp_s` on,
+    under which `epoch`, and why. Sent by the new leader; every robot reaches the same
+    decision from the flags on its own, so this is the fleet's record of it (and what a
+    tool watches), not a command.
+    """
+
+    version: Literal[1] = 1
+    leader_id: str
+    epoch: int = Field(ge=0)
+    stamp_s: float
+    previous_id: str = ""
+    reason: str = ""
+
+
+class ClockTick(Message):
+    """A lockstep tick from the world on `phalanx/<fleet>/clock`."""
+
+    version: Literal[1] = 1
+    tick: int = Field(ge=0)
+    t_s: float
+    dt_s: float = Field(gt=0.0)
+    final: bool = False
+
+
+class VelocityCommand(Message):
+    """An agent's command for a simulated robot on `.../robot/<id>/cmd`."""
+
+    version: Literal[1] = 1
+    robot_id: str
+    tick: int = Field(ge=0)
+    stamp_s: float
+    v_mps: float
+    omega_radps: float
+
+
+class SenseFrame(Message):
+    """What the world tells a simulated robot each tick on `.../robot/<id>/sense`.
+
+    In lockstep it is also the robot's tick: the agent answers with a VelocityCommand
+    for the same `tick`. Odometry pose (m, rad) in the world frame, measured twist.
+    """
+
+    version: Literal[1] = 1
+    robot_id: str
+    tick: int = Field(ge=0)
+    t_s: float
+    dt_s: float = Field(gt=0.0)
+    x_m: float
+    y_m: float
+    theta_rad: float
+    v_mps: float
+    omega_radps: float
+    sonar_ranges_m: tuple[float, ...] = ()
+    bumpers: tuple[bool, ...] = ()
+    final: bool = False
+
+
+class AgentEvent(Message):
+    """A behaviour-state transition, on `.../robot/<id>/event`."""
+
+    version: Literal[1] = 1
+    robot_id: str
+    t_s: float
+    source: str
+    target: str
+    reason: str
+
+
+class AgentReport(Message):
+    """An agent's counters when a run ends, on `.../robot/<id>/report`."""
+
+    version: Literal[1] = 1
+    robot_id: str
+    steps: int = Field(ge=0)
+    saturations: int = Field(ge=0)
+    accel_limited: int = Field(ge=0)
+    dropped_messages: int = Field(ge=0)
+    late_peer_steps: int = Field(ge=0)
+    step_p50_us: float = Field(default=0.0, ge=0.0)  # control step: core, publish, telemetry
+    step_p99_us: float = Field(default=0.0, ge=0.0)
+    telemetry_dropped: int = Field(default=0, ge=0)
