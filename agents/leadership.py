@@ -32,10 +32,9 @@ from dataclasses import dataclass
 from functools import cached_property
 from typing import Protocol
 
-from phalanx.agents.behaviours.stack import DEADLOCK_STATES, OUT_OF_FORMATION
 from phalanx.core.config import LeadershipConfig
 from phalanx.core.formation import Formation
-from phalanx.core.states import State
+from phalanx.core.states import DEADLOCK_STATES, OUT_OF_FORMATION, State
 
 
 class FlagsView(Protocol):

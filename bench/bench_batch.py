@@ -11,7 +11,7 @@ from __future__ import annotations
 import argparse
 import time
 
-from phalanx.core.config import CONFIG_ROOT, load_scenario
+from phalanx.core.config_files import CONFIG_ROOT, load_scenario
 from phalanx.core.scenarios import grid_scenario
 from phalanx.runtime.batch import run_batch
 

@@ -22,7 +22,7 @@ import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 
-from phalanx.core.config import load_robot
+from phalanx.core.config_files import load_robot
 from phalanx.core.geometry import Twist2D
 from phalanx.drivers.arcos import ArcosDriver, ArcosSettings
 from phalanx.drivers.canopen import CanopenDriver, CanopenSettings
@@ -57,7 +57,7 @@ def arcos(link: Link) -> Iterator[tuple[ArcosEmulator, ArcosDriver]]:
         settings = (
             ArcosSettings(port=where) if where else ArcosSettings(tcp=f"127.0.0.1:{link.port}")  # type: ignore[attr-defined]
         )
-        with ArcosDriver(settings) as driver:
+        with ArcosDriver(settings, robot=ROBOT) as driver:
             yield emulator, driver
 
 
@@ -119,7 +119,7 @@ def _can_rig(channel: str) -> tuple[list[float], list[float], float, float]:
     """One simulated robot: (command -> target, command -> TPDO motion, TPDO rate, stop)."""
     to_drive, to_motion = [], []
     with SimulatedDiffDrive(channel) as drives:
-        driver = CanopenDriver(CanopenSettings(interface="virtual", channel=channel))
+        driver = CanopenDriver(CanopenSettings(interface="virtual", channel=channel), robot=ROBOT)
         driver.connect()
         for j in range(10):
             v = 0.1 if j % 2 == 0 else -0.1

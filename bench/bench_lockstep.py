@@ -20,7 +20,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from phalanx.core.config import CONFIG_ROOT, load_scenario
+from phalanx.core.config_files import CONFIG_ROOT, load_scenario
 from phalanx.runtime.batch import run_batch
 
 WEDGE = CONFIG_ROOT / "scenarios" / "paper_wedge.toml"

@@ -27,7 +27,7 @@ import numpy as np
 
 from phalanx.analysis.metrics import error_series, is_follower, navigation_metrics, phase_masks
 from phalanx.analysis.report import SECTION_BEGIN, SECTION_END, with_section
-from phalanx.core.config import CONFIG_ROOT, load_scenario
+from phalanx.core.config_files import CONFIG_ROOT, load_scenario
 from phalanx.core.runlog import RunLog
 from phalanx.core.scenarios import SHAPES, navigation_scenario
 from phalanx.runtime.batch import BatchRunner

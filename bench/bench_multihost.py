@@ -36,7 +36,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from phalanx.core.config import CONFIG_ROOT
+from phalanx.core.config_files import CONFIG_ROOT
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests" / "multihost"))
 import netlab

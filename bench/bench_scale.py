@@ -22,7 +22,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from phalanx.core.config import CONFIG_ROOT, apply_overrides, load_scenario
+from phalanx.core.config_files import CONFIG_ROOT, apply_overrides, load_scenario
 from phalanx.core.scenarios import grid_scenario
 
 CLK_TCK = os.sysconf("SC_CLK_TCK")

@@ -19,7 +19,7 @@ import sys
 import tempfile
 from pathlib import Path
 
-from phalanx.core.config import CONFIG_ROOT, load_scenario
+from phalanx.core.config_files import CONFIG_ROOT, load_scenario
 
 WEDGE = CONFIG_ROOT / "scenarios" / "paper_wedge.toml"
 

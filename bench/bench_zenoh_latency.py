@@ -25,7 +25,8 @@ import time
 from typing import Any
 
 from phalanx.agents.agent import Agent, Observation
-from phalanx.core.config import CONFIG_ROOT, Scenario, apply_overrides, load_robot, load_scenario
+from phalanx.core.config import Scenario
+from phalanx.core.config_files import CONFIG_ROOT, apply_overrides, load_robot, load_scenario
 from phalanx.core.formation import scenario_formation
 from phalanx.core.geometry import Pose2D, Twist2D
 from phalanx.core.robot import Odometry, RobotStatus
@@ -88,7 +89,7 @@ def robot(cfg: TransportConfig, rid: str, n: int, seconds: float, ready: Any, ou
             got = time.monotonic()
             odo = Odometry(Pose2D(here.x_m, here.y_m, 0.0), Twist2D(0.15, 0.0), got)
             status = RobotStatus(sonar_ranges_m=(5.0,) * 16)
-            result = agent.step(Observation(odo, status), {lead.robot_id: lead}, got)
+            result = agent.step(Observation(odo, status), {lead.robot_id: lead.peer()}, got)
             done = time.monotonic()
             session.publish(
                 robot_key(FLEET, rid, "cmd"),

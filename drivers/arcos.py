@@ -1,14 +1,14 @@
 """The `arcos` backend: a Pioneer P3DX over its ARCOS client protocol, on a serial port
-(pyserial) or TCP (MobileSim convention, port 8101).
+(pyserial) or TCP (MobileSim convention, port 8101), both in `arcos_link`.
 
 Connection as ARIA does it (AriaCoda `src/ArRobot.cpp`, `ArRobotConnector`): SYNC0,
 SYNC1, SYNC2 (whose reply names the robot subtype, which selects the conversion
 factors), OPEN, PULSE, CONFIG (the robot's own velocity limits and watchdog), ENABLE 1,
 SONAR 1. A reader thread parses SIPs into odometry (15-bit position counters unwrapped),
-sonar, bumpers, battery and motor state; garbage, truncated frames and bad checksums are
-skipped and counted. Motion is VEL (mm/s) and RVEL (deg/s); PULSE keeps the firmware's
-watchdog fed when no command is due. A link that stops delivering SIPs is declared lost
-and reopened with back-off; motion must then be commanded again.
+sonar, bumpers, battery and motor state (`SipTracker`); garbage, truncated frames and
+bad checksums are skipped and counted. Motion is VEL (mm/s) and RVEL (deg/s); PULSE keeps
+the firmware's watchdog fed when no command is due. A link that stops delivering SIPs is
+declared lost and reopened with back-off; motion must then be commanded again.
 """
 
 from __future__ import annotations
@@ -16,21 +16,18 @@ from __future__ import annotations
 import contextlib
 import logging
 import math
-import os
-import socket
-import termios
 import threading
 import time
 from dataclasses import dataclass
-from typing import Protocol
 
-import serial
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
+from phalanx.core.config import RobotParams
 from phalanx.core.errors import DriverError, DriverTimeout, DriverUnavailable, ProtocolError
 from phalanx.core.geometry import Pose2D, Twist2D, wrap_angle
 from phalanx.core.lifecycle import Closing
 from phalanx.core.robot import Odometry, RobotStatus
+from phalanx.drivers.arcos_link import Link, open_link
 from phalanx.protocols.arcos import (
     CONFIG_PAC,
     SIP_MOVING,
@@ -63,7 +60,7 @@ class ArcosSettings(BaseModel):
 
     port: str | None = None
     tcp: str | None = None
-    baud: int = Field(default=9600, description="9600 at power-up; 19200-115200 if set")
+    baud: int = Field(default=9600, gt=0, description="9600 at power-up; 19200-115200 if set")
     connect_timeout_s: float = Field(default=5.0, gt=0.0)
     sync_retries: int = Field(default=5, ge=1)
     pulse_s: float = Field(default=0.5, gt=0.0, description="keep-alive period (ARIA: 0.5)")
@@ -82,86 +79,10 @@ class ArcosSettings(BaseModel):
                 raise ValueError(f"tcp must be host:port, got {self.tcp!r}")
         return self
 
-
-class _Link(Protocol):
-    # How long one byte takes on the wire: a SIP's pose is this much per byte older than
-    # the moment its last byte arrived.
-    byte_time_s: float
-
-    def read(self, timeout_s: float) -> bytes: ...
-    def write(self, data: bytes) -> None: ...
-    def close(self) -> None: ...
-
-
-def byte_time_s(port: str, baud: int) -> float:
-    """How long one byte takes on serial `port` at `baud` (8N1: 10 bits a byte).
-
-    Zero for a pseudo-terminal (an emulator): it moves bytes at memory speed whatever
-    its nominal baud rate.
-    """
-    return 0.0 if os.path.realpath(port).startswith("/dev/pts/") else 10.0 / baud
-
-
-class _SerialLink:
-    def __init__(self, port: str, baud: int) -> None:
-        self.byte_time_s = byte_time_s(port, baud)
-        try:
-            self._serial = serial.Serial(port, baud, timeout=0.0, write_timeout=1.0)
-        except (serial.SerialException, OSError) as exc:
-            raise DriverUnavailable(f"cannot open serial port {port}: {exc}") from exc
-
-    def read(self, timeout_s: float) -> bytes:
-        try:
-            if self._serial.timeout != timeout_s:
-                self._serial.timeout = timeout_s  # reconfigures the port: may fail too
-            first = self._serial.read(1)
-            return first + self._serial.read(self._serial.in_waiting) if first else b""
-        except (serial.SerialException, OSError, TypeError, termios.error) as exc:
-            raise DriverUnavailable(f"serial link lost: {exc}") from exc
-
-    def write(self, data: bytes) -> None:
-        try:
-            self._serial.write(data)
-        except (serial.SerialException, OSError) as exc:
-            raise DriverUnavailable(f"serial link lost: {exc}") from exc
-
-    def close(self) -> None:
-        with contextlib.suppress(serial.SerialException, OSError):
-            self._serial.close()
-
-
-class _TcpLink:
-    byte_time_s = 0.0
-
-    def __init__(self, address: str, timeout_s: float) -> None:
-        host, _, port = address.rpartition(":")
-        try:
-            self._sock = socket.create_connection((host, int(port)), timeout=timeout_s)
-        except OSError as exc:
-            raise DriverUnavailable(f"cannot connect to {address}: {exc}") from exc
-        self._sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-
-    def read(self, timeout_s: float) -> bytes:
-        self._sock.settimeout(timeout_s)
-        try:
-            data = self._sock.recv(4096)
-        except TimeoutError:
-            return b""
-        except OSError as exc:
-            raise DriverUnavailable(f"TCP link lost: {exc}") from exc
-        if not data:
-            raise DriverUnavailable("TCP link closed by the robot")
-        return data
-
-    def write(self, data: bytes) -> None:
-        try:
-            self._sock.sendall(data)
-        except OSError as exc:
-            raise DriverUnavailable(f"TCP link lost: {exc}") from exc
-
-    def close(self) -> None:
-        with contextlib.suppress(OSError):
-            self._sock.close()
+    @property
+    def address(self) -> str:
+        """The serial device or host:port, for messages."""
+        return self.port or self.tcp or "?"
 
 
 @dataclass
@@ -176,26 +97,121 @@ class ArcosStats:
     commands_sent: int = 0
 
 
+class SipTracker:
+    """What the robot's packets say: SIPs into odometry, sonar, bumpers, battery and motor
+    state; the CONFIG packet into the robot's own limits. No I/O, no lock: the driver
+    calls it with its lock held.
+    """
+
+    def __init__(self, stats: ArcosStats) -> None:
+        self.stats = stats
+        self.factors = ConvFactors()  # set from the SYNC2 reply's subtype
+        self.config: RobotConfig | None = None
+        self.sip: Sip | None = None
+        self.odometry: Odometry | None = None
+        self.sonar_m: tuple[float, ...] = (5.0,) * N_SONARS
+        self.last_sip_s = time.monotonic()
+        self._pose = Pose2D(0.0, 0.0, 0.0)
+        self._last_xy: tuple[int, int] | None = None
+        self._th0: float | None = None
+
+    def new_session(self) -> None:
+        """A new connection: position counters restart, the integrated pose carries on."""
+        self._last_xy, self._th0 = None, None
+
+    def take(self, body: bytes, *, byte_time_s: float) -> bool:
+        """Account for one frame's body; True if it was a good SIP.
+
+        A SIP is stamped when the robot sent it: its arrival less its time on the wire
+        (the whole frame at `byte_time_s` a byte).
+        """
+        kind = body[0]
+        if kind in (SIP_STOPPED, SIP_MOVING):
+            try:
+                sip = decode_sip(body)
+            except ProtocolError:
+                self.stats.bad_sips += 1
+                return False
+            wire_s = (len(body) + FRAME_OVERHEAD_BYTES) * byte_time_s
+            self._on_sip(sip, time.monotonic() - wire_s)
+            return True
+        if kind == CONFIG_PAC:
+            try:
+                self.config = decode_config(body)
+            except ProtocolError:
+                self.stats.bad_sips += 1
+        else:
+            self.stats.other_frames += 1
+        return False
+
+    def status(self, link_fault: str) -> RobotStatus:
+        """Sonar (m), bumpers, battery and motor state of the latest SIP, and `link_fault`."""
+        faults = (link_fault,) if link_fault else ()
+        sip = self.sip
+        if sip is None:
+            return RobotStatus(faults=faults or ("no SIP yet",))
+        return RobotStatus(
+            sonar_ranges_m=self.sonar_m,
+            bumpers=sip.bumpers,
+            battery_v=sip.battery_dv / 10.0,
+            motors_enabled=sip.motors_enabled and not link_fault,
+            estopped=sip.estopped,
+            stalled=sip.left_stall or sip.right_stall,
+            faults=faults,
+        )
+
+    def _on_sip(self, sip: Sip, measured_s: float) -> None:
+        f = self.factors
+        now = time.monotonic()
+        th = wrap_angle(sip.th * f.angle_rad)
+        if self._last_xy is None or self._th0 is None:
+            self._th0 = wrap_angle(th - self._pose.theta_rad)
+            self._last_xy = (sip.x, sip.y)
+        dx_mm = wrap_delta(sip.x, self._last_xy[0]) * f.dist_mm
+        dy_mm = wrap_delta(sip.y, self._last_xy[1]) * f.dist_mm
+        self._last_xy = (sip.x, sip.y)
+        # ARCOS integrates x, y in its own frame; ours starts at the first SIP's pose.
+        c, s = math.cos(-self._th0), math.sin(-self._th0)
+        pose = Pose2D(
+            self._pose.x_m + (c * dx_mm - s * dy_mm) / 1000.0,
+            self._pose.y_m + (s * dx_mm + c * dy_mm) / 1000.0,
+            wrap_angle(th - self._th0),
+        )
+        v = (sip.left_vel + sip.right_vel) / 2.0 * f.vel_mmps / 1000.0
+        w = (sip.right_vel - sip.left_vel) / 2.0 * f.vel_mmps * f.diff
+        self._pose = pose
+        self.odometry = Odometry(pose, Twist2D(v, w), measured_s)
+        ranges = list(self.sonar_m)
+        for index, range_raw in sip.sonars:
+            if 0 <= index < N_SONARS:
+                ranges[index] = range_raw * f.range_mm / 1000.0
+        self.sonar_m = tuple(ranges)
+        self.sip = sip
+        self.last_sip_s = now
+        self.stats.sips += 1
+
+
 class ArcosDriver(Closing):
-    """A P3DX over ARCOS; implements the Driver protocol."""
+    """A P3DX over ARCOS; implements the Driver protocol (`robot` is unused for now)."""
 
     name = "arcos"
 
-    def __init__(self, settings: ArcosSettings) -> None:
+    def __init__(self, settings: ArcosSettings, *, robot: RobotParams) -> None:
         self.settings = settings
+        self.robot = robot
         self.stats = ArcosStats()
         self.parser = FrameParser()
+        self.readings = SipTracker(self.stats)
         self.robot_name = ""
         self.subtype = ""
-        self.config: RobotConfig | None = None
-        self.factors = ConvFactors()
-        self._link: _Link | None = None
+        self._link: Link | None = None
         self._lock = threading.RLock()  # guards the link and the readings
         self._write_lock = threading.Lock()
         self._stop = threading.Event()
         self._reader: threading.Thread | None = None
         self._closed = False
-        self._reset_readings()
+        self._last_sent_s = 0.0
+        self._link_fault = ""
 
     # -- Driver protocol -------------------------------------------------------------
 
@@ -219,7 +235,7 @@ class ArcosDriver(Closing):
         """VEL (mm/s) and RVEL (deg/s). Non-finite values raise ValueError."""
         if not (math.isfinite(twist.v_mps) and math.isfinite(twist.omega_radps)):
             raise ValueError(f"non-finite velocity command {twist}")
-        v_mm = round(twist.v_mps * 1000.0 / self.factors.vel_mmps)
+        v_mm = round(twist.v_mps * 1000.0 / self.readings.factors.vel_mmps)
         w_deg = round(math.degrees(twist.omega_radps))
         self._send(command(Cmd.VEL, v_mm))
         self._send(command(Cmd.RVEL, w_deg))
@@ -231,26 +247,14 @@ class ArcosDriver(Closing):
         9600 baud a SIP with the sonar ring takes most of a 100 ms cycle to arrive).
         """
         with self._lock:
-            if self._odometry is None:
+            if self.readings.odometry is None:
                 raise DriverTimeout("no SIP received yet")
-            return self._odometry
+            return self.readings.odometry
 
     def read_status(self) -> RobotStatus:
         """Sonar (m), bumpers, battery, motor and link state from the latest SIP."""
         with self._lock:
-            faults = tuple(f for f in (self._link_fault,) if f)
-            sip = self._sip
-            if sip is None:
-                return RobotStatus(faults=faults or ("no SIP yet",))
-            return RobotStatus(
-                sonar_ranges_m=self._sonar_m,
-                bumpers=sip.bumpers,
-                battery_v=sip.battery_dv / 10.0,
-                motors_enabled=sip.motors_enabled and not self._link_fault,
-                estopped=sip.estopped,
-                stalled=sip.left_stall or sip.right_stall,
-                faults=faults,
-            )
+            return self.readings.status(self._link_fault)
 
     def stop(self) -> None:
         """STOP: decelerate to rest; motors stay enabled."""
@@ -287,9 +291,10 @@ class ArcosDriver(Closing):
 
     def robot_limits(self) -> tuple[float, float] | None:
         """(v max m/s, omega max rad/s) from the robot's CONFIG packet, if it sent one."""
-        if self.config is None or self.config.trans_vel_max_mmps <= 0:
+        config = self.readings.config
+        if config is None or config.trans_vel_max_mmps <= 0:
             return None
-        return self.config.trans_vel_max_mmps / 1000.0, math.radians(self.config.rot_vel_max_degps)
+        return config.trans_vel_max_mmps / 1000.0, math.radians(config.rot_vel_max_degps)
 
     @property
     def link_up(self) -> bool:
@@ -299,28 +304,11 @@ class ArcosDriver(Closing):
 
     # -- link ------------------------------------------------------------------------
 
-    def _reset_readings(self) -> None:
-        self._sip: Sip | None = None
-        self._odometry: Odometry | None = None
-        self._last_xy: tuple[int, int] | None = None
-        self._pose = Pose2D(0.0, 0.0, 0.0)
-        self._th0: float | None = None
-        self._sonar_m: tuple[float, ...] = (5.0,) * N_SONARS
-        self._last_sip_s = time.monotonic()
-        self._last_sent_s = 0.0
-        self._link_fault = ""
-
-    def _open(self) -> _Link:
-        s = self.settings
-        if s.port is not None:
-            return _SerialLink(s.port, s.baud)
-        assert s.tcp is not None  # noqa: S101 - the settings validator guarantees one
-        return _TcpLink(s.tcp, s.connect_timeout_s)
-
     def _open_and_handshake(self) -> None:
         if self._link is not None:
             self._link.close()
-        self._link = self._open()
+        s = self.settings
+        self._link = open_link(port=s.port, tcp=s.tcp, baud=s.baud, timeout_s=s.connect_timeout_s)
         self.parser = FrameParser(stats=self.parser.stats)
         try:
             self._sync()
@@ -341,7 +329,7 @@ class ArcosDriver(Closing):
                 return
             self._write(command(Cmd.CLOSE))  # an old connection may be open: close, resync
             time.sleep(0.1)
-        raise DriverTimeout(f"no ARCOS sync from {self._where()}")
+        raise DriverTimeout(f"no ARCOS sync from {self.settings.address}")
 
     def _try_sync(self) -> bool:
         per_step_s = self.settings.connect_timeout_s / 3
@@ -352,7 +340,7 @@ class ArcosDriver(Closing):
                 return False
             if step == SYNC2:
                 self.robot_name, _type, self.subtype = parse_sync2(body)
-                self.factors = factors_for(self.subtype)
+                self.readings.factors = factors_for(self.subtype)
         return True
 
     def _await_frame(self, wanted: object, timeout_s: float) -> bytes | None:
@@ -369,19 +357,14 @@ class ArcosDriver(Closing):
     def _await_first_sip(self) -> None:
         assert self._link is not None  # noqa: S101
         deadline = time.monotonic() + self.settings.connect_timeout_s
-        # A new session: position counters restart from wherever the robot is; the pose
-        # we integrate carries on from where it was.
-        self._last_xy, self._th0 = None, None
+        self.readings.new_session()
         sips = self.stats.sips
         while time.monotonic() < deadline:
             for body in self.parser.feed(self._link.read(0.05)):
                 self._dispatch(body)
             if self.stats.sips > sips:
                 return
-        raise DriverTimeout(f"robot at {self._where()} opened but sends no SIPs")
-
-    def _where(self) -> str:
-        return self.settings.port or self.settings.tcp or "?"
+        raise DriverTimeout(f"robot at {self.settings.address} opened but sends no SIPs")
 
     def _write(self, data: bytes) -> None:
         link = self._link
@@ -421,7 +404,7 @@ class ArcosDriver(Closing):
             backoff_s = min(2 * backoff_s, self.settings.reconnect_backoff_max_s)
             self._try_reconnect()
 
-    def _read_once(self, link: _Link | None) -> None:
+    def _read_once(self, link: Link | None) -> None:
         if link is None:
             raise DriverUnavailable("no link")
         data = link.read(0.05)
@@ -429,18 +412,19 @@ class ArcosDriver(Closing):
             for body in self.parser.feed(data):
                 self._dispatch(body)
             now = time.monotonic()
-            if now - self._last_sip_s > self.settings.link_timeout_s:
-                raise DriverTimeout(f"no SIP for {now - self._last_sip_s:.2f} s")
+            silent_s = now - self.readings.last_sip_s
+            if silent_s > self.settings.link_timeout_s:
+                raise DriverTimeout(f"no SIP for {silent_s:.2f} s")
             if now - self._last_sent_s > self.settings.pulse_s:
                 self._write(command(Cmd.PULSE))
 
-    def _lose_link(self, reason: str, link: _Link | None) -> None:
+    def _lose_link(self, reason: str, link: Link | None) -> None:
         with self._lock:
             if self._closed or (link is not None and link is not self._link):
                 return  # closed on purpose, or already replaced by a new link
             if not self._link_fault:
                 self.stats.links_lost += 1
-                log.warning("ARCOS link to %s lost: %s", self._where(), reason)
+                log.warning("ARCOS link to %s lost: %s", self.settings.address, reason)
             self._link_fault = f"link lost: {reason}"
             if self._link is not None:
                 self._link.close()
@@ -456,57 +440,9 @@ class ArcosDriver(Closing):
                 self._link_fault = f"link lost: {exc}"
                 return
             self.stats.reconnects += 1
-            log.info("ARCOS link to %s back", self._where())
+            log.info("ARCOS link to %s back", self.settings.address)
 
     def _dispatch(self, body: bytes) -> None:
-        kind = body[0]
-        if kind in (SIP_STOPPED, SIP_MOVING):
-            try:
-                sip = decode_sip(body)
-            except ProtocolError:
-                self.stats.bad_sips += 1
-                return
-            self._on_sip(sip, time.monotonic() - self._wire_time_s(body))
-        elif kind == CONFIG_PAC:
-            try:
-                self.config = decode_config(body)
-            except ProtocolError:
-                self.stats.bad_sips += 1
-        else:
-            self.stats.other_frames += 1
-
-    def _wire_time_s(self, body: bytes) -> float:
-        """How long the frame around `body` took to arrive (header, length, checksum)."""
         byte_time_s = self._link.byte_time_s if self._link is not None else 0.0
-        return (len(body) + FRAME_OVERHEAD_BYTES) * byte_time_s
-
-    def _on_sip(self, sip: Sip, measured_s: float) -> None:
-        f = self.factors
-        now = time.monotonic()
-        th = wrap_angle(sip.th * f.angle_rad)
-        if self._last_xy is None or self._th0 is None:
-            self._th0 = wrap_angle(th - self._pose.theta_rad)
-            self._last_xy = (sip.x, sip.y)
-        dx_mm = wrap_delta(sip.x, self._last_xy[0]) * f.dist_mm
-        dy_mm = wrap_delta(sip.y, self._last_xy[1]) * f.dist_mm
-        self._last_xy = (sip.x, sip.y)
-        # ARCOS integrates x, y in its own frame; ours starts at the first SIP's pose.
-        c, s = math.cos(-self._th0), math.sin(-self._th0)
-        pose = Pose2D(
-            self._pose.x_m + (c * dx_mm - s * dy_mm) / 1000.0,
-            self._pose.y_m + (s * dx_mm + c * dy_mm) / 1000.0,
-            wrap_angle(th - self._th0),
-        )
-        v = (sip.left_vel + sip.right_vel) / 2.0 * f.vel_mmps / 1000.0
-        w = (sip.right_vel - sip.left_vel) / 2.0 * f.vel_mmps * f.diff
-        self._pose = pose
-        self._odometry = Odometry(pose, Twist2D(v, w), measured_s)
-        ranges = list(self._sonar_m)
-        for index, range_raw in sip.sonars:
-            if 0 <= index < N_SONARS:
-                ranges[index] = range_raw * f.range_mm / 1000.0
-        self._sonar_m = tuple(ranges)
-        self._sip = sip
-        self._last_sip_s = now
-        self._link_fault = ""
-        self.stats.sips += 1
+        if self.readings.take(body, byte_time_s=byte_time_s):
+            self._link_fault = ""  # SIPs arrive: the link is up

@@ -8,7 +8,7 @@ velocities by RPDO1 (controlword + target), statusword and actual velocity by TP
 odometry integrated from the measured wheel speeds. Supervision: a drive whose heartbeat
 is missing for `heartbeat_timeout_s`, or which reports an EMCY or FAULT, stops the robot
 (zero targets and quick stop on both wheels) and the fault is reported until `connect()`
-resets it. Facts: ../shared/notes/can.md (CiA 402 words, ids, canopen 2.4 behaviour).
+resets it. The wheel geometry and speed limit are the robot parameter file's.
 """
 
 from __future__ import annotations
@@ -22,6 +22,7 @@ from dataclasses import dataclass, field
 import canopen
 from pydantic import BaseModel, ConfigDict, Field
 
+from phalanx.core.config import RobotParams
 from phalanx.core.errors import DriverError, DriverTimeout, DriverUnavailable
 from phalanx.core.geometry import Pose2D, Twist2D, integrate_unicycle
 from phalanx.core.lifecycle import Closing
@@ -31,12 +32,14 @@ from phalanx.protocols.cia402 import Cw, drive_od
 log = logging.getLogger("phalanx.canopen")
 STATE_MASK = 0x6F
 OPERATION_ENABLED = 0x27
+QUICK_STOP_ACTIVE = 0x07
+SWITCH_ON_DISABLED_MASK, SWITCH_ON_DISABLED = 0x4F, 0x40
 FAULT_MASK, FAULT = 0x4F, 0x08
 PROFILE_VELOCITY = 3
 
 
 class CanopenSettings(BaseModel):
-    """Bus, node ids, wheel geometry and the drives' velocity scale."""
+    """Bus, node ids and the drives' velocity scale (the wheels are the robot file's)."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
@@ -45,15 +48,30 @@ class CanopenSettings(BaseModel):
     bitrate: int = Field(default=500_000, gt=0)
     left_node_id: int = Field(default=1, ge=1, le=127)
     right_node_id: int = Field(default=2, ge=1, le=127)
-    wheel_radius_m: float = Field(default=0.0975, gt=0.0)
-    track_width_m: float = Field(default=0.357, gt=0.0)
     counts_per_radps: float = Field(default=1000.0, gt=0.0, description="drive units per rad/s")
     left_sign: int = Field(default=1, description="+1 or -1: mounting direction")
     right_sign: int = Field(default=-1, description="mirrored on the right side")
-    max_wheel_radps: float = Field(default=12.5, gt=0.0)
     heartbeat_timeout_s: float = Field(default=0.3, gt=0.0)
     connect_timeout_s: float = Field(default=3.0, gt=0.0)
     accel_counts_ps2: int = Field(default=10_000, gt=0)
+
+
+@dataclass(frozen=True)
+class WheelGeometry:
+    """The differential drive's wheels, from the robot parameter file."""
+
+    radius_m: float
+    track_width_m: float
+    max_radps: float  # the wheel speed limit
+
+    @classmethod
+    def of(cls, robot: RobotParams) -> WheelGeometry:
+        """`robot`'s wheels; the limit is its wheel rim speed over the wheel radius."""
+        return cls(
+            radius_m=robot.wheel_radius_m,
+            track_width_m=robot.track_width_m,
+            max_radps=robot.wheel_v_max_mps / robot.wheel_radius_m,
+        )
 
 
 @dataclass
@@ -84,14 +102,20 @@ class CanopenDriver(Closing):
 
     name = "canopen"
 
-    def __init__(self, settings: CanopenSettings) -> None:
+    def __init__(self, settings: CanopenSettings, *, robot: RobotParams) -> None:
         self.settings = settings
+        self.geometry = WheelGeometry.of(robot)
         self.stats = CanopenStats()
         self._lock = threading.RLock()  # readings, faults, PDO sends; never held while waiting
         self._connect_lock = threading.Lock()
         self._network: canopen.Network | None = None
         self._wheels: tuple[_Wheel, _Wheel] | None = None
         self._faults: list[str] = []
+        # An E-stop, latched until connect(): ours (`estop()`), or a drive that quick-stopped
+        # without being told to (its emergency-stop input); `_quick_stopping`: we told it.
+        self._estop = ""
+        self._quick_stopping = False
+        self._running = False  # both drives enabled by connect(), not stopped since
         self._pose = Pose2D(0.0, 0.0, 0.0)
         self._twist = Twist2D(0.0, 0.0)
         self._odom_s = time.monotonic()
@@ -115,6 +139,8 @@ class CanopenDriver(Closing):
                 self._enable(wheel)
             with self._lock:
                 self._faults.clear()
+                self._estop, self._quick_stopping = "", False
+                self._running = True
                 self._odom_s = time.monotonic()
         if self._supervisor is None:
             self._supervisor = threading.Thread(target=self._supervise, name="can-supervisor")
@@ -127,13 +153,14 @@ class CanopenDriver(Closing):
             raise ValueError(f"non-finite velocity command {twist}")
         with self._lock:
             self._check_usable()
-            if self._faults:
-                raise DriverUnavailable(f"drives stopped: {'; '.join(self._faults)}")
-            s = self.settings
-            half = twist.omega_radps * s.track_width_m / 2.0
-            left = (twist.v_mps - half) / s.wheel_radius_m
-            right = (twist.v_mps + half) / s.wheel_radius_m
-            scale = max(1.0, abs(left) / s.max_wheel_radps, abs(right) / s.max_wheel_radps)
+            if self._faults or self._estop:
+                reasons = [*self._faults, *([self._estop] if self._estop else [])]
+                raise DriverUnavailable(f"drives stopped: {'; '.join(reasons)}")
+            g = self.geometry
+            half = twist.omega_radps * g.track_width_m / 2.0
+            left = (twist.v_mps - half) / g.radius_m
+            right = (twist.v_mps + half) / g.radius_m
+            scale = max(1.0, abs(left) / g.max_radps, abs(right) / g.max_radps)
             assert self._wheels is not None  # noqa: S101
             for wheel, radps in zip(self._wheels, (left / scale, right / scale), strict=True):
                 self._send(wheel, Cw.ENABLE_OPERATION, radps)
@@ -153,7 +180,8 @@ class CanopenDriver(Closing):
                 w.statusword & STATE_MASK == OPERATION_ENABLED for w in wheels
             )
             return RobotStatus(
-                motors_enabled=enabled and not self._faults,
+                motors_enabled=enabled and not self._faults and not self._estop,
+                estopped=bool(self._estop),
                 stalled=False,
                 faults=tuple(self._faults),
             )
@@ -167,20 +195,21 @@ class CanopenDriver(Closing):
                 self._send(wheel, Cw.ENABLE_OPERATION, 0.0)
 
     def estop(self) -> None:
-        """Quick stop on both drives (they ramp down and disable); `connect()` re-enables."""
+        """Quick stop on both drives (they ramp down and disable), reported as an E-stop
+        until `connect()` re-enables them.
+        """
         with self._lock:
             if self._wheels is None:
                 return
-            for wheel in self._wheels:
-                self._send(wheel, Cw.QUICK_STOP, 0.0)
-            self._faults.append("e-stop")
+            self._quick_stop_all()
+            self._estop = self._estop or "e-stop (commanded)"
 
     def close(self) -> None:
         """Zero targets, shut the drives down (disabled), leave the bus; safe twice."""
         with self._lock:
             if self._closed:
                 return
-            self._closed = True
+            self._closed, self._running = True, False
             self._stop.set()
             if self._wheels is not None:
                 for wheel in self._wheels:
@@ -308,15 +337,21 @@ class CanopenDriver(Closing):
             self.stats.tpdos += 1
             if wheel.statusword & FAULT_MASK == FAULT:
                 self._fault(f"{wheel.name} drive in FAULT")
+            if self._running and not self._quick_stopping and _stopped_itself(wheel.statusword):
+                # Nobody here asked for it: the drive's own emergency-stop input.
+                log.error("%s drive stopped on its own (statusword %#06x): e-stop",
+                          wheel.name, wheel.statusword)  # fmt: skip
+                self._estop = f"{wheel.name} drive e-stop input"
+                self._quick_stop_all()
             self._integrate()
 
     def _integrate(self) -> None:
         assert self._wheels is not None  # noqa: S101
         now = time.monotonic()
         left, right = self._wheels
-        s = self.settings
-        v = s.wheel_radius_m * (left.speed_radps + right.speed_radps) / 2.0
-        w = s.wheel_radius_m * (right.speed_radps - left.speed_radps) / s.track_width_m
+        g = self.geometry
+        v = g.radius_m * (left.speed_radps + right.speed_radps) / 2.0
+        w = g.radius_m * (right.speed_radps - left.speed_radps) / g.track_width_m
         self._pose = integrate_unicycle(self._pose, self._twist, now - self._odom_s)
         self._twist = Twist2D(v, w)
         self._odom_s = now
@@ -328,6 +363,11 @@ class CanopenDriver(Closing):
         log.error("stopping the robot: %s", reason)
         self._faults.append(reason)
         self.stats.faults.append(reason)
+        self._quick_stop_all()
+
+    def _quick_stop_all(self) -> None:
+        """Quick stop on both wheels (call with the lock held)."""
+        self._quick_stopping, self._running = True, False
         if self._wheels is not None and not self._closed:
             for wheel in self._wheels:
                 try:
@@ -347,3 +387,11 @@ class CanopenDriver(Closing):
                         if f"{wheel.name} drive heartbeat lost" not in self._faults:
                             self.stats.heartbeat_losses += 1
                         self._fault(f"{wheel.name} drive heartbeat lost")
+
+
+def _stopped_itself(statusword: int) -> bool:
+    """Whether a drive that was running reports QUICK STOP ACTIVE or SWITCH ON DISABLED."""
+    return (
+        statusword & STATE_MASK == QUICK_STOP_ACTIVE
+        or statusword & SWITCH_ON_DISABLED_MASK == SWITCH_ON_DISABLED
+    )

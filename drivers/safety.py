@@ -22,19 +22,11 @@ from dataclasses import dataclass
 from phalanx.core.errors import DriverError
 from phalanx.core.geometry import Twist2D
 from phalanx.core.lifecycle import Closing
+from phalanx.core.limits import SafetyLimits
 from phalanx.core.robot import Odometry, RobotStatus
 from phalanx.drivers.base import Driver
 
 log = logging.getLogger("phalanx.safety")
-
-
-@dataclass(frozen=True)
-class SafetyLimits:
-    """Speed bounds (m/s, rad/s) and the command watchdog (s)."""
-
-    v_max_mps: float
-    omega_max_radps: float
-    watchdog_s: float = 0.5
 
 
 @dataclass

@@ -4,7 +4,7 @@ or TCP (the MobileSim convention, port 8101), moving a simulated body.
 It answers the sync/open handshake, streams standard SIPs every SIP cycle after OPEN,
 obeys ENABLE, VEL, RVEL, VEL2, STOP, E_STOP, SONAR, CONFIG and CLOSE, and runs the
 firmware watchdog: no client packet for `watchdog_s` stops the motors, the next packet
-resumes the last setpoints (ARCOS behaviour, ../shared/notes/arcos.md). Faults can be
+resumes the last setpoints (ARCOS behaviour, docs/HARDWARE.md). Faults can be
 injected while it runs: garbled bytes, dropped SIPs, stalled wheels, the e-stop button,
 an unplugged cable (silence both ways), a disconnect.
 """

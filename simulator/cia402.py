@@ -4,8 +4,10 @@ Each `SimulatedDrive` is a canopen LocalNode with an object dictionary covering 
 backend touches (built from an EDS text in `drive_eds`), the CiA 402 state machine driven
 by the controlword (by SDO or by RPDO1), a first-order motor model in profile velocity
 mode, TPDO1 (statusword, velocity actual) every 20 ms, a heartbeat producer, and fault
-injection: a lost heartbeat (the drive falls silent, as if unplugged) and a drive fault
-(FAULT state and an EMCY), cleared by a fault reset. Facts: ../shared/notes/can.md.
+injection: a lost heartbeat (the drive falls silent, as if unplugged), a drive fault
+(FAULT state and an EMCY), cleared by a fault reset, and an emergency-stop input (the
+drive quick-stops on its own and refuses to enable while it is pressed). The CiA 402
+facts it follows: docs/HARDWARE.md.
 """
 
 from __future__ import annotations
@@ -83,6 +85,7 @@ class SimulatedDrive:
         self._target = 0
         self._actual = 0.0
         self._silent = False
+        self._estop = False  # the drive's emergency-stop input
         self.node.add_write_callback(self._on_sdo_write)
         self.node.tpdo.read(from_od=True)
         self.node.rpdo.read(from_od=True)
@@ -112,7 +115,10 @@ class SimulatedDrive:
             self.stats.last_target = self._target
 
     def _apply_controlword(self, controlword: int) -> None:
-        self._state = next_state(self._state, controlword, self._controlword)
+        state = next_state(self._state, controlword, self._controlword)
+        if self._estop and state == SW_OPERATION_ENABLED:
+            state = self._state  # no enabling while the E-stop input is pressed
+        self._state = state
         self._controlword = controlword
         if self._state == SW_SWITCH_ON_DISABLED:
             self.node.sdo[0x603F].raw = 0  # fault reset clears the error code
@@ -174,6 +180,16 @@ class SimulatedDrive:
         """Talk again after `lose_heartbeat`."""
         self._silent = False
         self.node.nmt.start_heartbeat(int(self.node.sdo[0x1017].raw))
+
+    def press_estop(self, pressed: bool = True) -> None:
+        """The drive's emergency-stop input: pressed, it quick-stops the motor (QUICK STOP
+        ACTIVE, then SWITCH ON DISABLED at a standstill) and refuses to enable; released,
+        the drive stays disabled until the controller enables it again.
+        """
+        with self._lock:
+            self._estop = pressed
+            if pressed and self._state == SW_OPERATION_ENABLED:
+                self._state = SW_QUICK_STOP
 
     def inject_fault(self, code: int = 0x2310) -> None:
         """Go to FAULT (motor coasts down) and send an EMCY with `code` (0x2310: current)."""

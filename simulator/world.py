@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-from phalanx.core.config import NoiseConfig, RobotParams, SensorEvent, WorldConfig
+from phalanx.core.config import NoiseConfig, RobotParams, Scenario, SensorEvent, WorldConfig
 from phalanx.core.geometry import Pose2D, Twist2D, Vec2
 from phalanx.core.robot import Odometry, RobotStatus
 from phalanx.core.runlog import Collision
@@ -111,6 +111,20 @@ class World:
         self._circles = np.array([(c.x_m, c.y_m, c.radius_m) for c in world.circles]).reshape(-1, 3)
         self._edges = _polygon_edges(world)
         self._sonar_cache: dict[int, FloatArray] = {}
+
+    @classmethod
+    def for_scenario(cls, scenario: Scenario, robot: RobotParams) -> World:
+        """The scenario's world with every robot at its start pose."""
+        world = cls(
+            robot=robot,
+            world=scenario.world,
+            noise=scenario.noise,
+            events=scenario.events,
+            seed=scenario.seed,
+        )
+        for entry in scenario.robots:
+            world.add_robot(entry.id, scenario.start_pose(entry.id))
+        return world
 
     @property
     def robot_ids(self) -> tuple[str, ...]:

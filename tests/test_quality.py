@@ -1,4 +1,5 @@
-"""The code style gates of STYLE.md run as tests, so CI enforces them."""
+"""The code style gates (ruff, the ruff formatter, mypy --strict) run as tests, so CI
+enforces them."""
 
 from __future__ import annotations
 

@@ -12,12 +12,23 @@ import math
 from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 
 from phalanx.agents.perception import HEADINGS_RAD, FloatArray, choose_heading
-from phalanx.core.config import DeadlockConfig, LeaderProfile, NavigationConfig
+from phalanx.core.config import DeadlockConfig, LeaderProfile, NavigationConfig, Scenario
 from phalanx.core.geometry import ZERO_TWIST, Pose2D, Twist2D, Vec2, wrap_angle
+
+Plan = Literal["scripted", "goto", "wander"]
+
+
+def plan_of(scenario: Scenario) -> Plan:
+    """What a leader of `scenario` does: its script, go to waypoints, or wander."""
+    if scenario.leader_profile is not None:
+        return "scripted"
+    return "goto" if scenario.navigation.waypoints else "wander"
+
 
 # Fraction of the run's speed limit a follower's slot may need: the rest is its margin
 # to catch up. The leader slows a turn so that no slot of the rigid shape needs more.
@@ -234,7 +245,7 @@ def turn_rate_radps(slots: Sequence[Vec2], v_max_mps: float, omega_max_radps: fl
     return min(omega_max_radps, RIGID_SPEED_SHARE * v_max_mps / reach_m)
 
 
-class Wander:
+class WanderHeading:
     """A heading that changes every `wander_period_s` by up to `wander_turn_deg`, drawn
     from a seeded generator: the same on every run of a scenario.
     """

@@ -1,7 +1,8 @@
 """What every follower controller reads, and the exact rigid-body target they aim at.
 
-Slot convention (DESIGN.md): the follower's slot is `s = (l cos phi, l sin phi)` in the
-leader's body frame, phi counter-clockwise from the leader's heading.
+Slot convention (docs/ARCHITECTURE.md, conventions): the follower's slot is
+`s = (l cos phi, l sin phi)` in the leader's body frame, phi counter-clockwise from the
+leader's heading.
 """
 
 from __future__ import annotations

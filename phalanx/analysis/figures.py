@@ -34,7 +34,7 @@ from phalanx.analysis.metrics import (
 from phalanx.core.limits import KinematicLimits
 from phalanx.core.runlog import RunLog
 from phalanx.core.scenarios import resolve_world
-from phalanx.core.states import State
+from phalanx.core.states import ROBOT_STATES, State
 
 COLOURS = ("tab:red", "tab:blue", "tab:green", "tab:purple", "tab:orange", "tab:brown")
 
@@ -137,6 +137,10 @@ def velocities(log: RunLog) -> Figure:
 
 # Rows of figure 4b, top to bottom: the navigation layer over the formation layer.
 STATE_ROWS = (
+    State.LOW_BATTERY,
+    State.STALLED,
+    State.FAULT,
+    State.ESTOPPED,
     State.STUCK,
     State.EMERGENCY_STOP,
     State.ARRIVED,
@@ -267,19 +271,29 @@ FSM_LAYOUT: dict[str, tuple[float, float]] = {
     State.HOLD: (1.0, 0.0),
     State.FORMATION_TRACK: (4.5, 0.0),
     State.FORMATION_REVERSE: (8.0, 0.0),
+    State.ESTOPPED: (2.0, -1.4),
+    State.FAULT: (4.5, -1.4),
+    State.STALLED: (7.0, -1.4),
+    State.LOW_BATTERY: (9.5, -1.4),
 }
 BOX_HALF = (0.6, 0.3)  # half width and height of a state's box, plot units
-LAYER_COLOURS = {"navigation": "#dbe9f6", "formation": "#e3f2d9", "shared": "#f6ecd9"}
+LAYER_COLOURS = {
+    "navigation": "#dbe9f6",
+    "formation": "#e3f2d9",
+    "shared": "#f6ecd9",
+    "robot": "#f3dede",
+}
 _FORMATION_ROW = {State.FORMATION_TRACK, State.FORMATION_REVERSE, State.HOLD}
 _SHARED_ROW = {State.JOIN, ANY_STATE}
 
 
 def state_machine(machine: StateMachine[Any], *, title: str = "") -> Figure:
     """Figure 4a: the behaviour state machine, states as boxes (blue: navigation layer,
-    green: formation layer, sand: shared), every transition as an arrow labelled with
-    its priority (the arbitration: higher wins); a dotted arrow marks the initial state.
+    green: formation layer, sand: shared, red: the robot's own stops), every transition
+    as an arrow labelled with its priority (the arbitration: higher wins); a dotted arrow
+    marks the initial state.
     """
-    fig, ax = plt.subplots(figsize=(16, 8.5))
+    fig, ax = plt.subplots(figsize=(16, 10.5))
     names = list(dict.fromkeys([*FSM_LAYOUT, *machine.states]))
     pos = {n: FSM_LAYOUT.get(n, (12.0, 3.0 - i * 0.8)) for i, n in enumerate(names)}
     used = {tr.source for tr in machine.transitions} | {tr.target for tr in machine.transitions}
@@ -294,7 +308,7 @@ def state_machine(machine: StateMachine[Any], *, title: str = "") -> Figure:
     x0, y0 = pos[machine.initial]
     ax.annotate("", xy=(x0 - 0.55, y0), xytext=(x0 - 1.2, y0 - 0.6),
                 arrowprops={"arrowstyle": "->", "ls": ":", "lw": 1.2})  # fmt: skip
-    ax.set(xlim=(-1.2, 12.4), ylim=(-0.8, 3.9), title=title or "behaviour state machine")
+    ax.set(xlim=(-1.2, 12.4), ylim=(-2.1, 3.9), title=title or "behaviour state machine")
     ax.axis("off")
     fig.tight_layout()
     return fig
@@ -303,7 +317,7 @@ def state_machine(machine: StateMachine[Any], *, title: str = "") -> Figure:
 def _state_box(ax: Axes, name: str, xy: tuple[float, float]) -> None:
     layer = (
         "formation" if name in _FORMATION_ROW else "shared" if name in _SHARED_ROW
-        else "navigation"
+        else "robot" if name in ROBOT_STATES else "navigation"
     )  # fmt: skip
     label = "any state" if name == ANY_STATE else name.replace("_", "\n", 1)
     x, y = xy

@@ -4,7 +4,7 @@ For each follower against the robot it tracks:
 - linear error `|l - l_d| / l_d` (and `|l - l_d|` in m),
 - angular error `|phi - phi_d| / phi_d` (and `|phi - phi_d|` in deg),
 - orientation error: the follower's heading against the heading a rigid formation
-  would give it (theta_L + beta, DESIGN.md), in deg.
+  would give it (theta_L + beta, `phalanx.core.rigid_body`), in deg.
 Split into the forward and the backward phase of the formation (its leader's direction);
 each phase is measured from `settle_s` after the switch (and the forward phase also from
 `initial_settle_s`, so the convergence from the start offsets is not counted).
@@ -28,6 +28,7 @@ import numpy.typing as npt
 from phalanx.core.geometry import Twist2D, wrap_angle
 from phalanx.core.rigid_body import rigid_body_target
 from phalanx.core.runlog import RunLog
+from phalanx.core.states import ROBOT_STATES
 
 FloatArray = npt.NDArray[np.float64]
 BoolArray = npt.NDArray[np.bool_]
@@ -216,7 +217,9 @@ def follower_metrics(log: RunLog, follower: str) -> dict[str, Any]:
 
 # States in which a robot is off its slot on purpose, or the shape is being turned about:
 # a formation's error is not measured then, nor for `settle_s` after.
-EPISODE_STATES = frozenset({"AVOID", "EMERGENCY_STOP", "HOLD", "JOIN", "DEADLOCK_TURN", "STUCK"})
+EPISODE_STATES = frozenset(
+    {"AVOID", "EMERGENCY_STOP", "HOLD", "JOIN", "DEADLOCK_TURN", "STUCK"} | ROBOT_STATES
+)
 TURNING_ON_THE_SPOT_MPS = 0.005
 
 

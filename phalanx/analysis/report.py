@@ -15,7 +15,7 @@ from typing import Any
 from rich.console import Console
 from rich.table import Table
 
-from phalanx.core.config import CONFIG_ROOT, apply_overrides, load_scenario
+from phalanx.core.config_files import CONFIG_ROOT, apply_overrides, load_scenario
 
 FORMATIONS = ("wedge", "inline", "collateral")
 CONTROLLERS = ("tracking", "switching", "icr", "ours")

@@ -38,12 +38,8 @@ def write_metrics(metrics: dict[str, Any], path: Path) -> None:
 
 def write_recording(log: RunLog, path: Path, *, recording_id: str | None = None) -> None:
     """Log the whole run to an `.rrd` file in columns (world, every robot, transitions)."""
-    from phalanx.telemetry.stream import (
-        PAPER_ANGULAR_BOUND_PCT,
-        PAPER_LINEAR_BOUND_PCT,
-        Telemetry,
-        TelemetrySink,
-    )
+    from phalanx.telemetry.sinks import TelemetrySink
+    from phalanx.telemetry.stream import PAPER_ANGULAR_BOUND_PCT, PAPER_LINEAR_BOUND_PCT, Telemetry
 
     sink = TelemetrySink(kind="file", path=path)
     with Telemetry(recording_id=recording_id or str(uuid.uuid4()), sink=sink) as tel:

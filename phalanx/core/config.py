@@ -1,26 +1,18 @@
-"""Configuration models (pydantic v2, TOML files) for robots and scenarios.
+"""Configuration models (pydantic v2) for robots and scenarios.
 
-Every model forbids unknown keys; `load_scenario` and `load_robot` turn validation errors
-into a `ConfigError` that names the file, the field path and, for a misspelt key, the
-closest valid name.
+Every model forbids unknown keys and is frozen. `phalanx.core.config_files` reads them
+from TOML files, with errors that name the file, the field path and, for a misspelt key,
+the closest valid name.
 """
 
 from __future__ import annotations
 
-import difflib
-import json
 import math
-import tomllib
-from collections.abc import Mapping
-from pathlib import Path
-from typing import Annotated, Any, Literal, Self, TypeVar
+from typing import Annotated, Literal, Self
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from phalanx.core.errors import ConfigError
-
-CONFIG_ROOT = Path(__file__).resolve().parents[2] / "configs"
-ROBOTS_DIR = CONFIG_ROOT / "robots"
+from phalanx.core.geometry import Pose2D
 
 PositiveFloat = Annotated[float, Field(gt=0.0)]
 NonNegativeFloat = Annotated[float, Field(ge=0.0)]
@@ -67,6 +59,8 @@ class RobotParams(Model):
     decel_mps2: PositiveFloat
     rot_accel_degps2: PositiveFloat
     sonar: SonarParams
+    # Below this the agent stops the robot (LOW_BATTERY) until it is charged; none: no check.
+    battery_low_v: PositiveFloat | None = None
 
     @property
     def omega_max_radps(self) -> float:
@@ -159,7 +153,9 @@ class StartPose(Model):
     theta_deg: float = 0.0
 
 
-DriverKind = Literal["sim", "arcos", "canopen"]
+# "sim" (the world process moves the robot) or the name of a driver backend, which the
+# layers that open drivers check against the registry (`phalanx.drivers.BACKENDS`).
+DriverKind = Annotated[str, Field(pattern=r"^[a-z][a-z0-9_]{0,31}$")]
 
 
 class RobotEntry(Model):
@@ -387,129 +383,7 @@ class Scenario(Model):
         """Control period, s."""
         return 1.0 / self.control_rate_hz
 
-
-# --- loading ---------------------------------------------------------------------------
-
-M = TypeVar("M", bound=BaseModel)
-
-
-def _field_names(model: type[BaseModel], loc: tuple[int | str, ...]) -> list[str]:
-    """Valid field names at the parent of an error location, for "did you mean"."""
-    current: Any = model
-    for part in loc[:-1]:
-        if isinstance(part, int):
-            continue
-        fields = getattr(current, "model_fields", {})
-        if part not in fields:
-            return []
-        annotation = fields[part].annotation
-        current = _innermost_model(annotation)
-        if current is None:
-            return []
-    return list(getattr(current, "model_fields", {}))
-
-
-def _innermost_model(annotation: Any) -> type[BaseModel] | None:
-    if isinstance(annotation, type) and issubclass(annotation, BaseModel):
-        return annotation
-    for arg in getattr(annotation, "__args__", ()):
-        found = _innermost_model(arg)
-        if found is not None:
-            return found
-    return None
-
-
-def _describe(error: Mapping[str, Any], model: type[BaseModel]) -> str:
-    loc = tuple(error["loc"])
-    path = ".".join(str(p) for p in loc) or "<root>"
-    message = f"{path}: {error['msg']}"
-    if error["type"] == "extra_forbidden" and loc:
-        hints = difflib.get_close_matches(str(loc[-1]), _field_names(model, loc), n=1)
-        if hints:
-            message += f" (did you mean {hints[0]!r}?)"
-    return message
-
-
-def validate_file(model: type[M], path: Path) -> M:
-    """Read a TOML file (or JSON, as tools write it) into `model`.
-
-    Raises ConfigError naming the file, the field path and a hint.
-    """
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError as exc:
-        raise ConfigError(f"{path}: no such file") from exc
-    try:
-        data = json.loads(text) if path.suffix == ".json" else tomllib.loads(text)
-    except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(f"{path}: not valid TOML: {exc}") from exc
-    except json.JSONDecodeError as exc:
-        raise ConfigError(f"{path}: not valid JSON: {exc}") from exc
-    if not isinstance(data, dict):
-        raise ConfigError(f"{path}: expected a table at the top level")
-    return validate_data(model, data, source=str(path))
-
-
-def validate_data(model: type[M], data: Mapping[str, Any], *, source: str) -> M:
-    """Validate a mapping into `model`, or raise ConfigError naming source and fields."""
-    try:
-        return model.model_validate(data)
-    except ValidationError as exc:
-        lines = [_describe(e, model) for e in exc.errors()]
-        raise ConfigError(f"{source}: invalid {model.__name__}:\n  " + "\n  ".join(lines)) from exc
-
-
-def load_robot(name_or_path: str | Path) -> RobotParams:
-    """Load a robot parameter file by name (configs/robots/NAME.toml) or path."""
-    path = Path(name_or_path)
-    if path.suffix != ".toml":
-        path = ROBOTS_DIR / f"{name_or_path}.toml"
-    return validate_file(RobotParams, path)
-
-
-def load_scenario(path: str | Path) -> Scenario:
-    """Load a scenario file (TOML; JSON is accepted for generated scenarios)."""
-    return validate_file(Scenario, Path(path))
-
-
-def apply_overrides(scenario: Scenario, assignments: list[str]) -> Scenario:
-    """A copy of `scenario` with dotted `path=value` assignments (TOML values) applied.
-
-    For example `controller.kind="ours"` or `noise.sonar_std_m=0.02`; bare words are taken
-    as strings, so `controller.kind=ours` works too. The result is validated again.
-    """
-    data = scenario.model_dump(mode="python")
-    for assignment in assignments:
-        path, sep, text = assignment.partition("=")
-        if not sep or not path.strip():
-            raise ConfigError(f"override {assignment!r}: expected PATH=VALUE")
-        _set_path(data, path.strip().split("."), _parse_value(text.strip()), assignment)
-    return validate_data(Scenario, data, source=f"{scenario.name} with overrides")
-
-
-def _parse_value(text: str) -> Any:
-    try:
-        return tomllib.loads(f"v = {text}")["v"]
-    except tomllib.TOMLDecodeError:
-        return text
-
-
-def _set_path(data: dict[str, Any], keys: list[str], value: Any, assignment: str) -> None:
-    node: Any = data
-    for key in keys[:-1]:
-        node = _child(node, key, assignment)
-    last = keys[-1]
-    if isinstance(node, list) and last.isdigit() and int(last) < len(node):
-        node[int(last)] = value
-    elif isinstance(node, dict):
-        node[last] = value
-    else:
-        raise ConfigError(f"override {assignment!r}: {'.'.join(keys[:-1])} is not a table")
-
-
-def _child(node: Any, key: str, assignment: str) -> Any:
-    if isinstance(node, dict) and key in node:
-        return node[key]
-    if isinstance(node, list | tuple) and key.isdigit() and int(key) < len(node):
-        return node[int(key)]
-    raise ConfigError(f"override {assignment!r}: no field {key!r}")
+    def start_pose(self, robot_id: str) -> Pose2D:
+        """Where `robot_id` starts, in the world frame."""
+        start = next(r.start for r in self.robots if r.id == robot_id)
+        return Pose2D(start.x_m, start.y_m, math.radians(start.theta_deg))

@@ -3,7 +3,7 @@
 The formation frame moves with the group: origin at the root robot's slot, x along the
 formation's heading. In a rigid formation every robot has that heading, so the slot of
 any robot relative to any other, in the other's body frame, is the difference of their
-slot positions. That is what lets leadership pass to any robot (DESIGN.md).
+slot positions. That is what lets leadership pass to any robot (docs/ARCHITECTURE.md, conventions).
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """Planar geometry in SI units: poses, twists, angle wrapping, frames, unicycle motion.
 
-Conventions (DESIGN.md): metres, radians, seconds; angles counter-clockwise; a body
+Conventions (docs/ARCHITECTURE.md): metres, radians, seconds; angles counter-clockwise; a body
 frame has x along the robot's heading and y to its left.
 """
 

@@ -41,3 +41,30 @@ class KinematicLimits:
             decel_mps2=robot.decel_mps2,
             rot_accel_radps2=robot.rot_accel_radps2,
         )
+
+
+@dataclass(frozen=True)
+class SafetyLimits:
+    """The outer safety layer's bounds (`phalanx.drivers.safety.SafeDriver`): speeds
+    (m/s, rad/s) and the command watchdog (s).
+    """
+
+    v_max_mps: float
+    omega_max_radps: float
+    watchdog_s: float = 0.5
+
+
+def run_limits(robot: RobotParams, override: LimitsOverride | None = None) -> KinematicLimits:
+    """A run's bounds: the robot's rating, tightened by the scenario's run limits where
+    they are tighter (a scenario can never loosen the robot's rating). The limiter after
+    every controller and the safety layer around every driver both use these.
+    """
+    return KinematicLimits.from_params(robot, override)
+
+
+def safety_limits(
+    robot: RobotParams, override: LimitsOverride | None = None, *, watchdog_s: float = 0.5
+) -> SafetyLimits:
+    """The safety layer's bounds for a run: the same speeds as `run_limits`."""
+    limits = run_limits(robot, override)
+    return SafetyLimits(limits.v_max_mps, limits.omega_max_radps, watchdog_s)

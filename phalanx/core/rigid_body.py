@@ -63,7 +63,7 @@ def heading_offset(u: Vec2) -> float:
 def rigid_body_target(leader: Pose2D, twist: Twist2D, slot: Vec2) -> tuple[Pose2D, Twist2D]:
     """The pose and feed-forward twist of a follower moving rigidly with the leader.
 
-    Position: the slot point. Heading: `theta_L + beta` (DESIGN.md), so a nonholonomic
+    Position: the slot point. Heading: `theta_L + beta` (see `heading_offset`), so a nonholonomic
     robot can move with the slot point. Twist: the signed slot speed along that heading
     and the leader's yaw rate (beta is constant for a constant leader twist).
     """

@@ -4,10 +4,8 @@ simulated world, every driver backend and the agent's observation use these type
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 
-from phalanx.core.config import Scenario
 from phalanx.core.geometry import Pose2D, Twist2D
 
 
@@ -31,9 +29,3 @@ class RobotStatus:
     estopped: bool = False
     stalled: bool = False
     faults: tuple[str, ...] = field(default_factory=tuple)
-
-
-def start_pose(scenario: Scenario, robot_id: str) -> Pose2D:
-    """The robot's start pose in the world frame, from the scenario."""
-    start = next(r.start for r in scenario.robots if r.id == robot_id)
-    return Pose2D(start.x_m, start.y_m, math.radians(start.theta_deg))

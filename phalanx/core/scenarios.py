@@ -21,8 +21,8 @@ from phalanx.core.config import (
     SlotConfig,
     StartPose,
     WorldConfig,
-    validate_data,
 )
+from phalanx.core.config_files import toml_value, validate_data
 
 Shape = Literal["wedge", "inline", "collateral"]
 Course = Literal["corridor", "deadend", "field"]
@@ -286,7 +286,7 @@ def scenario_toml(scenario: Scenario, *, header: str = "") -> str:
 
 def _toml_table(data: dict[str, Any], path: tuple[str, ...]) -> list[str]:
     scalars = {k: v for k, v in data.items() if not _is_table(v) and not _is_tables(v)}
-    lines = [f"{k} = {_toml_value(v)}" for k, v in scalars.items()]
+    lines = [f"{k} = {toml_value(v)}" for k, v in scalars.items()]
     for key, value in data.items():
         if _is_table(value):
             lines += ["", f"[{'.'.join((*path, key))}]", *_toml_table(value, (*path, key))]
@@ -302,17 +302,3 @@ def _is_table(value: Any) -> bool:
 
 def _is_tables(value: Any) -> bool:
     return isinstance(value, list) and bool(value) and all(isinstance(v, dict) for v in value)
-
-
-def _toml_value(value: Any) -> str:
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, int | float):
-        return repr(value)
-    if isinstance(value, str):
-        return '"' + value.replace("\\", "\\\\").replace('"', '\\"') + '"'
-    if isinstance(value, list):
-        return "[" + ", ".join(_toml_value(v) for v in value) + "]"
-    if isinstance(value, dict):
-        return "{ " + ", ".join(f"{k} = {_toml_value(v)}" for k, v in value.items()) + " }"
-    raise TypeError(f"no TOML form for {value!r}")

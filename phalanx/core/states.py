@@ -32,6 +32,11 @@ class State(StrEnum):
     # shared
     HOLD = "HOLD"
     JOIN = "JOIN"
+    # the robot itself, any role: what its driver reports stops it
+    ESTOPPED = "ESTOPPED"
+    FAULT = "FAULT"
+    STALLED = "STALLED"
+    LOW_BATTERY = "LOW_BATTERY"
 
 
 @dataclass(frozen=True, slots=True)
@@ -42,3 +47,18 @@ class TransitionEvent:
     source: str
     target: str
     reason: str
+
+
+LEADER_STATES = frozenset(
+    {State.NAVIGATE, State.WANDER, State.ARRIVED, State.DEADLOCK_REVERSE, State.DEADLOCK_TURN}
+)
+FOLLOWER_STATES = frozenset(
+    {State.FORMATION_TRACK, State.FORMATION_REVERSE, State.AVOID, State.HOLD}
+)
+# The robot's own conditions, from its driver's status: E-stop, drive fault, stall, battery.
+ROBOT_STATES = frozenset({State.ESTOPPED, State.FAULT, State.STALLED, State.LOW_BATTERY})
+# A robot in one of these has left its slot: nobody may track it (leadership's rule 5).
+OUT_OF_FORMATION = (
+    frozenset({State.AVOID, State.EMERGENCY_STOP, State.JOIN, State.STUCK}) | ROBOT_STATES
+)
+DEADLOCK_STATES = frozenset({State.DEADLOCK_REVERSE, State.DEADLOCK_TURN})

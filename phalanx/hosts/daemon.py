@@ -2,77 +2,59 @@
 
 The daemon is its host's Zenoh router (endpoints from the deployment file), holds a
 liveliness token `phalanx/<fleet>/host/<name>/alive`, and answers spawn, stop and status
-requests on its queryables (see `phalanx.hostproto`). It starts only what its own copy
-of the deployment assigns to its host: the agents of those robots and, if the world
+requests on its queryables (see `phalanx.hosts.protocol`). It starts only what its own
+copy of the deployment assigns to its host: the agents of those robots and, if the world
 runs here, the world. Command lines are built from the deployment; a request names the
-deployment and carries a run id, an epoch and scenario overrides, all checked first.
-A malformed or refused request is answered with the reason and counted; it never ends
-the daemon.
+deployment and carries a run id, an epoch and scenario overrides, all checked first
+(`phalanx.hosts.request_checks`). A malformed or refused request is answered with the
+reason and counted; it never ends the daemon.
 
-Children run in their own session (process group), with their output piped: every line
-is kept (last error, shown by `status`), echoed to the daemon's log, and published on
-`phalanx/<fleet>/host/<name>/log/<child>`. A crashed agent is restarted with exponential
-back-off; a crashed world is not (a new world would restart the scenario). On SIGINT or
-SIGTERM every child gets SIGTERM, then SIGKILL after a grace period, and the session is
-closed. (If the daemon itself is killed, systemd's control group takes the children
-down; and a robot whose liveliness token is still up is never started a second time.)
+Children (`phalanx.hosts.children`) run in their own session (process group), with their
+output piped: every line is kept (last error, shown by `status`), echoed to the daemon's
+log, and published on `phalanx/<fleet>/host/<name>/log/<child>`. A crashed agent is
+restarted with exponential back-off; a crashed world is not (a new world would restart
+the scenario). On SIGINT or SIGTERM every child gets SIGTERM, then SIGKILL after a grace
+period, and the session is closed. (If the daemon itself is killed, systemd's control
+group takes the children down; and a robot whose liveliness token is still up is never
+started a second time.)
 """
 
 from __future__ import annotations
 
 import contextlib
 import logging
-import os
 import signal
 import subprocess
 import sys
 import threading
 import time
-from collections import deque
-from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import IO, Any, Literal
+from typing import Any, Literal
 
 from pydantic import ValidationError
 
-from phalanx.core.config import apply_overrides
 from phalanx.core.errors import PhalanxError, RequestRefused
-from phalanx.hosts.deployment import (
-    LoadedDeployment,
-    RestartPolicy,
-    RunParameters,
-    agent_argv,
-    did_you_mean,
-    host_transport,
-    world_argv,
-)
+from phalanx.hosts.children import LogLevel, ManagedChild, backoff_delay_s, exit_reason
+from phalanx.hosts.deployment import LoadedDeployment
 from phalanx.hosts.protocol import (
-    ACTIVE_STATES,
-    MAX_LOG_LINE,
     MAX_REQUEST_BYTES,
-    ChildState,
-    ChildStatus,
     HostReply,
     HostStatus,
     LogLine,
     SpawnRequest,
     StopRequest,
-    line_level,
 )
+from phalanx.hosts.request_checks import RequestChecks, validation_summary
+from phalanx.hosts.wiring import RunParameters, agent_argv, host_transport, world_argv
 from phalanx.runtime.local_fleet import GRACE_S
 from phalanx.runtime.signals import Stoppable
-from phalanx.wire.keys import host_key, log_key
+from phalanx.wire.keys import alive_pattern, host_key, log_key
 from phalanx.wire.transport import FleetSession, TransportConfig, open_session
 
 log = logging.getLogger("phalanx.host")
 child_log = logging.getLogger("phalanx.host.child")
 TOPICS = ("spawn", "stop", "status")
-MAX_EPOCH_OFFSET_S = 86_400.0
-LOG_LINES_PER_S = 200.0
-
-LogLevel = Literal["info", "warning", "error"]
-LineSink = Callable[["ManagedChild", str, LogLevel], None]
 
 
 @dataclass
@@ -86,143 +68,6 @@ class DaemonOptions:
     tick_s: float = 0.05
 
 
-class ManagedChild:
-    """One supervised process: its state, restarts, output and last error."""
-
-    def __init__(
-        self,
-        name: str,
-        kind: Literal["agent", "world"],
-        argv: list[str],
-        *,
-        policy: RestartPolicy,
-        on_line: LineSink,
-    ) -> None:
-        self.name, self.kind, self.argv = name, kind, argv
-        self.policy = policy
-        self.on_line = on_line
-        self.process: subprocess.Popen[bytes] | None = None
-        self.state: ChildState = "starting"
-        self.restarts = 0
-        self.backoff_steps = 0
-        self.exit_code: int | None = None
-        self.last_error = ""
-        self.lines: deque[str] = deque(maxlen=50)
-        self.log_dropped = 0
-        self.started_at = 0.0
-        self.restart_at = 0.0
-        self.kill_at = 0.0
-        self._tokens = LOG_LINES_PER_S
-        self._refilled = time.monotonic()
-        self._pump: threading.Thread | None = None
-
-    @property
-    def active(self) -> bool:
-        """Running, starting, about to restart or being stopped."""
-        return self.state in ACTIVE_STATES
-
-    def start(self, *, workdir: Path) -> None:
-        """Start (again), output piped to a reader thread."""
-        env = {**os.environ, "PYTHONUNBUFFERED": "1"}
-        self.process = subprocess.Popen(  # noqa: S603 - argv built from the deployment file
-            self.argv,
-            stdin=subprocess.DEVNULL,
-            stdout=subprocess.PIPE,
-            stderr=subprocess.STDOUT,
-            cwd=workdir,
-            env=env,
-            start_new_session=True,
-        )
-        self.state, self.exit_code = "starting", None
-        self.started_at = time.monotonic()
-        self._pump = threading.Thread(
-            target=self._read, args=(self.process.stdout,), name=f"log-{self.name}", daemon=True
-        )
-        self._pump.start()
-
-    def poll(self) -> int | None:
-        """The exit code, if the process has ended."""
-        return None if self.process is None else self.process.poll()
-
-    def signal(self, sig: signal.Signals) -> None:
-        """Signal the child's whole process group."""
-        if self.process is not None and self.process.poll() is None:
-            with contextlib.suppress(ProcessLookupError, PermissionError):
-                os.killpg(self.process.pid, sig)
-
-    def stop(self, now: float, grace_s: float) -> None:
-        """SIGTERM now, SIGKILL after `grace_s`; a pending restart is cancelled."""
-        if self.state in ("starting", "running"):
-            self.signal(signal.SIGTERM)
-            self.state, self.kill_at = "stopping", now + grace_s
-        elif self.state == "backoff":
-            self.state = "stopped"
-
-    def join_output(self, timeout_s: float) -> None:
-        """Wait (bounded) for the reader thread to see the end of the output."""
-        if self._pump is not None:
-            self._pump.join(timeout_s)
-
-    def status(self) -> ChildStatus:
-        """The child as the protocol reports it."""
-        pid = self.process.pid if self.process is not None and self.active else None
-        return ChildStatus(
-            name=self.name,
-            kind=self.kind,
-            state=self.state,
-            pid=pid,
-            restarts=self.restarts,
-            exit_code=self.exit_code,
-            last_error=self.last_error[-300:],
-            log_dropped=self.log_dropped,
-        )
-
-    def _read(self, stream: IO[bytes] | None) -> None:
-        if stream is None:
-            return
-        with stream, contextlib.suppress(OSError, ValueError):  # closed at EOF
-            for raw in stream:
-                line = raw.decode("utf-8", "replace").rstrip()[:MAX_LOG_LINE]
-                if line:
-                    self._take(line)
-
-    def _take(self, line: str) -> None:
-        self.lines.append(line)
-        level = line_level(line)
-        if level == "error":
-            self.last_error = line
-        now = time.monotonic()
-        self._tokens = min(LOG_LINES_PER_S, self._tokens + (now - self._refilled) * LOG_LINES_PER_S)
-        self._refilled = now
-        if self._tokens < 1.0:
-            self.log_dropped += 1
-            return
-        self._tokens -= 1.0
-        self.on_line(self, line, level)
-
-
-def exit_reason(code: int) -> str:
-    """`exit 2`, or `killed by SIGKILL` for a negative code."""
-    if code < 0:
-        with contextlib.suppress(ValueError):
-            return f"killed by {signal.Signals(-code).name}"
-    return f"exit {code}"
-
-
-def backoff_delay_s(policy: RestartPolicy, step: int) -> float:
-    """The delay before restart number `step + 1` of a crashing child."""
-    return float(min(policy.backoff_max_s, policy.backoff_s * 2.0**step))
-
-
-def validation_summary(exc: ValidationError, limit: int = 4) -> str:
-    """`field: message; ...` for the first few errors of `exc`."""
-    parts = []
-    for error in exc.errors()[:limit]:
-        path = ".".join(str(p) for p in error["loc"]) or "<payload>"
-        parts.append(f"{path}: {error['msg']}")
-    return "; ".join(parts)
-
-
 class HostDaemon:
     """Serves one host of one deployment: requests in, supervised processes out."""
 
@@ -233,6 +78,7 @@ class HostDaemon:
         self.loaded, self.name = loaded, name
         self.spec = loaded.spec
         self.options = options or DaemonOptions()
+        self.checks = RequestChecks(loaded, name)
         self.children: dict[str, ManagedChild] = {}
         self.run_id: str | None = None
         self.requests = 0
@@ -276,7 +122,7 @@ class HostDaemon:
 
         fleet = self.spec.fleet
         session.declare_alive(host_key(fleet, self.name, "alive"))
-        session.watch_alive(f"phalanx/{fleet}/alive/*", self._on_alive)
+        session.watch_alive(alive_pattern(fleet), self._on_alive)
         for topic in TOPICS:
             key = host_key(fleet, self.name, topic)
             queryable = session.zenoh.declare_queryable(key, zenoh.handlers.RingChannel(64))
@@ -333,10 +179,10 @@ class HostDaemon:
 
     def spawn(self, request: SpawnRequest) -> None:
         """Start the requested processes of this host (idempotent for a running one)."""
-        self._check_deployment(request.deployment, request.digest)
-        robots = self._requested_robots(request.robots)
-        overrides = self._checked_overrides(request.overrides)
-        self._check_epoch(request.epoch_unix)
+        self.checks.check_deployment(request.deployment, request.digest)
+        robots = self.checks.requested_robots(request.robots)
+        overrides = self.checks.checked_overrides(request.overrides)
+        self.checks.check_epoch(request.epoch_unix)
         self._claim_run(request.run_id)
         world = request.world and self.spec.runs_world(self.name)
         self._check_not_elsewhere([*robots, *(["world"] if world else [])])
@@ -350,13 +196,12 @@ class HostDaemon:
 
     def stop(self, request: StopRequest) -> None:
         """Stop some or all of this host's processes (SIGTERM, then SIGKILL)."""
-        if request.deployment != self.spec.name:
-            raise RequestRefused(self._wrong_deployment(request.deployment))
+        self.checks.check_deployment(request.deployment)
         if request.run_id is not None and request.run_id != self.run_id:
             raise RequestRefused(
                 f"run {request.run_id!r} is not this host's (its run: {self.run_id!r})"
             )
-        names = list(self._requested_robots(request.robots))
+        names = list(self.checks.requested_robots(request.robots))
         if request.world:
             names.append("world")
         now = time.monotonic()
@@ -365,47 +210,6 @@ class HostDaemon:
             if child is not None:
                 child.stop(now, self.options.grace_s)
                 log.info("host %s: stopping %s", self.name, name)
-
-    def _check_deployment(self, name: str, digest: str) -> None:
-        if name != self.spec.name:
-            raise RequestRefused(self._wrong_deployment(name))
-        if digest != self.loaded.digest:
-            raise RequestRefused(
-                f"deployment {name!r} differs on host {self.name!r} (digest "
-                f"{self.loaded.digest[:12]} here, {digest[:12]} asked): copy the same deployment "
-                "and scenario files to every host"
-            )
-
-    def _wrong_deployment(self, name: str) -> str:
-        return f"host {self.name!r} serves deployment {self.spec.name!r}, not {name!r}"
-
-    def _requested_robots(self, requested: tuple[str, ...]) -> tuple[str, ...]:
-        here = self.spec.robots_on(self.name)
-        everyone = [r.id for r in self.spec.robots]
-        for rid in requested:
-            if rid not in everyone:
-                raise RequestRefused(
-                    f"robot {rid!r} is not in deployment {self.spec.name!r}"
-                    + did_you_mean(rid, everyone)
-                )
-            if rid not in here:
-                other = self.spec.placement(rid).host
-                raise RequestRefused(f"robot {rid!r} runs on host {other!r}, not on {self.name!r}")
-        return requested or here
-
-    def _checked_overrides(self, overrides: tuple[str, ...]) -> tuple[str, ...]:
-        if not overrides:
-            return ()
-        if not self.spec.allow_overrides:
-            raise RequestRefused(
-                f"deployment {self.spec.name!r} does not allow overrides (allow_overrides = false)"
-            )
-        apply_overrides(self.loaded.scenario, list(overrides))  # ConfigError if invalid
-        return overrides
-
-    def _check_epoch(self, epoch_unix: float | None) -> None:
-        if epoch_unix is not None and abs(epoch_unix - time.time()) > MAX_EPOCH_OFFSET_S:
-            raise RequestRefused(f"epoch {epoch_unix:.3f}: more than a day from this host's clock")
 
     def _claim_run(self, run_id: str) -> None:
         busy = sorted(c.name for c in self.children.values() if c.active)

@@ -2,21 +2,12 @@
 
 A deployment file (`configs/deployments/*.toml`) names a fleet and its scenario, the hosts
 (one `phalanx host` daemon each) with their addresses, every robot with its host, driver
-and driver settings, where the world runs (if anywhere), and a few Zenoh settings.
-Nothing else is configured by hand: every endpoint is derived here.
-
-- Each host's daemon is a Zenoh router listening on `tcp/<address>:<port>` (IPv4; never
-  `[::]`, so hosts without IPv6 work) and on `tcp/127.0.0.1:<port>` for its children.
-- Hosts are joined by exactly one TCP link per pair: each host connects to the hosts
-  listed before it. (When both ends of a pair connect, Zenoh makes one transport of two
-  links, and after a lost link that transport can stay half-open until the network comes
-  back: measured, see docs/DEPLOYMENT.md.) Lost links are retried every `retry_max_ms`.
-- With `[zenoh.router]`, every host connects to that router only (`phalanx router`), for
-  networks where hosts cannot reach each other.
-- With `multicast = true` (and no router), hosts find each other by multicast scouting
-  instead, one link per pair (the router with the greater Zenoh id connects). Slower to
-  rejoin after a loss (scouting's period), and the network must carry multicast.
-- Agents and the world are Zenoh clients of their own host's daemon on 127.0.0.1.
+and driver settings, where the world runs (if anywhere), and a few Zenoh settings. This
+module reads and checks it: every key (unknown ones refused with the closest valid name),
+the references between hosts, robots and the world, the file against its scenario, and
+each robot's driver settings against its driver backend's own settings model
+(`phalanx.drivers.validate_settings`). Everything else, endpoints and command lines, is
+derived from it in `phalanx.hosts.wiring`.
 """
 
 from __future__ import annotations
@@ -24,18 +15,17 @@ from __future__ import annotations
 import difflib
 import hashlib
 import ipaddress
-import socket
-import uuid
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated, Literal, Self
+from typing import Annotated, Any, Literal, Self
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from phalanx.core.config import DriverKind, Scenario, apply_overrides, load_scenario, validate_file
+from phalanx.core.config import DriverKind, Scenario
+from phalanx.core.config_files import apply_overrides, load_scenario, validate_file
 from phalanx.core.errors import ConfigError
-from phalanx.wire.transport import TransportConfig
+from phalanx.drivers import validate_settings
 
 NAME_PATTERN = r"^[A-Za-z0-9_-]{1,64}$"
 DEPLOYMENTS_DIR = Path(__file__).resolve().parents[2] / "configs" / "deployments"
@@ -102,37 +92,36 @@ class HostEntry(Model):
         _ipv4(self.bind, "bind")
         return self
 
-
-class ArcosEntry(Model):
-    """A P3DX on ARCOS: its serial device, or host:port of a serial-to-TCP bridge."""
-
-    port: str | None = None
-    tcp: str | None = None
-    baud: int = Field(default=9600, gt=0)
-
-    @model_validator(mode="after")
-    def _one_link(self) -> Self:
-        if (self.port is None) == (self.tcp is None):
-            raise ValueError("give exactly one of arcos.port (serial device) and arcos.tcp")
-        return self
-
-
-class CanopenEntry(Model):
-    """Two CiA 402 drives on a CAN bus (python-can interface and channel)."""
-
-    interface: str = Field(default="socketcan", pattern=r"^[A-Za-z0-9_-]{1,32}$")
-    channel: str = Field(default="can0", pattern=r"^[A-Za-z0-9_./:-]{1,64}$")
+    def bind_address(self) -> str | None:
+        """The IPv4 address to listen on: `bind`, else `address` if it is one, else None."""
+        if self.bind is not None:
+            return self.bind
+        try:
+            return str(ipaddress.IPv4Address(self.address))
+        except ValueError:
+            return None
 
 
 class RobotPlacement(Model):
-    """Where a robot's agent runs and what drives it (default: the scenario's driver)."""
+    """Where a robot's agent runs and what drives it (default: the scenario's driver).
+
+    `settings` is a table of the driver backend's own settings, e.g. for arcos
+    `{ port = "/dev/ttyUSB0", baud = 9600 }`, checked by that backend's model on loading.
+    """
 
     id: Name
     host: Name
     driver: DriverKind | None = None
-    arcos: ArcosEntry | None = None
-    canopen: CanopenEntry | None = None
+    settings: dict[str, Any] = Field(default_factory=dict)
     watchdog_s: float = Field(default=0.5, gt=0.0, le=2.0)  # under ARCOS's own 2 s
+
+    @model_validator(mode="before")
+    @classmethod
+    def _no_backend_tables(cls, data: Any) -> Any:
+        for old in ("arcos", "canopen"):
+            if isinstance(data, dict) and old in data:
+                raise ValueError(f"{old} = {{...}} is now settings = {{...}}")
+        return data
 
 
 class WorldPlacement(Model):
@@ -183,7 +172,9 @@ class Deployment(Model):
         names = [h.name for h in self.hosts]
         _unique(names, "host names")
         _unique([r.id for r in self.robots], "robot ids")
-        _unique([(_bind(h) or h.address, self.port_of(h.name)) for h in self.hosts], "endpoints")
+        _unique(
+            [(h.bind_address() or h.address, self.port_of(h.name)) for h in self.hosts], "endpoints"
+        )
         for robot in self.robots:
             if robot.host not in names:
                 raise ValueError(
@@ -231,15 +222,6 @@ def _unique(values: Sequence[object], what: str) -> None:
         if value in seen:
             raise ValueError(f"{what} must be unique: {value!r} appears twice")
         seen.add(value)
-
-
-def _bind(host: HostEntry) -> str | None:
-    if host.bind is not None:
-        return host.bind
-    try:
-        return str(ipaddress.IPv4Address(host.address))
-    except ValueError:
-        return None
 
 
 # --- loading ----------------------------------------------------------------------------
@@ -314,218 +296,17 @@ def _check_against_scenario(loaded: LoadedDeployment) -> None:
 
 
 def _check_driver_settings(where: Path, robot: RobotPlacement, driver: DriverKind) -> None:
-    if driver == "arcos" and robot.arcos is None:
-        raise ConfigError(f"{where}: robot {robot.id!r} uses arcos: give arcos.port or arcos.tcp")
-    for kind, given in (("arcos", robot.arcos), ("canopen", robot.canopen)):
-        if given is not None and driver != kind:
-            raise ConfigError(
-                f"{where}: robot {robot.id!r}: {kind} settings given but its driver is {driver!r}"
-            )
-
-
-# --- endpoints --------------------------------------------------------------------------
-
-
-def endpoint(address: str, port: int) -> str:
-    """`tcp/<address>:<port>`."""
-    return f"tcp/{address}:{port}"
-
-
-def host_endpoint(spec: Deployment, name: str) -> str:
-    """Where other machines reach host `name`'s daemon."""
-    return endpoint(spec.host(name).address, spec.port_of(name))
-
-
-def local_endpoint(spec: Deployment, name: str) -> str:
-    """Where processes on host `name` reach its daemon: loopback."""
-    return endpoint("127.0.0.1", spec.port_of(name))
-
-
-def host_listen(spec: Deployment, name: str) -> tuple[str, ...]:
-    """The daemon's listen endpoints: its IPv4 address and loopback."""
-    host, port = spec.host(name), spec.port_of(name)
-    bind = _bind(host) or "0.0.0.0"  # noqa: S104 - a name we cannot pin: every interface
-    if bind == "0.0.0.0" or ipaddress.IPv4Address(bind).is_loopback:  # noqa: S104
-        return (endpoint(bind, port),)
-    return (endpoint(bind, port), endpoint("127.0.0.1", port))
-
-
-def host_connect(spec: Deployment, name: str) -> tuple[str, ...]:
-    """The daemon's connect endpoints: the router, or every host listed before it.
-
-    With multicast and no router: none, the hosts find each other (explicit links as well
-    would make two links of some pairs: see the module's docstring).
-    """
-    spec.host(name)  # raises the "no such host" error
-    router = spec.zenoh.router
-    if router is not None:
-        return (endpoint(router.address, router.port),)
-    if spec.zenoh.multicast:
-        return ()
-    before: list[str] = []
-    for host in spec.hosts:
-        if host.name == name:
-            return tuple(before)
-        before.append(host_endpoint(spec, host.name))
-    return ()
-
-
-def _fabric(spec: Deployment, **values: object) -> TransportConfig:
-    zenoh = spec.zenoh
-    discover = zenoh.multicast and zenoh.router is None
-    return TransportConfig.model_validate(
-        {
-            "multicast_scouting": discover,
-            "autoconnect_routers": discover,
-            "lease_ms": zenoh.lease_ms,
-            "keep_alive": zenoh.keep_alive,
-            "retry_max_ms": zenoh.retry_max_ms,
-            **values,
-        }
-    )
-
-
-def host_transport(spec: Deployment, name: str) -> TransportConfig:
-    """The Zenoh configuration of host `name`'s daemon (a router)."""
-    return _fabric(
-        spec, mode="router", listen=host_listen(spec, name), connect=host_connect(spec, name)
-    )
-
-
-def router_transport(spec: Deployment) -> TransportConfig:
-    """The Zenoh configuration of `phalanx router` for this deployment."""
-    router = spec.zenoh.router
-    if router is None:
-        raise ConfigError(f"deployment {spec.name!r} has no [zenoh.router]")
-    bind = router.bind or str(_router_bind(router))
-    listen = [endpoint(bind, router.port)]
-    if bind != "0.0.0.0" and not ipaddress.IPv4Address(bind).is_loopback:  # noqa: S104
-        listen.append(endpoint("127.0.0.1", router.port))
-    return _fabric(spec, mode="router", listen=tuple(listen), connect=())
-
-
-def _router_bind(router: RouterEntry) -> str:
-    try:
-        return str(ipaddress.IPv4Address(router.address))
-    except ValueError:
-        return "0.0.0.0"  # noqa: S104 - a name we cannot pin: every interface
-
-
-def client_transport(
-    spec: Deployment, *, via: str | None = None, connect: tuple[str, ...] = ()
-) -> TransportConfig:
-    """How a launcher (or `status`, `stop`) joins: a client of one router.
-
-    `connect` wins; then host `via`'s daemon; then the local daemon if this machine is one
-    of the hosts; then the router; then every host in order (the first one reachable).
-    """
-    if not connect:
-        local = via or next(iter(local_hosts(spec)), None)
-        if local is not None:
-            connect = (local_endpoint(spec, local),)
-        elif spec.zenoh.router is not None:
-            connect = (endpoint(spec.zenoh.router.address, spec.zenoh.router.port),)
-        else:
-            connect = tuple(host_endpoint(spec, h.name) for h in spec.hosts)
-    return _fabric(spec, mode="client", connect=connect, open_timeout_s=5.0)
-
-
-def is_local_address(address: str) -> bool:
-    """Whether `address` (IPv4 literal) belongs to this machine: binding to it works."""
-    try:
-        ipaddress.IPv4Address(address)
-    except ValueError:
-        return address in ("localhost", socket.gethostname())
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as probe:
-        try:
-            probe.bind((address, 0))
-        except OSError:
-            return False
-    return True
-
-
-def local_hosts(spec: Deployment) -> tuple[str, ...]:
-    """The hosts whose address is on this machine (loopback hosts first)."""
-    here = [h for h in spec.hosts if is_local_address(h.address)]
-    here.sort(key=lambda h: not h.address.startswith("127."))
-    return tuple(h.name for h in here)
-
-
-def loopback_hosts(spec: Deployment) -> tuple[str, ...]:
-    """The hosts on a loopback address (a fleet on one machine: `launch --local`)."""
-    return tuple(h.name for h in spec.hosts if h.address.startswith("127."))
-
-
-# --- command lines ----------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class RunParameters:
-    """What a launcher chooses for one run; validated before it reaches a command line."""
-
-    run_id: str
-    epoch_unix: float | None = None
-    overrides: tuple[str, ...] = ()
-
-
-def recording_id(fleet: str, run_id: str) -> str:
-    """The Rerun recording id shared by every process of a run."""
-    return str(uuid.uuid5(uuid.NAMESPACE_URL, f"phalanx/{fleet}/{run_id}"))
-
-
-def _common(loaded: LoadedDeployment, host: str, run: RunParameters) -> list[str]:
-    spec = loaded.spec
-    argv = ["--fleet", spec.fleet, "--clock", spec.clock, "--mode", "client"]
-    argv += ["--connect", local_endpoint(spec, host)]
-    argv += [f"--set={o}" for o in (*spec.overrides, *run.overrides)]
-    if spec.telemetry.url is not None:
-        argv += ["--recording-id", recording_id(spec.fleet, run.run_id)]
-        argv += ["--telemetry-url", spec.telemetry.url]
-    return argv
-
-
-def agent_argv(
-    loaded: LoadedDeployment, robot_id: str, *, run: RunParameters, python: str
-) -> list[str]:
-    """The command line of a robot's agent, built from the deployment alone."""
-    placement = loaded.spec.placement(robot_id)
-    argv = [python, "-m", "phalanx", "agent", str(loaded.scenario_path), "--robot", robot_id]
-    argv += _common(loaded, placement.host, run)
-    return argv + _driver_args(loaded, placement, run)
-
-
-def _driver_args(
-    loaded: LoadedDeployment, placement: RobotPlacement, run: RunParameters
-) -> list[str]:
-    driver = loaded.driver_of(placement.id)
-    argv = ["--driver", driver]
+    """The robot's `settings`, checked by its driver backend's own settings model."""
     if driver == "sim":
-        return argv
-    argv += ["--watchdog", repr(placement.watchdog_s)]
-    if run.epoch_unix is not None:
-        argv += ["--epoch", f"{run.epoch_unix:.3f}"]
-    if driver == "arcos" and placement.arcos is not None:
-        arcos = placement.arcos
-        link = ["--arcos-port", arcos.port] if arcos.port else ["--arcos-tcp", str(arcos.tcp)]
-        return argv + link + ["--baud", str(arcos.baud)]
-    canopen = placement.canopen or CanopenEntry()
-    return [*argv, "--can-interface", canopen.interface, "--can-channel", canopen.channel]
-
-
-def world_argv(
-    loaded: LoadedDeployment, *, run: RunParameters, out: Path, python: str
-) -> list[str]:
-    """The command line of the world, built from the deployment alone."""
-    spec, world = loaded.spec, loaded.spec.world
-    if world is None:
-        raise ConfigError(f"deployment {spec.name!r} has no [world]")
-    argv = [python, "-m", "phalanx", "world", str(loaded.scenario_path)]
-    argv += _common(loaded, world.host, run)
-    argv += ["--speed", repr(world.speed), "--out", str(out)]
-    argv.append("--recording" if world.recording else "--no-recording")
-    if spec.clock == "realtime" and run.epoch_unix is not None:
-        argv += ["--epoch", f"{run.epoch_unix:.3f}"]
-    return argv
+        if robot.settings:
+            raise ConfigError(
+                f"{where}: robot {robot.id!r}: driver settings given but its driver is 'sim' "
+                "(the world moves it)"
+            )
+        return
+    validate_settings(
+        driver, robot.settings, source=f"{where}: robot {robot.id!r}: {driver} settings"
+    )
 
 
 def needs_epoch(loaded: LoadedDeployment) -> bool:

@@ -4,7 +4,7 @@ Pure functions and a byte-stream parser, no I/O: the `arcos` driver (client side
 the robot emulator (`phalanx.simulator.arcos_emulator`, robot side) share it. Facts from
 AriaCoda `src/ArRobotPacket.cpp` (framing, checksum), `include/Aria/ArCommands.h`
 (command numbers), `src/ArRobot.cpp` (SIP layout, odometry wrap-around) and the Pioneer 3
-operations manual; see ../shared/notes/arcos.md for the test vectors the tests pin.
+operations manual; docs/HARDWARE.md has the facts and the test vectors the tests pin.
 
 A frame: `FA FB | N | cmd | args... | chk_hi chk_lo`, N = bytes from cmd through the
 checksum. Ints are 16-bit little-endian, preceded by 0x3B (>= 0) or 0x1B (< 0, magnitude

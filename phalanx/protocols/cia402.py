@@ -2,7 +2,7 @@
 use it: controlword commands, statusword states, and the object dictionary of a velocity
 drive with the PDO mapping we run (RPDO1: controlword + target velocity; TPDO1:
 statusword + velocity actual). A real drive's own EDS can replace `drive_od` as long as
-it maps the same objects. Facts: ../shared/notes/can.md.
+it maps the same objects. The CiA 402 facts it follows: docs/HARDWARE.md.
 """
 
 from __future__ import annotations

@@ -1,5 +1,6 @@
-"""The in-process batch runner: the whole group in one process, agent cores called
-directly, no I/O. Deterministic for a scenario and seed.
+"""The in-process batch runner: the whole group in one process, agents called directly,
+no I/O; it reads nothing of an agent but the `StepOutput` of its steps. Deterministic for
+a scenario and seed.
 
 Peer states reach the other agents `comm_delay_s` later (at least one tick): at tick k
 an agent sees what the others published at tick k - d. The multi-process lockstep
@@ -8,7 +9,6 @@ runtime has the same one-tick age, which is why the two give the same trajectory
 
 from __future__ import annotations
 
-import math
 import time
 from collections import deque
 from collections.abc import Callable
@@ -16,40 +16,23 @@ from collections.abc import Callable
 import numpy as np
 import numpy.typing as npt
 
-from phalanx.agents.agent import Agent, Observation
-from phalanx.core.config import RobotParams, Scenario, load_robot
+from phalanx.agents.agent import Agent, Observation, StepOutput
+from phalanx.core.config import RobotParams, Scenario
+from phalanx.core.config_files import load_robot
 from phalanx.core.formation import Formation, scenario_formation
-from phalanx.core.geometry import Pose2D, Twist2D
+from phalanx.core.geometry import Twist2D
+from phalanx.core.peers import PeerState
 from phalanx.core.runlog import RobotTrace, RunLog
+from phalanx.core.states import TransitionEvent
 from phalanx.simulator.world import World
-from phalanx.wire.messages import RobotState
 
 FloatArray = npt.NDArray[np.float64]
 ProgressCallback = Callable[[int, int], None]
 StopCondition = Callable[["BatchRunner"], bool]
 
 
-def _start_pose(scenario: Scenario, robot_id: str) -> Pose2D:
-    start = next(r.start for r in scenario.robots if r.id == robot_id)
-    return Pose2D(start.x_m, start.y_m, math.radians(start.theta_deg))
-
-
-def build_world(scenario: Scenario, robot: RobotParams) -> World:
-    """The scenario's world with every robot at its start pose."""
-    world = World(
-        robot=robot,
-        world=scenario.world,
-        noise=scenario.noise,
-        events=scenario.events,
-        seed=scenario.seed,
-    )
-    for entry in scenario.robots:
-        world.add_robot(entry.id, _start_pose(scenario, entry.id))
-    return world
-
-
 def build_agents(scenario: Scenario, robot: RobotParams, formation: Formation) -> dict[str, Agent]:
-    """One agent core per robot."""
+    """One agent per robot."""
     return {
         entry.id: Agent(entry.id, scenario=scenario, robot=robot, formation=formation)
         for entry in scenario.robots
@@ -63,13 +46,15 @@ class BatchRunner:
         self.scenario = scenario
         self.robot = robot or load_robot(scenario.robot)
         self.formation = scenario_formation(scenario)
-        self.world = build_world(scenario, self.robot)
+        self.world = World.for_scenario(scenario, self.robot)
         self.agents = build_agents(scenario, self.robot, self.formation)
         self.steps = round(scenario.duration_s * scenario.control_rate_hz)
         self.delay_ticks = max(1, round(scenario.comm_delay_s * scenario.control_rate_hz))
         self.t_s = np.arange(self.steps, dtype=np.float64) * scenario.dt_s
         self.traces = {rid: RobotTrace.empty(self.steps) for rid in self.agents}
-        self._published: deque[dict[str, RobotState]] = deque(maxlen=self.delay_ticks)
+        self._published: deque[dict[str, PeerState]] = deque(maxlen=self.delay_ticks)
+        self.transitions: dict[str, list[TransitionEvent]] = {rid: [] for rid in self.agents}
+        self.last: dict[str, StepOutput] = {}
         self.done = 0
 
     def run(
@@ -91,28 +76,30 @@ class BatchRunner:
         # Every robot's state carries its flags: peers and flags are the same mapping.
         peers = self._published[0] if len(self._published) == self.delay_ticks else {}
         commands: dict[str, Twist2D] = {}
-        states: dict[str, RobotState] = {}
+        states: dict[str, PeerState] = {}
         for rid, agent in self.agents.items():
             obs = Observation(self.world.odometry(rid), self.world.status(rid))
             out = agent.step(obs, peers, t_s)
             commands[rid], states[rid] = out.command, out.state
-            self._record(rid, k, out.command, agent)
+            self._record(rid, k, out)
         self._published.append(states)
         self.world.step(commands, self.scenario.dt_s)
         self.done = k + 1
 
-    def _record(self, rid: str, k: int, command: Twist2D, agent: Agent) -> None:
+    def _record(self, rid: str, k: int, out: StepOutput) -> None:
         pose, twist = self.world.truth(rid)
-        tr = self.traces[rid]
+        tr, state, command = self.traces[rid], out.state, out.command
         tr.x_m[k], tr.y_m[k], tr.theta_rad[k] = pose.x_m, pose.y_m, pose.theta_rad
         tr.v_mps[k], tr.omega_radps[k] = twist.v_mps, twist.omega_radps
         tr.cmd_v_mps[k], tr.cmd_omega_radps[k] = command.v_mps, command.omega_radps
-        tr.direction[k] = agent.direction
-        tr.states.append(agent.state_name)
-        tr.tracked.append(agent.parent_id or "")
-        tr.leaders.append(agent.leader_id)
-        tr.epochs.append(agent.leadership.epoch)
-        tr.formed.append(agent.formed)
+        tr.direction[k] = state.direction
+        tr.states.append(state.fsm_state)
+        tr.tracked.append(state.leader_id)
+        tr.leaders.append(state.formation_leader_id)
+        tr.epochs.append(state.epoch)
+        tr.formed.append(state.formed)
+        self.transitions[rid].extend(out.events)
+        self.last[rid] = out
 
     def _log(self, wall_time_s: float) -> RunLog:
         n = self.done
@@ -122,10 +109,10 @@ class BatchRunner:
             formation=self.formation,
             t_s=self.t_s[:n],
             traces={rid: tr.truncated(n) for rid, tr in self.traces.items()},
-            transitions={rid: list(a.transitions) for rid, a in self.agents.items()},
+            transitions={rid: list(events) for rid, events in self.transitions.items()},
             collisions=list(self.world.collisions),
-            saturations={rid: a.limiter.saturations for rid, a in self.agents.items()},
-            accel_limited={rid: a.limiter.accel_limited for rid, a in self.agents.items()},
+            saturations={rid: out.saturations for rid, out in self.last.items()},
+            accel_limited={rid: out.accel_limited for rid, out in self.last.items()},
             wall_time_s=wall_time_s,
         )
 

@@ -144,7 +144,7 @@ def merge_recordings(parts: list[Path], target: Path, timeout_s: float = 120.0) 
 
     A part without a footer (its process was killed) is merged as far as it goes.
     """
-    from phalanx.telemetry.stream import rerun_executable
+    from phalanx.telemetry.sinks import rerun_executable
 
     command = [rerun_executable(), "rrd", "merge", "--continue-on-error"]
     try:

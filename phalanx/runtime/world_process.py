@@ -25,10 +25,18 @@ from phalanx.core.geometry import ZERO_TWIST, Twist2D
 from phalanx.core.limits import KinematicLimits
 from phalanx.core.runlog import RobotTrace, RunLog
 from phalanx.core.states import State, TransitionEvent
-from phalanx.runtime.batch import build_world
 from phalanx.runtime.signals import Stoppable
+from phalanx.simulator.world import World
 from phalanx.telemetry.stream import PAPER_ANGULAR_BOUND_PCT, PAPER_LINEAR_BOUND_PCT, Telemetry
-from phalanx.wire.keys import alive_key, leader_key, robot_key, robot_of, robots_key, status_key
+from phalanx.wire.keys import (
+    alive_key,
+    alive_pattern,
+    leader_key,
+    robot_key,
+    robot_of,
+    robots_key,
+    status_key,
+)
 from phalanx.wire.messages import (
     AgentEvent,
     AgentReport,
@@ -86,7 +94,7 @@ class WorldProcess:
     ) -> None:
         self.scenario, self.robot, self.options = scenario, robot, options
         self.telemetry = telemetry
-        self.world = build_world(scenario, robot)
+        self.world = World.for_scenario(scenario, robot)
         self.formation = scenario_formation(scenario)
         self.ids = tuple(r.id for r in scenario.robots)
         self.steps = round(scenario.duration_s * scenario.control_rate_hz)
@@ -139,7 +147,7 @@ class WorldProcess:
         session.subscribe(
             leader_key(fleet), LeaderAnnouncement, lambda _k, a: self._put(box.leaders.append, a)
         )
-        session.watch_alive(f"phalanx/{fleet}/alive/*", self._on_alive)
+        session.watch_alive(alive_pattern(fleet), self._on_alive)
         session.serve_status(status_key(fleet, WORLD_ID), self._status)
 
     def _put(self, action: object, value: object) -> None:

@@ -14,30 +14,19 @@ Entity layout (units and frames in the names):
     bounds/...                           the paper's error bounds and the velocity limits
 Timelines: `sim_time` (s) and `step`.
 
-Logging never blocks a control step: calls append to a bounded outbox drained by a
-background thread; when the sink is slow the oldest entries are dropped, when a viewer
-is gone its entries are, and both are counted in `dropped`.
+Entries reach the sinks through the bounded outbox of `phalanx.telemetry.sinks`, so
+logging never blocks a control step.
 """
 
 from __future__ import annotations
 
-import importlib.util
-import logging
 import math
-import shutil
-import socket
-import threading
-import time
 from collections import deque
-from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
-from pathlib import Path
-from typing import Any, Literal
-from urllib.parse import urlparse
+from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
-from pydantic import BaseModel, ConfigDict
 
 from phalanx.core.config import RobotParams
 from phalanx.core.geometry import Pose2D, Twist2D, Vec2
@@ -49,64 +38,14 @@ from phalanx.telemetry.layout import (
     send_step_rows,
     send_truth_rows,
 )
+from phalanx.telemetry.sinks import Outbox, TelemetrySink, rerun_sdk
 
 FloatArray = npt.NDArray[np.float64]
-Job = Callable[[Any], None]  # logs to a recording stream
-log = logging.getLogger("phalanx.telemetry")
-OUTBOX_CAPACITY = 20_000  # jobs; a job is one entry, or one batch of rows
-FLUSH_ROWS = 20  # a robot's steps go out in batches of at most this many ...
-FLUSH_S = 0.2  # ... and at most this old (wall time), so a live view lags by no more
 TRAIL_POINTS = 600
 TRAIL_EVERY_STEPS = 10
-CLOSE_TIMEOUT_S = 10.0
-VIEWER_FLUSH_S = 2.0
-VIEWER_CHECK_S = 1.0
-DEFAULT_URL = "rerun+http://127.0.0.1:9876/proxy"
 # Section 5 of the paper: backward-motion errors below 2 % linear and 0.8 % angular.
 PAPER_LINEAR_BOUND_PCT = 2.0
 PAPER_ANGULAR_BOUND_PCT = 0.8
-
-
-class TelemetrySink(BaseModel):
-    """Where telemetry goes: nowhere, an .rrd file, a gRPC viewer/aggregator, or memory."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
-    kind: Literal["off", "file", "grpc", "tee", "memory"] = "off"  # tee: file and grpc
-    path: Path | None = None
-    url: str | None = None
-
-
-def sink_for(path: Path | None, url: str | None) -> TelemetrySink:
-    """A file sink, a gRPC (viewer) sink, both, or off, from what is given."""
-    if path is not None and url is not None:
-        return TelemetrySink(kind="tee", path=path, url=url)
-    if path is not None:
-        return TelemetrySink(kind="file", path=path)
-    if url is not None:
-        return TelemetrySink(kind="grpc", url=url)
-    return TelemetrySink(kind="off")
-
-
-def rerun_executable() -> str:
-    """The Rerun CLI binary itself.
-
-    The `rerun` on PATH is a Python wrapper that runs the binary as a child: a SIGTERM to
-    the wrapper would orphan the binary (a viewer or merge left running), so phalanx
-    starts and stops the binary directly.
-    """
-    spec = importlib.util.find_spec("rerun_cli")
-    if spec is not None and spec.origin is not None:
-        binary = Path(spec.origin).with_name("rerun")
-        if binary.is_file():
-            return str(binary)
-    return shutil.which("rerun") or "rerun"
-
-
-def _rr() -> Any:
-    import rerun  # heavy: imported only when telemetry is on
-
-    return rerun
 
 
 class _Extent:
@@ -135,48 +74,13 @@ class _Extent:
         return (x0 - margin_m, x1 + margin_m, y0 - margin_m, y1 + margin_m)
 
 
-class _Stream:
-    """One sink's recording stream. A viewer (gRPC) stream can go down and come back."""
-
-    def __init__(self, kind: Literal["file", "grpc", "memory"], target: str | None) -> None:
-        self.kind, self.target = kind, target
-        self.rec: Any = None
-        self.next_check_s = 0.0
-
-    @property
-    def live(self) -> bool:
-        """Whether entries reach this sink now."""
-        return self.rec is not None
-
-
-def viewer_reachable(url: str, timeout_s: float = 0.2) -> bool:
-    """Whether something listens at a Rerun gRPC url's host and port (a TCP connect)."""
-    parsed = urlparse(url)
-    try:
-        with socket.create_connection((parsed.hostname or "127.0.0.1", parsed.port or 9876),
-                                      timeout=timeout_s):  # fmt: skip
-            return True
-    except OSError:
-        return False
-
-
-@dataclass
-class _Batch:
-    """Rows of one robot waiting to go out together, and how to send them."""
-
-    send: Callable[[Any, list[Any]], None]
-    rows: list[Any] = field(default_factory=list)
-    started_s: float = field(default_factory=time.monotonic)
-
-
 class Telemetry(Closing):
     """phalanx's entity layout over one recording id, to a file, a viewer, both, or memory.
 
-    Every call only appends to a bounded outbox; a background thread hands entries to the
-    Rerun SDK. A viewer is probed every `VIEWER_CHECK_S`: while it is gone its entries
-    are dropped (counted), and when it comes back the stream reconnects and re-sends the
-    static entities (obstacles, bounds, layout). A file sink is a stream of its own, so a
-    viewer coming and going never costs the recording anything.
+    Every call only appends to a bounded `Outbox`, whose background thread hands entries
+    to the Rerun SDK; a viewer that goes away costs only its own entries (counted in
+    `dropped`), and one that comes back is sent the static entities (obstacles, bounds,
+    layout) again.
     """
 
     def __init__(
@@ -190,140 +94,21 @@ class Telemetry(Closing):
         self.sink = sink
         self.robot_id = robot_id
         self.app_id, self.recording_id = app_id, recording_id
-        self.dropped = 0  # entries that missed at least one sink
         self.logged_steps: dict[str, int] = {}
         self._trails: dict[str, deque[tuple[float, float]]] = {}
-        self._outbox: deque[tuple[Job, int]] = deque()  # (job, entries it carries)
-        self._rows: dict[str, _Batch] = {}  # per robot (and per truth), not yet submitted
-        self._static: list[Job] = []
         self._extent = _Extent()
         self._layout_ids: list[str] | None = None  # set once a layout was sent
-        self._wake = threading.Condition()
-        self._busy = False  # the background thread is applying a job
-        self._closed = False
-        self._streams = self._plan_streams(sink)
-        self._worker: threading.Thread | None = None
-        for stream in self._streams:
-            if stream.kind != "grpc":  # a viewer connects from the worker: never blocks here
-                self._open(stream)
-        if self._streams:
-            self._worker = threading.Thread(target=self._drain, name="telemetry", daemon=True)
-            self._worker.start()
+        self._outbox = Outbox(recording_id=recording_id, sink=sink, app_id=app_id)
 
-    @staticmethod
-    def _plan_streams(sink: TelemetrySink) -> list[_Stream]:
-        if sink.kind in ("file", "tee") and sink.path is None:
-            raise ValueError(f"a {sink.kind} sink needs a path")
-        streams = []
-        if sink.kind in ("file", "tee"):
-            streams.append(_Stream("file", str(sink.path)))
-        if sink.kind in ("grpc", "tee"):
-            streams.append(_Stream("grpc", sink.url or DEFAULT_URL))
-        if sink.kind == "memory":
-            streams.append(_Stream("memory", None))
-        return streams
-
-    def _open(self, stream: _Stream) -> None:
-        rec = _rr().RecordingStream(
-            self.app_id, recording_id=self.recording_id, send_properties=False
-        )
-        if stream.kind == "file":
-            path = Path(stream.target or "")
-            path.parent.mkdir(parents=True, exist_ok=True)
-            rec.save(str(path))
-        elif stream.kind == "grpc":
-            rec.connect_grpc(stream.target)
-        else:
-            rec.memory_recording()
-        stream.rec = rec
+    @property
+    def dropped(self) -> int:
+        """Entries that missed at least one sink."""
+        return self._outbox.dropped
 
     @property
     def viewer_live(self) -> bool:
         """Whether a viewer sink is connected now (False without one)."""
-        return any(s.live for s in self._streams if s.kind == "grpc")
-
-    # --- outbox ------------------------------------------------------------------------
-
-    def _submit(self, job: Job, *, static: bool = False, entries: int = 1) -> None:
-        if not self._streams or self._closed:
-            return
-        with self._wake:
-            if static:
-                self._static.append(job)
-            if len(self._outbox) >= OUTBOX_CAPACITY:
-                _, lost = self._outbox.popleft()
-                self.dropped += lost
-            self._outbox.append((job, entries))
-            self._wake.notify()
-
-    def _add_row(self, key: str, row: object, send: Callable[[Any, list[Any]], None]) -> None:
-        """Buffer `row`; hand the batch over when it is full or old enough."""
-        with self._wake:
-            batch = self._rows.get(key)
-            if batch is None:
-                batch = self._rows[key] = _Batch(send)
-            batch.rows.append(row)
-            if len(batch.rows) >= FLUSH_ROWS or time.monotonic() - batch.started_s >= FLUSH_S:
-                self._flush(key)
-
-    def _flush(self, key: str) -> None:
-        batch = self._rows.pop(key, None)
-        if batch is not None and batch.rows:
-            rows, send = batch.rows, batch.send
-            self._submit(lambda rec: send(rec, rows), entries=len(rows))
-
-    def _drain(self) -> None:
-        while True:
-            with self._wake:
-                if not self._outbox and not self._closed:
-                    self._wake.wait(VIEWER_CHECK_S)
-                if not self._outbox and self._closed:
-                    return
-                job = self._outbox.popleft() if self._outbox else None
-                self._busy = job is not None
-            self._check_viewers()
-            if job is not None:
-                self._apply(*job)
-            self._busy = False
-
-    def _apply(self, job: Job, entries: int) -> None:
-        missed = False
-        for stream in self._streams:
-            if not stream.live:
-                missed = True
-                continue
-            try:
-                job(stream.rec)
-            except Exception:  # a sink's failure must not end telemetry (or the robot)
-                log.exception("telemetry: logging to the %s sink failed", stream.kind)
-                missed = True
-        if missed:
-            with self._wake:
-                self.dropped += entries
-
-    def _check_viewers(self) -> None:
-        now = time.monotonic()
-        for stream in self._streams:
-            if stream.kind != "grpc" or now < stream.next_check_s or self._closed:
-                continue
-            stream.next_check_s = now + VIEWER_CHECK_S
-            reachable = viewer_reachable(stream.target or DEFAULT_URL)
-            if stream.live and not reachable:
-                log.warning("telemetry: viewer at %s is gone; dropping live data", stream.target)
-                stream.rec = None
-            elif not stream.live and reachable:
-                self._reconnect(stream)
-
-    def _reconnect(self, stream: _Stream) -> None:
-        try:
-            self._open(stream)
-            for job in list(self._static):
-                job(stream.rec)
-        except Exception:
-            log.exception("telemetry: could not connect to the viewer at %s", stream.target)
-            stream.rec = None
-            return
-        log.info("telemetry: streaming to the viewer at %s", stream.target)
+        return self._outbox.viewer_live
 
     # --- logging -----------------------------------------------------------------------
 
@@ -336,10 +121,10 @@ class Telemetry(Closing):
         """Static obstacle outlines."""
         strips = [_circle_outline(x, y, r) for x, y, r in circles]
         strips += [[*p, p[0]] for p in polygons if p]
-        if not strips or not self._streams:
+        if not strips or not self._outbox.enabled:
             return
-        arch = _rr().LineStrips2D(strips, colors=[(200, 200, 200)])
-        self._submit(lambda rec: rec.log("world/obstacles", arch, static=True), static=True)
+        arch = rerun_sdk().LineStrips2D(strips, colors=[(200, 200, 200)])
+        self._outbox.submit(lambda rec: rec.log("world/obstacles", arch, static=True), static=True)
 
     def log_bounds(
         self,
@@ -380,7 +165,7 @@ class Telemetry(Closing):
     ) -> None:
         """One control step of one robot (live agents); sent in batches of steps."""
         self.logged_steps[robot_id] = self.logged_steps.get(robot_id, 0) + 1
-        if not self._streams:
+        if not self._outbox.enabled:
             return
         self._extent.add(pose.x_m, pose.y_m)
         trail = self._trails.setdefault(robot_id, deque(maxlen=TRAIL_POINTS))
@@ -402,7 +187,7 @@ class Telemetry(Closing):
             rays=tuple(((a.x_m, a.y_m), (b.x_m, b.y_m)) for a, b in sonar_rays),
             trail=trail_points,
         )
-        self._add_row(robot_id, row, lambda rec, rows: send_step_rows(rec, robot_id, rows))
+        self._outbox.add_row(robot_id, row, lambda rec, rows: send_step_rows(rec, robot_id, rows))
 
     def log_transition(
         self, robot_id: str, *, t_s: float, source: str, target: str, reason: str
@@ -411,17 +196,17 @@ class Telemetry(Closing):
         text = f"t={t_s:.1f} s {robot_id}: {source} -> {target} ({reason})"
 
         def job(rec: Any) -> None:
-            rr = _rr()
+            rr = rerun_sdk()
             rec.set_time("sim_time", duration=t_s)
             rec.log(f"robots/{robot_id}/fsm", rr.TextLog(text, level="INFO"))
             rec.log(f"robots/{robot_id}/state", rr.StateChange(state=target))
 
-        self._submit(job)
+        self._outbox.submit(job)
 
     def log_truth(self, robot_id: str, *, t_s: float, pose: Pose2D) -> None:
         """Ground truth from the world; sent in batches of steps."""
         self._extent.add(pose.x_m, pose.y_m)
-        self._add_row(
+        self._outbox.add_row(
             f"truth/{robot_id}",
             TruthRow(t_s, pose.x_m, pose.y_m),
             lambda rec, rows: send_truth_rows(rec, robot_id, rows),
@@ -464,13 +249,15 @@ class Telemetry(Closing):
                 continue
             self._columns(f"{base}/{name}", t_s, {"scalars": values})
         trail = np.column_stack([x_m, y_m])
-        self._submit(lambda rec: rec.log(f"{base}/trail", _rr().LineStrips2D([trail]), static=True))
+        self._outbox.submit(
+            lambda rec: rec.log(f"{base}/trail", rerun_sdk().LineStrips2D([trail]), static=True)
+        )
 
     def _columns(
         self, path: str, t_s: FloatArray, data: dict[str, Any], *, static: bool = False
     ) -> None:
         def job(rec: Any) -> None:
-            rr = _rr()
+            rr = rerun_sdk()
             times = [
                 rr.TimeColumn("sim_time", duration=t_s),
                 rr.TimeColumn("step", sequence=np.arange(len(t_s))),
@@ -484,7 +271,7 @@ class Telemetry(Closing):
                 columns = rr.Arrows2D.columns(vectors=vectors, origins=origins)
             rec.send_columns(path, indexes=times, columns=columns)
 
-        self._submit(job, static=static)
+        self._outbox.submit(job, static=static)
 
     def send_blueprint(
         self,
@@ -493,11 +280,11 @@ class Telemetry(Closing):
         extent_m: tuple[float, float, float, float] | None = None,
     ) -> None:
         """Send the layout (again, e.g. with the map framed on the whole run at its end)."""
-        if not self._streams:
+        if not self._outbox.enabled:
             return
         self._layout_ids = list(robot_ids) or list(self.logged_steps)
         blueprint = make_blueprint(self._layout_ids, extent_m=extent_m)
-        self._submit(lambda rec: rec.send_blueprint(blueprint), static=True)
+        self._outbox.submit(lambda rec: rec.send_blueprint(blueprint), static=True)
 
     # --- lifecycle ---------------------------------------------------------------------
 
@@ -507,50 +294,18 @@ class Telemetry(Closing):
 
         For a figure that must be complete at a given moment (`dropped` in a final report).
         """
-        with self._wake:
-            for key in list(self._rows):
-                self._flush(key)
-        deadline = time.monotonic() + timeout_s
-        while self._outbox or self._busy:
-            if time.monotonic() >= deadline:
-                return False
-            time.sleep(0.01)
-        return True
+        self._outbox.flush_rows()
+        return self._outbox.wait(timeout_s)
 
     def close(self) -> None:
         """Drain what is queued (bounded), flush and finalize every sink; safe twice."""
-        if self._closed:
+        if self._outbox.closed:
             return
-        with self._wake:
-            for key in list(self._rows):
-                self._flush(key)
+        self._outbox.flush_rows()
         extent = self._extent.framed()
         if self._layout_ids is not None and extent is not None:
             self.send_blueprint(self._layout_ids, extent_m=extent)  # the whole run in view
-        with self._wake:
-            self._closed = True
-            self._wake.notify_all()
-        if self._worker is not None:
-            self._worker.join(CLOSE_TIMEOUT_S)
-        with self._wake:
-            self.dropped += len(self._outbox)
-            self._outbox.clear()
-        for stream in self._streams:
-            self._finish(stream)
-
-    @staticmethod
-    def _finish(stream: _Stream) -> None:
-        if stream.rec is None:
-            return
-        # A viewer that went away makes the SDK's flush fail: that must not fail the caller.
-        timeout_s = CLOSE_TIMEOUT_S if stream.kind == "file" else VIEWER_FLUSH_S
-        try:
-            stream.rec.flush(timeout_sec=timeout_s)
-        except RuntimeError as exc:
-            log.warning("telemetry: the %s sink did not take everything: %s", stream.kind, exc)
-        if stream.kind == "file":
-            stream.rec.disconnect()  # finalizes the .rrd footer
-        stream.rec = None
+        self._outbox.close()
 
 
 def sonar_rays(

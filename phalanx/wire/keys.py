@@ -44,6 +44,11 @@ def alive_key(fleet: str, process_id: str) -> str:
     return f"phalanx/{_name(fleet, 'fleet')}/alive/{_name(process_id, 'process id')}"
 
 
+def alive_pattern(fleet: str) -> str:
+    """Every process's liveliness token: `phalanx/<fleet>/alive/*`."""
+    return f"phalanx/{_name(fleet, 'fleet')}/alive/*"
+
+
 def status_key(fleet: str, process_id: str) -> str:
     """Status queryable of a process."""
     return f"phalanx/{_name(fleet, 'fleet')}/status/{_name(process_id, 'process id')}"

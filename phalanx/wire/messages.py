@@ -11,6 +11,7 @@ from typing import Final, Literal
 from pydantic import BaseModel, ConfigDict, Field
 
 from phalanx.core.geometry import Pose2D, Twist2D
+from phalanx.core.peers import PeerFlags, PeerState
 
 WIRE_VERSION: Final = 1
 
@@ -74,6 +75,15 @@ class RobotState(Message):
         # Every value was validated when this state was built: no need to again.
         return RobotFlags.model_construct(**{name: getattr(self, name) for name in _FLAG_FIELDS})
 
+    @classmethod
+    def of(cls, state: PeerState) -> RobotState:
+        """The wire message of an agent's state (validated)."""
+        return cls.model_validate({name: getattr(state, name) for name in _PEER_STATE_FIELDS})
+
+    def peer(self) -> PeerState:
+        """The state as the agent brain reads it."""
+        return PeerState(**{name: getattr(self, name) for name in _PEER_STATE_FIELDS})
+
 
 class RobotFlags(Message):
     """A robot's small behaviour flags on `.../robot/<id>/flags`, to every robot of the
@@ -107,8 +117,20 @@ class RobotFlags(Message):
     deadlocks: int = Field(default=0, ge=0)
     profile_s: float = Field(default=0.0, ge=0.0)
 
+    @classmethod
+    def of(cls, flags: PeerFlags) -> RobotFlags:
+        """The wire message of an agent's flags (validated)."""
+        return cls.model_validate({name: getattr(flags, name) for name in _PEER_FLAG_FIELDS})
+
+    def peer(self) -> PeerFlags:
+        """The flags as the agent brain reads them."""
+        return PeerFlags(**{name: getattr(self, name) for name in _PEER_FLAG_FIELDS})
+
 
 _FLAG_FIELDS = tuple(RobotFlags.model_fields)
+# Every field but the wire's `version` header: the brain's plain values.
+_PEER_STATE_FIELDS = tuple(f for f in RobotState.model_fields if f != "version")
+_PEER_FLAG_FIELDS = tuple(f for f in RobotFlags.model_fields if f != "version")
 
 
 class LeaderAnnouncement(Message):

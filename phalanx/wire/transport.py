@@ -1,13 +1,5 @@
-"""The Zenoh fabric: fleet-scoped keys, session configuration, and a session wrapper.
-
-Keys (DESIGN.md):
-    phalanx/<fleet>/robot/<id>/state   RobotState, every control step
-    phalanx/<fleet>/robot/<id>/sense   SenseFrame from the world (sim driver)
-    phalanx/<fleet>/robot/<id>/cmd     VelocityCommand to the world (sim driver)
-    phalanx/<fleet>/robot/<id>/event   AgentEvent (state-machine transitions)
-    phalanx/<fleet>/robot/<id>/report  AgentReport at the end of a run
-    phalanx/<fleet>/alive/<id>         liveliness token of each process
-    phalanx/<fleet>/status/<id>        queryable: counters as JSON
+"""The Zenoh fabric: session configuration and a session wrapper (the keys are built in
+`phalanx.wire.keys`).
 
 Callbacks never call Zenoh nor block: they decode and hand values to thread-safe
 structures (Zenoh documents blocking in a callback as a deadlock risk).

@@ -11,12 +11,12 @@ from typing import Any
 
 import pytest
 
-from phalanx.core.config import load_robot
+from phalanx.core.config_files import load_robot
 from phalanx.core.geometry import Twist2D
+from phalanx.core.limits import SafetyLimits
 from phalanx.drivers.arcos import ArcosDriver, ArcosSettings
 from phalanx.drivers.base import Driver
 from phalanx.drivers.canopen import CanopenDriver, CanopenSettings
-from phalanx.drivers.safety import SafetyLimits
 from phalanx.drivers.sim import SimDriver
 from phalanx.simulator.arcos_emulator import ArcosEmulator, PtyLink, TcpLink
 from phalanx.simulator.cia402 import SimulatedDiffDrive
@@ -44,14 +44,19 @@ def sim_rig() -> Iterator[Rig]:
 def arcos_pty_rig() -> Iterator[Rig]:
     link = PtyLink()
     with ArcosEmulator(link, ROBOT) as emulator:
-        yield Rig(ArcosDriver(ArcosSettings(port=link.device)), emulator, LIMITS, _zero(emulator))
+        yield Rig(
+            ArcosDriver(ArcosSettings(port=link.device), robot=ROBOT),
+            emulator,
+            LIMITS,
+            _zero(emulator),
+        )
 
 
 @contextmanager
 def arcos_tcp_rig() -> Iterator[Rig]:
     link = TcpLink(0)
     with ArcosEmulator(link, ROBOT) as emulator:
-        driver = ArcosDriver(ArcosSettings(tcp=f"127.0.0.1:{link.port}"))
+        driver = ArcosDriver(ArcosSettings(tcp=f"127.0.0.1:{link.port}"), robot=ROBOT)
         yield Rig(driver, emulator, LIMITS, _zero(emulator))
 
 
@@ -63,7 +68,7 @@ def _zero(emulator: ArcosEmulator) -> Callable[[], bool]:
 def canopen_rig(request: pytest.FixtureRequest) -> Iterator[Rig]:
     channel = f"conf-{request.node.name}"  # a virtual bus of its own
     with SimulatedDiffDrive(channel) as drives:
-        driver = CanopenDriver(CanopenSettings(interface="virtual", channel=channel))
+        driver = CanopenDriver(CanopenSettings(interface="virtual", channel=channel), robot=ROBOT)
 
         def zero() -> bool:
             return all(d.target == 0 for d in drives.drives)

@@ -13,11 +13,13 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from phalanx.core.config import load_robot
+from phalanx.core.config_files import load_robot
 from phalanx.core.geometry import Pose2D, Twist2D
+from phalanx.core.limits import SafetyLimits
 from phalanx.core.motion import Body
-from phalanx.drivers.arcos import ArcosDriver, ArcosSettings, byte_time_s
-from phalanx.drivers.safety import SafeDriver, SafetyLimits
+from phalanx.drivers.arcos import ArcosDriver, ArcosSettings
+from phalanx.drivers.arcos_link import byte_time_s
+from phalanx.drivers.safety import SafeDriver
 from phalanx.protocols.arcos import (
     Cmd,
     FrameParser,
@@ -34,7 +36,7 @@ from phalanx.simulator.arcos_emulator import ArcosEmulator, EmulatorOptions, Pty
 pytestmark = pytest.mark.drivers
 ROBOT = load_robot("p3dx")
 
-# ../shared/notes/arcos.md, "Test vectors"
+# Test vectors: command frames, byte for byte.
 VECTORS = [
     (Cmd.PULSE, None, "FA FB 03 00 00 00"),
     (Cmd.OPEN, None, "FA FB 03 01 00 01"),
@@ -155,7 +157,7 @@ def _tcp(emulator: ArcosEmulator, **kw: object) -> ArcosSettings:
 
 
 def test_handshake_reads_name_subtype_and_limits(pty_emulator: ArcosEmulator) -> None:
-    with ArcosDriver(ArcosSettings(port=pty_emulator.link.device)) as driver:  # type: ignore[attr-defined]
+    with ArcosDriver(ArcosSettings(port=pty_emulator.link.device), robot=ROBOT) as driver:  # type: ignore[attr-defined]
         assert driver.robot_name == "phalanx-emu"
         assert driver.subtype == "p3dx-sh"
         limits = driver.robot_limits()
@@ -184,7 +186,7 @@ def test_odometry_crosses_the_counter_wrap_without_a_jump() -> None:
     options = EmulatorOptions(subtype="p3dx")
     with (
         ArcosEmulator(TcpLink(0), ROBOT, options, body) as emulator,
-        ArcosDriver(_tcp(emulator)) as driver,
+        ArcosDriver(_tcp(emulator), robot=ROBOT) as driver,
     ):
         deadline = time.monotonic() + 3.0
         while body.state().pose.x_m < wrap_m + 0.15 and time.monotonic() < deadline:
@@ -200,7 +202,7 @@ def test_odometry_crosses_the_counter_wrap_without_a_jump() -> None:
 def test_garbled_bytes_and_dropped_sips_are_survived_and_counted(
     tcp_emulator: ArcosEmulator,
 ) -> None:
-    with ArcosDriver(_tcp(tcp_emulator)) as driver:
+    with ArcosDriver(_tcp(tcp_emulator), robot=ROBOT) as driver:
         sips = driver.stats.sips
         tcp_emulator.garble(200)
         tcp_emulator.drop_sips(5)  # 0.5 s: under the 1 s link timeout
@@ -211,7 +213,7 @@ def test_garbled_bytes_and_dropped_sips_are_survived_and_counted(
 
 
 def test_silent_robot_is_declared_lost_then_reconnected(tcp_emulator: ArcosEmulator) -> None:
-    with ArcosDriver(_tcp(tcp_emulator, link_timeout_s=0.5)) as driver:
+    with ArcosDriver(_tcp(tcp_emulator, link_timeout_s=0.5), robot=ROBOT) as driver:
         tcp_emulator.drop_sips(15)  # 1.5 s of silence
         assert _eventually(lambda: not driver.link_up, 2.0)
         assert "link lost" in driver.read_status().faults[0]
@@ -223,7 +225,7 @@ def test_silent_robot_is_declared_lost_then_reconnected(tcp_emulator: ArcosEmula
 
 
 def test_tcp_disconnect_is_noticed_and_the_driver_reconnects(tcp_emulator: ArcosEmulator) -> None:
-    with ArcosDriver(_tcp(tcp_emulator)) as driver:
+    with ArcosDriver(_tcp(tcp_emulator), robot=ROBOT) as driver:
         tcp_emulator.disconnect()
         assert _eventually(lambda: not driver.link_up, 2.0)
         assert _eventually(lambda: driver.link_up, 5.0)
@@ -234,7 +236,7 @@ def test_unplugged_serial_port_reports_the_fault_and_stays_stopped(
     pty_emulator: ArcosEmulator,
 ) -> None:
     settings_ = ArcosSettings(port=pty_emulator.link.device)  # type: ignore[attr-defined]
-    with ArcosDriver(settings_) as driver:
+    with ArcosDriver(settings_, robot=ROBOT) as driver:
         driver.set_velocity(Twist2D(0.2, 0.0))
         pty_emulator.disconnect()  # the device disappears
         assert _eventually(lambda: not driver.link_up, 2.0)
@@ -247,7 +249,7 @@ def test_unplugged_serial_port_reports_the_fault_and_stays_stopped(
 
 
 def test_estop_button_and_stall_show_in_the_status(tcp_emulator: ArcosEmulator) -> None:
-    with ArcosDriver(_tcp(tcp_emulator)) as driver:
+    with ArcosDriver(_tcp(tcp_emulator), robot=ROBOT) as driver:
         tcp_emulator.press_estop()
         tcp_emulator.stall()
         assert _eventually(lambda: driver.read_status().estopped, 1.0)
@@ -259,7 +261,7 @@ def test_firmware_watchdog_stops_and_resumes() -> None:
     options = EmulatorOptions(watchdog_s=0.3)
     with (
         ArcosEmulator(TcpLink(0), ROBOT, options) as emulator,
-        ArcosDriver(_tcp(emulator, pulse_s=5.0, link_timeout_s=5.0)) as driver,
+        ArcosDriver(_tcp(emulator, pulse_s=5.0, link_timeout_s=5.0), robot=ROBOT) as driver,
     ):
         driver.set_velocity(Twist2D(0.2, 0.0))
         assert _eventually(lambda: emulator.stats.watchdog_stops == 1, 2.0)
@@ -278,7 +280,9 @@ def test_fuzzed_sip_stream_never_crashes_nor_commands_beyond_limits(
     limits = SafetyLimits(v_max_mps=0.3, omega_max_radps=math.radians(40.0))
     device = pty_emulator.link.device  # type: ignore[attr-defined]
     seen: list[Twist2D] = []
-    with SafeDriver(ArcosDriver(ArcosSettings(port=device, link_timeout_s=5.0)), limits) as safe:
+    with SafeDriver(
+        ArcosDriver(ArcosSettings(port=device, link_timeout_s=5.0), robot=ROBOT), limits
+    ) as safe:
         for _ in range(60):
             junk = bytes(rng.randrange(256) for _ in range(rng.randrange(1, 64)))
             if rng.random() < 0.3:
@@ -303,7 +307,7 @@ def test_a_pty_without_robot_fails_to_connect_with_a_clear_error() -> None:
     try:
         settings_ = ArcosSettings(port=link.device, connect_timeout_s=0.3, sync_retries=1)
         with pytest.raises(Exception, match="no ARCOS sync"):
-            ArcosDriver(settings_).connect()
+            ArcosDriver(settings_, robot=ROBOT).connect()
     finally:
         link.close()
     assert not os.path.exists(link.device) or True  # the pty is released either way

@@ -10,6 +10,8 @@ from collections.abc import Callable, Iterator
 import can
 import pytest
 
+from phalanx.core.config import RobotParams
+from phalanx.core.config_files import load_robot
 from phalanx.core.errors import DriverError, DriverUnavailable
 from phalanx.core.geometry import Twist2D
 from phalanx.drivers.canopen import CanopenDriver, CanopenSettings
@@ -17,6 +19,7 @@ from phalanx.protocols.cia402 import SW_OPERATION_ENABLED, SW_SWITCH_ON_DISABLED
 from phalanx.simulator.cia402 import SimulatedDiffDrive, next_state
 
 pytestmark = pytest.mark.drivers
+ROBOT = load_robot("p3dx")
 
 
 def _eventually(check: Callable[[], bool], timeout_s: float) -> bool:
@@ -32,7 +35,7 @@ def _eventually(check: Callable[[], bool], timeout_s: float) -> bool:
 def rig(request: pytest.FixtureRequest) -> Iterator[tuple[SimulatedDiffDrive, CanopenDriver]]:
     channel = f"can-{request.node.name}"
     with SimulatedDiffDrive(channel) as drives:
-        driver = CanopenDriver(CanopenSettings(interface="virtual", channel=channel))
+        driver = CanopenDriver(CanopenSettings(interface="virtual", channel=channel), robot=ROBOT)
         try:
             yield drives, driver
         finally:
@@ -68,9 +71,9 @@ def test_wheel_targets_follow_the_geometry_and_mounting(
     driver.connect()
     s = driver.settings
     driver.set_velocity(Twist2D(0.2, 0.5))
-    half = 0.5 * s.track_width_m / 2
-    left = (0.2 - half) / s.wheel_radius_m * s.counts_per_radps
-    right = (0.2 + half) / s.wheel_radius_m * s.counts_per_radps
+    half = 0.5 * ROBOT.track_width_m / 2
+    left = (0.2 - half) / ROBOT.wheel_radius_m * s.counts_per_radps
+    right = (0.2 + half) / ROBOT.wheel_radius_m * s.counts_per_radps
     assert _eventually(lambda: drives.left.target == round(left), 1.0)
     assert drives.right.target == round(-right)  # mirrored mounting: right_sign = -1
     assert _eventually(lambda: abs(driver.read_odometry().twist.omega_radps - 0.5) < 0.01, 2.0)
@@ -82,11 +85,50 @@ def test_wheel_speed_limit_scales_both_wheels(
 ) -> None:
     drives, driver = rig
     driver.connect()
-    driver.set_velocity(Twist2D(5.0, 0.0))  # far above max_wheel_radps
-    limit = driver.settings.max_wheel_radps * driver.settings.counts_per_radps
+    driver.set_velocity(Twist2D(5.0, 0.0))  # far above the wheel speed limit
+    limit = driver.geometry.max_radps * driver.settings.counts_per_radps
     assert _eventually(lambda: drives.left.target != 0, 1.0)
     assert abs(drives.left.target) <= round(limit)
     assert abs(drives.right.target) <= round(limit)
+
+
+def test_the_wheels_are_the_robot_files() -> None:
+    geometry = CanopenDriver(CanopenSettings(), robot=ROBOT).geometry
+    assert geometry.radius_m == ROBOT.wheel_radius_m == 0.0975
+    assert geometry.track_width_m == ROBOT.track_width_m == 0.357
+    assert geometry.max_radps == pytest.approx(ROBOT.wheel_v_max_mps / ROBOT.wheel_radius_m)
+
+
+@pytest.mark.parametrize("radius_m", [0.0975, 0.15])
+def test_the_wheel_speed_sent_follows_the_robot_files_wheel_radius(
+    request: pytest.FixtureRequest, radius_m: float
+) -> None:
+    robot = _robot_with(wheel_radius_m=radius_m)
+    channel = f"geometry-{request.node.name}"
+    with SimulatedDiffDrive(channel) as drives:
+        settings = CanopenSettings(interface="virtual", channel=channel)
+        with CanopenDriver(settings, robot=robot) as driver:
+            driver.set_velocity(Twist2D(0.2, 0.0))
+            counts = round(0.2 / radius_m * settings.counts_per_radps)  # 2051 or 1333
+            assert _eventually(lambda: drives.left.target == counts, 1.0), drives.left.target
+            assert drives.right.target == -counts  # mounted mirrored
+
+
+def test_the_wheel_speed_limit_is_the_robot_files_wheel_rim_speed(
+    request: pytest.FixtureRequest,
+) -> None:
+    robot = _robot_with(wheel_v_max_mps=0.5)
+    channel = f"limit-{request.node.name}"
+    with SimulatedDiffDrive(channel) as drives:
+        settings = CanopenSettings(interface="virtual", channel=channel)
+        with CanopenDriver(settings, robot=robot) as driver:
+            driver.set_velocity(Twist2D(1.0, 0.0))  # twice the rim speed
+            counts = round(0.5 / robot.wheel_radius_m * settings.counts_per_radps)
+            assert _eventually(lambda: drives.left.target == counts, 1.0), drives.left.target
+
+
+def _robot_with(**fields: float) -> RobotParams:
+    return RobotParams.model_validate({**ROBOT.model_dump(), **fields})
 
 
 def test_lost_heartbeat_stops_both_wheels(rig: tuple[SimulatedDiffDrive, CanopenDriver]) -> None:
@@ -146,9 +188,8 @@ def test_non_finite_command_is_refused(rig: tuple[SimulatedDiffDrive, CanopenDri
 
 
 def test_absent_drives_give_a_clear_error() -> None:
-    driver = CanopenDriver(
-        CanopenSettings(interface="virtual", channel="nobody-here", connect_timeout_s=0.3)
-    )
+    settings = CanopenSettings(interface="virtual", channel="nobody-here", connect_timeout_s=0.3)
+    driver = CanopenDriver(settings, robot=ROBOT)
     try:
         with pytest.raises(DriverUnavailable, match="left drive"):
             driver.connect()
@@ -167,7 +208,7 @@ def _vcan0_present() -> bool:
 @pytest.mark.skipif(not _vcan0_present(), reason="needs SocketCAN vcan0 (modprobe vcan; root)")
 def test_runs_on_socketcan_vcan() -> None:
     with SimulatedDiffDrive("vcan0", interface="socketcan") as drives:
-        driver = CanopenDriver(CanopenSettings(interface="socketcan", channel="vcan0"))
+        driver = CanopenDriver(CanopenSettings(interface="socketcan", channel="vcan0"), robot=ROBOT)
         try:
             driver.connect()
             driver.set_velocity(Twist2D(0.1, 0.0))

@@ -15,7 +15,7 @@ import pytest
 
 from phalanx.analysis.metrics import error_series, run_metrics
 from phalanx.analysis.report import worst
-from phalanx.core.config import CONFIG_ROOT, apply_overrides, load_scenario
+from phalanx.core.config_files import CONFIG_ROOT, apply_overrides, load_scenario
 from phalanx.core.runlog import RunLog
 from phalanx.runtime.batch import run_batch
 from phalanx.telemetry.rrd import summarize

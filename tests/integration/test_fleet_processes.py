@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 
 from phalanx.analysis.metrics import run_metrics
-from phalanx.core.config import CONFIG_ROOT, apply_overrides, load_scenario
+from phalanx.core.config_files import CONFIG_ROOT, apply_overrides, load_scenario
 from phalanx.runtime.batch import run_batch
 from phalanx.wire.keys import leader_key, robot_key, robots_key
 from phalanx.wire.messages import LeaderAnnouncement, RobotState

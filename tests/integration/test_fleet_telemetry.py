@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from phalanx.core.config import CONFIG_ROOT
+from phalanx.core.config_files import CONFIG_ROOT
 from phalanx.telemetry.rrd import summarize
 from phalanx.wire.transport import free_tcp_port
 

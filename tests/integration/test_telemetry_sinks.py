@@ -17,7 +17,8 @@ import pytest
 
 from phalanx.core.geometry import Pose2D, Twist2D
 from phalanx.telemetry.rrd import summarize
-from phalanx.telemetry.stream import Telemetry, TelemetrySink, rerun_executable, viewer_reachable
+from phalanx.telemetry.sinks import TelemetrySink, rerun_executable, viewer_reachable
+from phalanx.telemetry.stream import Telemetry
 from phalanx.wire.transport import free_tcp_port
 
 pytestmark = [

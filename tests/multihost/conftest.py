@@ -17,7 +17,7 @@ import netlab
 import pytest
 from netlab import NetLab, unavailable
 
-from phalanx.core.config import CONFIG_ROOT
+from phalanx.core.config_files import CONFIG_ROOT
 
 WEDGE = CONFIG_ROOT / "scenarios" / "paper_wedge.toml"
 PYTHON = sys.executable

@@ -189,7 +189,7 @@ class NetLab(Closing):
 
 def observe(fleet: str, connect: str, seconds: float) -> None:
     """Print a fleet's sense frames, states and liveliness as JSON lines, for `seconds`."""
-    from phalanx.wire.keys import robots_key
+    from phalanx.wire.keys import alive_pattern, robots_key
     from phalanx.wire.messages import RobotState, SenseFrame
     from phalanx.wire.transport import TransportConfig, open_session
 
@@ -218,7 +218,7 @@ def observe(fleet: str, connect: str, seconds: float) -> None:
     with open_session(TransportConfig(mode="client", connect=(connect,))) as session:
         session.subscribe(robots_key(fleet, "sense"), SenseFrame, on_sense)
         session.subscribe(robots_key(fleet, "state"), RobotState, on_state)
-        session.watch_alive(f"phalanx/{fleet}/alive/*", on_alive)
+        session.watch_alive(alive_pattern(fleet), on_alive)
         put(kind="ready")
         deadline = time.monotonic() + seconds
         while not stop.is_set() and time.monotonic() < deadline:

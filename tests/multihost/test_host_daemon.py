@@ -15,10 +15,12 @@ from typing import Any
 
 import pytest
 
-from phalanx.hosts.daemon import DaemonOptions, HostDaemon, ManagedChild
-from phalanx.hosts.deployment import client_transport, load_deployment
+from phalanx.hosts.children import ManagedChild
+from phalanx.hosts.daemon import DaemonOptions, HostDaemon
+from phalanx.hosts.deployment import load_deployment
 from phalanx.hosts.fleet_client import FleetClient
 from phalanx.hosts.protocol import ChildStatus, HostStatus, LogLine
+from phalanx.hosts.wiring import client_transport
 from phalanx.wire.keys import alive_key
 from phalanx.wire.transport import free_tcp_port
 

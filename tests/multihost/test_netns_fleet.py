@@ -20,7 +20,7 @@ import pytest
 from netlab import NetLab
 
 from phalanx.analysis.metrics import run_metrics
-from phalanx.core.config import apply_overrides, load_scenario
+from phalanx.core.config_files import apply_overrides, load_scenario
 from phalanx.runtime.batch import run_batch
 
 pytestmark = pytest.mark.integration

@@ -9,7 +9,8 @@ from hypothesis import strategies as st
 
 from phalanx.agents.control import FollowerInput, OursController, PaperIcr, PaperTracking
 from phalanx.agents.control.limits import CommandLimiter
-from phalanx.core.config import LimitsOverride, load_robot
+from phalanx.core.config import LimitsOverride
+from phalanx.core.config_files import load_robot
 from phalanx.core.geometry import (
     Pose2D,
     Twist2D,

@@ -16,7 +16,8 @@ from phalanx.agents.perception import (
     choose_heading,
     corridor_clearance,
 )
-from phalanx.core.config import FormationConfig, LeadershipConfig, SlotConfig, load_robot
+from phalanx.core.config import FormationConfig, LeadershipConfig, SlotConfig
+from phalanx.core.config_files import load_robot
 from phalanx.core.formation import Formation, resolve_formation
 from phalanx.core.geometry import Vec2
 from phalanx.wire.messages import RobotFlags

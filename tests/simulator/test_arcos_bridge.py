@@ -6,7 +6,7 @@ import math
 
 import pytest
 
-from phalanx.core.config import load_robot
+from phalanx.core.config_files import load_robot
 from phalanx.core.geometry import Pose2D
 from phalanx.runtime.arcos_bridge import MAX_FRAME_AGE_S, WorldBody
 from phalanx.wire.messages import SenseFrame

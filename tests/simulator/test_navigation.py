@@ -12,12 +12,13 @@ import pytest
 from phalanx.agents.agent import Observation
 from phalanx.agents.behaviours.navigation import Breadcrumbs
 from phalanx.analysis.metrics import error_series, navigation_metrics, phase_masks, run_metrics
-from phalanx.core.config import CONFIG_ROOT, PolygonObstacle, apply_overrides, load_scenario
+from phalanx.core.config import PolygonObstacle
+from phalanx.core.config_files import CONFIG_ROOT, apply_overrides, load_scenario
 from phalanx.core.geometry import ZERO_TWIST, Vec2
+from phalanx.core.peers import PeerState
 from phalanx.core.scenarios import navigation_scenario
 from phalanx.core.states import State
 from phalanx.runtime.batch import BatchRunner, run_batch
-from phalanx.wire.messages import RobotState
 
 SCENARIOS = CONFIG_ROOT / "scenarios"
 
@@ -49,7 +50,7 @@ def test_a_lost_leader_stops_the_followers_then_the_best_robot_leads() -> None:
     runner = BatchRunner(
         apply_overrides(load_scenario(SCENARIOS / "paper_wedge.toml"), ["duration_s=12"])
     )
-    published: deque[dict[str, RobotState]] = deque(maxlen=1)
+    published: deque[dict[str, PeerState]] = deque(maxlen=1)
     states_at: dict[float, dict[str, str]] = {}
     for k in range(round(12.0 / runner.scenario.dt_s)):
         t_s = float(runner.t_s[k])

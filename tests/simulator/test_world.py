@@ -15,8 +15,8 @@ from phalanx.core.config import (
     PolygonObstacle,
     SensorEvent,
     WorldConfig,
-    load_robot,
 )
+from phalanx.core.config_files import load_robot
 from phalanx.core.geometry import Pose2D, Twist2D, integrate_unicycle
 from phalanx.simulator.world import World
 

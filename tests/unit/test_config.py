@@ -2,9 +2,9 @@ from pathlib import Path
 
 import pytest
 
-from phalanx.core.config import (
+from phalanx.core.config import Scenario
+from phalanx.core.config_files import (
     CONFIG_ROOT,
-    Scenario,
     apply_overrides,
     load_robot,
     load_scenario,

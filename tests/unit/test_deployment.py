@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import threading
 import time
+import tomllib
 from pathlib import Path
 
 import pytest
@@ -12,23 +13,24 @@ from pydantic import ValidationError
 from typer.testing import CliRunner
 
 from phalanx.cli import app
-from phalanx.core.config import CONFIG_ROOT
+from phalanx.core.config_files import CONFIG_ROOT, toml_value
 from phalanx.core.errors import ConfigError
-from phalanx.hosts.daemon import HostDaemon, backoff_delay_s, exit_reason
-from phalanx.hosts.deployment import (
+from phalanx.hosts.children import backoff_delay_s, exit_reason
+from phalanx.hosts.daemon import HostDaemon
+from phalanx.hosts.deployment import load_deployment
+from phalanx.hosts.protocol import HostReply, SpawnRequest, line_level
+from phalanx.hosts.wiring import (
     RunParameters,
     agent_argv,
     client_transport,
     host_connect,
     host_listen,
     host_transport,
-    load_deployment,
     local_endpoint,
     recording_id,
     router_transport,
     world_argv,
 )
-from phalanx.hosts.protocol import HostReply, SpawnRequest, line_level
 from phalanx.runtime.signals import SignalStop
 
 WEDGE = CONFIG_ROOT / "scenarios" / "paper_wedge.toml"
@@ -85,7 +87,7 @@ def test_the_real_robot_example_drives_p3dx_robots_over_serial() -> None:
     run = RunParameters("run1", epoch_unix=1.7e9)
     argv = agent_argv(loaded, "r2", run=run, python="python3")
     assert argv[argv.index("--driver") + 1] == "arcos"
-    assert argv[argv.index("--arcos-port") + 1] == "/dev/ttyUSB0"
+    assert argv[-2:] == ['--driver-setting=port="/dev/ttyUSB0"', "--driver-setting=baud=9600"]
     assert argv[argv.index("--watchdog") + 1] == "0.5"
     assert argv[argv.index("--epoch") + 1] == "1700000000.000"
     assert argv[argv.index("--connect") + 1] == "tcp/127.0.0.1:7447"
@@ -179,19 +181,56 @@ def test_robots_of_the_scenario_must_all_have_a_host(tmp_path: Path) -> None:
     assert "robots ['r3'] of the scenario have no host" in _error(tmp_path, body)
 
 
-def test_driver_settings_must_fit_the_driver(tmp_path: Path) -> None:
-    arcos_without_port = ROBOTS.replace('host = "p3dx-1"', 'host = "p3dx-1"\ndriver = "arcos"')
-    assert "arcos.port or arcos.tcp" in _error(tmp_path, HOSTS + arcos_without_port)
-    both = ROBOTS.replace(
-        'host = "p3dx-1"', 'host = "p3dx-1"\narcos = { port = "/dev/ttyS0", tcp = "x:1" }'
+def _on_r1(lines: str) -> str:
+    """ROBOTS with `lines` added to robot r1's placement."""
+    return HOSTS + ROBOTS.replace('host = "p3dx-1"', f'host = "p3dx-1"\n{lines}')
+
+
+def test_driver_settings_are_checked_by_the_backends_own_model(tmp_path: Path) -> None:
+    arcos_without_link = _error(tmp_path, _on_r1('driver = "arcos"'))
+    assert "deployment.toml: robot 'r1': arcos settings" in arcos_without_link
+    assert "give exactly one of port (serial device) or tcp" in arcos_without_link
+    both = _on_r1('driver = "arcos"\nsettings = { port = "/dev/ttyS0", tcp = "x:1" }')
+    assert "give exactly one of port" in _error(tmp_path, both)
+    misspelt = _error(
+        tmp_path, _on_r1('driver = "arcos"\nsettings = { port = "/dev/x", bauds = 1 }')
     )
-    assert "exactly one of arcos.port" in _error(tmp_path, HOSTS + both)
-    wrong = ROBOTS.replace('host = "p3dx-1"', 'host = "p3dx-1"\ncanopen = { channel = "can1" }')
-    assert "canopen settings given but its driver is 'sim'" in _error(tmp_path, HOSTS + wrong)
-    lockstep = ROBOTS.replace(
-        'host = "p3dx-1"', 'host = "p3dx-1"\ndriver = "arcos"\narcos = { tcp = "127.0.0.1:8101" }'
-    )
-    assert "lockstep" in _error(tmp_path, HOSTS + lockstep, head='clock = "lockstep"')
+    assert "robot 'r1': arcos settings" in misspelt
+    assert "bauds: Extra inputs are not permitted (did you mean 'baud'?)" in misspelt
+    bad_value = _error(tmp_path, _on_r1('driver = "canopen"\nsettings = { bitrate = "fast" }'))
+    assert "robot 'r1': canopen settings" in bad_value
+    assert "bitrate: Input should be a valid integer" in bad_value
+    geometry = _on_r1('driver = "canopen"\nsettings = { wheel_radius_m = 0.1 }')
+    assert "wheel_radius_m: Extra inputs are not permitted" in _error(tmp_path, geometry)
+    on_sim = _error(tmp_path, _on_r1('settings = { channel = "can1" }'))
+    assert "robot 'r1': driver settings given but its driver is 'sim'" in on_sim
+    old_syntax = _error(tmp_path, _on_r1('driver = "arcos"\narcos = { port = "/dev/ttyS0" }'))
+    assert "arcos = {...} is now settings = {...}" in old_syntax
+    lockstep = _on_r1('driver = "arcos"\nsettings = { tcp = "127.0.0.1:8101" }')
+    assert "lockstep" in _error(tmp_path, lockstep, head='clock = "lockstep"')
+
+
+def test_driver_settings_reach_the_agent_as_toml_values(tmp_path: Path) -> None:
+    settings = {
+        "interface": "virtual",
+        "channel": 'bus "7" \\ \t ü',
+        "bitrate": 250000,
+        "heartbeat_timeout_s": 0.25,
+        "left_sign": -1,
+    }
+    table = ", ".join(f"{key} = {toml_value(value)}" for key, value in settings.items())
+    path = _write(tmp_path, _on_r1(f'driver = "canopen"\nsettings = {{ {table} }}'))
+    argv = agent_argv(load_deployment(path), "r1", run=RunParameters("run1"), python="python3")
+    given = [a.removeprefix("--driver-setting=").partition("=") for a in argv if "-setting=" in a]
+    assert {key: tomllib.loads(f"v = {text}")["v"] for key, _, text in given} == settings
+    assert argv[argv.index("--driver") + 1] == "canopen"
+
+
+@pytest.mark.parametrize(
+    "value", [True, 0, -3, 1.5, 1e-9, float("inf"), "", 'a"b\\c\n\x7f\x00', [1, "x"], {"k": 2}]
+)
+def test_toml_values_read_back_as_they_were(value: object) -> None:
+    assert tomllib.loads(f"v = {toml_value(value)}")["v"] == value
 
 
 def test_the_world_command_line_comes_from_the_deployment(tmp_path: Path) -> None:

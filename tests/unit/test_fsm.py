@@ -105,7 +105,19 @@ def _plan(source: str, reason: str, **extra: Any) -> list[tuple[str, str, str, S
     ]
 
 
+ROBOT = (S.ESTOPPED, S.FAULT, S.STALLED, S.LOW_BATTERY)
+
 CASES: list[tuple[str, str, str, StackContext]] = [
+    # the robot's own conditions, and back once they clear
+    (ANY_STATE, S.ESTOPPED, "the robot's emergency stop", replace(FOLLOWER, estopped=True)),
+    (ANY_STATE, S.FAULT, "the robot reports a fault: left drive in FAULT",
+     replace(FOLLOWER, faults=("left drive in FAULT",))),
+    (ANY_STATE, S.STALLED, "a wheel is stalled", replace(FOLLOWER, stalled=True)),
+    (ANY_STATE, S.LOW_BATTERY, "the battery is low: 10.8 V",
+     replace(FOLLOWER, battery_low=True, battery_v=10.8)),
+    *[(s, S.FORMATION_TRACK, "the robot is fine again: back to the formation", FOLLOWER)
+      for s in ROBOT],
+    *[case for s in ROBOT for case in _plan(s, "the robot is fine again: back to the plan")],
     # safety and shared
     (ANY_STATE, S.EMERGENCY_STOP, "bumper", replace(FOLLOWER, imminent=True)),
     (ANY_STATE, S.STUCK, "the formation leader is STUCK", replace(FOLLOWER, leader_state=S.STUCK)),
@@ -226,3 +238,20 @@ def test_mermaid_names_every_state_and_transition() -> None:
         assert state.value in text
     assert text.count(" --> ") >= len(machine.transitions)
     assert "STUCK --> [*]" in text
+
+
+def test_the_robots_own_stop_outranks_everything_and_does_not_flap() -> None:
+    fsm = behaviour_machine(S.FORMATION_TRACK)
+    pressed = replace(FOLLOWER, estopped=True, bumper=True, faults=("e-stop",), stalled=True)
+    event = fsm.update(pressed, 0.0)
+    assert event is not None
+    assert event.target == S.ESTOPPED
+    for k in range(1, 5):  # a bumper and a fault while E-stopped: it stays ESTOPPED
+        assert fsm.update(pressed, float(k)) is None
+    released = fsm.update(replace(FOLLOWER, faults=("left drive in FAULT",)), 5.0)
+    assert released is not None
+    assert released.target == S.FAULT
+    assert fsm.update(replace(FOLLOWER, faults=("left drive in FAULT",)), 6.0) is None
+    back = fsm.update(FOLLOWER, 7.0)
+    assert back is not None
+    assert back.target == S.FORMATION_TRACK

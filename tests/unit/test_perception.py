@@ -16,7 +16,7 @@ from phalanx.agents.perception import (
     clearance_along,
     corridor_clearance,
 )
-from phalanx.core.config import load_robot
+from phalanx.core.config_files import load_robot
 from phalanx.core.geometry import Pose2D, Vec2
 
 ROBOT = load_robot("p3dx")

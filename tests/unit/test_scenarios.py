@@ -7,8 +7,8 @@ from pathlib import Path
 
 import pytest
 
-from phalanx.core.config import CONFIG_ROOT, load_scenario, validate_data
 from phalanx.core.config import Scenario as ScenarioModel
+from phalanx.core.config_files import CONFIG_ROOT, load_scenario, validate_data
 from phalanx.core.formation import resolve_formation
 from phalanx.core.scenarios import (
     COURSES,

@@ -13,7 +13,8 @@ from phalanx.cli.commands.host import DeploymentArg, load_or_exit
 
 if TYPE_CHECKING:
     from phalanx.hosts.deployment import LoadedDeployment
-    from phalanx.hosts.fleet_client import LaunchOptions, Output
+    from phalanx.hosts.fleet_output import Output
+    from phalanx.hosts.launch import LaunchOptions
     from phalanx.runtime.local_fleet import Child
     from phalanx.runtime.signals import Stoppable
     from phalanx.wire.transport import TransportConfig
@@ -34,7 +35,7 @@ SetOpt = Annotated[
 def _transport(
     loaded: LoadedDeployment, via: str | None, connect: list[str] | None
 ) -> TransportConfig:
-    from phalanx.hosts.deployment import client_transport
+    from phalanx.hosts.wiring import client_transport
 
     return client_transport(loaded.spec, via=via, connect=tuple(connect or ()))
 
@@ -70,7 +71,7 @@ def launch(
 ) -> None:
     """Start a deployment on its hosts, follow it live, stop it on Ctrl-C or at its end."""
     from phalanx.core.errors import DeploymentError
-    from phalanx.hosts.fleet_client import LaunchOptions
+    from phalanx.hosts.launch import LaunchOptions
     from phalanx.hosts.protocol import OVERRIDE_PATTERN, RUN_ID_PATTERN
 
     loaded = load_or_exit(deployment)
@@ -108,7 +109,7 @@ def _check_pattern(value: str, pattern: str, what: str) -> None:
 
 
 def _check_overrides(loaded: LoadedDeployment, overrides: list[str]) -> None:
-    from phalanx.core.config import apply_overrides
+    from phalanx.core.config_files import apply_overrides
     from phalanx.core.errors import ConfigError
 
     if overrides:
@@ -126,7 +127,8 @@ def _run(
     logs: bool,
     stop: Stoppable,
 ) -> int:
-    from phalanx.hosts.fleet_client import LiveOutput, PlainOutput, launch
+    from phalanx.hosts.fleet_output import LiveOutput, PlainOutput
+    from phalanx.hosts.launch import launch
 
     title = f"{loaded.spec.name} · fleet {loaded.spec.fleet} · run {options.run_id}"
     if table if table is not None else sys.stdout.isatty():
@@ -138,7 +140,7 @@ def _run(
 
 
 def _start_local_daemons(loaded: LoadedDeployment) -> list[Child]:
-    from phalanx.hosts.deployment import loopback_hosts
+    from phalanx.hosts.wiring import loopback_hosts
     from phalanx.runtime.local_fleet import Child
 
     daemons = []
@@ -167,7 +169,8 @@ def status(
 ) -> None:
     """Show a running fleet: every host's processes and every robot's state."""
     from phalanx.core.errors import DeploymentError
-    from phalanx.hosts.fleet_client import FleetClient, fleet_rows, render_table, status_document
+    from phalanx.hosts.fleet_client import FleetClient
+    from phalanx.hosts.fleet_output import fleet_rows, render_table, status_document
 
     loaded = load_or_exit(deployment)
     try:

@@ -32,7 +32,7 @@ def emulate(
     ] = None,
 ) -> None:
     """Emulate a robot: stand-alone, or moved by a world process over Zenoh."""
-    from phalanx.core.config import load_robot, load_scenario
+    from phalanx.core.config_files import load_robot, load_scenario
     from phalanx.core.motion import Body
     from phalanx.runtime.arcos_bridge import WorldBody, WorldBridge
     from phalanx.runtime.signals import stop_on_signals
@@ -50,10 +50,9 @@ def emulate(
     if world is not None:
         if robot is None:
             raise typer.BadParameter("--world needs --robot")
-        from phalanx.core.robot import start_pose
 
         scenario = load_scenario(world)
-        body = WorldBody(params, start_pose(scenario, robot))
+        body = WorldBody(params, scenario.start_pose(robot))
         transport = TransportConfig(mode="client", connect=tuple(connect or ()))
         bridge = WorldBridge(body, robot, fleet).open(transport)
     link = PtyLink() if pty else TcpLink(tcp or 8101, host)

@@ -2,8 +2,9 @@
 
 from __future__ import annotations
 
+import difflib
 import logging
-import math
+from collections.abc import Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Literal
 
@@ -51,7 +52,7 @@ SetOpt = Annotated[
 
 
 def _scenario(path: Path, overrides: list[str] | None) -> Scenario:
-    from phalanx.core.config import apply_overrides, load_scenario
+    from phalanx.core.config_files import apply_overrides, load_scenario
 
     config = load_scenario(path)
     return apply_overrides(config, overrides) if overrides else config
@@ -89,19 +90,33 @@ def agent(
     mode: ModeOpt = "peer",
     set_: SetOpt = None,
     driver: Annotated[
-        str, typer.Option(help="sim (the world process drives it), arcos or canopen.")
+        str,
+        typer.Option(help="sim (the world process moves the robot) or a driver: arcos, canopen."),
     ] = "sim",
+    driver_setting: Annotated[
+        list[str] | None,
+        typer.Option(
+            "--driver-setting",
+            help="A setting of the driver, KEY=VALUE (VALUE in TOML), e.g. "
+            "--driver-setting bitrate=250000 (repeatable).",
+        ),
+    ] = None,
     arcos_port: Annotated[
         str | None, typer.Option(help="arcos: serial device, e.g. /dev/ttyUSB0.")
     ] = None,
     arcos_tcp: Annotated[
         str | None, typer.Option(help="arcos: host:port (MobileSim, emulator: 8101).")
     ] = None,
-    baud: Annotated[int, typer.Option(help="arcos: serial baud rate.")] = 9600,
-    can_channel: Annotated[str, typer.Option(help="canopen: python-can channel.")] = "can0",
+    baud: Annotated[
+        int | None, typer.Option(help="arcos: serial baud rate (default: 9600).")
+    ] = None,
+    can_channel: Annotated[
+        str | None, typer.Option(help="canopen: python-can channel (default: can0).")
+    ] = None,
     can_interface: Annotated[
-        str, typer.Option(help="canopen: python-can interface (socketcan, virtual...).")
-    ] = "socketcan",
+        str | None,
+        typer.Option(help="canopen: python-can interface: socketcan (default), virtual..."),
+    ] = None,
     epoch: Annotated[
         float | None,
         typer.Option(
@@ -124,7 +139,7 @@ def agent(
     telemetry_url: TelemetryUrlOpt = None,
 ) -> None:
     """Run one robot's agent: Zenoh in, behaviour stack, command out."""
-    from phalanx.core.config import load_robot
+    from phalanx.core.config_files import load_robot
 
     logging.basicConfig(level=logging.INFO, format=f"%(asctime)s {robot} %(levelname)s %(message)s")
     config = _scenario(scenario, set_)
@@ -132,11 +147,18 @@ def agent(
         raise typer.BadParameter(f"robot {robot!r} is not in {scenario}")
     transport = _transport(mode, listen, connect)
     params = load_robot(config.robot)
+    shortcuts = {
+        "--arcos-port": arcos_port,
+        "--arcos-tcp": arcos_tcp,
+        "--baud": baud,
+        "--can-channel": can_channel,
+        "--can-interface": can_interface,
+    }
+    backend = _backend(driver, params, shortcuts=shortcuts, settings=driver_setting)
     stop = _stop_on_signals()
     with _telemetry(recording_id, telemetry_file, telemetry_url, robot) as telemetry:
         report, world_lost = _run_agent(
-            robot, config, params, transport, fleet, clock, stop, telemetry,
-            _backend(driver, arcos_port, arcos_tcp, baud, can_channel, can_interface),
+            robot, config, params, transport, fleet, clock, stop, telemetry, backend,
             epoch, watchdog, frame_timeout,
         )  # fmt: skip
     typer.echo(
@@ -151,7 +173,8 @@ def agent(
 def _telemetry(
     recording_id: str | None, path: Path | None, url: str | None, robot_id: str | None
 ) -> Telemetry:
-    from phalanx.telemetry.stream import Telemetry, sink_for
+    from phalanx.telemetry.sinks import sink_for
+    from phalanx.telemetry.stream import Telemetry
 
     sink = sink_for(path, url)
     if sink.kind != "off" and recording_id is None:
@@ -177,31 +200,28 @@ def _run_agent(
     import time
 
     from phalanx.runtime.agent import AgentRuntime, RuntimeOptions
+    from phalanx.runtime.robot_io import WorldLink
 
     tel = telemetry if telemetry.sink.kind != "off" else None
-    if backend is None:
-        options = RuntimeOptions(
-            fleet=fleet, transport=transport, clock=_clock(clock), frame_timeout_s=frame_timeout_s
-        )
-        runtime = AgentRuntime(robot, config, params, options, telemetry=tel)
-        return runtime.run(stop), runtime.world_lost
+    if backend is None:  # a simulated robot: the world's frames are its ticks
+        options = RuntimeOptions(fleet=fleet, transport=transport, clock=_clock(clock))
+        link = WorldLink(fleet, robot, frame_timeout_s=frame_timeout_s)
+        runtime = AgentRuntime(robot, config, params, options, clock=link, io=link, telemetry=tel)
+        return runtime.run(stop), link.world_lost
     # A robot driver: the agent keeps its own clock; commands go through the safety layer.
-    from phalanx.drivers.safety import SafeDriver, SafetyLimits
-    from phalanx.runtime.driver_agent import DriverRuntime
+    from phalanx.core.limits import safety_limits
+    from phalanx.drivers.safety import SafeDriver
+    from phalanx.runtime.clock import EpochClock
+    from phalanx.runtime.robot_io import DriverIO
 
-    bounds = config.limits
-    limits = SafetyLimits(
-        bounds.v_max_mps or params.v_max_mps,
-        math.radians(bounds.omega_max_degps or params.omega_max_degps),
-        watchdog,
-    )
     options = RuntimeOptions(fleet=fleet, transport=transport, clock="realtime")
-    safe = SafeDriver(backend, limits)
+    safe = SafeDriver(backend, safety_limits(params, config.limits, watchdog_s=watchdog))
     _connect_with_retry(safe, stop)
+    steps = round(config.duration_s / config.dt_s)
     with safe:
-        runtime = DriverRuntime(
-            robot, config, params, options, safe, epoch_s=epoch or time.time(), telemetry=tel
-        )
+        ticks = EpochClock(epoch_s=epoch or time.time(), dt_s=config.dt_s, steps=steps)
+        io = DriverIO(safe, params, origin=config.start_pose(robot))
+        runtime = AgentRuntime(robot, config, params, options, clock=ticks, io=io, telemetry=tel)
         return runtime.run(stop), False
 
 
@@ -222,28 +242,77 @@ def _connect_with_retry(driver: SafeDriver, stop: Stoppable, timeout_s: float = 
                 raise typer.Exit(2) from exc
 
 
+# The documented shortcut options: each fills one field of one backend's settings.
+_SHORTCUTS = {
+    "--arcos-port": ("arcos", "port"),
+    "--arcos-tcp": ("arcos", "tcp"),
+    "--baud": ("arcos", "baud"),
+    "--can-channel": ("canopen", "channel"),
+    "--can-interface": ("canopen", "interface"),
+}
+
+
 def _backend(
     driver: str,
-    arcos_port: str | None,
-    arcos_tcp: str | None,
-    baud: int,
-    can_channel: str,
-    can_interface: str,
+    robot: RobotParams,
+    *,
+    shortcuts: Mapping[str, object],
+    settings: list[str] | None,
 ) -> Driver | None:
+    """The robot's driver, not yet connected; None for sim (the world moves the robot).
+
+    Its settings are the shortcut options given (`shortcuts`, None: not given) and the
+    `--driver-setting KEY=VALUE` pairs, checked by the backend's own settings model.
+    """
+    from phalanx.core.errors import ConfigError, DriverUnavailable
+    from phalanx.drivers import backend_names, open_driver
+
+    names = ("sim", *backend_names())
+    if driver not in names:
+        close = difflib.get_close_matches(driver, names, n=1)
+        hint = f" (did you mean {close[0]!r}?)" if close else ""
+        raise typer.BadParameter(
+            f"expected one of {', '.join(names)}, got {driver!r}{hint}", param_hint="'--driver'"
+        )
+    values: dict[str, object] = {}
+    for option, value in shortcuts.items():
+        if value is None:
+            continue
+        owner, field = _SHORTCUTS[option]
+        if owner != driver:
+            raise typer.BadParameter(f"{option} is an option of --driver {owner}, not {driver}")
+        values[field] = value
+    pairs = _driver_settings(settings or [])
     if driver == "sim":
+        if pairs:
+            raise typer.BadParameter("--driver-setting: the sim driver has no settings")
         return None
-    if driver == "arcos":
-        from phalanx.drivers.arcos import ArcosDriver, ArcosSettings
+    for key, value in pairs.items():
+        if key in values:
+            raise typer.BadParameter(f"{key!r} given twice: by an option and by --driver-setting")
+        values[key] = value
+    try:
+        return open_driver(driver, values, robot=robot)
+    except ConfigError as exc:
+        raise typer.BadParameter(str(exc)) from exc
+    except DriverUnavailable as exc:
+        typer.echo(f"driver {driver!r}: {exc}", err=True)
+        raise typer.Exit(2) from exc
 
-        try:
-            return ArcosDriver(ArcosSettings(port=arcos_port, tcp=arcos_tcp, baud=baud))
-        except ValueError as exc:
-            raise typer.BadParameter(f"arcos: {exc}") from exc
-    if driver == "canopen":
-        from phalanx.drivers.canopen import CanopenDriver, CanopenSettings
 
-        return CanopenDriver(CanopenSettings(channel=can_channel, interface=can_interface))
-    raise typer.BadParameter(f"driver must be sim, arcos or canopen, got {driver!r}")
+def _driver_settings(pairs: list[str]) -> dict[str, object]:
+    """`KEY=VALUE` pairs, VALUE a TOML value (a bare word is a string, as with --set)."""
+    from phalanx.core.config_files import parse_value
+
+    values: dict[str, object] = {}
+    for pair in pairs:
+        key, sep, text = (part.strip() for part in pair.partition("="))
+        if not sep or not key:
+            raise typer.BadParameter(
+                f"expected KEY=VALUE, got {pair!r}", param_hint="'--driver-setting'"
+            )
+        values[key] = parse_value(text)
+    return values
 
 
 def world(
@@ -267,7 +336,7 @@ def world(
     """Run the simulated world for agents in other processes; write the results folder."""
     from phalanx.analysis.report import print_summary
     from phalanx.analysis.results import write_results
-    from phalanx.core.config import load_robot
+    from phalanx.core.config_files import load_robot
     from phalanx.runtime.world_process import WorldOptions, WorldProcess
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s world %(levelname)s %(message)s")

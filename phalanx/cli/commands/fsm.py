@@ -19,7 +19,11 @@ def fsm(
     ] = False,
 ) -> None:
     """Print the behaviour state machine (navigation and formation layers) as Mermaid."""
-    from phalanx.agents.behaviours.stack import STATE_NOTES, behaviour_machine
+    from phalanx.agents.behaviours.stack import (
+        STATE_NOTES,
+        arbitration_markdown,
+        behaviour_machine,
+    )
     from phalanx.agents.fsm import to_mermaid
     from phalanx.analysis.figures import save_state_machine
 
@@ -29,17 +33,6 @@ def fsm(
         typer.echo("\n" + arbitration_markdown())
     save_state_machine(machine, png)
     typer.echo(f"diagram: {png}", err=True)
-
-
-def arbitration_markdown() -> str:
-    """The arbitration table as markdown (highest priority first)."""
-    from phalanx.agents.behaviours.stack import ARBITRATION
-
-    rows = ["| priority | behaviour | layer | role | when |", "|---:|---|---|---|---|"]
-    rows += [
-        f"| {r.priority} | `{r.behaviour}` | {r.layer} | {r.role} | {r.when} |" for r in ARBITRATION
-    ]
-    return "\n".join(rows)
 
 
 def register(app: typer.Typer) -> None:

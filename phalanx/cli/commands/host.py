@@ -65,7 +65,7 @@ def router(
 ) -> None:
     """Run a Zenoh router, for hosts that cannot reach each other directly."""
     from phalanx.core.errors import ConfigError, TransportError
-    from phalanx.hosts.deployment import router_transport
+    from phalanx.hosts.wiring import router_transport
     from phalanx.runtime.signals import stop_on_signals
     from phalanx.wire.transport import TransportConfig, open_session
 

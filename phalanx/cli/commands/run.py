@@ -34,7 +34,7 @@ def run(
     """Run SCENARIO with every robot in this process; write metrics, figures and a recording."""
     from phalanx.analysis.report import print_summary
     from phalanx.analysis.results import write_results
-    from phalanx.core.config import apply_overrides, load_scenario
+    from phalanx.core.config_files import apply_overrides, load_scenario
     from phalanx.runtime.batch import run_batch
 
     config = load_scenario(scenario)

@@ -20,7 +20,7 @@ def rerun_command(
     memory_limit: str,
 ) -> list[str]:
     """The `rerun` command line for `phalanx view`."""
-    from phalanx.telemetry.stream import rerun_executable
+    from phalanx.telemetry.sinks import rerun_executable
 
     argv = [rerun_executable(), "--bind", bind, "--port", str(port)]
     if web:

@@ -1,0 +1,61 @@
+"""What every behaviour is: an object with its own state that turns one step's inputs
+into a twist (before the limiter), told when it becomes active and, while active, what
+the robot's motion did since the last step.
+
+A behaviour reads a `Moment`, built once per step and never written; what it needs to
+remember is its own (or one of the shared memories of `phalanx.agents.memory` it was
+given when it was made). What the state machine's guards need of it they ask through
+the agent when the next step's context is built, never by a command writing to it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from phalanx.agents.inputs import FleetView
+from phalanx.agents.sensing import Sensing
+from phalanx.core.geometry import ZERO_TWIST, Pose2D, Twist2D
+from phalanx.core.robot import Odometry
+
+
+@dataclass(frozen=True, slots=True)
+class Moment:
+    """One step as a behaviour sees it: fleet time (s), the behaviour state the machine
+    is in, the robot's odometry and sensing, its view of the fleet, and whether robots
+    of the group are off their slots or holding still (`others_busy`).
+    """
+
+    t_s: float
+    state: str
+    odometry: Odometry
+    sensing: Sensing
+    view: FleetView
+    others_busy: bool = False
+
+    @property
+    def pose(self) -> Pose2D:
+        """The robot's pose (odometry, world frame)."""
+        return self.odometry.pose
+
+
+class Behaviour:
+    """Base of the behaviours: stand still, remember nothing (subclasses override)."""
+
+    def enter(self, moment: Moment) -> None:
+        """The machine has just entered this behaviour's state (entry action)."""
+
+    def leave(self, moment: Moment) -> None:
+        """The machine has just left this behaviour's state (exit action)."""
+
+    def observe(self, odometry: Odometry, previous: Odometry) -> None:
+        """While active: the robot moved from `previous` to `odometry` since last step."""
+
+    def command(self, moment: Moment) -> Twist2D:
+        """The twist wanted this step (before the limiter)."""
+        return ZERO_TWIST
+
+
+class StandStill(Behaviour):
+    """Brake to a standstill and stay there (the limiter ramps the stop): HOLD, JOIN,
+    ARRIVED, EMERGENCY_STOP, STUCK and the robot's own stops (E-stop, fault, battery).
+    """

@@ -1,0 +1,319 @@
+"""Leader behaviours (the navigation layer of whichever robot leads): the scripted
+profile of the paper's runs, go-to-goal and wander with reactive steering, and the
+deadlock escape: back off in formation, then turn.
+"""
+
+from __future__ import annotations
+
+import math
+
+from phalanx.agents.behaviours.base import Behaviour, Moment
+from phalanx.agents.behaviours.navigation import (
+    REORIENT_RAD,
+    ScriptedProfile,
+    WanderHeading,
+    bearing_rad,
+    centring_rad,
+    plan_of,
+    reverse_twist,
+    rigid_limit,
+    steer,
+)
+from phalanx.agents.memory import BlockedTimers, Course, Progress, Steering
+from phalanx.agents.perception import open_side
+from phalanx.agents.route import RoutePlanner
+from phalanx.agents.shape import Shape
+from phalanx.core.config import LeaderProfile, Scenario
+from phalanx.core.geometry import ZERO_TWIST, Twist2D, Vec2, wrap_angle
+from phalanx.core.limits import KinematicLimits
+from phalanx.core.robot import Odometry
+
+# A turn on the spot is done within this of the heading it was for.
+REORIENTED_RAD = math.radians(10.0)
+# Pure pursuit distance of the deadlock reverse along the recorded path.
+REVERSE_LOOKBACK_M = 0.6
+# The fixed deadlock reverse first turns the shape back to the way it came in (measured
+# over this much path) to within this, for at most this long; only from at most this far
+# round, which the shape has just swept through (a larger turn back is not known free).
+CAME_IN_OVER_M = 2.0
+REALIGNED_RAD = math.radians(1.0)
+REALIGN_MAX_S = 20.0
+REALIGN_MAX_RAD = math.radians(45.0)
+
+
+class Scripted(Behaviour):
+    """NAVIGATE with a `leader_profile`: the paper's piecewise constant twists, on the
+    group's profile clock (so a new leader carries on where the last one was).
+    """
+
+    def __init__(
+        self, profile: LeaderProfile, *, progress: Progress, course: Course, dt_s: float
+    ) -> None:
+        self.profile = ScriptedProfile(profile)
+        self.progress, self.course, self.dt_s = progress, course, dt_s
+
+    def command(self, moment: Moment) -> Twist2D:
+        """The script's twist now; the profile clock moves on a step."""
+        twist = self.profile.twist_at(self.progress.profile_s)
+        self.progress.profile_s += self.dt_s
+        self.course.last_forward = twist
+        return twist
+
+
+class Steered(Behaviour):
+    """Reactive navigation for a formation: head the way `desired` says, round what the
+    sonar shows, no tighter than the shape allows, slowing near obstacles and while
+    robots of the group are off their slots. Subclasses say where to head for.
+    """
+
+    def __init__(
+        self,
+        scenario: Scenario,
+        *,
+        shape: Shape,
+        limits: KinematicLimits,
+        steering: Steering,
+        course: Course,
+    ) -> None:
+        self.nav = scenario.navigation
+        self.scripted = scenario.leader_profile is not None
+        self.shape, self.limits, self.steering, self.course = shape, limits, steering, course
+
+    def desired(self, moment: Moment) -> tuple[float, float]:
+        """The heading wanted (body frame, rad) and the distance to go (m)."""
+        raise NotImplementedError
+
+    def command(self, moment: Moment) -> Twist2D:
+        """Finish a turn on the spot, or steer towards `desired` round obstacles."""
+        desired, dist_m = self.desired(moment)
+        speed = min(self.nav.cruise_mps, 0.5 * dist_m + 0.02)
+        if moment.others_busy:
+            speed *= self.nav.slowdown  # give robots off their slots a chance to catch up
+        turning = self._finish_turn(moment)
+        if turning is not None:
+            return turning
+        return self._steer(moment, desired, dist_m, speed)
+
+    def _finish_turn(self, moment: Moment) -> Twist2D | None:
+        """A turn on the spot under way, until it faces the heading it was for."""
+        points, pose = moment.sensing.points, moment.pose
+        if self.steering.turn_to_rad is not None and not self.shape.sweep_clear(points):
+            self.steering.turn_to_rad = None  # no room to swing the shape round here after all
+        if self.steering.turn_to_rad is None:
+            return None
+        error = wrap_angle(self.steering.turn_to_rad - pose.theta_rad)
+        if abs(error) > REORIENTED_RAD:
+            rate = min(self.shape.turn_rate_radps(), self.nav.heading_gain_per_s * abs(error))
+            return Twist2D(0.0, math.copysign(rate, error))
+        self.steering.turn_to_rad = None
+        return None
+
+    def _steer(self, moment: Moment, desired: float, dist_m: float, speed: float) -> Twist2D:
+        pose, points = moment.pose, moment.sensing.points
+        chosen_rad = self.steering.chosen_rad
+        previous = None if chosen_rad is None else wrap_angle(chosen_rad - pose.theta_rad)
+        whole_shape = moment.view.is_leader and not self.scripted
+        clearances = self.shape.clearances(points, moment.view.live, whole_shape=whole_shape)
+        room_to_turn = self.shape.sweep_clear(points)
+        twist, chosen = steer(
+            desired + centring_rad(clearances),
+            clearances,
+            nav=self.nav,
+            speed_mps=speed,
+            stop_gap_m=self.shape.stop_gap_m(),
+            need_m=min(self.nav.lookahead_m, dist_m + self.shape.radius_m),
+            omega_max_radps=self.shape.turn_rate_radps(),
+            previous_rad=previous,
+            min_radius_m=self.nav.min_turn_radius_m,
+            reach_rad=math.pi if room_to_turn else REORIENT_RAD,
+        )
+        self.steering.chosen_rad = pose.theta_rad + chosen
+        if twist.v_mps == 0.0 and twist.omega_radps != 0.0 and room_to_turn:
+            self.steering.turn_to_rad = self.steering.chosen_rad
+        twist = rigid_limit(twist, self.shape.follower_slots, self.limits.v_max_mps)
+        self.course.last_forward = twist
+        return twist
+
+
+class GoToGoal(Steered):
+    """NAVIGATE with waypoints: along the route to the next one (or first to the escape
+    point a dead end left), round obstacles.
+    """
+
+    def __init__(
+        self,
+        scenario: Scenario,
+        *,
+        shape: Shape,
+        limits: KinematicLimits,
+        steering: Steering,
+        course: Course,
+        planner: RoutePlanner,
+        progress: Progress,
+    ) -> None:
+        super().__init__(scenario, shape=shape, limits=limits, steering=steering, course=course)
+        self.planner, self.progress = planner, progress
+
+    def desired(self, moment: Moment) -> tuple[float, float]:
+        """Towards the route's next point."""
+        pose = moment.pose
+        goal = self.course.escape or Vec2(*self.nav.waypoints[self.progress.waypoint])
+        dist_m = (goal - pose.position).norm()
+        return bearing_rad(pose, self.planner.towards(pose, goal, moment.t_s)), dist_m
+
+
+class Wander(Steered):
+    """WANDER: cruise along a heading that changes now and then (seeded), round obstacles."""
+
+    def __init__(
+        self,
+        scenario: Scenario,
+        *,
+        shape: Shape,
+        limits: KinematicLimits,
+        steering: Steering,
+        course: Course,
+        seed: int,
+    ) -> None:
+        super().__init__(scenario, shape=shape, limits=limits, steering=steering, course=course)
+        self.heading = WanderHeading(scenario.navigation, seed)
+
+    def desired(self, moment: Moment) -> tuple[float, float]:
+        """The wander heading, with nowhere in particular to get to."""
+        heading = self.heading.heading(moment.pose, moment.t_s)
+        return wrap_angle(heading - moment.pose.theta_rad), math.inf
+
+
+class DeadlockReverse(Behaviour):
+    """DEADLOCK_REVERSE (the paper's section 3.2): stand still `pause_s` (the followers
+    settle on their slots), then back the group off in formation: along the path it came
+    (`path`), the arc just driven (`retrace`) or straight back (`fixed`, a navigating
+    group first turning back to the way it came in).
+    """
+
+    def __init__(
+        self, scenario: Scenario, *, shape: Shape, course: Course, progress: Progress
+    ) -> None:
+        self.deadlock = scenario.deadlock
+        self.nav = scenario.navigation
+        self.navigating = plan_of(scenario) == "goto"
+        self.shape, self.course, self.progress = shape, course, progress
+        self.pausing = False  # standing still before it backs off
+        self.reversed_m = 0.0
+        self.path_used_up = False  # backed along all of the recorded path
+        self._entered_s = 0.0
+        self._realigned_s = -math.inf  # when the turn back was done
+
+    @property
+    def backed_off(self) -> bool:
+        """Backed off the safe distance, or along all the ground it knows."""
+        return self.reversed_m >= self.deadlock.safe_distance_m or self.path_used_up
+
+    def enter(self, moment: Moment) -> None:
+        """A new deadlock at this waypoint: count it, start from standing."""
+        self._entered_s = self._realigned_s = moment.t_s
+        self.reversed_m = 0.0
+        self.path_used_up = False
+        self.progress.deadlocks += 1
+
+    def observe(self, odometry: Odometry, previous: Odometry) -> None:
+        """Count the ground backed over."""
+        self.reversed_m += (odometry.pose.position - previous.pose.position).norm()
+
+    def command(self, moment: Moment) -> Twist2D:
+        """Turn back, pause, then back off."""
+        t_s, pose = moment.t_s, moment.pose
+        realign = self._realign(moment)
+        if realign is not None:
+            self.pausing = True
+            self._realigned_s = t_s
+            return realign
+        self.pausing = t_s - self._realigned_s < self.deadlock.pause_s - 1e-9
+        if self.pausing:
+            return ZERO_TWIST  # stand still first: the followers settle on their slots
+        if self.deadlock.reverse_mode != "path":
+            return reverse_twist(self.deadlock, self.course.last_forward)
+        speed = self.deadlock.reverse_speed_mps
+        twist = self.course.crumbs.back_along(pose, speed, REVERSE_LOOKBACK_M)
+        if twist is None:  # backed along all the ground it knows: go no further
+            self.path_used_up = True
+            return ZERO_TWIST
+        return twist
+
+    def _realign(self, moment: Moment) -> Twist2D | None:
+        """A navigating group caught in a deadlock while turning: turn the shape back to
+        the way it came in before backing out straight (else it backs out diagonally).
+        """
+        if self.deadlock.reverse_mode != "fixed" or not self.navigating:
+            return None
+        if moment.t_s - self._realigned_s >= self.deadlock.pause_s:
+            return None  # backing out already
+        came_in = self.course.crumbs.heading_in_rad(CAME_IN_OVER_M)
+        if came_in is None or moment.t_s - self._entered_s > REALIGN_MAX_S:
+            return None
+        error = wrap_angle(came_in - moment.pose.theta_rad)
+        if not REALIGNED_RAD < abs(error) <= REALIGN_MAX_RAD:
+            return None
+        rate = min(self.shape.turn_rate_radps(), self.nav.heading_gain_per_s * abs(error))
+        return Twist2D(0.0, math.copysign(rate, error))
+
+
+class DeadlockTurn(Behaviour):
+    """DEADLOCK_TURN: turn on the spot towards the route if the map has one, else towards
+    the more open side by `turn_away_deg` per deadlock at this waypoint; then (without a
+    map) make for a point `escape_distance_m` along the new heading first.
+    """
+
+    def __init__(
+        self,
+        scenario: Scenario,
+        *,
+        shape: Shape,
+        planner: RoutePlanner,
+        progress: Progress,
+        course: Course,
+        blocked: BlockedTimers,
+    ) -> None:
+        self.deadlock, self.nav = scenario.deadlock, scenario.navigation
+        self.navigating = plan_of(scenario) == "goto"
+        self.shape, self.planner, self.progress, self.course = shape, planner, progress, course
+        self.blocked = blocked
+        self.side = 1
+        self.target_rad = 0.0
+        self.turned_rad = 0.0
+
+    @property
+    def turned(self) -> bool:
+        """Whether the turn is done."""
+        return self.turned_rad >= self.target_rad - 1e-3
+
+    def enter(self, moment: Moment) -> None:
+        """Choose the side and how far to turn."""
+        pose = moment.pose
+        self.side = open_side(moment.sensing.points, half_width_m=self.shape.half_width_m)
+        angle = math.radians(self.deadlock.turn_away_deg) * max(1, self.progress.deadlocks)
+        if self.navigating and self.planner.map is not None:
+            self.planner.forget_carrot()
+            waypoints = self.nav.waypoints
+            goal = Vec2(*waypoints[min(self.progress.waypoint, len(waypoints) - 1)])
+            towards = bearing_rad(pose, self.planner.towards(pose, goal, moment.t_s))
+            self.side, angle = (1 if towards >= 0.0 else -1), abs(towards)
+        self.target_rad = min(math.pi, angle)
+        self.turned_rad = 0.0
+
+    def leave(self, moment: Moment) -> None:
+        """A new heading: blocked only if blocked again; without a map, leave the dead
+        end along it before making for the goal.
+        """
+        self.blocked.reset()
+        if self.navigating and self.planner.map is None:
+            ahead = Vec2(self.deadlock.escape_distance_m, 0.0)
+            self.course.escape = moment.pose.to_world(ahead)
+
+    def observe(self, odometry: Odometry, previous: Odometry) -> None:
+        """Count the angle turned."""
+        self.turned_rad += abs(wrap_angle(odometry.pose.theta_rad - previous.pose.theta_rad))
+
+    def command(self, moment: Moment) -> Twist2D:
+        """Turn on the spot, as fast as the shape allows."""
+        return Twist2D(0.0, self.side * self.shape.turn_rate_radps())

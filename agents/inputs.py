@@ -1,0 +1,34 @@
+"""What a control step starts from: the robot's own readings, and its view of the fleet
+(who leads, whom it tracks and that robot's latest state).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from phalanx.agents.leadership import LeadershipChange, LiveFlags
+from phalanx.core.peers import PeerState
+from phalanx.core.robot import Odometry, RobotStatus
+
+
+@dataclass(frozen=True, slots=True)
+class Observation:
+    """What a robot senses this step (from its driver, or the simulated world)."""
+
+    odometry: Odometry
+    status: RobotStatus
+
+
+@dataclass(frozen=True, slots=True)
+class FleetView:
+    """A robot's view of its fleet this step: the flags heard lately (`live`), the
+    change by which it took the lead this step (if it did), who leads, whom it tracks
+    (None while it leads) and that robot's state, if fresh.
+    """
+
+    live: LiveFlags
+    took: LeadershipChange | None
+    is_leader: bool
+    leader_id: str
+    tracked_id: str | None
+    lead: PeerState | None

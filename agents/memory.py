@@ -1,0 +1,127 @@
+"""What one robot remembers from step to step, besides its behaviours' own state.
+
+Each piece is small and named for what it holds; the agent (`phalanx.agents.agent`)
+updates them in the estimate stage of a step, before the state machine decides, and
+the behaviours that need one are given it when they are made.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+from phalanx.agents.behaviours.navigation import Breadcrumbs
+from phalanx.agents.leadership import FlagsView
+from phalanx.core.geometry import ZERO_TWIST, Pose2D, Twist2D, Vec2
+
+# A navigating leader that has not got this far from where it was in `stall_s` is stuck.
+PROGRESS_M = 0.3
+
+
+@dataclass
+class Progress:
+    """The group's progress: the next waypoint, the deadlocks at it and the scripted
+    profile's clock (s). The leader keeps it; followers copy it from the leader's flags,
+    so whoever leads next carries on from the same place.
+    """
+
+    waypoint: int = 0
+    deadlocks: int = 0
+    profile_s: float = 0.0
+
+    def copy_from(self, leader: FlagsView) -> None:
+        """Take the leader's progress as it published it."""
+        self.waypoint, self.deadlocks, self.profile_s = (
+            leader.waypoint,
+            leader.deadlocks,
+            leader.profile_s,
+        )
+
+
+@dataclass
+class BlockedTimers:
+    """How long the path each way has been blocked (s): forwards (+1), backwards (-1)."""
+
+    seconds: dict[int, float] = field(default_factory=lambda: {1: 0.0, -1: 0.0})
+
+    def update(self, blocked: dict[int, bool], dt_s: float) -> None:
+        """One step more of each way's blocked time (reset where it is free)."""
+        for way, now in blocked.items():
+            self.seconds[way] = self.seconds[way] + dt_s if now else 0.0
+
+    def of(self, direction: int) -> float:
+        """How long the way `direction` (+1 or -1) has been blocked."""
+        return self.seconds[direction]
+
+    def reset(self) -> None:
+        """A new heading: blocked only if blocked again."""
+        self.seconds = {1: 0.0, -1: 0.0}
+
+
+@dataclass
+class Steering:
+    """The reactive navigator's memory (world frame, rad): the heading it last steered
+    for, and a turn on the spot under way. NAVIGATE, WANDER and AVOID share it (a
+    follower that takes the lead keeps the side it was going round by).
+    """
+
+    chosen_rad: float | None = None
+    turn_to_rad: float | None = None
+
+    def reset(self) -> None:
+        """Forget both (a robot that stopped steering)."""
+        self.chosen_rad = None
+        self.turn_to_rad = None
+
+
+@dataclass
+class Course:
+    """The leader's way so far: the ground it crossed (to back along), its last forward
+    command (to retrace), and a point to make for first after a dead end (world frame).
+    """
+
+    crumbs: Breadcrumbs
+    last_forward: Twist2D = ZERO_TWIST
+    escape: Vec2 | None = None
+
+
+class StallWatch:
+    """Whether a navigating leader that turns and creeps gets anywhere: one that has not
+    moved `PROGRESS_M` from where it was for `stall_s` is blocked as surely as one
+    facing a wall.
+    """
+
+    def __init__(self, stall_s: float) -> None:
+        self.stall_s = stall_s
+        self._anchor: tuple[Vec2, float] | None = None  # where and when progress was made
+
+    def stalled(self, pose: Pose2D, t_s: float) -> bool:
+        """Update with the pose at `t_s`; whether the robot is stalled."""
+        here = pose.position
+        if self._anchor is None or (here - self._anchor[0]).norm() >= PROGRESS_M:
+            self._anchor = (here, t_s)
+        return t_s - self._anchor[1] >= self.stall_s
+
+    def reset(self) -> None:
+        """Start watching afresh (a new behaviour, or not navigating)."""
+        self._anchor = None
+
+
+@dataclass
+class StartUp:
+    """When the agent's first step was, and until when robots not heard yet count as in
+    their slots (the scenario's start).
+    """
+
+    started_s: float | None = None
+    assume_formed_until_s: float = -math.inf
+
+    def begin(self, t_s: float, grace_s: float) -> None:
+        """Record the first step (only the first call counts)."""
+        if self.started_s is None:
+            self.started_s = t_s
+            self.assume_formed_until_s = t_s + grace_s
+
+    def waited_s(self, t_s: float) -> float:
+        """How long since the first step."""
+        return t_s - (self.started_s if self.started_s is not None else t_s)

@@ -1,0 +1,137 @@
+"""Everything one robot's brain is made of, made and wired together once: its view of the
+shape, its senses and route planner, its memories, and the behaviour table that maps
+each behaviour state to the object that drives it.
+
+Adding a behaviour: write it (a `Behaviour` subclass, in `phalanx.agents.behaviours`),
+give it the parts it needs here, and put it in the table under the state (or states)
+it drives; the transitions into and out of that state go in
+`phalanx.agents.behaviours.stack`.
+"""
+
+from __future__ import annotations
+
+import math
+
+from phalanx.agents.behaviours.base import Behaviour, StandStill
+from phalanx.agents.behaviours.follower import Avoid, Track
+from phalanx.agents.behaviours.leader import (
+    DeadlockReverse,
+    DeadlockTurn,
+    GoToGoal,
+    Scripted,
+    Steered,
+    Wander,
+)
+from phalanx.agents.behaviours.navigation import Breadcrumbs, Plan, plan_of
+from phalanx.agents.control import make_controller
+from phalanx.agents.memory import BlockedTimers, Course, Progress, StartUp, Steering
+from phalanx.agents.perception import SonarGeometry
+from phalanx.agents.route import RoutePlanner
+from phalanx.agents.sensing import Senses
+from phalanx.agents.shape import Shape
+from phalanx.core.config import RobotParams, Scenario
+from phalanx.core.formation import Formation
+from phalanx.core.geometry import Pose2D
+from phalanx.core.limits import KinematicLimits
+from phalanx.core.states import State
+
+
+class Parts:
+    """One robot's brain, wired (see the module docstring)."""
+
+    def __init__(
+        self,
+        robot_id: str,
+        scenario: Scenario,
+        robot: RobotParams,
+        formation: Formation,
+        limits: KinematicLimits,
+    ) -> None:
+        self.scenario = scenario
+        self.plan: Plan = plan_of(scenario)
+        nav = scenario.navigation
+        self.shape = Shape(
+            robot_id, formation, radius_m=robot.radius_m, nav=nav, limits=limits,
+            dt_s=scenario.dt_s,
+        )  # fmt: skip
+        self.progress = Progress()
+        self.blocked = BlockedTimers()
+        self.steering = Steering()
+        self.course = Course(Breadcrumbs(2.0 * scenario.deadlock.safe_distance_m))
+        self.startup = StartUp()
+        self.planner = RoutePlanner(keep_off_m=self.shape.half_span_m)
+        self.senses = Senses(
+            robot_id, scenario, sonar=SonarGeometry.from_params(robot), shape=self.shape,
+            limits=limits, planner=self.planner, progress=self.progress, plan=self.plan,
+        )  # fmt: skip
+        self.reverse = DeadlockReverse(
+            scenario, shape=self.shape, course=self.course, progress=self.progress
+        )
+        self.turn = DeadlockTurn(
+            scenario, shape=self.shape, planner=self.planner, progress=self.progress,
+            course=self.course, blocked=self.blocked,
+        )  # fmt: skip
+        self.avoid = Avoid(scenario, shape=self.shape, limits=limits, steering=self.steering)
+        seed = scenario.seed + formation.robot_ids.index(robot_id)
+        self.behaviours = self._table(robot_id, limits, seed)
+
+    def _table(self, robot_id: str, limits: KinematicLimits, seed: int) -> dict[str, Behaviour]:
+        """The behaviour of each state."""
+        scenario = self.scenario
+        wander = Wander(
+            scenario, shape=self.shape, limits=limits, steering=self.steering,
+            course=self.course, seed=seed,
+        )  # fmt: skip
+        navigate: Behaviour
+        if scenario.leader_profile is not None:
+            navigate = Scripted(
+                scenario.leader_profile, progress=self.progress, course=self.course,
+                dt_s=scenario.dt_s,
+            )  # fmt: skip
+        elif self.plan == "wander":
+            navigate = wander
+        else:
+            navigate = self._go_to_goal(limits)
+        track = Track(
+            robot_id, scenario, shape=self.shape, limits=limits,
+            controller=make_controller(scenario.controller),
+        )  # fmt: skip
+        still = StandStill()
+        table: dict[str, Behaviour] = {
+            State.NAVIGATE: navigate,
+            State.WANDER: navigate if self.plan == "scripted" else wander,
+            State.DEADLOCK_REVERSE: self.reverse,
+            State.DEADLOCK_TURN: self.turn,
+            State.FORMATION_TRACK: track,
+            State.FORMATION_REVERSE: track,
+            State.AVOID: self.avoid,
+        }
+        return {state: table.get(state, still) for state in State}
+
+    def _go_to_goal(self, limits: KinematicLimits) -> Steered:
+        return GoToGoal(
+            self.scenario, shape=self.shape, limits=limits, steering=self.steering,
+            course=self.course, planner=self.planner, progress=self.progress,
+        )  # fmt: skip
+
+    def advance_waypoints(self, pose: Pose2D) -> None:
+        """The leader's waypoint bookkeeping: a reached waypoint resets the retries (and
+        the escape point a dead end left, once reached or passed by).
+        """
+        nav, progress, course = self.scenario.navigation, self.progress, self.course
+        if self.plan != "goto":
+            return
+        near_m = nav.goal_tolerance_m
+        if course.escape is not None and (pose.position - course.escape).norm() < near_m:
+            course.escape = None
+        while (
+            progress.waypoint < len(nav.waypoints)
+            and _to(pose, nav.waypoints[progress.waypoint]) < near_m
+        ):
+            progress.waypoint += 1
+            progress.deadlocks = 0
+            course.escape = None
+
+
+def _to(pose: Pose2D, point: tuple[float, float]) -> float:
+    return math.hypot(point[0] - pose.x_m, point[1] - pose.y_m)

@@ -1,0 +1,231 @@
+"""The sense stage of a step: what the sonar ring and bumpers say, for this robot and
+the group's rules. Echoes of the formation's own robots are masked out; the reading
+feeds the leader's map; the path each way is blocked or not; the way ahead is clear
+enough to lead; an obstacle is inside the braking distance.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from phalanx.agents.behaviours.navigation import Plan, bearing_rad
+from phalanx.agents.inputs import FleetView, Observation
+from phalanx.agents.memory import Progress, StallWatch
+from phalanx.agents.perception import (
+    SonarGeometry,
+    braking_gap_m,
+    clearance_along,
+    nearest_m,
+)
+from phalanx.agents.route import RoutePlanner
+from phalanx.agents.shape import Points, Shape
+from phalanx.core.config import Scenario
+from phalanx.core.geometry import Pose2D, Twist2D, Vec2
+from phalanx.core.limits import KinematicLimits
+from phalanx.core.rigid_body import predict_leader
+from phalanx.core.robot import Odometry
+from phalanx.core.states import OUT_OF_FORMATION, State
+
+STANDSTILL_MPS = 0.01
+# Sonar echoes this close to where a known robot should be are that robot, not an
+# obstacle: the tracked robot's position is known (its state), the others' expected.
+TRACKED_MASK_M = 0.1
+EXPECTED_MASK_M = 0.15
+# The emergency stop's corridor hugs the body: a wall passed alongside must not stop it.
+ESTOP_MARGIN_M = 0.02
+# A route leading further round than this from the heading goes back the way it came.
+BEHIND_RAD = math.radians(100.0)
+# A robot whose route turns off by more than this cannot lead on from where it is.
+REORIENT_ROUTE_RAD = math.radians(60.0)
+# An emergency stop ends with this much room beyond the braking distance, not less.
+RELEASE_MARGIN_M = 0.1
+# A follower this close along its heading to its slot goes the way the slot goes.
+INTENT_M = 0.05
+_NAVIGATING = (State.NAVIGATE, State.WANDER)
+
+
+@dataclass(frozen=True, slots=True)
+class Sensing:
+    """A step's reading of the sonar ring and bumpers (body frame, m)."""
+
+    points: Points  # known robots removed
+    raw: Points  # every echo
+    ahead_m: float  # own free way straight ahead
+    blocked: dict[int, bool]  # path blocked, forwards (+1) and backwards (-1)
+    path_clear: bool
+    imminent: bool
+    bumper: bool
+    dead_end: bool = False
+
+
+@dataclass(frozen=True, slots=True)
+class Stance:
+    """Where this robot stands before the step decides: its behaviour state and its
+    direction of motion (both as the last step left them), its last command.
+    """
+
+    state: str
+    direction: int
+    last_command: Twist2D
+
+
+class Senses:
+    """Turns one robot's readings into a `Sensing` (and keeps its map and stall watch)."""
+
+    def __init__(
+        self,
+        robot_id: str,
+        scenario: Scenario,
+        *,
+        sonar: SonarGeometry,
+        shape: Shape,
+        limits: KinematicLimits,
+        planner: RoutePlanner,
+        progress: Progress,
+        plan: Plan,
+    ) -> None:
+        self.robot_id = robot_id
+        self.nav = scenario.navigation
+        self.near_m = scenario.deadlock.obstacle_range_m
+        self.dt_s = scenario.dt_s
+        self.sonar, self.shape, self.limits = sonar, shape, limits
+        self.planner, self.progress, self.plan = planner, progress, plan
+        self.stall = StallWatch(self.nav.stall_s)
+        # The robots near enough in the shape for the sonar to hear (only these are masked).
+        audible_m = sonar.mount_m + sonar.max_range_m + shape.radius_m + EXPECTED_MASK_M
+        self._maskable = {r: o for r, o in shape.offsets.items() if o.norm() < audible_m + 1.0}
+
+    def read(
+        self,
+        observation: Observation,
+        view: FleetView,
+        stance: Stance,
+        *,
+        t_s: float,
+        assume_formed: bool,
+    ) -> Sensing:
+        """The step's sensing. `assume_formed`: robots not heard yet count as in their
+        slots (the scenario's start).
+        """
+        odometry, status = observation.odometry, observation.status
+        pose = odometry.pose
+        ranges = np.asarray(status.sonar_ranges_m, dtype=np.float64)
+        every_echo = self.sonar.echoes(ranges)
+        raw = self.sonar.points_of(ranges, every_echo)
+        known = self._known_robots(view, stance.state, t_s, pose, assume_formed)
+        echo = self.sonar.echoes(ranges, known)
+        # (the usual case, no echo of a robot: the same points, not worked out twice)
+        masked = raw if np.array_equal(echo, every_echo) else self.sonar.points_of(ranges, echo)
+        if self.plan != "scripted" and self.nav.reactive:
+            self.planner.see(pose, self.sonar, ranges, echo)
+        half_width = self.shape.half_width_m
+        ahead_m = clearance_along(masked, 0.0, half_width_m=half_width)
+        behind_m = clearance_along(masked, math.pi, half_width_m=half_width)
+        bumper = any(status.bumpers)
+        dead_end = self._boxed_in(pose, masked, stance.state)
+        # (short-circuit kept: the stall watch only runs with room ahead)
+        blocked_ahead = ahead_m < self.near_m or self._stalled(pose, t_s, stance.state) or dead_end
+        return Sensing(
+            points=masked,
+            raw=raw,
+            ahead_m=ahead_m,
+            blocked={1: blocked_ahead or bumper, -1: behind_m < self.near_m or bumper},
+            path_clear=stance.direction > 0
+            and ahead_m >= self.nav.clear_range_m
+            and self._route_ahead(pose, view, t_s),
+            imminent=self.nav.reactive
+            and (bumper or self._imminent(raw, odometry, stance.last_command)),
+            bumper=bumper,
+            dead_end=dead_end,
+        )
+
+    def _known_robots(
+        self, view: FleetView, state: str, t_s: float, pose: Pose2D, assume_formed: bool
+    ) -> list[tuple[Vec2, float]]:
+        """Body-frame centres (and mask radii) of robots whose echoes are not obstacles:
+        the tracked one where its state says it is, the others where the shape expects.
+        """
+        known: list[tuple[Vec2, float]] = []
+        lead = view.lead
+        radius_m = self.shape.radius_m
+        if lead is not None:
+            predicted = predict_leader(lead.pose, lead.twist, max(0.0, t_s - lead.stamp_s))
+            known.append((pose.to_body(predicted.position), radius_m + TRACKED_MASK_M))
+        if state not in OUT_OF_FORMATION:
+            for rid, offset in self._maskable.items():
+                flags = view.live.get(rid)
+                # Not heard yet (starting up) counts as in its slot, as the scenario has it.
+                in_slot = flags.formed if flags is not None else assume_formed
+                if rid not in (self.robot_id, view.tracked_id) and in_slot:
+                    known.append((offset, radius_m + EXPECTED_MASK_M))
+        return known
+
+    def _stalled(self, pose: Pose2D, t_s: float, state: str) -> bool:
+        """A navigating leader that turns and creeps without getting anywhere is blocked
+        as surely as one facing a wall: say so, and the group's rules take over.
+        """
+        if state not in _NAVIGATING or self.plan == "scripted":
+            self.stall.reset()
+            return False
+        return self.stall.stalled(pose, t_s)
+
+    def _route_ahead(self, pose: Pose2D, view: FleetView, t_s: float) -> bool:
+        """Whether the way to the goal goes on ahead of this robot (so it could lead):
+        a follower asks its map only while the leader is blocked and might hand over.
+        """
+        waypoints, waypoint = self.nav.waypoints, self.progress.waypoint
+        if self.plan != "goto" or self.planner.map is None or waypoint >= len(waypoints):
+            return True
+        if not view.is_leader:
+            head = view.live.get(view.leader_id)
+            if head is None or not head.obstacle:
+                return True
+            carrot = self.planner.towards(pose, Vec2(*waypoints[waypoint]), t_s)
+        else:
+            carrot = self.planner.carrot or Vec2(*waypoints[waypoint])
+        return abs(bearing_rad(pose, carrot)) <= REORIENT_ROUTE_RAD
+
+    def _boxed_in(self, pose: Pose2D, points: Points, state: str) -> bool:
+        """A navigating leader whose route leads back the way it came, with no room for
+        the shape to turn round where it is: the dead end the deadlock reverse is for.
+        """
+        carrot = self.planner.carrot
+        if state not in _NAVIGATING or carrot is None:
+            return False
+        behind = abs(bearing_rad(pose, carrot)) > BEHIND_RAD
+        return behind and not self.shape.sweep_clear(points)
+
+    def _imminent(self, raw: Points, odometry: Odometry, last: Twist2D) -> bool:
+        """An obstacle (any, robots included) inside the braking distance + margin."""
+        v_mps = odometry.twist.v_mps
+        moving = v_mps if abs(v_mps) > STANDSTILL_MPS else last.v_mps
+        if abs(moving) <= STANDSTILL_MPS:
+            return False  # turning on the spot: a round robot sweeps nothing new
+        speed = max(abs(v_mps), abs(last.v_mps))
+        braking = braking_gap_m(speed, decel_mps2=self.limits.decel_mps2, latency_s=2 * self.dt_s)
+        half_width = self.shape.radius_m + ESTOP_MARGIN_M
+        if nearest_m(raw) > braking + self.nav.stop_margin_m + half_width:
+            return False  # nothing near enough to matter, whatever the heading
+        way = 0.0 if moving > 0 else math.pi
+        gap = clearance_along(raw, way, half_width_m=half_width)
+        return gap < braking + self.nav.stop_margin_m
+
+
+def way_clear(sensing: Sensing, shape: Shape, view: FleetView, pose: Pose2D, t_s: float) -> bool:
+    """Room to brake from cruise speed the way this robot means to go (what ends an
+    emergency stop): forwards for a leader; for a follower, the way to its slot (or,
+    on it, the way its slot moves).
+    """
+    backwards = False
+    if view.lead is not None and not view.is_leader:
+        target, ff = shape.slot_target(view.lead, t_s)
+        offset = target.position - pose.position
+        along = offset.x_m * math.cos(pose.theta_rad) + offset.y_m * math.sin(pose.theta_rad)
+        backwards = along < -INTENT_M or (abs(along) <= INTENT_M and ff.v_mps < 0.0)
+    gap = clearance_along(
+        sensing.raw, math.pi if backwards else 0.0, half_width_m=shape.radius_m + ESTOP_MARGIN_M
+    )
+    return gap >= shape.stop_gap_m() + RELEASE_MARGIN_M

@@ -1,0 +1,190 @@
+"""Config files: TOML (or JSON) into the models of `phalanx.core.config`, and overrides.
+
+`load_scenario` and `load_robot` turn validation errors into a `ConfigError` that names
+the file, the field path and, for a misspelt key, the closest valid name;
+`apply_overrides` applies dotted `path=value` assignments to a scenario and validates the
+result again.
+"""
+
+from __future__ import annotations
+
+import difflib
+import json
+import math
+import re
+import tomllib
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any, TypeVar
+
+from pydantic import BaseModel, ValidationError
+
+from phalanx.core.config import RobotParams, Scenario
+from phalanx.core.errors import ConfigError
+
+CONFIG_ROOT = Path(__file__).resolve().parents[2] / "configs"
+ROBOTS_DIR = CONFIG_ROOT / "robots"
+
+M = TypeVar("M", bound=BaseModel)
+
+
+def _field_names(model: type[BaseModel], loc: tuple[int | str, ...]) -> list[str]:
+    """Valid field names at the parent of an error location, for "did you mean"."""
+    current: Any = model
+    for part in loc[:-1]:
+        if isinstance(part, int):
+            continue
+        fields = getattr(current, "model_fields", {})
+        if part not in fields:
+            return []
+        annotation = fields[part].annotation
+        current = _innermost_model(annotation)
+        if current is None:
+            return []
+    return list(getattr(current, "model_fields", {}))
+
+
+def _innermost_model(annotation: Any) -> type[BaseModel] | None:
+    if isinstance(annotation, type) and issubclass(annotation, BaseModel):
+        return annotation
+    for arg in getattr(annotation, "__args__", ()):
+        found = _innermost_model(arg)
+        if found is not None:
+            return found
+    return None
+
+
+def _describe(error: Mapping[str, Any], model: type[BaseModel]) -> str:
+    loc = tuple(error["loc"])
+    path = ".".join(str(p) for p in loc) or "<root>"
+    message = f"{path}: {error['msg']}"
+    if error["type"] == "extra_forbidden" and loc:
+        hints = difflib.get_close_matches(str(loc[-1]), _field_names(model, loc), n=1)
+        if hints:
+            message += f" (did you mean {hints[0]!r}?)"
+    return message
+
+
+def validate_file(model: type[M], path: Path) -> M:
+    """Read a TOML file (or JSON, as tools write it) into `model`.
+
+    Raises ConfigError naming the file, the field path and a hint.
+    """
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError as exc:
+        raise ConfigError(f"{path}: no such file") from exc
+    try:
+        data = json.loads(text) if path.suffix == ".json" else tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{path}: not valid TOML: {exc}") from exc
+    except json.JSONDecodeError as exc:
+        raise ConfigError(f"{path}: not valid JSON: {exc}") from exc
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}: expected a table at the top level")
+    return validate_data(model, data, source=str(path))
+
+
+def validate_data(model: type[M], data: Mapping[str, Any], *, source: str) -> M:
+    """Validate a mapping into `model`, or raise ConfigError naming source and fields."""
+    try:
+        return model.model_validate(data)
+    except ValidationError as exc:
+        lines = [_describe(e, model) for e in exc.errors()]
+        raise ConfigError(f"{source}: invalid {model.__name__}:\n  " + "\n  ".join(lines)) from exc
+
+
+def load_robot(name_or_path: str | Path) -> RobotParams:
+    """Load a robot parameter file by name (configs/robots/NAME.toml) or path."""
+    path = Path(name_or_path)
+    if path.suffix != ".toml":
+        path = ROBOTS_DIR / f"{name_or_path}.toml"
+    return validate_file(RobotParams, path)
+
+
+def load_scenario(path: str | Path) -> Scenario:
+    """Load a scenario file (TOML; JSON is accepted for generated scenarios)."""
+    return validate_file(Scenario, Path(path))
+
+
+def apply_overrides(scenario: Scenario, assignments: list[str]) -> Scenario:
+    """A copy of `scenario` with dotted `path=value` assignments (TOML values) applied.
+
+    For example `controller.kind="ours"` or `noise.sonar_std_m=0.02`; bare words are taken
+    as strings, so `controller.kind=ours` works too. The result is validated again.
+    """
+    data = scenario.model_dump(mode="python")
+    for assignment in assignments:
+        path, sep, text = assignment.partition("=")
+        if not sep or not path.strip():
+            raise ConfigError(f"override {assignment!r}: expected PATH=VALUE")
+        _set_path(data, path.strip().split("."), parse_value(text.strip()), assignment)
+    return validate_data(Scenario, data, source=f"{scenario.name} with overrides")
+
+
+_BARE_KEY = re.compile(r"^[A-Za-z0-9_-]+$")
+
+
+def parse_value(text: str) -> Any:
+    """A command-line value as TOML reads it (`0.3`, `true`, `"x"`, `[1, 2]`); anything
+    TOML cannot read is taken as a bare string.
+    """
+    try:
+        return tomllib.loads(f"v = {text}")["v"]
+    except tomllib.TOMLDecodeError:
+        return text
+
+
+def _set_path(data: dict[str, Any], keys: list[str], value: Any, assignment: str) -> None:
+    node: Any = data
+    for key in keys[:-1]:
+        node = _child(node, key, assignment)
+    last = keys[-1]
+    if isinstance(node, list) and last.isdigit() and int(last) < len(node):
+        node[int(last)] = value
+    elif isinstance(node, dict):
+        node[last] = value
+    else:
+        raise ConfigError(f"override {assignment!r}: {'.'.join(keys[:-1])} is not a table")
+
+
+def _child(node: Any, key: str, assignment: str) -> Any:
+    if isinstance(node, dict) and key in node:
+        return node[key]
+    if isinstance(node, list | tuple) and key.isdigit() and int(key) < len(node):
+        return node[int(key)]
+    raise ConfigError(f"override {assignment!r}: no field {key!r}")
+
+
+def toml_value(value: object) -> str:
+    """`value` written as a TOML value, what `parse_value` (and so `--set` and
+    `--driver-setting KEY=VALUE`) reads back; table keys bare where TOML allows it.
+    """
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, int):
+        return str(value)
+    if isinstance(value, float):
+        if math.isnan(value):
+            return "nan"
+        return repr(value) if math.isfinite(value) else ("inf" if value > 0 else "-inf")
+    if isinstance(value, str):
+        return '"' + "".join(_escape(char) for char in value) + '"'
+    if isinstance(value, list | tuple):
+        return "[" + ", ".join(toml_value(item) for item in value) + "]"
+    if isinstance(value, Mapping):
+        pairs = (f"{_toml_key(str(k))} = {toml_value(v)}" for k, v in value.items())
+        return "{ " + ", ".join(pairs) + " }"
+    raise ConfigError(f"cannot write {value!r} as a TOML value")
+
+
+def _escape(char: str) -> str:
+    if char in '"\\':
+        return "\\" + char
+    if ord(char) < 0x20 or ord(char) == 0x7F:
+        return f"\\u{ord(char):04x}"
+    return char
+
+
+def _toml_key(key: str) -> str:
+    return key if _BARE_KEY.match(key) else toml_value(key)

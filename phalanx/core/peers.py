@@ -1,0 +1,105 @@
+"""What a robot shares with its fleet every control step, as plain values.
+
+The agent brain produces a `PeerState` each step and reads its peers' states and flags
+in the same form; the wire (`phalanx.wire.messages`) validates and encodes them at the
+edge of a process. In one process (the batch runner) they pass from robot to robot as
+they are, with no validation on the hot path.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from phalanx.core.geometry import Pose2D, Twist2D
+
+
+@dataclass(frozen=True, slots=True)
+class PeerFlags:
+    """A robot's behaviour flags: enough for every robot to take the leadership and
+    deadlock decisions the same way (`phalanx.agents.leadership`), without its pose.
+
+    `obstacle`: its path is blocked (in its `direction` of motion, +1 or -1), for
+    `blocked_s`; `dead_end`: (a leader) its route leads back the way it came and the
+    shape has no room to turn; `clear`: its path ahead is free far enough to lead;
+    `formed`: it is in its slot (a robot that is not may not be tracked);
+    `formation_leader_id`/`epoch`: who it thinks leads, under which epoch; `waypoint`,
+    `deadlocks`, `profile_s`: the group's progress (next waypoint, deadlocks at it,
+    scripted profile clock in s).
+    """
+
+    robot_id: str
+    seq: int
+    stamp_s: float
+    fsm_state: str
+    obstacle: bool = False
+    direction: int = 1
+    epoch: int = 0
+    formation_leader_id: str = ""
+    clear: bool = False
+    formed: bool = True
+    blocked_s: float = 0.0
+    dead_end: bool = False
+    waypoint: int = 0
+    deadlocks: int = 0
+    profile_s: float = 0.0
+
+
+@dataclass(frozen=True, slots=True)
+class PeerState:
+    """A robot's state: pose in the shared world frame (m, rad) at `stamp_s` on the fleet
+    clock; twist (m/s, rad/s) it executes from `stamp_s` on, so a receiver can
+    dead-reckon the pose to its own time; `leader_id`, the robot it tracks ("" while it
+    leads); and its flags (see `PeerFlags`), so a robot tracking it needs nothing else.
+    """
+
+    robot_id: str
+    seq: int
+    stamp_s: float
+    x_m: float
+    y_m: float
+    theta_rad: float
+    v_mps: float
+    omega_radps: float
+    fsm_state: str
+    obstacle: bool = False
+    direction: int = 1
+    leader_id: str = ""
+    epoch: int = 0
+    formation_leader_id: str = ""
+    clear: bool = False
+    formed: bool = True
+    blocked_s: float = 0.0
+    dead_end: bool = False
+    waypoint: int = 0
+    deadlocks: int = 0
+    profile_s: float = 0.0
+
+    @property
+    def pose(self) -> Pose2D:
+        """The robot's pose."""
+        return Pose2D(self.x_m, self.y_m, self.theta_rad)
+
+    @property
+    def twist(self) -> Twist2D:
+        """The robot's twist."""
+        return Twist2D(self.v_mps, self.omega_radps)
+
+    def flags(self) -> PeerFlags:
+        """The behaviour flags in this state (what every other robot needs)."""
+        return PeerFlags(
+            robot_id=self.robot_id,
+            seq=self.seq,
+            stamp_s=self.stamp_s,
+            fsm_state=self.fsm_state,
+            obstacle=self.obstacle,
+            direction=self.direction,
+            epoch=self.epoch,
+            formation_leader_id=self.formation_leader_id,
+            clear=self.clear,
+            formed=self.formed,
+            blocked_s=self.blocked_s,
+            dead_end=self.dead_end,
+            waypoint=self.waypoint,
+            deadlocks=self.deadlocks,
+            profile_s=self.profile_s,
+        )

@@ -1,0 +1,160 @@
+"""`phalanx launch`: a deployed fleet run to its end through its hosts' daemons.
+
+The launcher waits (bounded) for every host of the deployment to be present and to hold
+the same deployment and scenario files, asks each host to spawn its part of the run,
+then follows the run: the hosts' status queryables (process states, restarts, last
+errors), the robots' own state messages (behaviour state, leader, publication rate) and
+the children's output (log lines the daemons publish). It ends when every process has
+ended, on its timeout, or on Ctrl-C, and then asks every host to stop what is left.
+"""
+
+from __future__ import annotations
+
+import queue
+import time
+from dataclasses import dataclass, field
+
+from phalanx.core.config_files import apply_overrides
+from phalanx.hosts.deployment import LoadedDeployment, needs_epoch
+from phalanx.hosts.fleet_client import FleetClient, FleetWatch
+from phalanx.hosts.fleet_output import Output, fleet_rows, scenario_ticks
+from phalanx.hosts.protocol import ACTIVE_STATES, HostStatus
+from phalanx.runtime.signals import Stoppable
+from phalanx.wire.transport import TransportConfig
+
+POLL_S = 0.5
+
+
+@dataclass
+class LaunchOptions:
+    """What `phalanx launch` does beyond the deployment file."""
+
+    run_id: str
+    overrides: tuple[str, ...] = ()
+    host_wait_s: float = 30.0
+    timeout_s: float | None = None  # default: the scenario's duration plus a margin
+    detach: bool = False  # return once the fleet is up; `phalanx stop` ends it
+    finish_grace_s: float = 15.0  # agents still running this long after the world ended
+
+
+@dataclass
+class _Run:
+    started: float
+    spawned: float = 0.0
+    up_at: float | None = None
+    world_done_at: float | None = None
+    statuses: dict[str, HostStatus | None] = field(default_factory=dict)
+    results: list[str] = field(default_factory=list)
+
+
+def launch(
+    loaded: LoadedDeployment,
+    options: LaunchOptions,
+    *,
+    transport: TransportConfig,
+    output: Output,
+    stop: Stoppable,
+) -> int:
+    """Run a deployment to its end (or Ctrl-C, or the timeout); the exit code."""
+    run = _Run(started=time.monotonic())
+    with FleetClient(loaded, transport) as client:
+        client.wait_for_hosts(options.host_wait_s, output.event)
+        output.event(
+            f"hosts present: {', '.join(client.host_names)} "
+            f"({time.monotonic() - run.started:.2f} s)"
+        )
+        epoch = time.time() + loaded.spec.startup_s if needs_epoch(loaded) else None
+        try:
+            run.statuses = dict(
+                client.spawn(options.run_id, overrides=options.overrides, epoch_unix=epoch)
+            )
+            run.spawned = time.monotonic()
+            output.event(f"run {options.run_id} started ({run.spawned - run.started:.2f} s)")
+            code = _follow(client, loaded, options, run, output, stop)
+        except BaseException:  # whatever started must not outlive a failed launch
+            _stop_everything(client, options, output)
+            raise
+        if not options.detach or code != 0:
+            _stop_everything(client, options, output)
+            _drain_logs(client.watch, output, run)
+        for line in run.results:
+            output.event(line)
+    return code
+
+
+def _follow(
+    client: FleetClient,
+    loaded: LoadedDeployment,
+    options: LaunchOptions,
+    run: _Run,
+    output: Output,
+    stop: Stoppable,
+) -> int:
+    timeout_s = options.timeout_s or _default_timeout_s(loaded)
+    deadline = run.started + timeout_s
+    robots = [r.id for r in loaded.spec.robots]
+    ticks = scenario_ticks(apply_overrides(loaded.scenario, list(options.overrides)))
+    while not stop.wait(POLL_S):
+        _drain_logs(client.watch, output, run)
+        run.statuses.update(client.statuses())
+        world = client.world_status()
+        rows = fleet_rows(loaded, run.statuses, client.watch, world=world, total_ticks=ticks)
+        output.update(rows)
+        if run.up_at is None and client.watch.seen_since(robots, run.spawned):
+            run.up_at = time.monotonic()
+            output.event(f"fleet up in {run.up_at - run.started:.2f} s (every robot publishing)")
+            if options.detach:
+                return 0
+        code = _finished(run, loaded, options)
+        if code is not None:
+            return code
+        if time.monotonic() > deadline:
+            output.event(f"timed out after {timeout_s:.0f} s")
+            return 1
+    output.event("interrupted")
+    return 1
+
+
+def _default_timeout_s(loaded: LoadedDeployment) -> float:
+    speed = loaded.spec.world.speed if loaded.spec.world else 1.0
+    return loaded.scenario.duration_s / speed + loaded.spec.startup_s + 120.0
+
+
+def _finished(run: _Run, loaded: LoadedDeployment, options: LaunchOptions) -> int | None:
+    children = [c for s in run.statuses.values() if s is not None for c in s.children]
+    if any(c.state == "failed" for c in children if c.kind == "world"):
+        return 1
+    world = [c for c in children if c.kind == "world"]
+    if world and world[0].state in ("finished", "stopped"):
+        run.world_done_at = run.world_done_at or time.monotonic()
+        late = time.monotonic() - run.world_done_at > options.finish_grace_s
+        if late or not any(c.state in ACTIVE_STATES for c in children):
+            return 0 if world[0].state == "finished" else 1
+        return None
+    if loaded.spec.world is not None or not children:
+        return None
+    if any(c.state in ACTIVE_STATES for c in children):
+        return None
+    return 1 if any(c.state == "failed" for c in children) else 0
+
+
+def _stop_everything(client: FleetClient, options: LaunchOptions, output: Output) -> None:
+    replies = client.stop(options.run_id)
+    for host, reply in replies.items():
+        if reply is None:
+            output.event(f"host {host} did not answer the stop request")
+    left = client.wait_stopped(timeout_s=15.0)
+    if left:
+        output.event(f"still running after the stop request: {', '.join(left)}")
+
+
+def _drain_logs(watch: FleetWatch, output: Output, run: _Run) -> None:
+    while True:
+        try:
+            line = watch.logs.get_nowait()
+        except queue.Empty:
+            return
+        if line.child == "world" and line.line.startswith("results: "):
+            folder = line.line.removeprefix("results: ")
+            run.results.append(f"results on host {line.host}: {folder}")
+        output.log(line)

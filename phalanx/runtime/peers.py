@@ -1,0 +1,182 @@
+"""What an agent process hears of its fleet, and what of its own it sends.
+
+Every robot's small flags are heard by every robot (leadership and deadlock are decided
+from them on every robot); a robot's full state only by the robots that may track it,
+those on its follow-tree path to the current leader. In lockstep (one machine,
+deterministic runs) every state is taken instead, so the robot tracked after a
+leadership change has a state from the very same tick, and a step first waits (bounded)
+for the states the batch runner would hand it (published `comm_delay_s` earlier).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Iterable
+from typing import TypeVar
+
+from phalanx.core.formation import Formation
+from phalanx.core.peers import PeerFlags, PeerState
+from phalanx.wire.keys import robot_key, robot_of, robots_key
+from phalanx.wire.messages import RobotFlags, RobotState
+from phalanx.wire.transport import FleetSession, History, Polled
+
+EPS_S = 1e-6
+# Flags (or states) held per robot between two steps before the oldest are dropped (one
+# arrives per robot and control period; the ring absorbs a late step).
+RING_PER_ROBOT = 8
+S = TypeVar("S", PeerState, PeerFlags)
+
+
+def pick_state(states: Iterable[S], not_after_s: float) -> S | None:
+    """The newest state stamped no later than `not_after_s`."""
+    chosen = None
+    for state in states:
+        if state.stamp_s <= not_after_s + EPS_S and (
+            chosen is None or state.stamp_s > chosen.stamp_s
+        ):
+            chosen = state
+    return chosen
+
+
+def _has_state(states: Iterable[PeerState], not_after_s: float) -> bool:
+    return any(abs(s.stamp_s - not_after_s) <= EPS_S or s.stamp_s > not_after_s for s in states)
+
+
+# What flags say, as far as other robots decide on it: not who sent them, their sequence
+# number or stamp, nor a follower's copy of the leader's profile clock (only the leader's
+# is read).
+_FLAGS_VOLATILE = frozenset({"robot_id", "seq", "stamp_s", "profile_s"})
+_FLAGS_DECISIVE = tuple(
+    f.name for f in dataclasses.fields(PeerFlags) if f.name not in _FLAGS_VOLATILE
+)
+
+
+class FlagsThrottle:
+    """Decides which flags go out: those that say something new, and unchanged ones as a
+    heartbeat every `heartbeat_s` (every robot hears every robot: unchanged flags at
+    every step would cost the fleet n^2 messages a period for nothing).
+    """
+
+    def __init__(self, heartbeat_s: float) -> None:
+        self.heartbeat_s = heartbeat_s
+        self.skipped = 0
+        self._sent: tuple[float, tuple[object, ...]] | None = None  # when, what
+
+    def due(self, flags: PeerFlags) -> bool:
+        """Whether to publish `flags` (if so, they count as sent)."""
+        content = tuple(getattr(flags, f) for f in _FLAGS_DECISIVE)
+        if flags.formation_leader_id == flags.robot_id:
+            content += (flags.profile_s,)
+        sent = self._sent
+        if (
+            sent is None
+            or content != sent[1]
+            or flags.stamp_s - sent[0] >= self.heartbeat_s - EPS_S
+        ):
+            self._sent = (flags.stamp_s, content)
+            return True
+        self.skipped += 1
+        return False
+
+
+class PeerInbox:
+    """The states and flags an agent process has heard, by robot, and who is gone."""
+
+    def __init__(self, robot_id: str, formation: Formation, *, fleet: str, lockstep: bool) -> None:
+        self.robot_id = robot_id
+        self.formation = formation
+        self.fleet = fleet
+        self.lockstep = lockstep
+        self.states = History(depth=16)
+        self.flags = History(depth=4)  # one a period per robot; real time needs the newest
+        self.dead: set[str] = set()
+        self.late_steps = 0
+        self._session: FleetSession | None = None
+        self._flag_ring: Polled[RobotFlags] | None = None
+        self._state_rings: list[Polled[RobotState]] = []
+        self._subscribed: set[str] = set()
+
+    def attach(self, session: FleetSession, watched: tuple[str, ...]) -> None:
+        """Subscribe: every state in lockstep, else every robot's flags (drained from a
+        ring once per step, no wake-up per message) and the states of `watched`.
+        """
+        self._session = session
+        if self.lockstep:
+            session.subscribe(robots_key(self.fleet, "state"), RobotState, self._on_state)
+            return
+        capacity = RING_PER_ROBOT * len(self.formation.robot_ids)
+        self._flag_ring = session.subscribe_polled(
+            robots_key(self.fleet, "flags"), RobotFlags, capacity
+        )
+        self.follow(watched)
+
+    def follow(self, watched: tuple[str, ...]) -> None:
+        """Subscribe to the states of the robots in `watched` not yet heard."""
+        if self._session is None:
+            return
+        for peer in watched:
+            if peer not in self._subscribed:
+                self._subscribed.add(peer)
+                key = robot_key(self.fleet, peer, "state")
+                ring = self._session.subscribe_polled(key, RobotState, RING_PER_ROBOT)
+                self._state_rings.append(ring)
+
+    def drain(self) -> None:
+        """Take what waits in the rings."""
+        if self._flag_ring is not None:
+            self._flag_ring.drain(self._on_flags)
+        for ring in self._state_rings:
+            ring.drain(self._on_state)
+
+    def _on_state(self, key: str, state: RobotState) -> None:
+        if robot_of(key) == state.robot_id and state.robot_id not in self.dead:
+            self.states.push(state.robot_id, state.peer())
+
+    def _on_flags(self, key: str, flags: RobotFlags) -> None:
+        if robot_of(key) == flags.robot_id and flags.robot_id not in self.dead:
+            self.flags.push(flags.robot_id, flags.peer())
+
+    def keep_own(self, state: PeerState, flags: PeerFlags) -> None:
+        """The robot's own state and flags, as published: part of what the next step
+        decides on.
+        """
+        self.flags.push(self.robot_id, flags)
+        self.states.push(self.robot_id, state)
+
+    def on_alive(self, robot: str, alive: bool) -> None:
+        """A robot's process appeared or went (its liveliness token)."""
+        if robot == self.robot_id or robot not in self.formation.positions:
+            return
+        if alive:
+            self.dead.discard(robot)
+        else:
+            self.dead.add(robot)
+            self.states.forget(robot)
+            self.flags.forget(robot)
+
+    def alive(self) -> list[str]:
+        """The fleet's robots not known to be gone."""
+        return [r for r in self.formation.robot_ids if r not in self.dead]
+
+    def for_step(
+        self, t_s: float, *, delay_s: float, watched: tuple[str, ...], wait_s: float
+    ) -> tuple[dict[str, PeerState], dict[str, PeerFlags]]:
+        """The states (and, in real time, flags) the agent gets for the step at `t_s`."""
+        if not self.lockstep:
+            states = {p: pick_state(self.states.values(p), t_s) for p in watched}
+            flags = {p: pick_state(self.flags.values(p), t_s) for p in self.alive()}
+            return (
+                {p: s for p, s in states.items() if s is not None},
+                {p: f for p, f in flags.items() if f is not None},
+            )
+        not_after = t_s - delay_s
+        needed = [p for p in self.alive() if p != self.robot_id]
+        if t_s - delay_s >= -EPS_S:
+
+            def ready() -> bool:
+                return all(_has_state(self.states.values(p), not_after) for p in needed)
+
+            if not self.states.wait(ready, wait_s):
+                self.late_steps += 1
+        chosen = {p: pick_state(self.states.values(p), not_after) for p in self.alive()}
+        return {p: s for p, s in chosen.items() if s is not None}, {}
