@@ -7,16 +7,22 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from phalanx.agents.leadership import LeadershipChange, LiveFlags
+from phalanx.agents.perception import SonarEchoes
 from phalanx.core.peers import PeerState
 from phalanx.core.robot import Odometry, RobotStatus
 
 
 @dataclass(frozen=True, slots=True)
 class Observation:
-    """What a robot senses this step (from its driver, or the simulated world)."""
+    """What a robot senses this step (from its driver, or the simulated world).
+
+    `sonar`: the sonar ranges of `status` already read as geometry (the batch runner reads
+    every robot's ring in one pass); None, and the agent reads them itself.
+    """
 
     odometry: Odometry
     status: RobotStatus
+    sonar: SonarEchoes | None = None
 
 
 @dataclass(frozen=True, slots=True)

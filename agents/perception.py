@@ -6,7 +6,10 @@ occupied). From the points: the free distance along a straight corridor as wide 
 robot (plus a margin) in any heading, for the robot alone or for a whole formation, and
 the heading a reactive navigator should take towards a goal.
 
-Pure numpy, no I/O: the same numbers in the batch runner and on a robot.
+Pure numpy, no I/O: the same numbers in the batch runner and on a robot. A reading's
+geometry (`SonarEchoes`) is worked out for a whole fleet in one pass
+(`SonarGeometry.read_all`, what the batch runner does) or for one robot (`read`, the
+same code on one row): elementwise arithmetic gives each robot the same numbers either way.
 """
 
 from __future__ import annotations
@@ -37,6 +40,45 @@ ARC_SPREAD_M = 0.3
 NEAR_NEED_M = 2.0
 # Weight of "close to the last choice" against "close to the goal" (choose_heading).
 STICKINESS = 0.5
+
+
+@dataclass(frozen=True, slots=True)
+class SonarEchoes:
+    """One sonar reading as geometry in the robot's body frame, before any echo is
+    known to be a robot: the ranges, which transducers heard an echo short of max range
+    (`echo`), the point of every ray at its transducer's range (`ray_x_m`, `ray_y_m`),
+    the rays that are obstacle points of those echoes (`seen`), those points (`raw`)
+    and the distance to the nearest of them (`nearest_m`, inf if none).
+    """
+
+    ranges_m: FloatArray
+    echo: BoolArray
+    ray_x_m: FloatArray
+    ray_y_m: FloatArray
+    seen: BoolArray
+    raw: tuple[FloatArray, FloatArray]
+    nearest_m: float
+
+
+@dataclass(frozen=True)
+class FixedDiscs:
+    """Discs that stay put in the body frame (the formation's slots, where the shape
+    expects the other robots), with what `arcs_meet` needs of them worked out once.
+    """
+
+    cx: FloatArray  # (discs, 1)
+    cy: FloatArray
+    radius_m: float
+    dirs: tuple[FloatArray, FloatArray]
+    cut_m: FloatArray  # (discs,): centre's distance from the body origin less the radius
+
+    @classmethod
+    def of(cls, sonar: SonarGeometry, centres: Sequence[Vec2], radius_m: float) -> FixedDiscs:
+        """The discs of `radius_m` at `centres` (body frame)."""
+        cx = np.array([c.x_m for c in centres], dtype=np.float64).reshape(-1, 1)
+        cy = np.array([c.y_m for c in centres], dtype=np.float64).reshape(-1, 1)
+        cut = np.array([math.hypot(c.x_m, c.y_m) - radius_m for c in centres], dtype=np.float64)
+        return cls(cx, cy, radius_m, sonar.nearest_dirs(cx, cy), cut)
 
 
 @dataclass(frozen=True)
@@ -133,6 +175,79 @@ class SonarGeometry:
         y = self.origin_y_m + r * np.sin(angle)
         return x[seen], y[seen]
 
+    def read(self, ranges_m: Sequence[float] | FloatArray) -> SonarEchoes:
+        """The geometry of one reading (see `read_all`)."""
+        ranges = np.asarray(ranges_m, dtype=np.float64)
+        units = self.unit_x_m.size
+        if ranges.size < units:  # not the ring of the parameter file: no echo at all
+            rays = self.unit_of_ray.size
+            return SonarEchoes(
+                ranges,
+                np.zeros(units, dtype=bool),
+                np.zeros(rays),
+                np.zeros(rays),
+                np.zeros(rays, dtype=bool),
+                (np.zeros(0), np.zeros(0)),
+                NO_OBSTACLE_M,
+            )
+        return self.read_all(ranges[None, :units], full=ranges[None, :])[0]
+
+    def read_all(
+        self, ranges_m: FloatArray, *, full: FloatArray | None = None
+    ) -> list[SonarEchoes]:
+        """The geometry of every robot's reading, rows of `ranges_m` (robots, transducers),
+        worked out in one pass: the arithmetic of `echoes` and `points_of`, row by row.
+        `full`: the readings as the robots gave them, if longer than the ring.
+        """
+        r = np.asarray(ranges_m, dtype=np.float64)
+        echo = r < self.max_range_m - _AT_MAX_RANGE_M
+        ray_r = r[:, self.unit_of_ray]
+        seen = echo[:, self.unit_of_ray] & (~self.gap_fill | (ray_r < GAP_FILL_RANGE_M))
+        spread = np.arctan2(ARC_SPREAD_M, np.maximum(ray_r, 1e-6))
+        offset = np.where(self.gap_fill, self.offset_rad, np.clip(self.offset_rad, -spread, spread))
+        angle = self.angle_rad - self.offset_rad + offset
+        x = self.origin_x_m + ray_r * np.cos(angle)
+        y = self.origin_y_m + ray_r * np.sin(angle)
+        near = np.sqrt(np.where(seen, x * x + y * y, np.inf).min(axis=1)).tolist()
+        rows = full if full is not None else r
+        out = []
+        for i, hits in enumerate(seen):
+            raw = (x[i][hits], y[i][hits]) if near[i] < NO_OBSTACLE_M else _NO_POINTS
+            out.append(SonarEchoes(rows[i], echo[i], x[i], y[i], hits, raw, near[i]))
+        return out
+
+    def points_from(self, reading: SonarEchoes, echo: BoolArray) -> tuple[FloatArray, FloatArray]:
+        """The obstacle points of the transducers `echo` marks (a subset of the reading's
+        echoes): `points_of` on the reading's geometry.
+        """
+        keep = reading.seen & echo[self.unit_of_ray]
+        return reading.ray_x_m[keep], reading.ray_y_m[keep]
+
+    def echoes_of(
+        self,
+        reading: SonarEchoes,
+        known: Sequence[tuple[Vec2, float]] = (),
+        fixed: FixedDiscs | None = None,
+        rows: BoolArray | None = None,
+    ) -> BoolArray:
+        """`echoes(reading.ranges_m, discs)`, the discs being `known` and the `rows` of
+        `fixed` (the same numbers: the fixed discs' geometry is only worked out earlier).
+        """
+        echo = reading.echo
+        if not echo.any() or (not known and (fixed is None or rows is None or not rows.any())):
+            return echo
+        r = reading.ranges_m[: self.unit_x_m.size]
+        reach_m = self.mount_m + float(r[echo].max()) + _REACH_MARGIN_M
+        near = [(c, rad) for c, rad in known if math.hypot(c.x_m, c.y_m) - rad < reach_m]
+        met = self.arcs_meet(r, near).any(axis=0) if near else None
+        if fixed is not None and rows is not None:
+            rows = rows & (fixed.cut_m < reach_m)
+            if rows.any():
+                hit = self.arcs_meet_at(r, fixed.cx, fixed.cy, fixed.radius_m, fixed.dirs)
+                on_rows = hit[rows].any(axis=0)
+                met = on_rows if met is None else met | on_rows
+        return echo if met is None else echo & ~met
+
     def echoes(self, ranges: FloatArray, known: Sequence[tuple[Vec2, float]] = ()) -> BoolArray:
         """Per transducer: an echo (short of max range) that is not one of the `known`
         discs (see `points`). A reading with fewer ranges than the ring has transducers
@@ -159,13 +274,32 @@ class SonarGeometry:
         cx = np.array([[c.x_m] for c, _ in discs])
         cy = np.array([[c.y_m] for c, _ in discs])
         radius = np.array([[rad] for _, rad in discs])
+        return self.arcs_meet_at(r, cx, cy, radius, self.nearest_dirs(cx, cy))
+
+    def nearest_dirs(self, cx: FloatArray, cy: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """For discs centred at `cx`, `cy` (columns, body frame), the unit direction from
+        each transducer to the point of its beam (as far as it is taken to reach) nearest
+        each disc's centre: what `arcs_meet` needs that does not depend on the range, so
+        discs that stay put in the body frame (the formation's slots) can keep it.
+        """
         towards = np.arctan2(cy - self.unit_y_m, cx - self.unit_x_m)
         off = np.mod(towards - self.unit_heading_rad + math.pi, 2.0 * math.pi) - math.pi
         nearest = self.unit_heading_rad + np.minimum(
             np.maximum(off, -self.reach_right_rad), self.reach_left_rad
         )
-        px = self.unit_x_m + r * np.cos(nearest)
-        py = self.unit_y_m + r * np.sin(nearest)
+        return np.cos(nearest), np.sin(nearest)
+
+    def arcs_meet_at(
+        self,
+        r: FloatArray,
+        cx: FloatArray,
+        cy: FloatArray,
+        radius: FloatArray | float,
+        dirs: tuple[FloatArray, FloatArray],
+    ) -> BoolArray:
+        """`arcs_meet` given the discs' `nearest_dirs`."""
+        px = self.unit_x_m + r * dirs[0]
+        py = self.unit_y_m + r * dirs[1]
         meets: BoolArray = np.hypot(px - cx, py - cy) < radius
         return meets
 
@@ -173,6 +307,9 @@ class SonarGeometry:
     def mount_m(self) -> float:
         """The furthest transducer from the body origin (m)."""
         return float(np.hypot(self.unit_x_m, self.unit_y_m).max())
+
+
+_NO_POINTS: tuple[FloatArray, FloatArray] = (np.zeros(0), np.zeros(0))
 
 
 def _reach(headings: Sequence[float], i: int, half_beam_rad: float) -> tuple[float, float]:
@@ -235,6 +372,23 @@ def corridor_clearance(
         hit = np.where(ahead, np.maximum(f - half_chord, 0.0), np.inf)
         out = np.minimum(out, hit.min(axis=1))
     return out
+
+
+def clearances_along(
+    points: tuple[FloatArray, FloatArray], headings_rad: FloatArray, *, half_width_m: float
+) -> list[float]:
+    """`clearance_along` for several headings in one pass (the same numbers)."""
+    x, y = points
+    if x.size == 0:
+        return [NO_OBSTACLE_M] * headings_rad.size
+    c, s = np.cos(headings_rad)[:, None], np.sin(headings_rad)[:, None]
+    f = x * c + y * s
+    lat2 = np.square(y * c - x * s)
+    w2 = half_width_m * half_width_m
+    half_chord = np.sqrt(np.maximum(w2 - lat2, 0.0))
+    ahead = (lat2 < w2) & (f + half_chord > 0.0)
+    gap = np.where(ahead, f - half_chord, np.inf).min(axis=1)
+    return [max(0.0, g) for g in gap.tolist()]
 
 
 def clearance_along(

@@ -15,10 +15,13 @@ from phalanx.agents.behaviours.navigation import Plan, bearing_rad
 from phalanx.agents.inputs import FleetView, Observation
 from phalanx.agents.memory import Progress, StallWatch
 from phalanx.agents.perception import (
+    BoolArray,
+    FixedDiscs,
+    SonarEchoes,
     SonarGeometry,
     braking_gap_m,
     clearance_along,
-    nearest_m,
+    clearances_along,
 )
 from phalanx.agents.route import RoutePlanner
 from phalanx.agents.shape import Points, Shape
@@ -45,6 +48,7 @@ RELEASE_MARGIN_M = 0.1
 # A follower this close along its heading to its slot goes the way the slot goes.
 INTENT_M = 0.05
 _NAVIGATING = (State.NAVIGATE, State.WANDER)
+_AHEAD_BEHIND_RAD = np.array([0.0, math.pi])
 
 
 @dataclass(frozen=True, slots=True)
@@ -97,6 +101,11 @@ class Senses:
         # The robots near enough in the shape for the sonar to hear (only these are masked).
         audible_m = sonar.mount_m + sonar.max_range_m + shape.radius_m + EXPECTED_MASK_M
         self._maskable = {r: o for r, o in shape.offsets.items() if o.norm() < audible_m + 1.0}
+        # ... with where their echoes would come from worked out once (the shape is rigid)
+        self._slot_ids = [r for r in self._maskable if r != robot_id]
+        self._slots = FixedDiscs.of(
+            sonar, [self._maskable[r] for r in self._slot_ids], shape.radius_m + EXPECTED_MASK_M
+        )
 
     def read(
         self,
@@ -112,18 +121,20 @@ class Senses:
         """
         odometry, status = observation.odometry, observation.status
         pose = odometry.pose
-        ranges = np.asarray(status.sonar_ranges_m, dtype=np.float64)
-        every_echo = self.sonar.echoes(ranges)
-        raw = self.sonar.points_of(ranges, every_echo)
-        known = self._known_robots(view, stance.state, t_s, pose, assume_formed)
-        echo = self.sonar.echoes(ranges, known)
+        # (the batch runner reads every robot's ring in one pass; a robot alone, here)
+        reading = observation.sonar or self.sonar.read(status.sonar_ranges_m)
+        raw = reading.raw
+        echo = self._robot_echoes_masked(reading, view, stance.state, t_s, pose, assume_formed)
         # (the usual case, no echo of a robot: the same points, not worked out twice)
-        masked = raw if np.array_equal(echo, every_echo) else self.sonar.points_of(ranges, echo)
+        masked = (
+            raw
+            if echo is reading.echo or np.array_equal(echo, reading.echo)
+            else self.sonar.points_from(reading, echo)
+        )
         if self.plan != "scripted" and self.nav.reactive:
-            self.planner.see(pose, self.sonar, ranges, echo)
+            self.planner.see(pose, self.sonar, reading.ranges_m, echo)
         half_width = self.shape.half_width_m
-        ahead_m = clearance_along(masked, 0.0, half_width_m=half_width)
-        behind_m = clearance_along(masked, math.pi, half_width_m=half_width)
+        ahead_m, behind_m = clearances_along(masked, _AHEAD_BEHIND_RAD, half_width_m=half_width)
         bumper = any(status.bumpers)
         dead_end = self._boxed_in(pose, masked, stance.state)
         # (short-circuit kept: the stall watch only runs with room ahead)
@@ -137,31 +148,42 @@ class Senses:
             and ahead_m >= self.nav.clear_range_m
             and self._route_ahead(pose, view, t_s),
             imminent=self.nav.reactive
-            and (bumper or self._imminent(raw, odometry, stance.last_command)),
+            and (bumper or self._imminent(raw, reading.nearest_m, odometry, stance.last_command)),
             bumper=bumper,
             dead_end=dead_end,
         )
 
-    def _known_robots(
-        self, view: FleetView, state: str, t_s: float, pose: Pose2D, assume_formed: bool
-    ) -> list[tuple[Vec2, float]]:
-        """Body-frame centres (and mask radii) of robots whose echoes are not obstacles:
-        the tracked one where its state says it is, the others where the shape expects.
+    def _robot_echoes_masked(
+        self,
+        reading: SonarEchoes,
+        view: FleetView,
+        state: str,
+        t_s: float,
+        pose: Pose2D,
+        assume_formed: bool,
+    ) -> BoolArray:
+        """The reading's echoes less those of robots (the reading's own mask when none
+        is): the tracked one where its state says it is, the others where the shape
+        expects them.
         """
+        if not reading.echo.any():
+            return reading.echo
         known: list[tuple[Vec2, float]] = []
         lead = view.lead
-        radius_m = self.shape.radius_m
         if lead is not None:
             predicted = predict_leader(lead.pose, lead.twist, max(0.0, t_s - lead.stamp_s))
-            known.append((pose.to_body(predicted.position), radius_m + TRACKED_MASK_M))
-        if state not in OUT_OF_FORMATION:
-            for rid, offset in self._maskable.items():
-                flags = view.live.get(rid)
-                # Not heard yet (starting up) counts as in its slot, as the scenario has it.
-                in_slot = flags.formed if flags is not None else assume_formed
-                if rid not in (self.robot_id, view.tracked_id) and in_slot:
-                    known.append((offset, radius_m + EXPECTED_MASK_M))
-        return known
+            known.append((pose.to_body(predicted.position), self.shape.radius_m + TRACKED_MASK_M))
+        rows = None
+        if state not in OUT_OF_FORMATION and self._slot_ids:
+            live, tracked = view.live, view.tracked_id
+            # Not heard yet (starting up) counts as in its slot, as the scenario has it.
+            rows = np.array(
+                [
+                    rid != tracked and (live[rid].formed if rid in live else assume_formed)
+                    for rid in self._slot_ids
+                ]
+            )
+        return self.sonar.echoes_of(reading, known, self._slots, rows)
 
     def _stalled(self, pose: Pose2D, t_s: float, state: str) -> bool:
         """A navigating leader that turns and creeps without getting anywhere is blocked
@@ -198,7 +220,7 @@ class Senses:
         behind = abs(bearing_rad(pose, carrot)) > BEHIND_RAD
         return behind and not self.shape.sweep_clear(points)
 
-    def _imminent(self, raw: Points, odometry: Odometry, last: Twist2D) -> bool:
+    def _imminent(self, raw: Points, nearest: float, odometry: Odometry, last: Twist2D) -> bool:
         """An obstacle (any, robots included) inside the braking distance + margin."""
         v_mps = odometry.twist.v_mps
         moving = v_mps if abs(v_mps) > STANDSTILL_MPS else last.v_mps
@@ -207,7 +229,7 @@ class Senses:
         speed = max(abs(v_mps), abs(last.v_mps))
         braking = braking_gap_m(speed, decel_mps2=self.limits.decel_mps2, latency_s=2 * self.dt_s)
         half_width = self.shape.radius_m + ESTOP_MARGIN_M
-        if nearest_m(raw) > braking + self.nav.stop_margin_m + half_width:
+        if nearest > braking + self.nav.stop_margin_m + half_width:
             return False  # nothing near enough to matter, whatever the heading
         way = 0.0 if moving > 0 else math.pi
         gap = clearance_along(raw, way, half_width_m=half_width)

@@ -2,8 +2,10 @@
 odometry (with optional seeded noise) and scripted sensor events.
 
 Robot state lives in numpy arrays (one entry per robot) so a step of 1000 robots is a
-handful of vector operations; sonar is ray-cast lazily, per robot, against only the
-obstacles and robots within sonar range.
+handful of vector operations (a fleet of a few robots is stepped in plain floats, which
+is faster there and gives the same numbers). Sonar is cast for every robot in one
+vectorised pass (`sense_all`), or lazily per robot, against only the obstacles and
+robots within sonar range (found through a uniform grid once the fleet is large).
 """
 
 from __future__ import annotations
@@ -20,8 +22,20 @@ from phalanx.core.geometry import Pose2D, Twist2D, Vec2
 from phalanx.core.robot import Odometry, RobotStatus
 from phalanx.core.runlog import Collision
 from phalanx.core.scenarios import resolve_world
-from phalanx.simulator.kinematics import apply_robot_limits, integrate_arcs
-from phalanx.simulator.sonar import SonarRing, ray_circle_hits, ray_segment_hits
+from phalanx.simulator.kinematics import (
+    SCALAR_MAX,
+    apply_robot_limits,
+    integrate_arcs,
+    limits_and_arcs_scalar,
+)
+from phalanx.simulator.sonar import (
+    SonarRing,
+    nearest_per_owner,
+    pair_circle_hits,
+    per_unit,
+    ray_segment_hits,
+    ring_rays,
+)
 
 FloatArray = npt.NDArray[np.float64]
 _GRID_CELL_M = 1.0
@@ -68,18 +82,72 @@ def _segment_distance(px: float, py: float, e: _Edges) -> FloatArray:
     return np.asarray(np.hypot(e.ax + t * ex - px, e.ay + t * ey - py), dtype=np.float64)
 
 
-# Up to this many robots, a pairwise distance check first rules out any contact at once.
+# Up to this many robots, distances are checked pair by pair (a dense matrix); beyond,
+# through a uniform grid.
 _PAIRWISE_MAX = 64
+# A disc further than this beyond the sonar's reach is left out of the cast: its echo
+# could only come back shorter than max range through noise of over 1 m (50 sigma and more).
+_CAST_MARGIN_M = 1.0
+_CAST_MARGIN_SIGMAS = 50.0
+# Rays x discs (or edges) worked out at once, to bound memory on large fleets.
+_CHUNK = 1 << 18
+
+
+def _grid_pairs(
+    ax: FloatArray, ay: FloatArray, bx: FloatArray, by: FloatArray, cell_m: float
+) -> tuple[npt.NDArray[np.intp], npt.NDArray[np.intp]]:
+    """(i, j) of every point a_i and b_j in the same or neighbouring cells of a grid of
+    `cell_m`: a superset of the pairs closer than `cell_m`, sorted by i.
+    """
+    kax, kay = np.floor(ax / cell_m).astype(np.int64), np.floor(ay / cell_m).astype(np.int64)
+    kbx, kby = np.floor(bx / cell_m).astype(np.int64), np.floor(by / cell_m).astype(np.int64)
+    x0 = min(int(kax.min()), int(kbx.min())) - 1
+    y0 = min(int(kay.min()), int(kby.min())) - 1
+    width = max(int(kay.max()), int(kby.max())) - y0 + 2
+    keys = (kbx - x0) * width + (kby - y0)
+    order = np.argsort(keys, kind="stable")
+    ordered = keys[order]
+    firsts, lasts = [], []
+    for dx in (-1, 0, 1):
+        for dy in (-1, 0, 1):
+            q = (kax + dx - x0) * width + (kay + dy - y0)
+            firsts.append(np.searchsorted(ordered, q, "left"))
+            lasts.append(np.searchsorted(ordered, q, "right"))
+    lo, hi = np.stack(firsts, axis=1).ravel(), np.stack(lasts, axis=1).ravel()
+    counts = hi - lo
+    total = int(counts.sum())
+    i = np.repeat(np.repeat(np.arange(ax.size), 9), counts)
+    start = np.repeat(lo - (np.cumsum(counts) - counts), counts)
+    return i, order[start + np.arange(total)]
+
+
+def _close_pairs(
+    x: FloatArray, y: FloatArray, distance_m: float
+) -> tuple[npt.NDArray[np.intp], npt.NDArray[np.intp]]:
+    """(i, j), i != j, of every two robots whose centres may lie within `distance_m`
+    (every pair of a small fleet; grid neighbours of a large one), sorted by i.
+    """
+    n = x.size
+    if n <= _PAIRWISE_MAX:
+        i, j = np.nonzero(~np.eye(n, dtype=bool))
+        return i, j
+    i, j = _grid_pairs(x, y, x, y, distance_m)
+    keep = i != j
+    return i[keep], j[keep]
 
 
 def _any_pair_within(x: FloatArray, y: FloatArray, distance_m: float) -> bool:
     """Whether any two of the points (x, y) lie closer than `distance_m`."""
     if len(x) < 2:
         return False
-    d2 = (x[:, None] - x[None, :]) ** 2 + (y[:, None] - y[None, :]) ** 2
-    np.fill_diagonal(d2, np.inf)
     # a hair wide of the grid's exact hypot test: never misses a contact it would find
-    return bool(d2.min() < (distance_m * (1.0 + 1e-9)) ** 2)
+    limit = (distance_m * (1.0 + 1e-9)) ** 2
+    if len(x) <= _PAIRWISE_MAX:
+        d2 = (x[:, None] - x[None, :]) ** 2 + (y[:, None] - y[None, :]) ** 2
+        np.fill_diagonal(d2, np.inf)
+        return bool(d2.min() < limit)
+    i, j = _close_pairs(x, y, 2.0 * distance_m)
+    return bool(np.any((x[i] - x[j]) ** 2 + (y[i] - y[j]) ** 2 < limit))
 
 
 class World:
@@ -111,6 +179,7 @@ class World:
         self._circles = np.array([(c.x_m, c.y_m, c.radius_m) for c in world.circles]).reshape(-1, 3)
         self._edges = _polygon_edges(world)
         self._sonar_cache: dict[int, FloatArray] = {}
+        self._ranges: FloatArray | None = None  # every robot's, when cast in one pass
 
     @classmethod
     def for_scenario(cls, scenario: Scenario, robot: RobotParams) -> World:
@@ -162,25 +231,34 @@ class World:
         self._update_odometry(dt_s)
         self.t_s += dt_s
         self._sonar_cache.clear()
+        self._ranges = None
 
     def _substep(self, dt_s: float) -> None:
-        self.v, self.w = apply_robot_limits(
-            self.v, self.w, self.v_cmd, self.w_cmd, self.robot, dt_s
-        )
-        x, y, th = integrate_arcs(self.x, self.y, self.th, self.v, self.w, dt_s)
+        if len(self._ids) <= SCALAR_MAX:
+            self.v, self.w, x, y, th = limits_and_arcs_scalar(
+                (self.x, self.y, self.th, self.v, self.w, self.v_cmd, self.w_cmd), self.robot, dt_s
+            )
+        else:
+            self.v, self.w = apply_robot_limits(
+                self.v, self.w, self.v_cmd, self.w_cmd, self.robot, dt_s
+            )
+            x, y, th = integrate_arcs(self.x, self.y, self.th, self.v, self.w, dt_s)
         touching = self._touching(x, y, self.robot.radius_m)
-        blocked = np.zeros(len(self._ids), dtype=bool)
-        for i, other in touching:
-            blocked[i] = True
-            self._record_contact(self._ids[i], other)
-        keep = ~blocked
-        self.x, self.y, self.th = (
-            np.where(keep, x, self.x),
-            np.where(keep, y, self.y),
-            np.where(keep, th, self.th),
-        )
-        self.v, self.w = np.where(keep, self.v, 0.0), np.where(keep, self.w, 0.0)
-        self.bumped |= blocked
+        if not touching:  # the usual case: every robot moves
+            self.x, self.y, self.th = x, y, th
+        else:
+            blocked = np.zeros(len(self._ids), dtype=bool)
+            for i, other in touching:
+                blocked[i] = True
+                self._record_contact(self._ids[i], other)
+            keep = ~blocked
+            self.x, self.y, self.th = (
+                np.where(keep, x, self.x),
+                np.where(keep, y, self.y),
+                np.where(keep, th, self.th),
+            )
+            self.v, self.w = np.where(keep, self.v, 0.0), np.where(keep, self.w, 0.0)
+            self.bumped |= blocked
         # An episode lasts until the robot has backed CONTACT_RELEASE_M away, so a robot
         # pushing against a wall is one collision, not one per sub-step.
         if self._contacts:  # (none under way, the usual case: nothing to release)
@@ -219,7 +297,7 @@ class World:
         return found
 
     def _robot_contacts(self, x: FloatArray, y: FloatArray, radius: float) -> list[tuple[int, str]]:
-        if len(x) <= _PAIRWISE_MAX and not _any_pair_within(x, y, 2 * radius):
+        if not _any_pair_within(x, y, 2 * radius):
             return []  # the usual case, settled without building the grid
         cells: dict[tuple[int, int], list[int]] = {}
         for i, key in enumerate(
@@ -283,6 +361,32 @@ class World:
             sonar_ranges_m=tuple(float(r) for r in ranges), bumpers=(bumper,), motors_enabled=True
         )
 
+    def odometries(self) -> list[Odometry]:
+        """Every robot's `odometry`, in the order added."""
+        twists = [Twist2D(v, w) for v, w in zip(self.v.tolist(), self.w.tolist(), strict=True)]
+        return [
+            Odometry(Pose2D(x, y, th), twist, self.t_s)
+            for (x, y, th), twist in zip(self.odo.tolist(), twists, strict=True)
+        ]
+
+    def statuses(self) -> tuple[list[RobotStatus], FloatArray]:
+        """Every robot's `status` (sonar cast for all in one pass), in the order added, and
+        their sonar ranges as rows (events applied).
+        """
+        ranges = self.sense_all()
+        if self.events:
+            ranges = np.array(
+                [self._event_ranges(rid, row) for rid, row in zip(self._ids, ranges, strict=True)]
+            )
+        bumped = self.bumped.tolist()
+        out = []
+        for i, (rid, row) in enumerate(zip(self._ids, ranges.tolist(), strict=True)):
+            bumper = bumped[i] or (bool(self.events) and self._event_active("bumper", rid))
+            out.append(
+                RobotStatus(sonar_ranges_m=tuple(row), bumpers=(bumper,), motors_enabled=True)
+            )
+        return out, ranges
+
     def sonar_rays(self, robot_id: str) -> list[tuple[Vec2, Vec2]]:
         """(origin, end) of each transducer's centre ray in the world, for telemetry."""
         i = self._index[robot_id]
@@ -311,34 +415,93 @@ class World:
                 return np.full_like(ranges, e.range_m)
         return ranges
 
+    def sense_all(self) -> FloatArray:
+        """Every robot's sonar ranges (robots in the order added, before events), cast in
+        one vectorised pass; `status` then reads them. With sonar noise, the draws are
+        the same as sensing robot by robot in that order.
+        """
+        if self._ranges is None:
+            self._ranges = self._cast(np.arange(len(self._ids)))
+        return self._ranges
+
     def _sonar(self, i: int) -> FloatArray:
+        if self._ranges is not None:
+            row: FloatArray = self._ranges[i]
+            return row
         if i not in self._sonar_cache:
-            self._sonar_cache[i] = self._cast(i)
+            self._sonar_cache[i] = self._cast(np.array([i]))[0]
         return self._sonar_cache[i]
 
-    def _cast(self, i: int) -> FloatArray:
+    def _cast(self, idx: npt.NDArray[np.intp]) -> FloatArray:
+        """Sonar ranges (len(idx), transducers) of robots `idx`, noise drawn in their order."""
         ring = self.ring
-        c, s = math.cos(self.th[i]), math.sin(self.th[i])
-        ox = self.x[i] + c * ring.origin_x - s * ring.origin_y
-        oy = self.y[i] + s * ring.origin_x + c * ring.origin_y
-        ang = self.th[i] + ring.angle_rad
-        dx, dy = np.cos(ang), np.sin(ang)
-        cx, cy, r = self._nearby_circles(i)
-        hits = ray_circle_hits(ox, oy, dx, dy, cx, cy, r)
-        e = self._edges
-        hits = np.minimum(hits, ray_segment_hits(ox, oy, dx, dy, e.ax, e.ay, e.bx, e.by))
-        per_unit = np.full(ring.units, np.inf)
-        np.minimum.at(per_unit, ring.unit_of_ray, hits)
+        rays = ring_rays(ring, self.x[idx], self.y[idx], self.th[idx])
+        owner, cx, cy, r = self._nearby_discs(idx)
+        hits = np.full(rays[0].shape, np.inf)
+        step = max(1, _CHUNK // max(1, ring.origin_x.size))
+        for lo in range(0, owner.size, step):  # (pairs sorted by owner: chunks stay so)
+            part = slice(lo, lo + step)
+            pair_hits = pair_circle_hits(rays, owner[part], cx[part], cy[part], r[part])
+            hits = np.minimum(hits, nearest_per_owner(pair_hits, owner[part], idx.size))
+        if self._edges.ax.size:
+            hits = np.minimum(hits, self._edge_hits(rays))
+        ranges = per_unit(ring, hits)
         if self.noise.sonar_std_m > 0.0:
-            per_unit = per_unit + self.rng.normal(0.0, self.noise.sonar_std_m, ring.units)
-        return np.asarray(np.clip(per_unit, ring.min_range_m, ring.max_range_m), dtype=np.float64)
+            ranges = ranges + self.rng.normal(0.0, self.noise.sonar_std_m, ranges.shape)
+        return np.asarray(np.clip(ranges, ring.min_range_m, ring.max_range_m), dtype=np.float64)
 
-    def _nearby_circles(self, i: int) -> tuple[FloatArray, FloatArray, FloatArray]:
-        """Obstacle circles and other robots' discs within sonar reach of robot i."""
-        reach = self.ring.max_range_m + self.robot.radius_m + 0.5
-        near = np.hypot(self.x - self.x[i], self.y - self.y[i]) < reach
-        near[i] = False
-        cx = np.concatenate([self._circles[:, 0], self.x[near]])
-        cy = np.concatenate([self._circles[:, 1], self.y[near]])
-        r = np.concatenate([self._circles[:, 2], np.full(int(near.sum()), self.robot.radius_m)])
-        return cx, cy, r
+    def _edge_hits(self, rays: tuple[FloatArray, ...]) -> FloatArray:
+        e = self._edges
+        ox, oy, dx, dy = (a.ravel() for a in rays)
+        out = np.empty(ox.size)
+        step = max(1, _CHUNK // e.ax.size)
+        for lo in range(0, ox.size, step):
+            part = slice(lo, lo + step)
+            out[part] = ray_segment_hits(
+                ox[part], oy[part], dx[part], dy[part], e.ax, e.ay, e.bx, e.by
+            )
+        return out.reshape(rays[0].shape)
+
+    def _nearby_discs(
+        self, idx: npt.NDArray[np.intp]
+    ) -> tuple[npt.NDArray[np.intp], FloatArray, FloatArray, FloatArray]:
+        """(row of idx, centre x, y, radius) of every disc the sonar of robots `idx` may
+        hear, sorted by row: the obstacle circles within reach, and every other robot
+        whose centre is within `reach` (the same test, pair by pair, as always).
+        """
+        radius = self.robot.radius_m
+        reach = self.ring.max_range_m + radius + 0.5
+        x, y = self.x[idx], self.y[idx]
+        rows, cx, cy, r = [], [], [], []
+        if len(self._circles):
+            circles = self._circles
+            horizon = (
+                self.ring.max_range_m
+                + self.ring.mount_m
+                + _CAST_MARGIN_M
+                + _CAST_MARGIN_SIGMAS * self.noise.sonar_std_m
+            )
+            d = np.hypot(x[:, None] - circles[:, 0], y[:, None] - circles[:, 1])
+            ri, k = np.nonzero(d - circles[:, 2] < horizon)
+            rows.append(ri)
+            cx.append(circles[k, 0])
+            cy.append(circles[k, 1])
+            r.append(circles[k, 2])
+        if idx.size == len(self._ids):
+            ri, j = _close_pairs(self.x, self.y, reach)
+        else:
+            ri, j = np.nonzero(np.ones((idx.size, len(self._ids)), dtype=bool))
+            ri, j = ri[j != idx[ri]], j[j != idx[ri]]
+        near = np.hypot(self.x[j] - x[ri], self.y[j] - y[ri]) < reach
+        rows.append(ri[near])
+        cx.append(self.x[j[near]])
+        cy.append(self.y[j[near]])
+        r.append(np.full(int(near.sum()), radius))
+        owner = np.concatenate(rows)
+        order = np.argsort(owner, kind="stable")
+        return (
+            owner[order],
+            np.concatenate(cx)[order],
+            np.concatenate(cy)[order],
+            np.concatenate(r)[order],
+        )

@@ -5,6 +5,11 @@ a scenario and seed.
 Peer states reach the other agents `comm_delay_s` later (at least one tick): at tick k
 an agent sees what the others published at tick k - d. The multi-process lockstep
 runtime has the same one-tick age, which is why the two give the same trajectory.
+
+What is the same for every robot is done for all of them at once: the world casts every
+sonar ring in one pass, the readings become obstacle geometry in one pass
+(`SonarGeometry.read_all`, handed to each agent in its `Observation`), and the ground
+truth and commands are recorded as columns. Each agent's step is its own.
 """
 
 from __future__ import annotations
@@ -17,6 +22,7 @@ import numpy as np
 import numpy.typing as npt
 
 from phalanx.agents.agent import Agent, Observation, StepOutput
+from phalanx.agents.perception import SonarGeometry
 from phalanx.core.config import RobotParams, Scenario
 from phalanx.core.config_files import load_robot
 from phalanx.core.formation import Formation, scenario_formation
@@ -48,10 +54,15 @@ class BatchRunner:
         self.formation = scenario_formation(scenario)
         self.world = World.for_scenario(scenario, self.robot)
         self.agents = build_agents(scenario, self.robot, self.formation)
+        assert tuple(self.agents) == self.world.robot_ids  # (robot i of the world is agent i)
         self.steps = round(scenario.duration_s * scenario.control_rate_hz)
         self.delay_ticks = max(1, round(scenario.comm_delay_s * scenario.control_rate_hz))
         self.t_s = np.arange(self.steps, dtype=np.float64) * scenario.dt_s
-        self.traces = {rid: RobotTrace.empty(self.steps) for rid in self.agents}
+        self.sonar = SonarGeometry.from_params(self.robot)
+        # x, y, theta, v, omega, commanded v and omega: (column, robot, step)
+        self._columns = np.zeros((7, len(self.agents), self.steps))
+        self._direction = np.ones((len(self.agents), self.steps), dtype=np.int8)
+        self.traces = {rid: self._trace(i) for i, rid in enumerate(self.agents)}
         self._published: deque[dict[str, PeerState]] = deque(maxlen=self.delay_ticks)
         self.transitions: dict[str, list[TransitionEvent]] = {rid: [] for rid in self.agents}
         self.last: dict[str, StepOutput] = {}
@@ -70,28 +81,37 @@ class BatchRunner:
                 break
         return self._log(time.perf_counter() - started)
 
+    def _trace(self, i: int) -> RobotTrace:
+        """Robot i's trace: its arrays are rows of the run's columns."""
+        c = self._columns
+        return RobotTrace(
+            c[0, i], c[1, i], c[2, i], c[3, i], c[4, i], c[5, i], c[6, i], self._direction[i]
+        )
+
     def step(self, k: int) -> None:
         """Control step `k`: sense, think, record, then integrate the world."""
         t_s = float(self.t_s[k])
+        world = self.world
         # Every robot's state carries its flags: peers and flags are the same mapping.
         peers = self._published[0] if len(self._published) == self.delay_ticks else {}
         commands: dict[str, Twist2D] = {}
         states: dict[str, PeerState] = {}
-        for rid, agent in self.agents.items():
-            obs = Observation(self.world.odometry(rid), self.world.status(rid))
-            out = agent.step(obs, peers, t_s)
+        statuses, ranges = world.statuses()
+        readings = self.sonar.read_all(ranges)
+        odometry = world.odometries()
+        truth = self._columns[:, :, k]
+        truth[:5] = world.x, world.y, world.th, world.v, world.w
+        for i, (rid, agent) in enumerate(self.agents.items()):
+            out = agent.step(Observation(odometry[i], statuses[i], readings[i]), peers, t_s)
             commands[rid], states[rid] = out.command, out.state
-            self._record(rid, k, out)
+            self._record(rid, i, k, out)
         self._published.append(states)
-        self.world.step(commands, self.scenario.dt_s)
+        world.step(commands, self.scenario.dt_s)
         self.done = k + 1
 
-    def _record(self, rid: str, k: int, out: StepOutput) -> None:
-        pose, twist = self.world.truth(rid)
+    def _record(self, rid: str, i: int, k: int, out: StepOutput) -> None:
         tr, state, command = self.traces[rid], out.state, out.command
-        tr.x_m[k], tr.y_m[k], tr.theta_rad[k] = pose.x_m, pose.y_m, pose.theta_rad
-        tr.v_mps[k], tr.omega_radps[k] = twist.v_mps, twist.omega_radps
-        tr.cmd_v_mps[k], tr.cmd_omega_radps[k] = command.v_mps, command.omega_radps
+        self._columns[5:, i, k] = command.v_mps, command.omega_radps
         tr.direction[k] = state.direction
         tr.states.append(state.fsm_state)
         tr.tracked.append(state.leader_id)
