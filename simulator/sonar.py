@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 import numpy.typing as npt
@@ -19,6 +20,9 @@ import numpy.typing as npt
 from phalanx.core.config import SonarParams
 
 FloatArray = npt.NDArray[np.float64]
+# How much wider than the exact cone a disc's candidate rays are taken (rad, m).
+_CONE_MARGIN_RAD = 1e-3
+_CONE_MARGIN_M = 1e-6
 
 
 @dataclass(frozen=True)
@@ -33,10 +37,17 @@ class SonarRing:
     max_range_m: float
     min_range_m: float
 
-    @property
+    @cached_property
     def mount_m(self) -> float:
         """The furthest ray origin from the body origin (m)."""
         return float(np.hypot(self.origin_x, self.origin_y).max(initial=0.0))
+
+    @cached_property
+    def sorted_angles(self) -> tuple[npt.NDArray[np.intp], FloatArray]:
+        """The rays in order of their body-frame angle in [-pi, pi): (ray, angle)."""
+        wrapped = np.mod(self.angle_rad + math.pi, 2.0 * math.pi) - math.pi
+        order = np.argsort(wrapped, kind="stable")
+        return order, wrapped[order]
 
     @classmethod
     def from_params(cls, sonar: SonarParams) -> SonarRing:
@@ -120,20 +131,21 @@ def ring_rays(
     return ox, oy, np.cos(ang), np.sin(ang)
 
 
-def pair_circle_hits(
-    rays: tuple[FloatArray, FloatArray, FloatArray, FloatArray],
-    owner: npt.NDArray[np.intp],
+def circle_hits_at(
+    ox: FloatArray,
+    oy: FloatArray,
+    dx: FloatArray,
+    dy: FloatArray,
     cx: FloatArray,
     cy: FloatArray,
     r: FloatArray,
 ) -> FloatArray:
-    """Distance along each ray of robot `owner[p]` to disc p, inf if it misses:
-    (pairs, rays), the arithmetic of `ray_circle_hits` pair by pair.
+    """Distance along ray e (origin, unit direction) to circle e, inf if it misses: the
+    arithmetic of `ray_circle_hits`, element by element.
     """
-    ox, oy, dx, dy = (a[owner] for a in rays)
-    fx, fy = ox - cx[:, None], oy - cy[:, None]
+    fx, fy = ox - cx, oy - cy
     b = fx * dx + fy * dy
-    c = fx * fx + fy * fy - (r**2)[:, None]
+    c = fx * fx + fy * fy - r**2
     disc = b * b - c
     root = np.sqrt(np.maximum(disc, 0.0))
     t_near, t_far = -b - root, -b + root
@@ -141,15 +153,36 @@ def pair_circle_hits(
     return np.asarray(np.where(disc >= 0.0, t, np.inf), dtype=np.float64)
 
 
-def nearest_per_owner(hits: FloatArray, owner: npt.NDArray[np.intp], robots: int) -> FloatArray:
-    """Per robot and ray, the nearest of the pair hits it owns (`owner` sorted), inf
-    for a robot that owns none.
+def rays_towards(
+    ring: SonarRing, rel_bearing: FloatArray, distance: FloatArray, radius: FloatArray
+) -> tuple[npt.NDArray[np.intp], npt.NDArray[np.intp]]:
+    """(pair, ray) of every ray of a robot's ring that may meet disc `pair`: the disc's
+    centre at `distance` and bearing `rel_bearing` (body frame, from the body origin).
+
+    A ray leaves from within `mount_m` of the body origin, so it can only meet the disc
+    if it points within asin(mount / d) + asin(radius / (d - mount)) of the bearing; a
+    disc that may hold a ray's origin takes every ray. The cone is widened a little so
+    rounding never leaves out a ray that hits: the rays left out would all miss.
     """
-    out = np.full((robots, hits.shape[1]), np.inf)
-    if owner.size:
-        starts = np.flatnonzero(np.r_[True, owner[1:] != owner[:-1]])
-        out[owner[starts]] = np.minimum.reduceat(hits, starts, axis=0)
-    return out
+    rays = ring.angle_rad.size
+    order, ordered = ring.sorted_angles
+    m = ring.mount_m
+    inside = distance - m <= radius + _CONE_MARGIN_M
+    safe = np.where(inside, 1.0, distance)
+    half = (
+        np.arcsin(np.minimum(1.0, m / safe))
+        + np.arcsin(np.minimum(1.0, radius / np.maximum(safe - m, 1e-9)))
+        + _CONE_MARGIN_RAD
+    )
+    extended = np.concatenate([ordered - 2.0 * math.pi, ordered, ordered + 2.0 * math.pi])
+    rel = np.mod(rel_bearing + math.pi, 2.0 * math.pi) - math.pi
+    whole = inside | (half >= math.pi)
+    lo = np.where(whole, rays, np.searchsorted(extended, rel - half, "left"))
+    hi = np.where(whole, 2 * rays, np.searchsorted(extended, rel + half, "right"))
+    counts = hi - lo
+    pair = np.repeat(np.arange(rel.size), counts)
+    within = np.arange(int(counts.sum())) - np.repeat(np.cumsum(counts) - counts, counts)
+    return pair, order[(np.repeat(lo, counts) + within) % rays]
 
 
 def per_unit(ring: SonarRing, hits: FloatArray) -> FloatArray:

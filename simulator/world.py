@@ -30,10 +30,10 @@ from phalanx.simulator.kinematics import (
 )
 from phalanx.simulator.sonar import (
     SonarRing,
-    nearest_per_owner,
-    pair_circle_hits,
+    circle_hits_at,
     per_unit,
     ray_segment_hits,
+    rays_towards,
     ring_rays,
 )
 
@@ -437,12 +437,15 @@ class World:
         ring = self.ring
         rays = ring_rays(ring, self.x[idx], self.y[idx], self.th[idx])
         owner, cx, cy, r = self._nearby_discs(idx)
-        hits = np.full(rays[0].shape, np.inf)
-        step = max(1, _CHUNK // max(1, ring.origin_x.size))
-        for lo in range(0, owner.size, step):  # (pairs sorted by owner: chunks stay so)
-            part = slice(lo, lo + step)
-            pair_hits = pair_circle_hits(rays, owner[part], cx[part], cy[part], r[part])
-            hits = np.minimum(hits, nearest_per_owner(pair_hits, owner[part], idx.size))
+        # Only the rays that point towards a disc are tested against it.
+        x, y, th = self.x[idx][owner], self.y[idx][owner], self.th[idx][owner]
+        bearing = np.arctan2(cy - y, cx - x) - th
+        pair, ray = rays_towards(ring, bearing, np.hypot(cx - x, cy - y), r)
+        flat = owner[pair] * ring.angle_rad.size + ray
+        ox, oy, dx, dy = (a.ravel()[flat] for a in rays)
+        nearest = np.full(rays[0].size, np.inf)
+        np.minimum.at(nearest, flat, circle_hits_at(ox, oy, dx, dy, cx[pair], cy[pair], r[pair]))
+        hits = nearest.reshape(rays[0].shape)
         if self._edges.ax.size:
             hits = np.minimum(hits, self._edge_hits(rays))
         ranges = per_unit(ring, hits)
@@ -466,7 +469,7 @@ class World:
         self, idx: npt.NDArray[np.intp]
     ) -> tuple[npt.NDArray[np.intp], FloatArray, FloatArray, FloatArray]:
         """(row of idx, centre x, y, radius) of every disc the sonar of robots `idx` may
-        hear, sorted by row: the obstacle circles within reach, and every other robot
+        hear: the obstacle circles within reach, and every other robot
         whose centre is within `reach` (the same test, pair by pair, as always).
         """
         radius = self.robot.radius_m
@@ -497,11 +500,5 @@ class World:
         cx.append(self.x[j[near]])
         cy.append(self.y[j[near]])
         r.append(np.full(int(near.sum()), radius))
-        owner = np.concatenate(rows)
-        order = np.argsort(owner, kind="stable")
-        return (
-            owner[order],
-            np.concatenate(cx)[order],
-            np.concatenate(cy)[order],
-            np.concatenate(r)[order],
-        )
+        cat = np.concatenate
+        return cat(rows), cat(cx), cat(cy), cat(r)
