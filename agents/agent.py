@@ -34,6 +34,7 @@ from phalanx.agents.control.limits import CommandLimiter
 from phalanx.agents.fsm import StateMachine
 from phalanx.agents.inputs import FleetView, Observation
 from phalanx.agents.leadership import Flags, Leadership, LeadershipChange, group_deadlock
+from phalanx.agents.masking import MaskInputs, SlotMasks
 from phalanx.agents.parts import Parts
 from phalanx.agents.sensing import STANDSTILL_MPS, Sensing, Stance, way_clear
 from phalanx.core.config import RobotParams, Scenario
@@ -105,6 +106,7 @@ class Agent:
         self._seq = 0
         self._stopped_before: frozenset[str] = frozenset()
         self._last_odometry: Odometry | None = None
+        self._heard: tuple[float, FleetView] | None = None
 
     def _initial_state(self, joining: bool) -> str:
         if joining:
@@ -157,7 +159,7 @@ class Agent:
         them), this robot's own as published included; when omitted, `peers` serve.
         """
         self.parts.startup.begin(t_s, self.scenario.leader_timeout_s)
-        view = self._listen(peers, flags, t_s)
+        view = self._heard_view(t_s) or self._listen(peers, flags, t_s)
         stance = Stance(self.fsm.state, self.direction, self.limiter.last)
         assume_formed = t_s < self.parts.startup.assume_formed_until_s
         sensing = self.parts.senses.read(
@@ -176,6 +178,34 @@ class Agent:
         return self._output(observation.odometry, command, sensing, view, event, t_s)
 
     # --- listen, estimate -------------------------------------------------------------
+
+    @property
+    def slot_masks(self) -> SlotMasks:
+        """Where this robot's sonar would hear the formation's others (for `hear`'s use)."""
+        return self.parts.senses.slot_masks
+
+    def hear(
+        self,
+        observation: Observation,
+        peers: Mapping[str, PeerState],
+        t_s: float,
+        flags: Flags | None = None,
+    ) -> MaskInputs:
+        """The listen stage of the step at `t_s`, ahead of it, and what masking the
+        formation's robots out of this robot's sonar needs: the batch runner hears every
+        robot first, masks all their readings in one pass (`phalanx.agents.masking`) and
+        hands each its own in the `Observation`. `step` at `t_s` then goes on from here.
+        """
+        self.parts.startup.begin(t_s, self.scenario.leader_timeout_s)
+        view = self._listen(peers, flags, t_s)
+        self._heard = (t_s, view)
+        assume_formed = t_s < self.parts.startup.assume_formed_until_s
+        pose = observation.odometry.pose
+        return MaskInputs(self.robot_id, view, self.fsm.state, pose, assume_formed, t_s)
+
+    def _heard_view(self, t_s: float) -> FleetView | None:
+        heard, self._heard = self._heard, None
+        return heard[1] if heard is not None and heard[0] == t_s else None
 
     def _listen(self, peers: Mapping[str, PeerState], flags: Flags | None, t_s: float) -> FleetView:
         """Leadership from the flags; join once anyone is heard; followers take the

@@ -7,7 +7,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from phalanx.agents.leadership import LeadershipChange, LiveFlags
-from phalanx.agents.perception import SonarEchoes
+from phalanx.agents.perception import MaskedEchoes, SonarEchoes
 from phalanx.core.peers import PeerState
 from phalanx.core.robot import Odometry, RobotStatus
 
@@ -16,13 +16,16 @@ from phalanx.core.robot import Odometry, RobotStatus
 class Observation:
     """What a robot senses this step (from its driver, or the simulated world).
 
-    `sonar`: the sonar ranges of `status` already read as geometry (the batch runner reads
-    every robot's ring in one pass); None, and the agent reads them itself.
+    `sonar`: the sonar ranges of `status` already read as geometry, and `masked`: that
+    reading with the formation's robots masked out for this robot's step (the batch
+    runner does both for every robot in one pass, `phalanx.agents.masking`); when None,
+    the agent works them out itself.
     """
 
     odometry: Odometry
     status: RobotStatus
     sonar: SonarEchoes | None = None
+    masked: MaskedEchoes | None = None
 
 
 @dataclass(frozen=True, slots=True)

@@ -60,6 +60,21 @@ class SonarEchoes:
     nearest_m: float
 
 
+@dataclass(frozen=True, slots=True)
+class MaskedEchoes:
+    """A reading with the formation's own robots masked out, for robot `robot_id` at
+    `t_s` (`phalanx.agents.masking`): the echoes left, their obstacle points (body
+    frame) and the free way straight ahead and behind along the robot's corridor (m).
+    """
+
+    robot_id: str
+    t_s: float
+    echo: BoolArray
+    points: tuple[FloatArray, FloatArray]
+    ahead_m: float
+    behind_m: float
+
+
 @dataclass(frozen=True)
 class FixedDiscs:
     """Discs that stay put in the body frame (the formation's slots, where the shape
@@ -372,23 +387,6 @@ def corridor_clearance(
         hit = np.where(ahead, np.maximum(f - half_chord, 0.0), np.inf)
         out = np.minimum(out, hit.min(axis=1))
     return out
-
-
-def clearances_along(
-    points: tuple[FloatArray, FloatArray], headings_rad: FloatArray, *, half_width_m: float
-) -> list[float]:
-    """`clearance_along` for several headings in one pass (the same numbers)."""
-    x, y = points
-    if x.size == 0:
-        return [NO_OBSTACLE_M] * headings_rad.size
-    c, s = np.cos(headings_rad)[:, None], np.sin(headings_rad)[:, None]
-    f = x * c + y * s
-    lat2 = np.square(y * c - x * s)
-    w2 = half_width_m * half_width_m
-    half_chord = np.sqrt(np.maximum(w2 - lat2, 0.0))
-    ahead = (lat2 < w2) & (f + half_chord > 0.0)
-    gap = np.where(ahead, f - half_chord, np.inf).min(axis=1)
-    return [max(0.0, g) for g in gap.tolist()]
 
 
 def clearance_along(

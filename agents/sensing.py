@@ -9,34 +9,32 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-import numpy as np
-
 from phalanx.agents.behaviours.navigation import Plan, bearing_rad
 from phalanx.agents.inputs import FleetView, Observation
+from phalanx.agents.masking import (
+    EXPECTED_MASK_M,
+    TRACKED_MASK_M,
+    MaskInputs,
+    SlotMasks,
+    mask_readings,
+)
 from phalanx.agents.memory import Progress, StallWatch
 from phalanx.agents.perception import (
-    BoolArray,
     FixedDiscs,
-    SonarEchoes,
     SonarGeometry,
     braking_gap_m,
     clearance_along,
-    clearances_along,
 )
 from phalanx.agents.route import RoutePlanner
 from phalanx.agents.shape import Points, Shape
 from phalanx.core.config import Scenario
 from phalanx.core.geometry import Pose2D, Twist2D, Vec2
 from phalanx.core.limits import KinematicLimits
-from phalanx.core.rigid_body import predict_leader
 from phalanx.core.robot import Odometry
-from phalanx.core.states import OUT_OF_FORMATION, State
+from phalanx.core.states import State
 
 STANDSTILL_MPS = 0.01
-# Sonar echoes this close to where a known robot should be are that robot, not an
-# obstacle: the tracked robot's position is known (its state), the others' expected.
-TRACKED_MASK_M = 0.1
-EXPECTED_MASK_M = 0.15
+__all__ = ["EXPECTED_MASK_M", "STANDSTILL_MPS", "TRACKED_MASK_M", "Senses", "Sensing", "Stance"]
 # The emergency stop's corridor hugs the body: a wall passed alongside must not stop it.
 ESTOP_MARGIN_M = 0.02
 # A route leading further round than this from the heading goes back the way it came.
@@ -48,7 +46,6 @@ RELEASE_MARGIN_M = 0.1
 # A follower this close along its heading to its slot goes the way the slot goes.
 INTENT_M = 0.05
 _NAVIGATING = (State.NAVIGATE, State.WANDER)
-_AHEAD_BEHIND_RAD = np.array([0.0, math.pi])
 
 
 @dataclass(frozen=True, slots=True)
@@ -102,9 +99,12 @@ class Senses:
         audible_m = sonar.mount_m + sonar.max_range_m + shape.radius_m + EXPECTED_MASK_M
         self._maskable = {r: o for r, o in shape.offsets.items() if o.norm() < audible_m + 1.0}
         # ... with where their echoes would come from worked out once (the shape is rigid)
-        self._slot_ids = [r for r in self._maskable if r != robot_id]
-        self._slots = FixedDiscs.of(
-            sonar, [self._maskable[r] for r in self._slot_ids], shape.radius_m + EXPECTED_MASK_M
+        slot_ids = [r for r in self._maskable if r != robot_id]
+        discs = FixedDiscs.of(
+            sonar, [self._maskable[r] for r in slot_ids], shape.radius_m + EXPECTED_MASK_M
+        )
+        self.slot_masks = SlotMasks.of(
+            slot_ids, discs, tracked_radius_m=shape.radius_m, half_width_m=shape.half_width_m
         )
 
     def read(
@@ -121,20 +121,15 @@ class Senses:
         """
         odometry, status = observation.odometry, observation.status
         pose = odometry.pose
-        # (the batch runner reads every robot's ring in one pass; a robot alone, here)
+        # (the batch runner reads and masks every robot's ring in one pass; alone, here)
         reading = observation.sonar or self.sonar.read(status.sonar_ranges_m)
-        raw = reading.raw
-        echo = self._robot_echoes_masked(reading, view, stance.state, t_s, pose, assume_formed)
-        # (the usual case, no echo of a robot: the same points, not worked out twice)
-        masked = (
-            raw
-            if echo is reading.echo or np.array_equal(echo, reading.echo)
-            else self.sonar.points_from(reading, echo)
-        )
+        mask = observation.masked
+        if mask is None or mask.robot_id != self.robot_id or mask.t_s != t_s:
+            inputs = MaskInputs(self.robot_id, view, stance.state, pose, assume_formed, t_s)
+            mask = mask_readings(self.sonar, [reading], [inputs], self.slot_masks)[0]
+        raw, masked, ahead_m, behind_m = reading.raw, mask.points, mask.ahead_m, mask.behind_m
         if self.plan != "scripted" and self.nav.reactive:
-            self.planner.see(pose, self.sonar, reading.ranges_m, echo)
-        half_width = self.shape.half_width_m
-        ahead_m, behind_m = clearances_along(masked, _AHEAD_BEHIND_RAD, half_width_m=half_width)
+            self.planner.see(pose, self.sonar, reading.ranges_m, mask.echo)
         bumper = any(status.bumpers)
         dead_end = self._boxed_in(pose, masked, stance.state)
         # (short-circuit kept: the stall watch only runs with room ahead)
@@ -152,38 +147,6 @@ class Senses:
             bumper=bumper,
             dead_end=dead_end,
         )
-
-    def _robot_echoes_masked(
-        self,
-        reading: SonarEchoes,
-        view: FleetView,
-        state: str,
-        t_s: float,
-        pose: Pose2D,
-        assume_formed: bool,
-    ) -> BoolArray:
-        """The reading's echoes less those of robots (the reading's own mask when none
-        is): the tracked one where its state says it is, the others where the shape
-        expects them.
-        """
-        if not reading.echo.any():
-            return reading.echo
-        known: list[tuple[Vec2, float]] = []
-        lead = view.lead
-        if lead is not None:
-            predicted = predict_leader(lead.pose, lead.twist, max(0.0, t_s - lead.stamp_s))
-            known.append((pose.to_body(predicted.position), self.shape.radius_m + TRACKED_MASK_M))
-        rows = None
-        if state not in OUT_OF_FORMATION and self._slot_ids:
-            live, tracked = view.live, view.tracked_id
-            # Not heard yet (starting up) counts as in its slot, as the scenario has it.
-            rows = np.array(
-                [
-                    rid != tracked and (live[rid].formed if rid in live else assume_formed)
-                    for rid in self._slot_ids
-                ]
-            )
-        return self.sonar.echoes_of(reading, known, self._slots, rows)
 
     def _stalled(self, pose: Pose2D, t_s: float, state: str) -> bool:
         """A navigating leader that turns and creeps without getting anywhere is blocked

@@ -22,6 +22,7 @@ import numpy as np
 import numpy.typing as npt
 
 from phalanx.agents.agent import Agent, Observation, StepOutput
+from phalanx.agents.masking import SlotMasks, mask_readings
 from phalanx.agents.perception import SonarGeometry
 from phalanx.core.config import RobotParams, Scenario
 from phalanx.core.config_files import load_robot
@@ -54,11 +55,12 @@ class BatchRunner:
         self.formation = scenario_formation(scenario)
         self.world = World.for_scenario(scenario, self.robot)
         self.agents = build_agents(scenario, self.robot, self.formation)
-        assert tuple(self.agents) == self.world.robot_ids  # (robot i of the world is agent i)
+        # (robot i of the world is agent i: both are in the scenario's order)
         self.steps = round(scenario.duration_s * scenario.control_rate_hz)
         self.delay_ticks = max(1, round(scenario.comm_delay_s * scenario.control_rate_hz))
         self.t_s = np.arange(self.steps, dtype=np.float64) * scenario.dt_s
         self.sonar = SonarGeometry.from_params(self.robot)
+        self._slot_masks = SlotMasks.concat([agent.slot_masks for agent in self.agents.values()])
         # x, y, theta, v, omega, commanded v and omega: (column, robot, step)
         self._columns = np.zeros((7, len(self.agents), self.steps))
         self._direction = np.ones((len(self.agents), self.steps), dtype=np.int8)
@@ -96,18 +98,35 @@ class BatchRunner:
         peers = self._published[0] if len(self._published) == self.delay_ticks else {}
         commands: dict[str, Twist2D] = {}
         states: dict[str, PeerState] = {}
-        statuses, ranges = world.statuses()
-        readings = self.sonar.read_all(ranges)
-        odometry = world.odometries()
         truth = self._columns[:, :, k]
         truth[:5] = world.x, world.y, world.th, world.v, world.w
-        for i, (rid, agent) in enumerate(self.agents.items()):
-            out = agent.step(Observation(odometry[i], statuses[i], readings[i]), peers, t_s)
+        for i, (rid, agent, obs) in enumerate(self._observe(peers, t_s)):
+            out = agent.step(obs, peers, t_s)
             commands[rid], states[rid] = out.command, out.state
             self._record(rid, i, k, out)
         self._published.append(states)
         world.step(commands, self.scenario.dt_s)
         self.done = k + 1
+
+    def _observe(
+        self, peers: dict[str, PeerState], t_s: float
+    ) -> list[tuple[str, Agent, Observation]]:
+        """Every robot's observation: the world's readings, the sonar read as geometry
+        and masked (every robot heard first: masking needs whom each tracks) in one pass.
+        """
+        statuses, ranges = self.world.statuses()
+        readings = self.sonar.read_all(ranges)
+        odometry = self.world.odometries()
+        agents = self.agents
+        heard = [
+            agent.hear(Observation(odometry[i], statuses[i], readings[i]), peers, t_s)
+            for i, agent in enumerate(agents.values())
+        ]
+        masked = mask_readings(self.sonar, readings, heard, self._slot_masks)
+        return [
+            (rid, agent, Observation(odometry[i], statuses[i], readings[i], masked[i]))
+            for i, (rid, agent) in enumerate(agents.items())
+        ]
 
     def _record(self, rid: str, i: int, k: int, out: StepOutput) -> None:
         tr, state, command = self.traces[rid], out.state, out.command

@@ -1,0 +1,221 @@
+"""Masking the formation's own robots out of sonar readings, many robots in one pass.
+
+A sonar echo whose arc passes within a robot of the formation is that robot, not an
+obstacle (`SonarGeometry.echoes`): the tracked robot where its last state says it is
+(dead-reckoned to now), the others in formation where the shape puts them. In one
+process (the batch runner) the arithmetic is the same for every robot and is done for
+all of them at once, a row per robot; a robot on its own goes through the same code as
+a batch of one, and elementwise arithmetic gives each row the same numbers either way.
+
+What does not change (each robot's slot discs, and the direction from each transducer
+towards them) is stacked once (`SlotMasks`); a step brings the ranges, the tracked
+robots' discs and which slots are occupied.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+
+from phalanx.agents.inputs import FleetView
+from phalanx.agents.perception import (
+    BoolArray,
+    FixedDiscs,
+    FloatArray,
+    MaskedEchoes,
+    SonarEchoes,
+    SonarGeometry,
+)
+from phalanx.core.geometry import Pose2D
+from phalanx.core.rigid_body import predict_leader
+from phalanx.core.states import OUT_OF_FORMATION
+
+# Sonar echoes this close to where a known robot should be are that robot, not an
+# obstacle: the tracked robot's position is known (its state), the others' expected.
+TRACKED_MASK_M = 0.1
+EXPECTED_MASK_M = 0.15
+_AHEAD_BEHIND_RAD = np.array([0.0, np.pi])
+
+
+@dataclass(frozen=True, slots=True)
+class MaskInputs:
+    """What one robot's masking needs of its step: its view of the fleet (whom it
+    tracks, that robot's state, who is in formation), its behaviour state, its pose,
+    whether robots not heard yet count as in their slots, and the step's time.
+    """
+
+    robot_id: str
+    view: FleetView
+    state: str
+    pose: Pose2D
+    assume_formed: bool
+    t_s: float
+
+
+@dataclass(frozen=True)
+class SlotMasks:
+    """The slot discs of a set of robots (rows: every robot's `FixedDiscs`, in order),
+    their radius and the tracked robot's (m), and each robot's corridor half-width (m).
+    """
+
+    slot_ids: tuple[tuple[str, ...], ...]
+    owner: npt.NDArray[np.intp]  # robot of each stacked disc
+    cx: FloatArray
+    cy: FloatArray
+    cos: FloatArray
+    sin: FloatArray
+    slot_radius_m: float
+    tracked_radius_m: float
+    half_width_m: FloatArray
+
+    @classmethod
+    def of(
+        cls,
+        slot_ids: Sequence[str],
+        discs: FixedDiscs,
+        *,
+        tracked_radius_m: float,
+        half_width_m: float,
+    ) -> SlotMasks:
+        """One robot's."""
+        return cls(
+            (tuple(slot_ids),),
+            np.zeros(len(slot_ids), dtype=np.intp),
+            discs.cx,
+            discs.cy,
+            discs.dirs[0],
+            discs.dirs[1],
+            discs.radius_m,
+            tracked_radius_m,
+            np.array([half_width_m]),
+        )
+
+    @classmethod
+    def concat(cls, masks: Sequence[SlotMasks]) -> SlotMasks:
+        """Several robots' (one each, of the same robot model), stacked in order."""
+        cat = np.concatenate
+        counts = [len(m.slot_ids[0]) for m in masks]
+        return cls(
+            tuple(m.slot_ids[0] for m in masks),
+            np.repeat(np.arange(len(masks)), counts),
+            cat([m.cx for m in masks]),
+            cat([m.cy for m in masks]),
+            cat([m.cos for m in masks]),
+            cat([m.sin for m in masks]),
+            masks[0].slot_radius_m,
+            masks[0].tracked_radius_m,
+            cat([m.half_width_m for m in masks]),
+        )
+
+    def rows(self, inputs: Sequence[MaskInputs]) -> BoolArray:
+        """Which stacked slot discs hold a robot to mask this step: not the one their
+        owner tracks (masked where its state says), heard to be in formation (or not
+        heard yet, at the start), and their owner itself in formation.
+        """
+        flags: list[bool] = []
+        for ids, heard in zip(self.slot_ids, inputs, strict=True):
+            if heard.state in OUT_OF_FORMATION:
+                flags += [False] * len(ids)
+                continue
+            live, tracked, assume = heard.view.live, heard.view.tracked_id, heard.assume_formed
+            flags += [r != tracked and (live[r].formed if r in live else assume) for r in ids]
+        return np.array(flags, dtype=bool)
+
+
+def mask_readings(
+    sonar: SonarGeometry,
+    readings: Sequence[SonarEchoes],
+    inputs: Sequence[MaskInputs],
+    slots: SlotMasks,
+) -> list[MaskedEchoes]:
+    """Every robot's reading with its formation's robots masked out: the echoes left
+    (`SonarGeometry.echoes` with the tracked robot's and the occupied slots' discs),
+    their obstacle points, and the free way straight ahead and behind
+    (`clearance_along` with each robot's half-width), rows in the order of `readings`.
+    """
+    units = sonar.unit_x_m.size
+    none = np.zeros(units)
+    r = np.stack([rd.ranges_m[:units] if rd.ranges_m.size >= units else none for rd in readings])
+    every = np.stack([rd.echo for rd in readings])
+    met = _slots_met(sonar, r, slots, slots.rows(inputs))
+    met |= _tracked_met(sonar, r, inputs, slots.tracked_radius_m)
+    echo = every & ~met
+    x = np.stack([rd.ray_x_m for rd in readings])
+    y = np.stack([rd.ray_y_m for rd in readings])
+    keep = np.stack([rd.seen for rd in readings]) & echo[:, sonar.unit_of_ray]
+    gaps = _clearances(x, y, keep, slots.half_width_m).tolist()
+    same = (echo == every).all(axis=1).tolist()
+    out = []
+    for i, (rd, heard) in enumerate(zip(readings, inputs, strict=True)):
+        # (the usual case, no echo of a robot: the reading's own points and mask)
+        points = rd.raw if same[i] else (x[i][keep[i]], y[i][keep[i]])
+        ahead, behind = gaps[i]
+        out.append(
+            MaskedEchoes(
+                heard.robot_id,
+                heard.t_s,
+                rd.echo if same[i] else echo[i],
+                points,
+                max(0.0, ahead),
+                max(0.0, behind),
+            )
+        )
+    return out
+
+
+def _slots_met(sonar: SonarGeometry, r: FloatArray, slots: SlotMasks, rows: BoolArray) -> BoolArray:
+    """Per robot and transducer: whether its echo arc meets an occupied slot's disc."""
+    met = np.zeros(r.shape, dtype=bool)
+    idx = np.flatnonzero(rows)
+    if idx.size == 0:
+        return met
+    owner = slots.owner[idx]
+    dirs = (slots.cos[idx], slots.sin[idx])
+    hit = sonar.arcs_meet_at(r[owner], slots.cx[idx], slots.cy[idx], slots.slot_radius_m, dirs)
+    starts = np.flatnonzero(np.r_[True, owner[1:] != owner[:-1]])
+    met[owner[starts]] = np.logical_or.reduceat(hit, starts, axis=0)
+    return met
+
+
+def _tracked_met(
+    sonar: SonarGeometry, r: FloatArray, inputs: Sequence[MaskInputs], radius_m: float
+) -> BoolArray:
+    """Per robot and transducer: whether its echo arc meets the tracked robot's disc,
+    where that robot's last state, dead-reckoned to now, puts it.
+    """
+    rows, cx, cy = [], [], []
+    for i, heard in enumerate(inputs):
+        lead = heard.view.lead
+        if lead is not None:
+            predicted = predict_leader(lead.pose, lead.twist, max(0.0, heard.t_s - lead.stamp_s))
+            centre = heard.pose.to_body(predicted.position)
+            rows.append(i)
+            cx.append(centre.x_m)
+            cy.append(centre.y_m)
+    met = np.zeros(r.shape, dtype=bool)
+    if rows:
+        ccx, ccy = np.array(cx).reshape(-1, 1), np.array(cy).reshape(-1, 1)
+        dirs = sonar.nearest_dirs(ccx, ccy)
+        met[rows] = sonar.arcs_meet_at(r[rows], ccx, ccy, radius_m + TRACKED_MASK_M, dirs)
+    return met
+
+
+def _clearances(
+    x: FloatArray, y: FloatArray, keep: BoolArray, half_width_m: FloatArray
+) -> FloatArray:
+    """Per robot, `clearance_along` ahead and behind (before the floor at zero) of the
+    ray points `keep` marks: (robots, 2).
+    """
+    c = np.cos(_AHEAD_BEHIND_RAD)[:, None]
+    s = np.sin(_AHEAD_BEHIND_RAD)[:, None]
+    px, py = x[:, None, :], y[:, None, :]
+    f = px * c + py * s
+    lat2 = np.square(py * c - px * s)
+    w2 = (half_width_m * half_width_m)[:, None, None]
+    half_chord = np.sqrt(np.maximum(w2 - lat2, 0.0))
+    ahead = keep[:, None, :] & (lat2 < w2) & (f + half_chord > 0.0)
+    gap: FloatArray = np.where(ahead, f - half_chord, np.inf).min(axis=2)
+    return gap
