@@ -14,8 +14,10 @@ robots' discs and which slots are occupied.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 import numpy.typing as npt
@@ -23,13 +25,13 @@ import numpy.typing as npt
 from phalanx.agents.inputs import FleetView
 from phalanx.agents.perception import (
     BoolArray,
-    FixedDiscs,
     FloatArray,
     MaskedEchoes,
+    SonarBatch,
     SonarEchoes,
     SonarGeometry,
 )
-from phalanx.core.geometry import Pose2D
+from phalanx.core.geometry import Pose2D, Vec2
 from phalanx.core.rigid_body import predict_leader
 from phalanx.core.states import OUT_OF_FORMATION
 
@@ -38,6 +40,27 @@ from phalanx.core.states import OUT_OF_FORMATION
 TRACKED_MASK_M = 0.1
 EXPECTED_MASK_M = 0.15
 _AHEAD_BEHIND_RAD = np.array([0.0, np.pi])
+
+
+@dataclass(frozen=True)
+class FixedDiscs:
+    """Discs that stay put in the body frame (the formation's slots, where the shape
+    expects the other robots), with what `arcs_meet` needs of them worked out once.
+    """
+
+    cx: FloatArray  # (discs, 1)
+    cy: FloatArray
+    radius_m: float
+    dirs: tuple[FloatArray, FloatArray]
+    cut_m: FloatArray  # (discs,): centre's distance from the body origin less the radius
+
+    @classmethod
+    def of(cls, sonar: SonarGeometry, centres: Sequence[Vec2], radius_m: float) -> FixedDiscs:
+        """The discs of `radius_m` at `centres` (body frame)."""
+        cx = np.array([c.x_m for c in centres], dtype=np.float64).reshape(-1, 1)
+        cy = np.array([c.y_m for c in centres], dtype=np.float64).reshape(-1, 1)
+        cut = np.array([math.hypot(c.x_m, c.y_m) - radius_m for c in centres], dtype=np.float64)
+        return cls(cx, cy, radius_m, sonar.nearest_dirs(cx, cy), cut)
 
 
 @dataclass(frozen=True, slots=True)
@@ -110,19 +133,42 @@ class SlotMasks:
             cat([m.half_width_m for m in masks]),
         )
 
+    @cached_property
+    def _universe(self) -> tuple[list[str], npt.NDArray[np.intp]]:
+        """Every robot some slot disc stands for, and each stacked disc's among them."""
+        names = sorted({r for ids in self.slot_ids for r in ids})
+        index = {r: i for i, r in enumerate(names)}
+        return names, np.array([index[r] for ids in self.slot_ids for r in ids], dtype=np.intp)
+
     def rows(self, inputs: Sequence[MaskInputs]) -> BoolArray:
         """Which stacked slot discs hold a robot to mask this step: not the one their
         owner tracks (masked where its state says), heard to be in formation (or not
         heard yet, at the start), and their owner itself in formation.
         """
-        flags: list[bool] = []
-        for ids, heard in zip(self.slot_ids, inputs, strict=True):
-            if heard.state in OUT_OF_FORMATION:
-                flags += [False] * len(ids)
-                continue
-            live, tracked, assume = heard.view.live, heard.view.tracked_id, heard.assume_formed
-            flags += [r != tracked and (live[r].formed if r in live else assume) for r in ids]
-        return np.array(flags, dtype=bool)
+        names, slot = self._universe
+        index = {r: i for i, r in enumerate(names)}
+        # Robots stepped together share one view of the flags: in slot or not, worked out
+        # once per distinct view rather than once per owner.
+        groups: dict[tuple[int, bool], int] = {}
+        in_slot: list[list[bool]] = []
+        group, owner_ok, tracked = [], [], []
+        for heard in inputs:
+            live, assume = heard.view.live, heard.assume_formed
+            key = (id(live), assume)
+            if key not in groups:
+                groups[key] = len(in_slot)
+                in_slot.append([live[r].formed if r in live else assume for r in names])
+            group.append(groups[key])
+            owner_ok.append(heard.state not in OUT_OF_FORMATION)
+            tracked.append(index.get(heard.view.tracked_id or "", -1))
+        owner = self.owner
+        table = np.array(in_slot, dtype=bool).reshape(len(in_slot), len(names))
+        rows: BoolArray = (
+            table[np.asarray(group, dtype=np.intp)[owner], slot]
+            & np.asarray(owner_ok, dtype=bool)[owner]
+            & (slot != np.asarray(tracked, dtype=np.intp)[owner])
+        )
+        return rows
 
 
 def mask_readings(
@@ -136,34 +182,52 @@ def mask_readings(
     their obstacle points, and the free way straight ahead and behind
     (`clearance_along` with each robot's half-width), rows in the order of `readings`.
     """
-    units = sonar.unit_x_m.size
-    none = np.zeros(units)
-    r = np.stack([rd.ranges_m[:units] if rd.ranges_m.size >= units else none for rd in readings])
-    every = np.stack([rd.echo for rd in readings])
+    batch = _batch_of(readings)
+    r, every = batch.ranges_m, batch.echo
     met = _slots_met(sonar, r, slots, slots.rows(inputs))
     met |= _tracked_met(sonar, r, inputs, slots.tracked_radius_m)
     echo = every & ~met
-    x = np.stack([rd.ray_x_m for rd in readings])
-    y = np.stack([rd.ray_y_m for rd in readings])
-    keep = np.stack([rd.seen for rd in readings]) & echo[:, sonar.unit_of_ray]
+    x, y = batch.ray_x_m, batch.ray_y_m
+    keep = batch.seen & echo[:, sonar.unit_of_ray]
     gaps = _clearances(x, y, keep, slots.half_width_m).tolist()
-    same = (echo == every).all(axis=1).tolist()
+    xs, ys = x[keep], y[keep]
+    ends = np.cumsum(keep.sum(axis=1)).tolist()
     out = []
-    for i, (rd, heard) in enumerate(zip(readings, inputs, strict=True)):
-        # (the usual case, no echo of a robot: the reading's own points and mask)
-        points = rd.raw if same[i] else (x[i][keep[i]], y[i][keep[i]])
+    for i, heard in enumerate(inputs):
+        a, b = ends[i - 1] if i else 0, ends[i]
         ahead, behind = gaps[i]
         out.append(
             MaskedEchoes(
                 heard.robot_id,
                 heard.t_s,
-                rd.echo if same[i] else echo[i],
-                points,
+                echo[i],
+                (xs[a:b], ys[a:b]),
                 max(0.0, ahead),
                 max(0.0, behind),
             )
         )
     return out
+
+
+def _batch_of(readings: Sequence[SonarEchoes]) -> SonarBatch:
+    """The readings' arrays: their batch's own when they are that batch, in order."""
+    batch = readings[0].batch
+    if (
+        batch is not None
+        and len(batch.readings) == len(readings)
+        and all(a is b for a, b in zip(batch.readings, readings, strict=True))
+    ):
+        return batch
+    units = readings[0].echo.size
+    none = np.zeros(units)  # (a reading short of the ring has no echo: any range will do)
+    return SonarBatch(
+        np.stack([rd.ranges_m[:units] if rd.ranges_m.size >= units else none for rd in readings]),
+        np.stack([rd.echo for rd in readings]),
+        np.stack([rd.ray_x_m for rd in readings]),
+        np.stack([rd.ray_y_m for rd in readings]),
+        np.stack([rd.seen for rd in readings]),
+        list(readings),
+    )
 
 
 def _slots_met(sonar: SonarGeometry, r: FloatArray, slots: SlotMasks, rows: BoolArray) -> BoolArray:

@@ -32,6 +32,7 @@ NO_OBSTACLE_M = math.inf
 HEADINGS_RAD: FloatArray = np.radians(np.arange(-180.0, 180.0, 7.5))
 _AT_MAX_RANGE_M = 1e-6
 _REACH_MARGIN_M = 1e-3
+_DOUBT = 1e-9
 # Blind gaps between beams are filled with the neighbours' echoes within this range (m).
 GAP_FILL_RANGE_M = 1.5
 # Lateral spread an echo's arc is narrowed to when far (m).
@@ -58,6 +59,29 @@ class SonarEchoes:
     seen: BoolArray
     raw: tuple[FloatArray, FloatArray]
     nearest_m: float
+    batch: SonarBatch | None = None  # the readings read with it, in one pass
+
+
+@dataclass(frozen=True, slots=True)
+class SonarBatch:
+    """Readings of several robots read in one pass: the arrays of `SonarEchoes`, a row
+    per robot, and each robot's reading (views into them).
+    """
+
+    ranges_m: FloatArray
+    echo: BoolArray
+    ray_x_m: FloatArray
+    ray_y_m: FloatArray
+    seen: BoolArray
+    readings: list[SonarEchoes]
+
+
+def _flat_rows(
+    x: FloatArray, y: FloatArray, keep: BoolArray
+) -> tuple[FloatArray, FloatArray, list[tuple[int, int]]]:
+    """The `keep` entries of x and y, row after row, and each row's (start, end) in them."""
+    ends = np.cumsum(keep.sum(axis=1)).tolist()
+    return x[keep], y[keep], list(zip([0, *ends[:-1]], ends, strict=True))
 
 
 @dataclass(frozen=True, slots=True)
@@ -73,27 +97,6 @@ class MaskedEchoes:
     points: tuple[FloatArray, FloatArray]
     ahead_m: float
     behind_m: float
-
-
-@dataclass(frozen=True)
-class FixedDiscs:
-    """Discs that stay put in the body frame (the formation's slots, where the shape
-    expects the other robots), with what `arcs_meet` needs of them worked out once.
-    """
-
-    cx: FloatArray  # (discs, 1)
-    cy: FloatArray
-    radius_m: float
-    dirs: tuple[FloatArray, FloatArray]
-    cut_m: FloatArray  # (discs,): centre's distance from the body origin less the radius
-
-    @classmethod
-    def of(cls, sonar: SonarGeometry, centres: Sequence[Vec2], radius_m: float) -> FixedDiscs:
-        """The discs of `radius_m` at `centres` (body frame)."""
-        cx = np.array([c.x_m for c in centres], dtype=np.float64).reshape(-1, 1)
-        cy = np.array([c.y_m for c in centres], dtype=np.float64).reshape(-1, 1)
-        cut = np.array([math.hypot(c.x_m, c.y_m) - radius_m for c in centres], dtype=np.float64)
-        return cls(cx, cy, radius_m, sonar.nearest_dirs(cx, cy), cut)
 
 
 @dataclass(frozen=True)
@@ -191,28 +194,21 @@ class SonarGeometry:
         return x[seen], y[seen]
 
     def read(self, ranges_m: Sequence[float] | FloatArray) -> SonarEchoes:
-        """The geometry of one reading (see `read_all`)."""
+        """The geometry of one reading (`read_all` of one row). A reading with fewer
+        ranges than the ring has transducers has no echo at all (see `echoes`).
+        """
         ranges = np.asarray(ranges_m, dtype=np.float64)
         units = self.unit_x_m.size
-        if ranges.size < units:  # not the ring of the parameter file: no echo at all
-            rays = self.unit_of_ray.size
-            return SonarEchoes(
-                ranges,
-                np.zeros(units, dtype=bool),
-                np.zeros(rays),
-                np.zeros(rays),
-                np.zeros(rays, dtype=bool),
-                (np.zeros(0), np.zeros(0)),
-                NO_OBSTACLE_M,
-            )
-        return self.read_all(ranges[None, :units], full=ranges[None, :])[0]
+        if ranges.size < units:
+            return self.read_all(np.full((1, units), self.max_range_m), full=[ranges]).readings[0]
+        return self.read_all(ranges[None, :units], full=[ranges]).readings[0]
 
     def read_all(
-        self, ranges_m: FloatArray, *, full: FloatArray | None = None
-    ) -> list[SonarEchoes]:
+        self, ranges_m: FloatArray, *, full: Sequence[FloatArray] | None = None
+    ) -> SonarBatch:
         """The geometry of every robot's reading, rows of `ranges_m` (robots, transducers),
         worked out in one pass: the arithmetic of `echoes` and `points_of`, row by row.
-        `full`: the readings as the robots gave them, if longer than the ring.
+        `full`: the readings as the robots gave them (each reading's `ranges_m`).
         """
         r = np.asarray(ranges_m, dtype=np.float64)
         echo = r < self.max_range_m - _AT_MAX_RANGE_M
@@ -224,44 +220,14 @@ class SonarGeometry:
         x = self.origin_x_m + ray_r * np.cos(angle)
         y = self.origin_y_m + ray_r * np.sin(angle)
         near = np.sqrt(np.where(seen, x * x + y * y, np.inf).min(axis=1)).tolist()
+        batch = SonarBatch(r, echo, x, y, seen, [])
         rows = full if full is not None else r
-        out = []
-        for i, hits in enumerate(seen):
-            raw = (x[i][hits], y[i][hits]) if near[i] < NO_OBSTACLE_M else _NO_POINTS
-            out.append(SonarEchoes(rows[i], echo[i], x[i], y[i], hits, raw, near[i]))
-        return out
-
-    def points_from(self, reading: SonarEchoes, echo: BoolArray) -> tuple[FloatArray, FloatArray]:
-        """The obstacle points of the transducers `echo` marks (a subset of the reading's
-        echoes): `points_of` on the reading's geometry.
-        """
-        keep = reading.seen & echo[self.unit_of_ray]
-        return reading.ray_x_m[keep], reading.ray_y_m[keep]
-
-    def echoes_of(
-        self,
-        reading: SonarEchoes,
-        known: Sequence[tuple[Vec2, float]] = (),
-        fixed: FixedDiscs | None = None,
-        rows: BoolArray | None = None,
-    ) -> BoolArray:
-        """`echoes(reading.ranges_m, discs)`, the discs being `known` and the `rows` of
-        `fixed` (the same numbers: the fixed discs' geometry is only worked out earlier).
-        """
-        echo = reading.echo
-        if not echo.any() or (not known and (fixed is None or rows is None or not rows.any())):
-            return echo
-        r = reading.ranges_m[: self.unit_x_m.size]
-        reach_m = self.mount_m + float(r[echo].max()) + _REACH_MARGIN_M
-        near = [(c, rad) for c, rad in known if math.hypot(c.x_m, c.y_m) - rad < reach_m]
-        met = self.arcs_meet(r, near).any(axis=0) if near else None
-        if fixed is not None and rows is not None:
-            rows = rows & (fixed.cut_m < reach_m)
-            if rows.any():
-                hit = self.arcs_meet_at(r, fixed.cx, fixed.cy, fixed.radius_m, fixed.dirs)
-                on_rows = hit[rows].any(axis=0)
-                met = on_rows if met is None else met | on_rows
-        return echo if met is None else echo & ~met
+        xs, ys, bounds = _flat_rows(x, y, seen)
+        batch.readings.extend(
+            SonarEchoes(rows[i], echo[i], x[i], y[i], seen[i], (xs[a:b], ys[a:b]), near[i], batch)
+            for i, (a, b) in enumerate(bounds)
+        )
+        return batch
 
     def echoes(self, ranges: FloatArray, known: Sequence[tuple[Vec2, float]] = ()) -> BoolArray:
         """Per transducer: an echo (short of max range) that is not one of the `known`
@@ -313,18 +279,22 @@ class SonarGeometry:
         dirs: tuple[FloatArray, FloatArray],
     ) -> BoolArray:
         """`arcs_meet` given the discs' `nearest_dirs`."""
-        px = self.unit_x_m + r * dirs[0]
-        py = self.unit_y_m + r * dirs[1]
-        meets: BoolArray = np.hypot(px - cx, py - cy) < radius
+        dx = self.unit_x_m + r * dirs[0] - cx
+        dy = self.unit_y_m + r * dirs[1] - cy
+        # hypot (slow) only where the squared distance leaves the answer in doubt: a hair
+        # either side of the radius, far wider than either's rounding
+        d2, r2 = dx * dx + dy * dy, np.square(radius)
+        meets: BoolArray = d2 < r2 * (1.0 - _DOUBT)
+        doubt = ~meets & (d2 <= r2 * (1.0 + _DOUBT))
+        if doubt.any():
+            near = np.broadcast_to(radius, d2.shape)[doubt]
+            meets[doubt] = np.hypot(dx[doubt], dy[doubt]) < near
         return meets
 
     @cached_property
     def mount_m(self) -> float:
         """The furthest transducer from the body origin (m)."""
         return float(np.hypot(self.unit_x_m, self.unit_y_m).max())
-
-
-_NO_POINTS: tuple[FloatArray, FloatArray] = (np.zeros(0), np.zeros(0))
 
 
 def _reach(headings: Sequence[float], i: int, half_beam_rad: float) -> tuple[float, float]:

@@ -14,13 +14,13 @@ from phalanx.agents.inputs import FleetView, Observation
 from phalanx.agents.masking import (
     EXPECTED_MASK_M,
     TRACKED_MASK_M,
+    FixedDiscs,
     MaskInputs,
     SlotMasks,
     mask_readings,
 )
 from phalanx.agents.memory import Progress, StallWatch
 from phalanx.agents.perception import (
-    FixedDiscs,
     SonarGeometry,
     braking_gap_m,
     clearance_along,

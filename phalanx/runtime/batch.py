@@ -115,7 +115,7 @@ class BatchRunner:
         and masked (every robot heard first: masking needs whom each tracks) in one pass.
         """
         statuses, ranges = self.world.statuses()
-        readings = self.sonar.read_all(ranges)
+        readings = self.sonar.read_all(ranges).readings
         odometry = self.world.odometries()
         agents = self.agents
         heard = [
