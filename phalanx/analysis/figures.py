@@ -5,6 +5,11 @@ behaviour state over time, with who led; fig5: trajectories (and obstacles) with
 reverse phase marked; fig6: linear and angular separations against their desired
 values; fig7: velocity profiles against the run's limits; and the dead-end escape
 (`deadend_escape`: the way in and back out, and the errors while reversing).
+
+Figures scale with the fleet: up to `LEGEND_MAX` robots each gets its own line and a
+legend entry; a larger fleet's lines go into one `LineCollection` per kind, each line
+decimated to about `POINTS_PER_LINE` points (more than the pixels it is drawn across),
+so a 1000-robot run draws in seconds (`phalanx.analysis.plotting`).
 """
 
 from __future__ import annotations
@@ -31,12 +36,18 @@ from phalanx.analysis.metrics import (
     phase_masks,
     tracked_series,
 )
+from phalanx.analysis.plotting import (
+    COLOURS,
+    LEGEND_MAX,
+    collection,
+    decimated,
+    fleet_note,
+    fleet_trajectories,
+)
 from phalanx.core.limits import KinematicLimits
 from phalanx.core.runlog import RunLog
 from phalanx.core.scenarios import resolve_world
 from phalanx.core.states import ROBOT_STATES, State
-
-COLOURS = ("tab:red", "tab:blue", "tab:green", "tab:purple", "tab:orange", "tab:brown")
 
 
 def _followers(log: RunLog) -> list[str]:
@@ -77,7 +88,9 @@ def trajectories(log: RunLog) -> Figure:
     """Figure 5: every robot's path; the reverse phase drawn thick and dashed."""
     fig, ax = plt.subplots(figsize=(8, 7))
     draw_world(ax, log)
-    for i, (rid, tr) in enumerate(log.traces.items()):
+    if len(log.traces) > LEGEND_MAX:
+        fleet_trajectories(ax, log)
+    for i, (rid, tr) in enumerate(log.traces.items() if len(log.traces) <= LEGEND_MAX else ()):
         colour = COLOURS[i % len(COLOURS)]
         ax.plot(tr.x_m, tr.y_m, color=colour, lw=1.0, label=rid)
         back = np.where(tr.direction < 0, tr.y_m, np.nan)
@@ -89,7 +102,8 @@ def trajectories(log: RunLog) -> Figure:
         f"{log.scenario.name} / {log.scenario.controller.kind}: trajectories "
         "(dashed = reverse; o start, s end)"
     )
-    ax.legend()
+    if len(log.traces) <= LEGEND_MAX:
+        ax.legend()
     ax.grid(True, alpha=0.3)
     return fig
 
@@ -97,20 +111,36 @@ def trajectories(log: RunLog) -> Figure:
 def separations(log: RunLog) -> Figure:
     """Figure 6: l and phi of every follower against l_d and phi_d."""
     fig, (ax_l, ax_p) = plt.subplots(2, 1, figsize=(9, 7), sharex=True)
-    for i, rid in enumerate(_followers(log)):
+    followers = _followers(log)
+    fleet = len(followers) > LEGEND_MAX
+    lines_l, lines_p, desired_l, desired_p = [], [], [], []
+    for i, rid in enumerate(followers):
         parents = [p for p in tracked_series(log, rid) if p]
         leader = max(set(parents), key=parents.count)  # the robot it tracked most
         series = error_series(log, rid)
         l_d, phi_d = log.formation.polar_of(rid, leader)
         colour = COLOURS[(i + 1) % len(COLOURS)]
+        if fleet:
+            lines_l.append(decimated(log.t_s, series.l_m))
+            lines_p.append(decimated(log.t_s, np.degrees(series.phi_rad)))
+            desired_l.append(l_d)
+            desired_p.append(math.degrees(phi_d))
+            continue
         ax_l.plot(log.t_s, series.l_m, color=colour, label=f"{rid} to {leader}")
         ax_l.axhline(l_d, color=colour, ls=":", lw=1)
         ax_p.plot(log.t_s, np.degrees(series.phi_rad), color=colour, label=rid)
         ax_p.axhline(math.degrees(phi_d), color=colour, ls=":", lw=1)
+    if fleet:
+        for ax, lines, desired in ((ax_l, lines_l, desired_l), (ax_p, lines_p, desired_p)):
+            collection(ax, lines, offset=1, lw=0.8)
+            ax.hlines(sorted(set(desired)), 0, 1, transform=ax.get_yaxis_transform(),
+                      colors="k", linestyles=":", lw=1)  # fmt: skip
+        fleet_note(ax_l, len(followers))
     for ax in (ax_l, ax_p):
         _shade(ax, log)
         ax.grid(True, alpha=0.3)
-        ax.legend(loc="upper right")
+        if not fleet:
+            ax.legend(loc="upper right")
     ax_l.set(ylabel="l (m)", title="separations (dotted = desired; grey = reverse)")
     ax_p.set(ylabel="phi (deg)", xlabel="t (s)")
     return fig
@@ -120,7 +150,14 @@ def velocities(log: RunLog) -> Figure:
     """Figure 7: translational and rotational velocities against the run's limits."""
     limits = KinematicLimits.from_params(log.robot, log.scenario.limits)
     fig, (ax_v, ax_w) = plt.subplots(2, 1, figsize=(9, 7), sharex=True)
-    for i, (rid, tr) in enumerate(log.traces.items()):
+    fleet = len(log.traces) > LEGEND_MAX
+    if fleet:
+        traces = list(log.traces.values())
+        collection(ax_v, [decimated(log.t_s, tr.v_mps) for tr in traces], lw=0.8)
+        w_deg = [decimated(log.t_s, np.degrees(tr.omega_radps)) for tr in traces]
+        collection(ax_w, w_deg, lw=0.8)
+        fleet_note(ax_v, len(traces))
+    for i, (rid, tr) in enumerate(log.traces.items() if not fleet else ()):
         colour = COLOURS[i % len(COLOURS)]
         ax_v.plot(log.t_s, tr.v_mps, color=colour, label=rid)
         ax_w.plot(log.t_s, np.degrees(tr.omega_radps), color=colour, label=rid)
@@ -129,7 +166,8 @@ def velocities(log: RunLog) -> Figure:
         ax.axhline(-bound, color="k", ls="--", lw=1)
         _shade(ax, log)
         ax.grid(True, alpha=0.3)
-        ax.legend(loc="upper right")
+        if not fleet:
+            ax.legend(loc="upper right")
     ax_v.set(ylabel="v (m/s)", title="velocity profiles (dashed = limits)")
     ax_w.set(ylabel="omega (deg/s)", xlabel="t (s)")
     return fig
@@ -171,13 +209,24 @@ def states(log: RunLog) -> Figure:
         sharex=True,
         gridspec_kw={"height_ratios": [max(2, len(names)), 1.5]},
     )
+    fleet = len(log.traces) > LEGEND_MAX
+    steps = []
     for i, (rid, tr) in enumerate(log.traces.items()):
+        if fleet:  # a step line's corners, decimated; the robots spread within a row
+            lift = np.array([index[s] for s in tr.states], dtype=float) + 0.6 * i / len(log.traces)
+            t = np.asarray(log.t_s[: len(lift)])
+            steps.append(decimated(np.repeat(t, 2)[1:], np.repeat(lift, 2)[:-1]))
+            continue
         level = [index[s] + 0.08 * i for s in tr.states]
         ax.step(log.t_s, level, where="post", color=COLOURS[i % len(COLOURS)], label=rid)
+    if fleet:
+        collection(ax, steps, lw=0.6)
+        fleet_note(ax, len(log.traces))
     ax.set_yticks(range(len(names)), names)
     ax.set(title="behaviour states over time (figure 4b)")
     ax.grid(True, alpha=0.3)
-    ax.legend(loc="upper right")
+    if not fleet:
+        ax.legend(loc="upper right")
     _leadership_panel(ax_lead, log)
     fig.tight_layout()
     return fig
@@ -194,9 +243,8 @@ def _leadership_panel(ax: Axes, log: RunLog) -> None:
             ax.axvspan(t0, t1, color=colour[leaders[start]], alpha=0.35, lw=0)
             ax.text((t0 + t1) / 2, 0.5, leaders[start], ha="center", va="center", fontsize=8)
             start = k
-    epochs = np.array([max(tr.epochs[k] for tr in log.traces.values() if tr.epochs)
-                       if any(tr.epochs for tr in log.traces.values()) else 0
-                       for k in range(len(log.t_s))])  # fmt: skip
+    rows = [tr.epochs for tr in log.traces.values() if tr.epochs]
+    epochs = np.max(np.array(rows), axis=0) if rows else np.zeros(len(log.t_s), dtype=int)
     for k in np.flatnonzero(np.diff(epochs) > 0).tolist():
         ax.axvline(float(log.t_s[k + 1]), color="k", lw=1)
         ax.text(float(log.t_s[k + 1]), 0.9, f" epoch {int(epochs[k + 1])}", fontsize=7, va="top")

@@ -88,12 +88,17 @@ def write_recording(log: RunLog, path: Path, *, recording_id: str | None = None)
         tel.send_blueprint()
 
 
-def write_results(log: RunLog, folder: Path, *, recording: bool = True) -> dict[str, Any]:
-    """Write the results folder of `log`; returns the metrics."""
+def write_results(
+    log: RunLog, folder: Path, *, recording: bool = True, figures: bool = True
+) -> dict[str, Any]:
+    """Write the results folder of `log` (without the PNG figures if not `figures`, and
+    without the recording if not `recording`); returns the metrics.
+    """
     folder.mkdir(parents=True, exist_ok=True)
     metrics = run_metrics(log)
     write_metrics(metrics, folder / "metrics.json")
-    write_figures(log, folder)
+    if figures:
+        write_figures(log, folder)
     if recording:
         write_recording(log, folder / "run.rrd")
     return metrics

@@ -29,6 +29,7 @@ def run(
     controller: ControllerOpt = None,
     set_: SetOpt = None,
     recording: Annotated[bool, typer.Option(help="Write a Rerun .rrd of the run.")] = True,
+    figures: Annotated[bool, typer.Option(help="Draw the PNG figures (a step of its own).")] = True,
     progress: Annotated[bool, typer.Option(help="Show a progress bar.")] = True,
 ) -> None:
     """Run SCENARIO with every robot in this process; write metrics, figures and a recording."""
@@ -44,7 +45,7 @@ def run(
     config = apply_overrides(config, overrides) if overrides else config
     folder = out or Path("results") / f"{config.name}-{config.controller.kind}"
     log = run_batch(config, progress=_progress_bar() if progress else None)
-    metrics = write_results(log, folder, recording=recording)
+    metrics = write_results(log, folder, recording=recording, figures=figures)
     print_summary(metrics)
     typer.echo(f"results: {folder}")
 
