@@ -127,7 +127,14 @@ class SonarGeometry:
         Each beam's rays also cover half the blind gap to each neighbouring beam (the
         P3DX's ring leaves 25 deg unseen between its 50 and 90 deg sonars): what no sonar
         sees is taken to be as near as what its neighbours see, never as free.
+        The last ring built is kept for the same parameters (a fleet shares one).
         """
+        if not _LAST_RING or _LAST_RING[0][0] is not robot:
+            _LAST_RING[:] = [(robot, cls._build(robot))]
+        return _LAST_RING[0][1]
+
+    @classmethod
+    def _build(cls, robot: RobotParams) -> SonarGeometry:
         units = robot.sonar.units
         half = math.radians(robot.sonar.beam_width_deg) / 2
         headings = [math.radians(u.heading_deg) for u in units]
@@ -194,9 +201,7 @@ class SonarGeometry:
         return x[seen], y[seen]
 
     def read(self, ranges_m: Sequence[float] | FloatArray) -> SonarEchoes:
-        """The geometry of one reading (`read_all` of one row). A reading with fewer
-        ranges than the ring has transducers has no echo at all (see `echoes`).
-        """
+        """The geometry of one reading (`read_all` of one row; one short of the ring: no echo)."""
         ranges = np.asarray(ranges_m, dtype=np.float64)
         units = self.unit_x_m.size
         if ranges.size < units:
@@ -295,6 +300,9 @@ class SonarGeometry:
     def mount_m(self) -> float:
         """The furthest transducer from the body origin (m)."""
         return float(np.hypot(self.unit_x_m, self.unit_y_m).max())
+
+
+_LAST_RING: list[tuple[RobotParams, SonarGeometry]] = []
 
 
 def _reach(headings: Sequence[float], i: int, half_beam_rad: float) -> tuple[float, float]:

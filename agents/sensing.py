@@ -97,7 +97,7 @@ class Senses:
         self.stall = StallWatch(self.nav.stall_s)
         # The robots near enough in the shape for the sonar to hear (only these are masked).
         audible_m = sonar.mount_m + sonar.max_range_m + shape.radius_m + EXPECTED_MASK_M
-        self._maskable = {r: o for r, o in shape.offsets.items() if o.norm() < audible_m + 1.0}
+        self._maskable = shape.slots_within(audible_m + 1.0)
         # ... with where their echoes would come from worked out once (the shape is rigid)
         slot_ids = [r for r in self._maskable if r != robot_id]
         discs = FixedDiscs.of(

@@ -6,6 +6,7 @@ robot's slot is behind the robot it tracks, and the free way of the whole shape.
 from __future__ import annotations
 
 import math
+from functools import cached_property
 
 import numpy as np
 
@@ -33,6 +34,34 @@ SWEEP_MARGIN_M = 0.35
 SIDEWAYS_RAD = np.array([math.pi / 2, -math.pi / 2])
 
 
+_LAST_FORMATION: list[tuple[Formation, tuple[str, ...], FloatArray, FloatArray]] = []
+
+
+def _slot_arrays(formation: Formation) -> tuple[tuple[str, ...], FloatArray, FloatArray]:
+    """Robot ids and slot positions of `formation` as arrays (the last one's kept: a fleet
+    builds all its robots' shapes from one formation).
+    """
+    last = _LAST_FORMATION[0] if _LAST_FORMATION else None
+    if last is None or last[0] is not formation:
+        ids = tuple(formation.positions)
+        xs = np.array([p.x_m for p in formation.positions.values()], dtype=np.float64)
+        ys = np.array([p.y_m for p in formation.positions.values()], dtype=np.float64)
+        last = (formation, ids, xs, ys)
+        _LAST_FORMATION[:] = [last]
+    return last[1], last[2], last[3]
+
+
+def _furthest_m(dx: FloatArray, dy: FloatArray) -> float:
+    """The largest `Vec2.norm` of the offsets (0 if none): math.hypot on the few that
+    numpy's hypot puts within rounding of the largest.
+    """
+    if dx.size == 0:
+        return 0.0
+    rough = np.hypot(dx, dy)
+    near_top = np.flatnonzero(rough >= float(rough.max()) * (1.0 - 1e-9)).tolist()
+    return max(math.hypot(float(dx[i]), float(dy[i])) for i in near_top)
+
+
 class Shape:
     """One robot's view of its formation's shape (SI units, this robot's body frame)."""
 
@@ -53,14 +82,38 @@ class Shape:
         self.limits = limits
         self.dt_s = dt_s
         here = formation.positions[robot_id]
-        self.offsets = {r: p - here for r, p in formation.positions.items()}
-        self.follower_slots = [p for r, p in self.offsets.items() if r != robot_id]
+        # Every slot less this one's, as arrays (a fleet of n builds n of these: O(n) each
+        # in numpy, the same numbers as subtracting the Vec2s)
+        self._ids, xs, ys = _slot_arrays(formation)
+        self._dx, self._dy = xs - here.x_m, ys - here.y_m
         # How far the shape reaches from this robot (what turning on the spot sweeps).
-        self.reach_m = max((o.norm() for o in self.offsets.values()), default=0.0)
-        ys = [p.y_m for p in formation.positions.values()]
+        self.reach_m = _furthest_m(self._dx, self._dy)
         # Half the shape's width across its heading, plus a robot radius.
-        self.half_span_m = (max(ys) - min(ys)) / 2 + radius_m
+        self.half_span_m = (float(ys.max()) - float(ys.min())) / 2 + radius_m
         self.half_width_m = radius_m + nav.body_margin_m
+
+    @cached_property
+    def offsets(self) -> dict[str, Vec2]:
+        """Every robot's slot relative to this robot's (formation frame), this one's included."""
+        dx, dy = self._dx.tolist(), self._dy.tolist()
+        return {r: Vec2(x, y) for r, x, y in zip(self._ids, dx, dy, strict=True)}
+
+    @cached_property
+    def follower_slots(self) -> list[Vec2]:
+        """Every other robot's slot relative to this robot's."""
+        return [p for r, p in self.offsets.items() if r != self.robot_id]
+
+    def slots_within(self, distance_m: float) -> dict[str, Vec2]:
+        """The robots whose slot is nearer than `distance_m` to this robot's (by
+        `Vec2.norm`; this one included), in the formation's order.
+        """
+        rough = np.hypot(self._dx, self._dy)  # (a hair wide: exact test below)
+        out = {}
+        for i in np.flatnonzero(rough < distance_m * (1.0 + 1e-9) + 1e-12).tolist():
+            offset = Vec2(float(self._dx[i]), float(self._dy[i]))
+            if offset.norm() < distance_m:
+                out[self._ids[i]] = offset
+        return out
 
     def turn_rate_radps(self) -> float:
         """The fastest turn on the spot that keeps every slot within its speed share."""
