@@ -224,6 +224,7 @@ class WorldProcess:
         with self.inbox.cond:
             self._sent_at[k] = time.monotonic()
             self._sent_at.pop(k - 50, None)
+        self.world.sense_all()  # every robot's sonar in one pass; each frame reads its row
         for rid in self.ids:
             session.publish(
                 robot_key(self.options.fleet, rid, "sense"),
