@@ -13,6 +13,8 @@ import argparse
 import time
 from collections.abc import Callable
 
+from calibration import Calibration
+
 from phalanx.wire.codec import decode, encode
 from phalanx.wire.messages import Message, RobotState, SenseFrame, VelocityCommand
 
@@ -68,7 +70,8 @@ def main() -> None:
     parser.add_argument("--rounds", type=int, default=5)
     parser.add_argument("--n", type=int, default=20000)
     args = parser.parse_args()
-    print("message          format  bytes  encode_us  decode_us")
+    cal = Calibration.measure()
+    print("message          format  bytes  encode_us  decode_us  encode_ucal  decode_ucal")
     for message in samples():
         kind = type(message)
         figures = {}
@@ -78,7 +81,10 @@ def main() -> None:
             enc = best_us(lambda m=message, f=fmt: encode(m, f), args.n, args.rounds)
             dec = best_us(lambda p=payload, k=kind: decode(k, p), args.n, args.rounds)
             figures[fmt] = (len(payload), enc, dec)
-            print(f"{kind.__name__:16s} {fmt:6s}  {len(payload):5d}  {enc:9.2f}  {dec:9.2f}")
+            print(
+                f"{kind.__name__:16s} {fmt:6s}  {len(payload):5d}  {enc:9.2f}  {dec:9.2f}  "
+                f"{cal.ratio(enc):11.1f}  {cal.ratio(dec):11.1f}"
+            )
         (jb, je, jd), (pb, pe, pd) = figures["json"], figures["packed"]
         print(f"{'':16s} ratio   {jb / pb:5.2f}  {je / pe:9.2f}  {jd / pd:9.2f}  (json / packed)")
 

@@ -22,6 +22,8 @@ import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 
+from calibration import Calibration
+
 from phalanx.core.config_files import load_robot
 from phalanx.core.geometry import Twist2D
 from phalanx.drivers.arcos import ArcosDriver, ArcosSettings
@@ -155,6 +157,7 @@ def can_latency(repeats: int) -> None:
 
 
 def main() -> None:
+    Calibration.measure()  # (the unit every time below can be divided by, on any machine)
     parser = argparse.ArgumentParser()
     parser.add_argument("--repeats", type=int, default=30)
     args = parser.parse_args()

@@ -20,6 +20,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from calibration import Calibration, load
+
 from phalanx.core.config_files import CONFIG_ROOT, load_scenario
 from phalanx.runtime.batch import run_batch
 
@@ -40,15 +42,20 @@ def main() -> None:
     parser = argparse.ArgumentParser()
     parser.add_argument("--repeats", type=int, default=3)
     args = parser.parse_args()
+    cal = Calibration.measure()
     scenario = load_scenario(WEDGE)
     started = time.perf_counter()
     run_batch(scenario)
     batch_s = time.perf_counter() - started
     print(
         f"paper wedge, {scenario.duration_s:.0f} s at {scenario.control_rate_hz:.0f} Hz; "
-        f"in process: {batch_s:.2f} s ({scenario.duration_s / batch_s:.0f}x real time)"
+        f"in process: {batch_s:.2f} s ({cal.cal(batch_s)}, "
+        f"{scenario.duration_s / batch_s:.0f}x real time)"
     )
-    print("recording  run  sim_wall_s  realtime_x  command_wall_s  resp_p50_ms  resp_p99_ms")
+    print(
+        "recording  run  sim_wall_s  sim_wall_cal  realtime_x  command_wall_s  "
+        "resp_p50_ms  resp_p99_ms  load"
+    )
     with tempfile.TemporaryDirectory() as tmp:
         for recording in (False, True):
             for i in range(args.repeats):
@@ -57,11 +64,13 @@ def main() -> None:
                 assert isinstance(rt, dict)  # noqa: S101
                 print(
                     f"{'on' if recording else 'off':9s}  {i:3d}  "
-                    f"{metrics['wall_time_s']:10.2f}  {metrics['realtime_factor']:10.1f}  "
+                    f"{metrics['wall_time_s']:10.2f}  {cal.ratio(metrics['wall_time_s']):12.0f}  "
+                    f"{metrics['realtime_factor']:10.1f}  "
                     f"{wall:14.2f}  {1e3 * rt['response_p50_s']:11.2f}  "
-                    f"{1e3 * rt['response_p99_s']:11.2f}",
+                    f"{1e3 * rt['response_p99_s']:11.2f}  {load()}",
                     flush=True,
                 )
+    Calibration.measure()
 
 
 if __name__ == "__main__":

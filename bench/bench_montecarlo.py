@@ -24,6 +24,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from calibration import Calibration
 
 from phalanx.analysis.metrics import error_series, is_follower, navigation_metrics, phase_masks
 from phalanx.analysis.report import SECTION_BEGIN, SECTION_END, with_section
@@ -253,6 +254,7 @@ DEADEND_NOTES = [
 
 
 def main() -> None:
+    Calibration.measure()  # (the unit every time below can be divided by, on any machine)
     parser = argparse.ArgumentParser()
     parser.add_argument("--seeds", type=int, default=100)
     parser.add_argument("--robots", type=int, default=3)

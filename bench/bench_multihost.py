@@ -36,6 +36,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from calibration import Calibration
+
 from phalanx.core.config_files import CONFIG_ROOT
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests" / "multihost"))
@@ -440,6 +442,7 @@ def _table(rows: list[dict[str, Any]], columns: list[str]) -> None:
 
 
 def main() -> None:
+    Calibration.measure()  # (the unit every time below can be divided by, on any machine)
     parser = argparse.ArgumentParser()
     parser.add_argument(
         "command",

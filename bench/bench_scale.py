@@ -22,6 +22,8 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from calibration import Calibration
+
 from phalanx.core.config_files import CONFIG_ROOT, apply_overrides, load_scenario
 from phalanx.core.scenarios import grid_scenario
 
@@ -105,6 +107,7 @@ def run(n: int, seconds: float, workdir: Path) -> dict[str, object]:
 
 
 def main() -> None:
+    Calibration.measure()  # (the unit every time below can be divided by, on any machine)
     parser = argparse.ArgumentParser()
     parser.add_argument("--robots", type=int, nargs="+", default=[10, 20, 30, 40])
     parser.add_argument("--seconds", type=float, default=30.0)

@@ -19,6 +19,8 @@ import sys
 import tempfile
 from pathlib import Path
 
+from calibration import Calibration
+
 from phalanx.core.config_files import CONFIG_ROOT, load_scenario
 
 WEDGE = CONFIG_ROOT / "scenarios" / "paper_wedge.toml"
@@ -34,6 +36,7 @@ def up(out: Path, *, recording: bool) -> dict[str, object]:
 
 
 def main() -> None:
+    Calibration.measure()  # (the unit every time below can be divided by, on any machine)
     parser = argparse.ArgumentParser()
     parser.add_argument("--repeats", type=int, default=2)
     args = parser.parse_args()

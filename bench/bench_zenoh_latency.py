@@ -24,6 +24,8 @@ import statistics
 import time
 from typing import Any
 
+from calibration import Calibration, load
+
 from phalanx.agents.agent import Agent, Observation
 from phalanx.core.config import Scenario
 from phalanx.core.config_files import CONFIG_ROOT, apply_overrides, load_robot, load_scenario
@@ -149,17 +151,20 @@ def main() -> None:
         "--topology", nargs="+", default=["router", "peer"], choices=["router", "peer"]
     )
     args = parser.parse_args()
+    cal = Calibration.measure()
     print(f"leader state -> follower command over Zenoh, {RATE_HZ:.0f} Hz per robot, loopback")
-    print("topology  robots  samples  p50_ms  p90_ms  p99_ms  max_ms")
+    print("topology  robots  samples  p50_ms  p90_ms  p99_ms  max_ms  p99_mcal  load")
     for topology in args.topology:
         for n in args.robots:
             lat = sorted(measure(n, args.seconds, topology))
             q = statistics.quantiles(lat, n=100)
             print(
                 f"{topology:8s}  {n:6d}  {len(lat):7d}  {1e3 * q[49]:6.3f}  "
-                f"{1e3 * q[89]:6.3f}  {1e3 * q[98]:6.3f}  {1e3 * lat[-1]:6.3f}",
+                f"{1e3 * q[89]:6.3f}  {1e3 * q[98]:6.3f}  {1e3 * lat[-1]:6.3f}  "
+                f"{1e3 * cal.ratio(q[98]):8.1f}  {load()}",
                 flush=True,
             )
+    Calibration.measure()
 
 
 if __name__ == "__main__":
