@@ -8,8 +8,11 @@ A step, in order:
 1. **listen**: leadership from every robot's flags (`phalanx.agents.leadership`), whom
    to track and that robot's latest state;
 2. **sense**: what the sonar ring and bumpers say (`phalanx.agents.sensing`);
-3. **estimate**: the memories move on (waypoints, blocked timers, the path crossed, the
-   active behaviour's progress);
+3. **estimate**: the pose estimator (`phalanx.agents.estimation`, when the scenario's
+   `[localisation]` turns it on) fuses odometry with the positioning measurements, right
+   after listening (relative measurements need the tracked robot's state) and before
+   sensing (which places the sonar echoes with the pose); later the memories move on
+   (waypoints, blocked timers, the path crossed, the active behaviour's progress);
 4. **decide**: the guards' context is built once, and the behaviour state machine
    (`phalanx.agents.behaviours.stack`) takes at most one transition;
 5. **command**: the active state's behaviour turns the step into a twist;
@@ -24,13 +27,14 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 from phalanx.agents.behaviours.base import Behaviour, Moment
 from phalanx.agents.behaviours.context import StackContext
 from phalanx.agents.behaviours.stack import behaviour_machine
 from phalanx.agents.control.limits import CommandLimiter
+from phalanx.agents.estimation.estimator import PoseEstimator
 from phalanx.agents.fsm import StateMachine
 from phalanx.agents.inputs import FleetView, Observation
 from phalanx.agents.leadership import Flags, Leadership, LeadershipChange, group_deadlock
@@ -105,6 +109,12 @@ class Agent:
         self._seq = 0
         self._stopped_before: frozenset[str] = frozenset()
         self._last_odometry: Odometry | None = None
+        self.estimator: PoseEstimator | None = None
+        if scenario.localisation.estimator:
+            self.estimator = PoseEstimator(
+                scenario.localisation, track_m=robot.track_width_m, robot_id=robot_id
+            )
+        self._cov: tuple[float, ...] = ()
 
     def _initial_state(self, joining: bool) -> str:
         if joining:
@@ -158,6 +168,7 @@ class Agent:
         """
         self.parts.startup.begin(t_s, self.scenario.leader_timeout_s)
         view = self._listen(peers, flags, t_s)
+        observation = self._localise(observation, view)
         stance = Stance(self.fsm.state, self.direction, self.limiter.last)
         assume_formed = t_s < self.parts.startup.assume_formed_until_s
         sensing = self.parts.senses.read(
@@ -199,6 +210,21 @@ class Agent:
             self.role_reason = f"{change.reason} (epoch {change.epoch}, leader {change.leader_id})"
         took = change if lsh.is_leader and not was_leader else None
         return FleetView(live, took, lsh.is_leader, lsh.leader_id, self.parent_id, lead)
+
+    def _localise(self, observation: Observation, view: FleetView) -> Observation:
+        """The observation with the pose estimate in place of the odometry pose (and its
+        covariance kept for the state), when the estimator is on; as it came otherwise.
+        """
+        if self.estimator is None:
+            return observation
+        odometry = observation.odometry
+        estimate = self.estimator.step(
+            odometry, fixes=observation.fixes, relative=observation.relative, lead=view.lead
+        )
+        self._cov = estimate.cov
+        return replace(
+            observation, odometry=Odometry(estimate.pose, odometry.twist, odometry.stamp_s)
+        )
 
     def _estimate(self, odometry: Odometry, sensing: Sensing, view: FleetView) -> None:
         """Move the memories on: the leader's waypoints, how long each way has been
@@ -359,6 +385,7 @@ class Agent:
             waypoint=progress.waypoint,
             deadlocks=progress.deadlocks,
             profile_s=progress.profile_s,
+            cov=self._cov,
         )
         return StepOutput(
             command,

@@ -7,16 +7,22 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from phalanx.agents.leadership import LeadershipChange, LiveFlags
+from phalanx.core.fixes import PoseFix, RelativeFix
 from phalanx.core.peers import PeerState
 from phalanx.core.robot import Odometry, RobotStatus
 
 
 @dataclass(frozen=True, slots=True)
 class Observation:
-    """What a robot senses this step (from its driver, or the simulated world)."""
+    """What a robot senses this step (from its driver, or the simulated world): odometry,
+    its status, and the positioning measurements that arrived since the last step (pose
+    fixes, relative measurements of other robots), each stamped when it was taken.
+    """
 
     odometry: Odometry
     status: RobotStatus
+    fixes: tuple[PoseFix, ...] = ()
+    relative: tuple[RelativeFix, ...] = ()
 
 
 @dataclass(frozen=True, slots=True)

@@ -16,11 +16,14 @@ import numpy as np
 import numpy.typing as npt
 
 from phalanx.core.config import NoiseConfig, RobotParams, Scenario, SensorEvent, WorldConfig
+from phalanx.core.fixes import PoseFix, RelativeFix
 from phalanx.core.geometry import Pose2D, Twist2D, Vec2
+from phalanx.core.localisation import LocalisationConfig
 from phalanx.core.robot import Odometry, RobotStatus
 from phalanx.core.runlog import Collision
 from phalanx.core.scenarios import resolve_world
 from phalanx.simulator.kinematics import apply_robot_limits, integrate_arcs
+from phalanx.simulator.sensors import SimulatedSensors, camera_mounts
 from phalanx.simulator.sonar import SonarRing, ray_circle_hits, ray_segment_hits
 
 FloatArray = npt.NDArray[np.float64]
@@ -93,6 +96,8 @@ class World:
         noise: NoiseConfig,
         events: Sequence[SensorEvent] = (),
         seed: int = 0,
+        localisation: LocalisationConfig | None = None,
+        mounts_rad: Mapping[str, float] | None = None,
     ) -> None:
         world = resolve_world(world)  # a seeded field becomes plain circles
         self.robot, self.config, self.noise, self.events = robot, world, noise, tuple(events)
@@ -111,6 +116,24 @@ class World:
         self._circles = np.array([(c.x_m, c.y_m, c.radius_m) for c in world.circles]).reshape(-1, 3)
         self._edges = _polygon_edges(world)
         self._sonar_cache: dict[int, FloatArray] = {}
+        self.sensors: SimulatedSensors | None = None  # positioning sensors, if simulated
+        if localisation is not None:
+            self._attach_sensors(localisation, dict(mounts_rad or {}), seed)
+
+    def _attach_sensors(
+        self, config: LocalisationConfig, mounts_rad: dict[str, float], seed: int
+    ) -> None:
+        e = self._edges
+        sensors = SimulatedSensors(
+            config,
+            track_m=self.robot.track_width_m,
+            robot_radius_m=self.robot.radius_m,
+            seed=seed,
+            obstacles=(self._circles, (e.ax, e.ay, e.bx, e.by)),
+            mounts_rad=mounts_rad,
+            events=self.events,
+        )
+        self.sensors = sensors if sensors.active else None
 
     @classmethod
     def for_scenario(cls, scenario: Scenario, robot: RobotParams) -> World:
@@ -121,6 +144,8 @@ class World:
             noise=scenario.noise,
             events=scenario.events,
             seed=scenario.seed,
+            localisation=scenario.localisation,
+            mounts_rad=camera_mounts(scenario),
         )
         for entry in scenario.robots:
             world.add_robot(entry.id, scenario.start_pose(entry.id))
@@ -147,6 +172,8 @@ class World:
         self.v_cmd, self.w_cmd = app(self.v_cmd, 0.0), app(self.w_cmd, 0.0)
         self.odo = np.vstack([self.odo, [pose.x_m, pose.y_m, pose.theta_rad]])
         self.bumped = app(self.bumped, False)
+        if self.sensors is not None:
+            self.sensors.add_robot(robot_id, pose.x_m, pose.y_m, pose.theta_rad)
 
     # --- motion ------------------------------------------------------------------------
 
@@ -157,9 +184,16 @@ class World:
             self.v_cmd[i], self.w_cmd[i] = cmd.v_mps, cmd.omega_radps
         sub = dt_s / self.config.substeps
         self.bumped[:] = False
-        for _ in range(self.config.substeps):
+        start = self._poses() if self.sensors is not None else None
+        for j in range(self.config.substeps):
+            before = self._poses() if self.sensors is not None else None
             self._substep(sub)
-        self._update_odometry(dt_s)
+            if self.sensors is not None and before is not None:
+                self.sensors.substep(self.t_s + j * sub, sub, before, self._poses())
+        if self.sensors is not None and self.sensors.odometry is not None and start is not None:
+            self.odo = self.sensors.odometry_step(start, self._poses())
+        else:
+            self._update_odometry(dt_s)
         self.t_s += dt_s
         self._sonar_cache.clear()
 
@@ -254,7 +288,18 @@ class World:
         ox, oy, oth = integrate_arcs(self.odo[:, 0], self.odo[:, 1], self.odo[:, 2], v, w, dt_s)
         self.odo = np.column_stack([ox, oy, oth])
 
+    def _poses(self) -> FloatArray:
+        return np.column_stack([self.x, self.y, self.th])
+
     # --- sensing -----------------------------------------------------------------------
+
+    def positioning(self, robot_id: str) -> tuple[tuple[PoseFix, ...], tuple[RelativeFix, ...]]:
+        """The pose fixes and relative measurements that have reached `robot_id` since it
+        last asked (none without simulated positioning sensors).
+        """
+        if self.sensors is None:
+            return (), ()
+        return self.sensors.take(self._index[robot_id], self.t_s)
 
     def truth(self, robot_id: str) -> tuple[Pose2D, Twist2D]:
         """Ground-truth pose and twist."""

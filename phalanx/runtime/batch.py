@@ -78,7 +78,8 @@ class BatchRunner:
         commands: dict[str, Twist2D] = {}
         states: dict[str, PeerState] = {}
         for rid, agent in self.agents.items():
-            obs = Observation(self.world.odometry(rid), self.world.status(rid))
+            fixes, relative = self.world.positioning(rid)
+            obs = Observation(self.world.odometry(rid), self.world.status(rid), fixes, relative)
             out = agent.step(obs, peers, t_s)
             commands[rid], states[rid] = out.command, out.state
             self._record(rid, k, out)
@@ -98,6 +99,9 @@ class BatchRunner:
         tr.leaders.append(state.formation_leader_id)
         tr.epochs.append(state.epoch)
         tr.formed.append(state.formed)
+        tr.estimate[k] = (state.x_m, state.y_m, state.theta_rad)
+        if state.cov:
+            tr.cov[k] = state.cov
         self.transitions[rid].extend(out.events)
         self.last[rid] = out
 

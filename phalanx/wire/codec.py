@@ -65,6 +65,7 @@ _STATE_FIELDS: tuple[tuple[str, str], ...] = (
     ("waypoint", "I"),
     ("deadlocks", "I"),
     ("profile_s", "d"),
+    ("cov", "D"),  # empty (2 bytes) unless the robot runs its pose estimator
 )
 LAYOUTS: dict[type[Message], tuple[int, tuple[tuple[str, str], ...]]] = {
     RobotState: (1, _STATE_FIELDS),

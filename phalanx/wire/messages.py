@@ -6,9 +6,10 @@ Encoding and decoding (and the drop-and-count of malformed payloads) live in
 
 from __future__ import annotations
 
+import math
 from typing import Final, Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from phalanx.core.geometry import Pose2D, Twist2D
 from phalanx.core.peers import PeerFlags, PeerState
@@ -34,7 +35,10 @@ class RobotState(Message):
     executes from `stamp_s` on, so a receiver can dead-reckon the pose to its own time.
     `leader_id` is the robot this one tracks ("" while it leads the formation); the
     rest are its behaviour flags (see `RobotFlags`), the state carries them too so a
-    robot that tracks this one needs only this message.
+    robot that tracks this one needs only this message. `cov`: the pose's covariance
+    when the robot runs its pose estimator (upper triangle xx, xy, xt, yy, yt, tt in
+    m^2, m rad, rad^2; see `check_pose_cov`), empty when it steers from its odometry as
+    given.
     """
 
     version: Literal[1] = 1
@@ -59,6 +63,12 @@ class RobotState(Message):
     waypoint: int = Field(default=0, ge=0)
     deadlocks: int = Field(default=0, ge=0)
     profile_s: float = Field(default=0.0, ge=0.0)
+    cov: tuple[float, ...] = ()
+
+    @field_validator("cov")
+    @classmethod
+    def _cov_is_a_pose_covariance(cls, cov: tuple[float, ...]) -> tuple[float, ...]:
+        return check_pose_cov(cov)
 
     @property
     def pose(self) -> Pose2D:
@@ -128,6 +138,11 @@ class RobotFlags(Message):
 
 
 _FLAG_FIELDS = tuple(RobotFlags.model_fields)
+# A pose variance beyond these means the robot has no idea where it is: (1 km)^2 and
+# (pi rad)^2; larger ones are not physics but a broken sender.
+MAX_POSITION_VAR_M2 = 1e6
+MAX_HEADING_VAR_RAD2 = math.pi**2
+_COV_TOLERANCE = 1e-9
 # Every field but the wire's `version` header: the brain's plain values.
 _PEER_STATE_FIELDS = tuple(f for f in RobotState.model_fields if f != "version")
 _PEER_FLAG_FIELDS = tuple(f for f in RobotFlags.model_fields if f != "version")
@@ -215,3 +230,24 @@ class AgentReport(Message):
     step_p50_us: float = Field(default=0.0, ge=0.0)  # control step: core, publish, telemetry
     step_p99_us: float = Field(default=0.0, ge=0.0)
     telemetry_dropped: int = Field(default=0, ge=0)
+
+
+def check_pose_cov(cov: tuple[float, ...]) -> tuple[float, ...]:
+    """A pose covariance as the wire carries it, checked: empty, or the six values of the
+    upper triangle (xx, xy, xt, yy, yt, tt), variances within physics
+    (`MAX_POSITION_VAR_M2`, `MAX_HEADING_VAR_RAD2`) and each covariance no larger than
+    its variances allow (|c_ij| <= sqrt(c_ii c_jj)).
+    """
+    if not cov:
+        return cov
+    if len(cov) != 6:
+        raise ValueError(f"cov: expected 0 or 6 values (xx, xy, xt, yy, yt, tt), got {len(cov)}")
+    xx, xy, xt, yy, yt, tt = cov
+    for name, var, bound in (("xx", xx, MAX_POSITION_VAR_M2), ("yy", yy, MAX_POSITION_VAR_M2),
+                             ("tt", tt, MAX_HEADING_VAR_RAD2)):  # fmt: skip
+        if not 0.0 <= var <= bound:
+            raise ValueError(f"cov: variance {name} must be within [0, {bound:g}], got {var!r}")
+    for name, c, a, b in (("xy", xy, xx, yy), ("xt", xt, xx, tt), ("yt", yt, yy, tt)):
+        if abs(c) > math.sqrt(a * b) * (1.0 + _COV_TOLERANCE) + _COV_TOLERANCE:
+            raise ValueError(f"cov: |{name}| = {abs(c)!r} exceeds what its variances allow")
+    return cov
