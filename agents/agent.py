@@ -35,6 +35,7 @@ from phalanx.agents.behaviours.context import StackContext
 from phalanx.agents.behaviours.stack import behaviour_machine
 from phalanx.agents.control.limits import CommandLimiter
 from phalanx.agents.estimation.estimator import PoseEstimator
+from phalanx.agents.estimation.landmarks import Landmarks
 from phalanx.agents.fsm import StateMachine
 from phalanx.agents.inputs import FleetView, Observation
 from phalanx.agents.leadership import Flags, Leadership, LeadershipChange, group_deadlock
@@ -115,6 +116,7 @@ class Agent:
                 scenario.localisation, track_m=robot.track_width_m, robot_id=robot_id
             )
         self._cov: tuple[float, ...] = ()
+        self.landmarks = Landmarks(formation, robot_id)
 
     def _initial_state(self, joining: bool) -> str:
         if joining:
@@ -168,7 +170,7 @@ class Agent:
         """
         self.parts.startup.begin(t_s, self.scenario.leader_timeout_s)
         view = self._listen(peers, flags, t_s)
-        observation = self._localise(observation, view)
+        observation = self._localise(observation, view, peers, t_s)
         stance = Stance(self.fsm.state, self.direction, self.limiter.last)
         assume_formed = t_s < self.parts.startup.assume_formed_until_s
         sensing = self.parts.senses.read(
@@ -211,15 +213,21 @@ class Agent:
         took = change if lsh.is_leader and not was_leader else None
         return FleetView(live, took, lsh.is_leader, lsh.leader_id, self.parent_id, lead)
 
-    def _localise(self, observation: Observation, view: FleetView) -> Observation:
+    def _localise(
+        self, observation: Observation, view: FleetView, peers: Mapping[str, PeerState], t_s: float
+    ) -> Observation:
         """The observation with the pose estimate in place of the odometry pose (and its
         covariance kept for the state), when the estimator is on; as it came otherwise.
         """
         if self.estimator is None:
             return observation
         odometry = observation.odometry
+        anchors = {}
+        if observation.relative:
+            timeout_s = self.scenario.leader_timeout_s
+            anchors = self.landmarks.pick(peers, view.leader_id, t_s=t_s, max_age_s=timeout_s)
         estimate = self.estimator.step(
-            odometry, fixes=observation.fixes, relative=observation.relative, lead=view.lead
+            odometry, fixes=observation.fixes, relative=observation.relative, anchors=anchors
         )
         self._cov = estimate.cov
         return replace(

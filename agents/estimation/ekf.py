@@ -94,35 +94,29 @@ def predict(b: Belief, ds_m: float, dth_rad: float, dt_s: float, q: ProcessNoise
         e10,
         e11,
     )
-    # F C
-    c = b.c
-    fc = (c[0] + a * c[4], c[1] + a * c[5], c[2] + bb * c[4], c[3] + bb * c[5], c[4], c[5])
-    # M = F C Ge^T; P' gets M + M^T + s2 Ge Ge^T
+    # F C, then P' = F P F^T + (F C Ge^T + its transpose) + s2 Ge Ge^T + G Qu G^T + floor
+    c0, c1, c2, c3, c4, c5 = b.c
+    f0, f1, f2, f3, f4, f5 = c0 + a * c4, c1 + a * c5, c2 + bb * c4, c3 + bb * c5, c4, c5
+    h0, h1, h2, h3, h4, h5 = ge
     s2 = q.scale_var
-
-    def cross(i: int, j: int) -> float:
-        fi0, fi1, fj0, fj1 = fc[2 * i], fc[2 * i + 1], fc[2 * j], fc[2 * j + 1]
-        gi0, gi1, gj0, gj1 = ge[2 * i], ge[2 * i + 1], ge[2 * j], ge[2 * j + 1]
-        return fi0 * gj0 + fi1 * gj1 + fj0 * gi0 + fj1 * gi1 + s2 * (gi0 * gj0 + gi1 * gj1)
-
     # white wheel noise, mapped through d(ds, dth)/d(dl, dr) = [[1/2, 1/2], [-1/w, 1/w]]
     vl = q.walk_var_per_m * abs(dl) + q.slip_var_per_m3 * abs(dl) ** 3
     vr = q.walk_var_per_m * abs(dr) + q.slip_var_per_m3 * abs(dr) ** 3
     qss, qst, qtt = 0.25 * (vl + vr), 0.5 * (vr - vl) / w, (vl + vr) / (w * w)
-    # G Qu G^T
-    u0 = (g00 * qss + g01 * qst, g00 * qst + g01 * qtt)
-    u1 = (g10 * qss + g11 * qst, g10 * qst + g11 * qtt)
+    u00, u01 = g00 * qss + g01 * qst, g00 * qst + g01 * qtt  # rows of G Qu
+    u10, u11 = g10 * qss + g11 * qst, g10 * qst + g11 * qtt
     fm, fr = q.floor_var_m2ps * dt_s, q.floor_var_rad2ps * dt_s
     p = (
-        pxx + cross(0, 0) + u0[0] * g00 + u0[1] * g01 + fm,
-        pxy + cross(0, 1) + u0[0] * g10 + u0[1] * g11,
-        pxt + cross(0, 2) + u0[1],
-        pyy + cross(1, 1) + u1[0] * g10 + u1[1] * g11 + fm,
-        pyt + cross(1, 2) + u1[1],
-        tt + cross(2, 2) + qtt + fr,
-    )
-    c_new = tuple(fc[k] + s2 * ge[k] for k in range(6))
-    return Belief(b.x + dx, b.y + dy, wrap(b.th + dth_rad), p, c_new)  # type: ignore[arg-type]
+        pxx + 2.0 * (f0 * h0 + f1 * h1) + s2 * (h0 * h0 + h1 * h1) + u00 * g00 + u01 * g01 + fm,
+        pxy + f0 * h2 + f1 * h3 + f2 * h0 + f3 * h1 + s2 * (h0 * h2 + h1 * h3)
+        + u00 * g10 + u01 * g11,
+        pxt + f0 * h4 + f1 * h5 + f4 * h0 + f5 * h1 + s2 * (h0 * h4 + h1 * h5) + u01,
+        pyy + 2.0 * (f2 * h2 + f3 * h3) + s2 * (h2 * h2 + h3 * h3) + u10 * g10 + u11 * g11 + fm,
+        pyt + f2 * h4 + f3 * h5 + f4 * h2 + f5 * h3 + s2 * (h2 * h4 + h3 * h5) + u11,
+        tt + 2.0 * (f4 * h4 + f5 * h5) + s2 * (h4 * h4 + h5 * h5) + qtt + fr,
+    )  # fmt: skip
+    c_new = (f0 + s2 * h0, f1 + s2 * h1, f2 + s2 * h2, f3 + s2 * h3, f4 + s2 * h4, f5 + s2 * h5)
+    return Belief(b.x + dx, b.y + dy, wrap(b.th + dth_rad), p, c_new)
 
 
 def sym3_inverse(s: Cov6) -> Cov6 | None:

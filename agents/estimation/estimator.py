@@ -23,9 +23,11 @@ from __future__ import annotations
 import bisect
 import math
 from collections import Counter, deque
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 
-from phalanx.agents.estimation.ekf import Belief, ProcessNoise, predict, update, update_pose, wrap
+from phalanx.agents.estimation.ekf import Belief, ProcessNoise, predict, update_pose, wrap
+from phalanx.agents.estimation.relative import as_pose_fix, update_range_bearing
 from phalanx.core.fixes import Cov6, PoseFix, RelativeFix
 from phalanx.core.geometry import Pose2D, integrate_unicycle
 from phalanx.core.localisation import LocalisationConfig
@@ -70,6 +72,7 @@ class _Node:
     dth_rad: float
     taken: list[_Taken]
     belief: Belief
+    after: list[Belief] = field(default_factory=list)  # the belief after each of `taken`
 
 
 @dataclass
@@ -124,19 +127,22 @@ class PoseEstimator:
         *,
         fixes: tuple[PoseFix, ...] = (),
         relative: tuple[RelativeFix, ...] = (),
-        lead: PeerState | None = None,
+        anchors: Mapping[str, PeerState] | None = None,
     ) -> Estimate:
         """The estimate at `odometry.stamp_s`, given this step's odometry and whatever
-        measurements arrived since the last step (any stamps, any order).
+        measurements arrived since the last step (any stamps, any order). `anchors`: the
+        latest states of the robots whose relative measurements this robot may fuse
+        (`phalanx.agents.estimation.landmarks`); a measurement of any other is counted
+        and left out.
         """
         self._advance(odometry)
-        taken = self._select(fixes, relative, lead)
-        first = len(self._nodes) - 1
+        taken = self._select(fixes, relative, anchors or {})
+        first = (len(self._nodes) - 1, 0)
         for item in taken:
-            index = self._place(item)
-            if index is not None:
-                first = min(first, index)
-        self._replay(max(first, 1))
+            place = self._place(item)
+            if place is not None:
+                first = min(first, place)
+        self._replay(*first)
         self._trim()
         b = self._nodes[-1].belief
         return Estimate(Pose2D(b.x, b.y, b.th), self.published_cov(b), odometry.stamp_s)
@@ -160,7 +166,10 @@ class PoseEstimator:
         self._last_odometry = pose
 
     def _select(
-        self, fixes: tuple[PoseFix, ...], relative: tuple[RelativeFix, ...], lead: PeerState | None
+        self,
+        fixes: tuple[PoseFix, ...],
+        relative: tuple[RelativeFix, ...],
+        anchors: Mapping[str, PeerState],
     ) -> list[_Taken]:
         count = self.stats.counts
         taken = []
@@ -171,13 +180,15 @@ class PoseEstimator:
             self._last_fix_s = fix.stamp_s
             taken.append(_Taken(fix.stamp_s, fix=fix))
         for rel in relative:
-            if lead is None or rel.target_id != lead.robot_id:
-                count["relative_not_tracked"] += 1
+            anchor = anchors.get(rel.target_id)
+            if anchor is None:
+                count["relative_not_anchor"] += 1
                 continue
-            taken.append(_Taken(rel.stamp_s, relative=rel, lead=lead))
+            taken.append(_Taken(rel.stamp_s, relative=rel, lead=anchor))
         return taken
 
-    def _place(self, item: _Taken) -> int | None:
+    def _place(self, item: _Taken) -> tuple[int, int] | None:
+        """Where `item` goes: (node, position among its measurements), or None."""
         nodes, count = self._nodes, self.stats.counts
         if item.stamp_s > nodes[-1].t_s + AHEAD_TOLERANCE_S or not math.isfinite(item.stamp_s):
             count["ahead_dropped"] += 1
@@ -188,25 +199,31 @@ class PoseEstimator:
         times = [n.t_s for n in nodes]
         index = min(bisect.bisect_left(times, item.stamp_s), len(nodes) - 1)
         stamps = [t.stamp_s for t in nodes[index].taken]
-        nodes[index].taken.insert(bisect.bisect_right(stamps, item.stamp_s), item)
+        position = bisect.bisect_right(stamps, item.stamp_s)
+        nodes[index].taken.insert(position, item)
         if index < len(nodes) - 1:
             count["replayed"] += 1
-        return index
+        return max(index, 1), position if index >= 1 else 0
 
-    def _replay(self, first: int) -> None:
+    def _replay(self, first: int, position: int) -> None:
+        """Recompute the beliefs from node `first`'s measurement `position` on (the belief
+        just before it is kept: only what the new measurements change is done again).
+        """
         nodes = self._nodes
-        belief = nodes[first - 1].belief
         for i in range(first, len(nodes)):
             node, start = nodes[i], nodes[i - 1].t_s
             span = node.t_s - start
-            done = 0.0
-            for item in node.taken:
-                frac = min(1.0, max(0.0, (item.stamp_s - start) / span)) if span > 0 else 1.0
-                belief = self._piece(belief, node, frac - done, span)
+            k = position if i == first else 0
+            belief, done = nodes[i - 1].belief, 0.0
+            if k > 0:
+                belief, done = node.after[k - 1], _fraction(node.taken[k - 1], start, span)
+            del node.after[k:]
+            for item in node.taken[k:]:
+                frac = _fraction(item, start, span)
+                belief = self._apply(self._piece(belief, node, frac - done, span), item)
                 done = frac
-                belief = self._apply(belief, item)
+                node.after.append(belief)
             node.belief = self._piece(belief, node, 1.0 - done, span)
-            belief = node.belief
 
     def _piece(self, belief: Belief, node: _Node, frac: float, span_s: float) -> Belief:
         if frac <= 0.0:
@@ -243,39 +260,20 @@ class PoseEstimator:
         measurement's instant is its published estimate carried there along its twist
         (the carrying's uncertainty added to the sensor's noise).
 
-        The gain ignores the tracked robot's own covariance on purpose: the measurement
-        puts this robot where it is relative to that robot's estimate, so its estimate
-        lives in the frame of the tracked robot's (what keeping a slot needs), and the
-        covariance it publishes adds the tracked robot's, carried over (`published_cov`).
+        The update leaves the tracked robot's own covariance out on purpose: the
+        measurement puts this robot where it is relative to that robot's estimate, so its
+        estimate lives in the frame of the tracked robot's (what keeping a slot needs),
+        and the covariance it publishes adds the tracked robot's, carried over
+        (`published_cov`).
         """
         age_s = max(-MAX_LEADER_AGE_S, min(MAX_LEADER_AGE_S, rel.stamp_s - lead.stamp_s))
         other = integrate_unicycle(lead.pose, lead.twist, age_s)
-        dx, dy = other.x_m - b.x, other.y_m - b.y
-        r2 = dx * dx + dy * dy
-        if r2 < 1e-6:
-            return None
-        rng = math.sqrt(r2)
-        # rows: d/d(x, y, theta) of this robot; the other robot's Jacobian is minus the
-        # position part and plus the heading part
-        h_self = [[-dx / rng, -dy / rng, 0.0], [dy / r2, -dx / r2, -1.0]]
-        nu = [rel.range_m - rng, wrap(rel.bearing_rad - (math.atan2(dy, dx) - b.th))]
-        noise = [rel.std_range_m**2, rel.std_bearing_rad**2]
-        if rel.heading_rad is not None:
-            h_self.append([0.0, 0.0, -1.0])
-            nu.append(wrap(rel.heading_rad - (other.theta_rad - b.th)))
-            noise.append(rel.std_heading_rad**2)
-        h_other = [[-row[0], -row[1], 1.0 if k == 2 else 0.0] for k, row in enumerate(h_self)]
         carried = _carried(abs(age_s), lead.v_mps)
-        n = len(nu)
-        r = [
-            [
-                (noise[i] if i == j else 0.0)
-                + sum(h_other[i][k] * carried[k] * h_other[j][k] for k in range(3))
-                for j in range(n)
-            ]
-            for i in range(n)
-        ]
-        out = update(b, h_self, nu, r, self.config.gate)
+        if rel.heading_rad is None:
+            out = update_range_bearing(b, rel, other, carried, self.config.gate)
+        else:
+            z, r = as_pose_fix(rel, other, carried)
+            out = update_pose(b, z, r, self.config.gate)
         if out is not None:
             self._frame_of = lead
         return out
@@ -299,6 +297,11 @@ class PoseEstimator:
             tt,
         )
         return tuple(p + q for p, q in zip(belief.p, add, strict=True))  # type: ignore[return-value]
+
+
+def _fraction(item: _Taken, start_s: float, span_s: float) -> float:
+    """Where in its node's interval a measurement was taken (0: its start, 1: its end)."""
+    return min(1.0, max(0.0, (item.stamp_s - start_s) / span_s)) if span_s > 0 else 1.0
 
 
 def _carried(age_s: float, v_mps: float) -> tuple[float, float, float]:

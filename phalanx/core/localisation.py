@@ -38,8 +38,8 @@ class OdometryErrors(_Model):
     walk_std_m: Annotated[float, Field(ge=0.0, le=1.0)] = 0.0
     slip_per_m: Annotated[float, Field(ge=0.0, le=100.0)] = 0.0
     slip_max_frac: Fraction = 0.3
-    floor_std_m: NonNegativeFloat = 0.001
-    floor_std_deg: NonNegativeFloat = 0.05
+    floor_std_m: NonNegativeFloat = 0.0001
+    floor_std_deg: NonNegativeFloat = 0.01
 
     @property
     def any(self) -> bool:
@@ -59,9 +59,9 @@ class MocapSource(_Model):
     rate_hz: Annotated[float, Field(gt=0.0, le=1000.0)] = 100.0
     latency_s: Annotated[float, Field(ge=0.0, le=1.0)] = 0.02
     std_m: Annotated[float, Field(gt=0.0, le=1.0)] = 0.002
-    std_deg: Annotated[float, Field(gt=0.0, le=45.0)] = 0.2
+    std_deg: Annotated[float, Field(gt=0.0, le=45.0)] = 0.1
     dropout: Fraction = 0.01
-    fuse_hz: Annotated[float, Field(gt=0.0, le=1000.0)] = 20.0
+    fuse_hz: Annotated[float, Field(gt=0.0, le=1000.0)] = 100.0
     robots: tuple[RobotId, ...] = ()
     bodies: dict[str, RobotId] = Field(default_factory=dict)
 
@@ -89,7 +89,7 @@ class MarkerSource(_Model):
     latency_s: Annotated[float, Field(ge=0.0, le=1.0)] = 0.05
     range_std_frac: Annotated[float, Field(gt=0.0, le=1.0)] = 0.02
     bearing_std_deg: Annotated[float, Field(gt=0.0, le=45.0)] = 1.0
-    heading_std_deg: Annotated[float, Field(gt=0.0, le=45.0)] = 2.0
+    heading_std_deg: Annotated[float, Field(gt=0.0, le=45.0)] = 1.0
     fov_deg: Annotated[float, Field(gt=0.0, le=360.0)] = 90.0
     min_range_m: NonNegativeFloat = 0.3
     max_range_m: Annotated[float, Field(gt=0.0, le=50.0)] = 5.0
