@@ -138,6 +138,12 @@ class RobotFlags(Message):
 
 
 _FLAG_FIELDS = tuple(RobotFlags.model_fields)
+FIX_FIELDS = ("stamp_s", "x_m", "y_m", "theta_rad", "std_m", "std_rad")
+RELATIVE_FIELDS = (
+    "stamp_s", "target", "range_m", "bearing_rad", "heading_rad", "std_range_m",
+    "std_bearing_rad", "std_heading_rad",
+)  # fmt: skip
+MAX_MEASUREMENTS = 1000  # per frame: 10 s of 100 Hz motion capture
 # A pose variance beyond these means the robot has no idea where it is: (1 km)^2 and
 # (pi rad)^2; larger ones are not physics but a broken sender.
 MAX_POSITION_VAR_M2 = 1e6
@@ -204,6 +210,61 @@ class SenseFrame(Message):
     sonar_ranges_m: tuple[float, ...] = ()
     bumpers: tuple[bool, ...] = ()
     final: bool = False
+    # Positioning measurements that reached the robot since its last frame (simulated
+    # sensors, `phalanx.simulator.sensors`), flattened: `fixes` in groups of
+    # FIX_FIELDS, `relative` in groups of RELATIVE_FIELDS (target: its index in the
+    # scenario's robot list; heading 0 with std 0: not measured). Stamps in sim time.
+    fixes: tuple[float, ...] = ()
+    relative: tuple[float, ...] = ()
+
+    @field_validator("fixes")
+    @classmethod
+    def _whole_fixes(cls, values: tuple[float, ...]) -> tuple[float, ...]:
+        return _groups_of(values, len(FIX_FIELDS), "fixes")
+
+    @field_validator("relative")
+    @classmethod
+    def _whole_relatives(cls, values: tuple[float, ...]) -> tuple[float, ...]:
+        return _groups_of(values, len(RELATIVE_FIELDS), "relative")
+
+
+class PoseFixMessage(Message):
+    """An absolute pose fix of robot `robot_id` on `.../robot/<id>/fix` (a motion-capture
+    bridge, `phalanx mocap`, or the world process simulating one for robots on drivers).
+
+    Pose in the fleet's world frame (m, rad), taken at `stamp_s` in Unix time (the
+    receiving agent turns it into fleet time with its epoch), with the source's standard
+    deviations (`std_m` on x and y, `std_rad` on the heading).
+    """
+
+    version: Literal[1] = 1
+    robot_id: str
+    stamp_s: float = Field(ge=0.0)
+    x_m: float = Field(ge=-1e4, le=1e4)
+    y_m: float = Field(ge=-1e4, le=1e4)
+    theta_rad: float = Field(ge=-2 * math.pi, le=2 * math.pi)
+    std_m: float = Field(gt=0.0, le=10.0)
+    std_rad: float = Field(gt=0.0, le=math.pi)
+
+
+class RelativeFixMessage(Message):
+    """Robot `target_id` seen from robot `robot_id` on `.../robot/<id>/relative` (the world
+    process simulating the camera of a robot on a driver): range (m) and bearing (rad,
+    counter-clockwise from the robot's heading) of the target's centre and, when
+    `std_heading_rad` > 0, the target's heading relative to the robot's; taken at
+    `stamp_s` in Unix time.
+    """
+
+    version: Literal[1] = 1
+    robot_id: str
+    target_id: str
+    stamp_s: float = Field(ge=0.0)
+    range_m: float = Field(ge=0.0, le=100.0)
+    bearing_rad: float = Field(ge=-2 * math.pi, le=2 * math.pi)
+    heading_rad: float = Field(default=0.0, ge=-2 * math.pi, le=2 * math.pi)
+    std_range_m: float = Field(gt=0.0, le=10.0)
+    std_bearing_rad: float = Field(gt=0.0, le=math.pi)
+    std_heading_rad: float = Field(default=0.0, ge=0.0, le=math.pi)
 
 
 class AgentEvent(Message):
@@ -251,3 +312,12 @@ def check_pose_cov(cov: tuple[float, ...]) -> tuple[float, ...]:
         if abs(c) > math.sqrt(a * b) * (1.0 + _COV_TOLERANCE) + _COV_TOLERANCE:
             raise ValueError(f"cov: |{name}| = {abs(c)!r} exceeds what its variances allow")
     return cov
+
+
+def _groups_of(values: tuple[float, ...], size: int, name: str) -> tuple[float, ...]:
+    if len(values) % size or len(values) > size * MAX_MEASUREMENTS:
+        raise ValueError(
+            f"{name}: expected whole groups of {size} values, at most {MAX_MEASUREMENTS}, "
+            f"got {len(values)} values"
+        )
+    return values

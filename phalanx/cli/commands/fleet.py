@@ -205,7 +205,8 @@ def _run_agent(
     tel = telemetry if telemetry.sink.kind != "off" else None
     if backend is None:  # a simulated robot: the world's frames are its ticks
         options = RuntimeOptions(fleet=fleet, transport=transport, clock=_clock(clock))
-        link = WorldLink(fleet, robot, frame_timeout_s=frame_timeout_s)
+        ids = tuple(r.id for r in config.robots)
+        link = WorldLink(fleet, robot, frame_timeout_s=frame_timeout_s, robot_ids=ids)
         runtime = AgentRuntime(robot, config, params, options, clock=link, io=link, telemetry=tel)
         return runtime.run(stop), link.world_lost
     # A robot driver: the agent keeps its own clock; commands go through the safety layer.
@@ -220,7 +221,12 @@ def _run_agent(
     steps = round(config.duration_s / config.dt_s)
     with safe:
         ticks = EpochClock(epoch_s=epoch or time.time(), dt_s=config.dt_s, steps=steps)
-        io = DriverIO(safe, params, origin=config.start_pose(robot))
+        inbox = None
+        if config.localisation.estimator:
+            from phalanx.runtime.positioning import PositioningInbox
+
+            inbox = PositioningInbox(fleet, robot, epoch_s=ticks.epoch_s)
+        io = DriverIO(safe, params, origin=config.start_pose(robot), positioning=inbox)
         runtime = AgentRuntime(robot, config, params, options, clock=ticks, io=io, telemetry=tel)
         return runtime.run(stop), False
 
