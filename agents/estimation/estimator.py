@@ -20,7 +20,6 @@ is in the world.
 
 from __future__ import annotations
 
-import bisect
 import math
 from collections import Counter, deque
 from collections.abc import Mapping
@@ -36,6 +35,9 @@ from phalanx.core.robot import Odometry
 
 # A measurement stamped this far ahead of the last odometry is applied at its time.
 AHEAD_TOLERANCE_S = 0.25
+# A robot that had an absolute fix this recently lives in the world frame: relative
+# measurements (which tie it to another robot's estimate) wait until the fixes stop.
+ABSOLUTE_FRESH_S = 0.5
 # How far the leader's published estimate may be carried forward or back to the instant
 # of a relative measurement; the extra uncertainty per second of it (m, rad).
 MAX_LEADER_AGE_S = 1.0
@@ -118,7 +120,10 @@ class PoseEstimator:
         self._nodes: deque[_Node] = deque()
         self._last_odometry: Pose2D | None = None
         self._last_fix_s = -math.inf
-        self._min_fix_gap_s = 1.0 / config.mocap.fuse_hz if config.mocap else 0.0
+        self._min_fix_gap_s = 0.0
+        if config.mocap is not None and config.mocap.fuse_hz < config.mocap.rate_hz:
+            # (a hair under the period: stamps k / rate are not exact in floating point)
+            self._min_fix_gap_s = 0.999 / config.mocap.fuse_hz
         self._frame_of: PeerState | None = None  # whose frame the estimate lives in
 
     def step(
@@ -183,8 +188,10 @@ class PoseEstimator:
             anchor = anchors.get(rel.target_id)
             if anchor is None:
                 count["relative_not_anchor"] += 1
-                continue
-            taken.append(_Taken(rel.stamp_s, relative=rel, lead=anchor))
+            elif abs(rel.stamp_s - self._last_fix_s) < ABSOLUTE_FRESH_S:
+                count["relative_while_fixed"] += 1
+            else:
+                taken.append(_Taken(rel.stamp_s, relative=rel, lead=anchor))
         return taken
 
     def _place(self, item: _Taken) -> tuple[int, int] | None:
@@ -196,11 +203,14 @@ class PoseEstimator:
         if item.stamp_s <= nodes[0].t_s:
             count["late_dropped"] += 1
             return None
-        times = [n.t_s for n in nodes]
-        index = min(bisect.bisect_left(times, item.stamp_s), len(nodes) - 1)
-        stamps = [t.stamp_s for t in nodes[index].taken]
-        position = bisect.bisect_right(stamps, item.stamp_s)
-        nodes[index].taken.insert(position, item)
+        index = len(nodes) - 1
+        while index > 0 and nodes[index - 1].t_s >= item.stamp_s:  # (usually the last two)
+            index -= 1
+        taken = nodes[index].taken
+        position = len(taken)
+        while position > 0 and taken[position - 1].stamp_s > item.stamp_s:
+            position -= 1
+        taken.insert(position, item)
         if index < len(nodes) - 1:
             count["replayed"] += 1
         return max(index, 1), position if index >= 1 else 0

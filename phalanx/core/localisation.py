@@ -61,7 +61,7 @@ class MocapSource(_Model):
     std_m: Annotated[float, Field(gt=0.0, le=1.0)] = 0.002
     std_deg: Annotated[float, Field(gt=0.0, le=45.0)] = 0.1
     dropout: Fraction = 0.01
-    fuse_hz: Annotated[float, Field(gt=0.0, le=1000.0)] = 100.0
+    fuse_hz: Annotated[float, Field(gt=0.0, le=1000.0)] = 50.0
     robots: tuple[RobotId, ...] = ()
     bodies: dict[str, RobotId] = Field(default_factory=dict)
 

@@ -392,3 +392,7 @@ class WorldProcess:
                 tr.leaders.append(last.formation_leader_id or root if last else root)
                 tr.epochs.append(last.epoch if last else 0)
                 tr.formed.append(last.formed if last else True)
+                if last is not None:  # the pose it published (its estimate) and covariance
+                    tr.estimate[k] = (last.x_m, last.y_m, last.theta_rad)
+                    if last.cov:
+                        tr.cov[k] = last.cov
