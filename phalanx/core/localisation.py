@@ -96,6 +96,15 @@ class MarkerSource(_Model):
     dropout: Fraction = 0.0
     robots: tuple[RobotId, ...] = ()
     mount_yaw_deg: dict[RobotId, float] = Field(default_factory=dict)
+    # A real camera (`phalanx.drivers.markers`): the marker family, its printed side (m),
+    # which robot each marker id is on (unlisted: the robot's index in the scenario) and
+    # which way its face looks (deg from that robot's heading; 180: on its back, facing
+    # the robots behind), and how far behind its face the robot's centre is (m).
+    dictionary: str = Field(default="DICT_APRILTAG_36h11", pattern=r"^DICT_[A-Z0-9_a-z]+$")
+    marker_size_m: Annotated[float, Field(gt=0.0, le=2.0)] = 0.16
+    marker_ids: dict[int, RobotId] = Field(default_factory=dict)
+    face_deg: dict[int, float] = Field(default_factory=dict)
+    marker_depth_m: Annotated[float, Field(ge=0.0, le=1.0)] = 0.0
 
     @model_validator(mode="after")
     def _ranges(self) -> Self:
@@ -132,4 +141,28 @@ class LocalisationConfig(_Model):
     def _sources_need_the_estimator(self) -> Self:
         if (self.mocap is not None or self.markers is not None) and not self.estimator:
             raise ValueError("positioning sources need `estimator = true`")
+        return self
+
+
+class CameraCalibration(_Model):
+    """A pinhole camera's calibration (`--camera-calibration FILE`, TOML): focal lengths
+    and principal point in pixels, OpenCV's distortion coefficients (k1, k2, p1, p2[, k3]),
+    the image size; and where it sits on the robot (m, deg from the robot's heading).
+    """
+
+    width_px: Annotated[int, Field(gt=0, le=20000)]
+    height_px: Annotated[int, Field(gt=0, le=20000)]
+    fx_px: PositiveFloat
+    fy_px: PositiveFloat
+    cx_px: float
+    cy_px: float
+    distortion: tuple[float, ...] = ()
+    mount_x_m: float = 0.0
+    mount_y_m: float = 0.0
+    mount_yaw_deg: float = 0.0
+
+    @model_validator(mode="after")
+    def _known_distortion(self) -> Self:
+        if len(self.distortion) not in (0, 4, 5, 8):
+            raise ValueError("distortion: give 0, 4, 5 or 8 coefficients (OpenCV's order)")
         return self

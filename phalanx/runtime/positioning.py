@@ -15,9 +15,16 @@ from __future__ import annotations
 import logging
 import math
 import threading
+import time
 from collections.abc import Sequence
+from pathlib import Path
 
+from phalanx.core.config import Scenario
+from phalanx.core.config_files import validate_file
+from phalanx.core.errors import ConfigError
 from phalanx.core.fixes import PoseFix, RelativeFix
+from phalanx.core.localisation import CameraCalibration, MarkerSource
+from phalanx.drivers.markers import MarkerCamera, MarkerDetector
 from phalanx.wire.keys import robot_key
 from phalanx.wire.messages import (
     FIX_FIELDS,
@@ -108,6 +115,7 @@ class PositioningInbox:
         self._relative: list[RelativeFix] = []
         self.received = 0
         self.refused = 0  # for another robot, or overflowing
+        self.camera: MarkerCamera | None = None  # this robot's own, read on this computer
 
     def attach(self, session: FleetSession) -> None:
         """Listen on this robot's `fix` and `relative` keys."""
@@ -155,4 +163,28 @@ class PositioningInbox:
             fixes, relative = tuple(self._fixes), tuple(self._relative)
             self._fixes.clear()
             self._relative.clear()
+        if self.camera is not None:
+            relative += self.camera.drain()
         return fixes, relative
+
+    def close(self) -> None:
+        """Stop the camera, if any (safe twice)."""
+        if self.camera is not None:
+            self.camera.close()
+
+
+def open_camera(spec: str, robot_id: str, scenario: Scenario, *, epoch_s: float) -> MarkerCamera:
+    """The robot's marker camera from `DEVICE=CALIBRATION.toml`, started, its frames
+    stamped in fleet time (Unix time less `epoch_s`, less the markers' `latency_s`).
+    """
+    device, sep, calibration_path = spec.partition("=")
+    if not sep:
+        raise ConfigError(f"--camera {spec!r}: expected DEVICE=CALIBRATION.toml")
+    calibration = validate_file(CameraCalibration, Path(calibration_path))
+    source = scenario.localisation.markers or MarkerSource()
+    ids = tuple(r.id for r in scenario.robots)
+    detector = MarkerDetector(calibration, source, robot_ids=ids, own_id=robot_id)
+    camera = MarkerCamera(
+        device, detector, clock=lambda: time.time() - epoch_s, latency_s=source.latency_s
+    )
+    return camera.start()

@@ -205,5 +205,7 @@ class DriverIO:
             log.warning("command not sent at step %d: %s", tick.k, exc)
 
     def halt(self) -> None:
-        """Stop the robot (the wrapper keeps it stopped on close too)."""
+        """Stop the robot (the wrapper keeps it stopped on close too), and its camera."""
         self.driver.stop()
+        if self.positioning is not None:
+            self.positioning.close()
