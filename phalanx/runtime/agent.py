@@ -244,6 +244,7 @@ class AgentRuntime:
             sonar_rays=sonar_rays(self.robot, state.pose, observation.status.sonar_ranges_m),
             fsm_state=state.fsm_state,
             leader_id=state.leader_id,
+            cov=state.cov,
         )
 
     def _report(self) -> AgentReport:
