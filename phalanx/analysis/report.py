@@ -131,6 +131,12 @@ def print_summary(metrics: dict[str, Any]) -> None:
         f"{metrics['deadlock_reverses']}, wall time {metrics['wall_time_s']:.2f} s "
         f"({metrics['realtime_factor']:.0f}x real time)"
     )
+    for rid, est in metrics.get("estimation", {}).get("robots", {}).items():
+        console.print(
+            f"{rid} estimate: max error {est['position_m']['max']:.3g} m, "
+            f"{est['heading_deg']['max']:.3g} deg; NEES in its 95 % band "
+            f"{100 * est['nees_in_band']:.0f} % of steps"
+        )
     nav = metrics.get("navigation")
     if nav:
         reached = (

@@ -56,3 +56,12 @@ def test_a_misspelt_key_names_its_path_and_the_likely_one(tmp_path: Path) -> Non
 def test_inconsistent_sensing_is_refused(overrides: list[str], expected: str) -> None:
     with pytest.raises(ConfigError, match=expected):
         apply_overrides(load_scenario(WEDGE), overrides)
+
+
+def test_the_example_camera_calibration_loads() -> None:
+    from phalanx.core.config_files import validate_file
+    from phalanx.core.localisation import CameraCalibration
+
+    calibration = validate_file(CameraCalibration, CONFIG_ROOT / "cameras" / "example_720p.toml")
+    assert calibration.width_px == 1280
+    assert calibration.mount_x_m == 0.12
