@@ -280,13 +280,18 @@ def write_report(docs: Path, out_root: Path, *, workers: int = 2) -> list[dict[s
     figures = copy_figures(cases, out_root, docs)
     path = docs / "RESULTS.md"
     old = path.read_text(encoding="utf-8") if path.exists() else ""
-    text = results_markdown(cases, results, figures)
+    text = keep_sections(results_markdown(cases, results, figures), old)
+    path.write_text(text, encoding="utf-8")
+    return results
+
+
+def keep_sections(text: str, old: str) -> str:
+    """`text` followed by the sections of `old` that other tools write (`KEPT_SECTIONS`)."""
     for begin, end in KEPT_SECTIONS:
         kept = section_of(old, begin=begin, end=end)
         if kept:
             text = with_section(text, kept, begin=begin, end=end)
-    path.write_text(text, encoding="utf-8")
-    return results
+    return text
 
 
 # docs/RESULTS.md holds generated parts: the paper matrix (`phalanx report`) and, between
