@@ -145,3 +145,26 @@ def test_relative_measurements_put_a_follower_in_its_leaders_frame() -> None:
         anchors={"r1": lead},
     )
     assert estimator.stats.counts["relative_not_anchor"] == 1
+
+
+def _first_state(path: str) -> PeerState:
+    from phalanx.agents.agent import Agent, Observation
+    from phalanx.core.config_files import CONFIG_ROOT, load_robot, load_scenario
+    from phalanx.core.formation import scenario_formation
+    from phalanx.core.robot import RobotStatus
+
+    scenario = load_scenario(CONFIG_ROOT / "scenarios" / path)
+    robot = load_robot(scenario.robot)
+    agent = Agent("r2", scenario=scenario, robot=robot, formation=scenario_formation(scenario))
+    start = scenario.start_pose("r2")
+    observation = Observation(Odometry(start, Twist2D(0.0, 0.0), 0.0), RobotStatus())
+    return agent.step(observation, {}, 0.0).state
+
+
+def test_perfect_sensing_publishes_no_covariance_and_the_estimator_publishes_one() -> None:
+    """The paper's scenarios run no estimator (their trajectories stay bit-identical); a
+    real_* scenario's agent publishes its estimate's covariance."""
+    assert _first_state("paper_wedge.toml").cov == ()
+    cov = _first_state("real_wedge.toml").cov
+    assert len(cov) == 6
+    assert cov[0] == pytest.approx(0.01**2)  # initial_std_m
