@@ -112,7 +112,7 @@ class SimulatedSensors:
         if self.mocap is not None:
             self.mocap.sample(t0_s, dt_s, before, after)
         if self.camera is not None:
-            self.camera.sample(t0_s, dt_s, after)
+            self.camera.sample(t0_s, dt_s, before, after)
 
     def odometry_step(self, before: FloatArray, after: FloatArray) -> FloatArray:
         """Every robot's odometry pose (n x 3) after a control step from `before` to `after`."""

@@ -23,6 +23,7 @@ import numpy.typing as npt
 
 from phalanx.core.fixes import RelativeFix
 from phalanx.core.localisation import MarkerSource
+from phalanx.simulator.sensors.mocap import between
 
 FloatArray = npt.NDArray[np.float64]
 Obstacles = tuple[FloatArray, tuple[FloatArray, FloatArray, FloatArray, FloatArray]]
@@ -87,12 +88,15 @@ class MarkerCameraSim:
         self._ids.append(robot_id)
         self._queues.append(deque())
 
-    def sample(self, t0_s: float, dt_s: float, after: FloatArray) -> None:
-        """Take the frames due in (t0, t0 + dt] (poses at the interval's end, n x 3)."""
+    def sample(self, t0_s: float, dt_s: float, before: FloatArray, after: FloatArray) -> None:
+        """Take the frames due in (t0, t0 + dt] from the robots' poses (n x 3) at both ends
+        of that interval (interpolated between them).
+        """
         while (t_s := self._next_k * self.period_s) <= t0_s + dt_s + 1e-12:
             self._next_k += 1
             if t_s > t0_s + 1e-12 or self._next_k == 1:
-                self._frame(t_s, after)
+                frac = min(1.0, max(0.0, (t_s - t0_s) / dt_s)) if dt_s > 0 else 1.0
+                self._frame(t_s, between(before, after, frac))
 
     def _frame(self, t_s: float, poses: FloatArray) -> None:
         for i, rid in enumerate(self._ids):

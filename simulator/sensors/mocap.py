@@ -44,7 +44,7 @@ class MocapSim:
             if t_s <= t0_s + 1e-12 and self._next_k > 1:
                 continue
             frac = min(1.0, max(0.0, (t_s - t0_s) / dt_s)) if dt_s > 0 else 1.0
-            self._take(t_s, _between(before, after, frac))
+            self._take(t_s, between(before, after, frac))
 
     def _take(self, t_s: float, poses: FloatArray) -> None:
         n, src = len(poses), self.source
@@ -68,7 +68,8 @@ class MocapSim:
         return tuple(out)
 
 
-def _between(before: FloatArray, after: FloatArray, frac: float) -> FloatArray:
+def between(before: FloatArray, after: FloatArray, frac: float) -> FloatArray:
+    """Poses (n x 3) a share `frac` of the way from `before` to `after` (headings the short way)."""
     turn = np.mod(after[:, 2] - before[:, 2] + np.pi, 2 * np.pi) - np.pi
     out = before + frac * (after - before)
     out[:, 2] = before[:, 2] + frac * turn
