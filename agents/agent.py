@@ -8,8 +8,11 @@ A step, in order:
 1. **listen**: leadership from every robot's flags (`phalanx.agents.leadership`), whom
    to track and that robot's latest state;
 2. **sense**: what the sonar ring and bumpers say (`phalanx.agents.sensing`);
-3. **estimate**: the memories move on (waypoints, blocked timers, the path crossed, the
-   active behaviour's progress);
+3. **estimate**: the pose estimator (`phalanx.agents.estimation`, when the scenario's
+   `[localisation]` turns it on) fuses odometry with the positioning measurements, right
+   after listening (relative measurements need the tracked robot's state) and before
+   sensing (which places the sonar echoes with the pose); later the memories move on
+   (waypoints, blocked timers, the path crossed, the active behaviour's progress);
 4. **decide**: the guards' context is built once, and the behaviour state machine
    (`phalanx.agents.behaviours.stack`) takes at most one transition;
 5. **command**: the active state's behaviour turns the step into a twist;
@@ -24,13 +27,15 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 from phalanx.agents.behaviours.base import Behaviour, Moment
 from phalanx.agents.behaviours.context import StackContext
 from phalanx.agents.behaviours.stack import behaviour_machine
 from phalanx.agents.control.limits import CommandLimiter
+from phalanx.agents.estimation.estimator import PoseEstimator
+from phalanx.agents.estimation.landmarks import Landmarks
 from phalanx.agents.fsm import StateMachine
 from phalanx.agents.inputs import FleetView, Observation
 from phalanx.agents.leadership import Flags, Leadership, LeadershipChange, group_deadlock
@@ -106,7 +111,14 @@ class Agent:
         self._seq = 0
         self._stopped_before: frozenset[str] = frozenset()
         self._last_odometry: Odometry | None = None
-        self._heard: tuple[float, FleetView] | None = None
+        self._heard: tuple[float, FleetView, Observation] | None = None
+        self.estimator: PoseEstimator | None = None
+        if scenario.localisation.estimator:
+            self.estimator = PoseEstimator(
+                scenario.localisation, track_m=robot.track_width_m, robot_id=robot_id
+            )
+        self._cov: tuple[float, ...] = ()
+        self.landmarks = Landmarks(formation, robot_id)
 
     def _initial_state(self, joining: bool) -> str:
         if joining:
@@ -159,7 +171,7 @@ class Agent:
         them), this robot's own as published included; when omitted, `peers` serve.
         """
         self.parts.startup.begin(t_s, self.scenario.leader_timeout_s)
-        view = self._heard_view(t_s) or self._listen(peers, flags, t_s)
+        view, observation = self._listen_and_localise(observation, peers, flags, t_s)
         stance = Stance(self.fsm.state, self.direction, self.limiter.last)
         assume_formed = t_s < self.parts.startup.assume_formed_until_s
         sensing = self.parts.senses.read(
@@ -191,21 +203,37 @@ class Agent:
         t_s: float,
         flags: Flags | None = None,
     ) -> MaskInputs:
-        """The listen stage of the step at `t_s`, ahead of it, and what masking the
-        formation's robots out of this robot's sonar needs: the batch runner hears every
-        robot first, masks all their readings in one pass (`phalanx.agents.masking`) and
-        hands each its own in the `Observation`. `step` at `t_s` then goes on from here.
+        """The listen stage of the step at `t_s` (and the pose estimate, which sensing
+        reads), ahead of it, and what masking the formation's robots out of this robot's
+        sonar needs: the batch runner hears every robot first, masks all their readings
+        in one pass (`phalanx.agents.masking`) and hands each its own in the
+        `Observation`. `step` at `t_s` then goes on from here.
         """
         self.parts.startup.begin(t_s, self.scenario.leader_timeout_s)
         view = self._listen(peers, flags, t_s)
-        self._heard = (t_s, view)
+        localised = self._localise(observation, view, peers, t_s)
+        self._heard = (t_s, view, localised)
         assume_formed = t_s < self.parts.startup.assume_formed_until_s
-        pose = observation.odometry.pose
+        pose = localised.odometry.pose
         return MaskInputs(self.robot_id, view, self.fsm.state, pose, assume_formed, t_s)
 
-    def _heard_view(self, t_s: float) -> FleetView | None:
+    def _listen_and_localise(
+        self,
+        observation: Observation,
+        peers: Mapping[str, PeerState],
+        flags: Flags | None,
+        t_s: float,
+    ) -> tuple[FleetView, Observation]:
+        """The fleet as heard at `t_s` and the observation with the pose estimate in it:
+        what `hear` worked out ahead of the step (with the step's masked sonar), or both
+        worked out now.
+        """
         heard, self._heard = self._heard, None
-        return heard[1] if heard is not None and heard[0] == t_s else None
+        if heard is not None and heard[0] == t_s:
+            _, view, localised = heard
+            return view, replace(observation, odometry=localised.odometry)
+        view = self._listen(peers, flags, t_s)
+        return view, self._localise(observation, view, peers, t_s)
 
     def _listen(self, peers: Mapping[str, PeerState], flags: Flags | None, t_s: float) -> FleetView:
         """Leadership from the flags; join once anyone is heard; followers take the
@@ -229,6 +257,27 @@ class Agent:
             self.role_reason = f"{change.reason} (epoch {change.epoch}, leader {change.leader_id})"
         took = change if lsh.is_leader and not was_leader else None
         return FleetView(live, took, lsh.is_leader, lsh.leader_id, self.parent_id, lead)
+
+    def _localise(
+        self, observation: Observation, view: FleetView, peers: Mapping[str, PeerState], t_s: float
+    ) -> Observation:
+        """The observation with the pose estimate in place of the odometry pose (and its
+        covariance kept for the state), when the estimator is on; as it came otherwise.
+        """
+        if self.estimator is None:
+            return observation
+        odometry = observation.odometry
+        anchors = {}
+        if observation.relative:
+            timeout_s = self.scenario.leader_timeout_s
+            anchors = self.landmarks.pick(peers, view.leader_id, t_s=t_s, max_age_s=timeout_s)
+        estimate = self.estimator.step(
+            odometry, fixes=observation.fixes, relative=observation.relative, anchors=anchors
+        )
+        self._cov = estimate.cov
+        return replace(
+            observation, odometry=Odometry(estimate.pose, odometry.twist, odometry.stamp_s)
+        )
 
     def _estimate(self, odometry: Odometry, sensing: Sensing, view: FleetView) -> None:
         """Move the memories on: the leader's waypoints, how long each way has been
@@ -389,6 +438,7 @@ class Agent:
             waypoint=progress.waypoint,
             deadlocks=progress.deadlocks,
             profile_s=progress.profile_s,
+            cov=self._cov,
         )
         return StepOutput(
             command,

@@ -8,13 +8,16 @@ from dataclasses import dataclass
 
 from phalanx.agents.leadership import LeadershipChange, LiveFlags
 from phalanx.agents.perception import MaskedEchoes, SonarEchoes
+from phalanx.core.fixes import PoseFix, RelativeFix
 from phalanx.core.peers import PeerState
 from phalanx.core.robot import Odometry, RobotStatus
 
 
 @dataclass(frozen=True, slots=True)
 class Observation:
-    """What a robot senses this step (from its driver, or the simulated world).
+    """What a robot senses this step (from its driver, or the simulated world): odometry,
+    its status, and the positioning measurements that arrived since the last step (pose
+    fixes, relative measurements of other robots), each stamped when it was taken.
 
     `sonar`: the sonar ranges of `status` already read as geometry, and `masked`: that
     reading with the formation's robots masked out for this robot's step (the batch
@@ -26,6 +29,8 @@ class Observation:
     status: RobotStatus
     sonar: SonarEchoes | None = None
     masked: MaskedEchoes | None = None
+    fixes: tuple[PoseFix, ...] = ()
+    relative: tuple[RelativeFix, ...] = ()
 
 
 @dataclass(frozen=True, slots=True)

@@ -25,8 +25,9 @@ from dataclasses import dataclass, field
 from typing import Protocol
 
 from phalanx.core.config import RobotParams
-from phalanx.core.geometry import Twist2D
+from phalanx.core.geometry import Pose2D, Twist2D
 from phalanx.core.lifecycle import Closing
+from phalanx.core.localisation import OdometryErrors
 from phalanx.core.motion import Body
 from phalanx.protocols.arcos import (
     SYNC0,
@@ -43,6 +44,7 @@ from phalanx.protocols.arcos import (
     int_arg,
     sync2_reply,
 )
+from phalanx.simulator.sensors.odometry import OdometryTracker
 
 log = logging.getLogger("phalanx.emulator")
 
@@ -176,6 +178,10 @@ class EmulatorOptions:
     sip_cycle_s: float = 0.1
     watchdog_s: float = 2.0
     battery_v: float = 12.5
+    # The odometry a SIP reports carries these wheel errors (seeded): a body moved by the
+    # world already has the world's odometry, so only a stand-alone emulator sets them.
+    odometry_errors: OdometryErrors | None = None
+    seed: int = 0
 
 
 @dataclass
@@ -213,6 +219,14 @@ class ArcosEmulator(Closing):
         self.factors = factors_for(self.options.subtype)
         self.stats = EmulatorStats()
         self.parser = FrameParser()
+        self._odometry: OdometryTracker | None = None
+        errors = self.options.odometry_errors
+        if errors is not None and errors.any:
+            start = self.body.state().pose
+            self._odometry = OdometryTracker(
+                errors, track_m=robot.track_width_m, seed=self.options.seed,
+                start=(start.x_m, start.y_m, start.theta_rad),
+            )  # fmt: skip
         self._faults = _Faults()
         self._lock = threading.Lock()
         self._stop = threading.Event()
@@ -425,6 +439,8 @@ class ArcosEmulator(Closing):
 
     def _sip(self) -> Sip:
         state = self.body.state()
+        if self._odometry is not None:  # the wheels' errors on the true motion
+            state.pose = Pose2D(*self._odometry.report(*_xyt(state.pose)))
         f = self.factors
         half_track_mm = 1.0 / f.diff  # (rvel - lvel) / 2 * diff = omega
         v_mmps = state.twist.v_mps * 1000.0 / f.vel_mmps
@@ -452,6 +468,10 @@ class ArcosEmulator(Closing):
             sonars=sonars,
             rot_vel_x10=round(math.degrees(state.twist.omega_radps) * 10),
         )
+
+
+def _xyt(pose: Pose2D) -> tuple[float, float, float]:
+    return pose.x_m, pose.y_m, pose.theta_rad
 
 
 def _signed_byte(value: int) -> int:

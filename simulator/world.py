@@ -12,22 +12,25 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
 
 from phalanx.core.config import NoiseConfig, RobotParams, Scenario, SensorEvent, WorldConfig
+from phalanx.core.fixes import PoseFix, RelativeFix
 from phalanx.core.geometry import Pose2D, Twist2D, Vec2
+from phalanx.core.localisation import LocalisationConfig
 from phalanx.core.robot import Odometry, RobotStatus
-from phalanx.core.runlog import Collision
 from phalanx.core.scenarios import resolve_world
+from phalanx.simulator.contacts import Contacts, polygon_edges
 from phalanx.simulator.kinematics import (
     SCALAR_MAX,
     apply_robot_limits,
     integrate_arcs,
     limits_and_arcs_scalar,
 )
+from phalanx.simulator.pairs import close_pairs
+from phalanx.simulator.sensors import SimulatedSensors, camera_mounts
 from phalanx.simulator.sonar import (
     SonarRing,
     circle_hits_at,
@@ -38,116 +41,14 @@ from phalanx.simulator.sonar import (
 )
 
 FloatArray = npt.NDArray[np.float64]
-_GRID_CELL_M = 1.0
-CONTACT_RELEASE_M = 0.05
 
 
-@dataclass(frozen=True)
-class _Edges:
-    ax: FloatArray
-    ay: FloatArray
-    bx: FloatArray
-    by: FloatArray
-    owner: npt.NDArray[np.intp]  # polygon index of each edge
-
-
-def _polygon_edges(world: WorldConfig) -> _Edges:
-    ax, ay, bx, by, owner = [], [], [], [], []
-    for i, poly in enumerate(world.polygons):
-        pts = poly.vertices_m
-        for (x0, y0), (x1, y1) in zip(pts, pts[1:] + pts[:1], strict=True):
-            ax.append(x0)
-            ay.append(y0)
-            bx.append(x1)
-            by.append(y1)
-            owner.append(i)
-    arr = np.array
-    return _Edges(
-        arr(ax, float), arr(ay, float), arr(bx, float), arr(by, float), arr(owner, dtype=np.intp)
-    )
-
-
-def _inside_polygon(px: float, py: float, pts: Sequence[tuple[float, float]]) -> bool:
-    inside = False
-    for (x0, y0), (x1, y1) in zip(pts, [*pts[1:], pts[0]], strict=True):
-        if (y0 > py) != (y1 > py) and px < x0 + (py - y0) * (x1 - x0) / (y1 - y0):
-            inside = not inside
-    return inside
-
-
-def _segment_distance(px: float, py: float, e: _Edges) -> FloatArray:
-    ex, ey = e.bx - e.ax, e.by - e.ay
-    length2 = np.maximum(ex * ex + ey * ey, 1e-12)
-    t = np.clip(((px - e.ax) * ex + (py - e.ay) * ey) / length2, 0.0, 1.0)
-    return np.asarray(np.hypot(e.ax + t * ex - px, e.ay + t * ey - py), dtype=np.float64)
-
-
-# Up to this many robots, distances are checked pair by pair (a dense matrix); beyond,
-# through a uniform grid.
-_PAIRWISE_MAX = 64
 # A disc further than this beyond the sonar's reach is left out of the cast: its echo
 # could only come back shorter than max range through noise of over 1 m (50 sigma and more).
 _CAST_MARGIN_M = 1.0
 _CAST_MARGIN_SIGMAS = 50.0
 # Rays x discs (or edges) worked out at once, to bound memory on large fleets.
 _CHUNK = 1 << 18
-
-
-def _grid_pairs(
-    ax: FloatArray, ay: FloatArray, bx: FloatArray, by: FloatArray, cell_m: float
-) -> tuple[npt.NDArray[np.intp], npt.NDArray[np.intp]]:
-    """(i, j) of every point a_i and b_j in the same or neighbouring cells of a grid of
-    `cell_m`: a superset of the pairs closer than `cell_m`, sorted by i.
-    """
-    kax, kay = np.floor(ax / cell_m).astype(np.int64), np.floor(ay / cell_m).astype(np.int64)
-    kbx, kby = np.floor(bx / cell_m).astype(np.int64), np.floor(by / cell_m).astype(np.int64)
-    x0 = min(int(kax.min()), int(kbx.min())) - 1
-    y0 = min(int(kay.min()), int(kby.min())) - 1
-    width = max(int(kay.max()), int(kby.max())) - y0 + 2
-    keys = (kbx - x0) * width + (kby - y0)
-    order = np.argsort(keys, kind="stable")
-    ordered = keys[order]
-    firsts, lasts = [], []
-    for dx in (-1, 0, 1):
-        for dy in (-1, 0, 1):
-            q = (kax + dx - x0) * width + (kay + dy - y0)
-            firsts.append(np.searchsorted(ordered, q, "left"))
-            lasts.append(np.searchsorted(ordered, q, "right"))
-    lo, hi = np.stack(firsts, axis=1).ravel(), np.stack(lasts, axis=1).ravel()
-    counts = hi - lo
-    total = int(counts.sum())
-    i = np.repeat(np.repeat(np.arange(ax.size), 9), counts)
-    start = np.repeat(lo - (np.cumsum(counts) - counts), counts)
-    return i, order[start + np.arange(total)]
-
-
-def _close_pairs(
-    x: FloatArray, y: FloatArray, distance_m: float
-) -> tuple[npt.NDArray[np.intp], npt.NDArray[np.intp]]:
-    """(i, j), i != j, of every two robots whose centres may lie within `distance_m`
-    (every pair of a small fleet; grid neighbours of a large one), sorted by i.
-    """
-    n = x.size
-    if n <= _PAIRWISE_MAX:
-        i, j = np.nonzero(~np.eye(n, dtype=bool))
-        return i, j
-    i, j = _grid_pairs(x, y, x, y, distance_m)
-    keep = i != j
-    return i[keep], j[keep]
-
-
-def _any_pair_within(x: FloatArray, y: FloatArray, distance_m: float) -> bool:
-    """Whether any two of the points (x, y) lie closer than `distance_m`."""
-    if len(x) < 2:
-        return False
-    # a hair wide of the grid's exact hypot test: never misses a contact it would find
-    limit = (distance_m * (1.0 + 1e-9)) ** 2
-    if len(x) <= _PAIRWISE_MAX:
-        d2 = (x[:, None] - x[None, :]) ** 2 + (y[:, None] - y[None, :]) ** 2
-        np.fill_diagonal(d2, np.inf)
-        return bool(d2.min() < limit)
-    i, j = _close_pairs(x, y, 2.0 * distance_m)
-    return bool(np.any((x[i] - x[j]) ** 2 + (y[i] - y[j]) ** 2 < limit))
 
 
 class World:
@@ -161,13 +62,14 @@ class World:
         noise: NoiseConfig,
         events: Sequence[SensorEvent] = (),
         seed: int = 0,
+        localisation: LocalisationConfig | None = None,
+        mounts_rad: Mapping[str, float] | None = None,
     ) -> None:
         world = resolve_world(world)  # a seeded field becomes plain circles
         self.robot, self.config, self.noise, self.events = robot, world, noise, tuple(events)
         self.rng = np.random.default_rng(seed)
         self.ring = SonarRing.from_params(robot.sonar)
         self.t_s = 0.0
-        self.collisions: list[Collision] = []
         self._ids: list[str] = []
         self._index: dict[str, int] = {}
         z = np.zeros(0)
@@ -175,11 +77,30 @@ class World:
         self.v_cmd, self.w_cmd = z.copy(), z.copy()
         self.odo = np.zeros((0, 3))
         self.bumped = np.zeros(0, dtype=bool)
-        self._contacts: set[tuple[str, str]] = set()
         self._circles = np.array([(c.x_m, c.y_m, c.radius_m) for c in world.circles]).reshape(-1, 3)
-        self._edges = _polygon_edges(world)
+        self._edges = polygon_edges(world)
+        self.contacts = Contacts(world, self._circles, self._edges, self._ids)
+        self.collisions = self.contacts.collisions  # every contact as it began
         self._sonar_cache: dict[int, FloatArray] = {}
         self._ranges: FloatArray | None = None  # every robot's, when cast in one pass
+        self.sensors: SimulatedSensors | None = None  # positioning sensors, if simulated
+        if localisation is not None:
+            self._attach_sensors(localisation, dict(mounts_rad or {}), seed)
+
+    def _attach_sensors(
+        self, config: LocalisationConfig, mounts_rad: dict[str, float], seed: int
+    ) -> None:
+        e = self._edges
+        sensors = SimulatedSensors(
+            config,
+            track_m=self.robot.track_width_m,
+            robot_radius_m=self.robot.radius_m,
+            seed=seed,
+            obstacles=(self._circles, (e.ax, e.ay, e.bx, e.by)),
+            mounts_rad=mounts_rad,
+            events=self.events,
+        )
+        self.sensors = sensors if sensors.active else None
 
     @classmethod
     def for_scenario(cls, scenario: Scenario, robot: RobotParams) -> World:
@@ -190,6 +111,8 @@ class World:
             noise=scenario.noise,
             events=scenario.events,
             seed=scenario.seed,
+            localisation=scenario.localisation,
+            mounts_rad=camera_mounts(scenario),
         )
         for entry in scenario.robots:
             world.add_robot(entry.id, scenario.start_pose(entry.id))
@@ -216,6 +139,8 @@ class World:
         self.v_cmd, self.w_cmd = app(self.v_cmd, 0.0), app(self.w_cmd, 0.0)
         self.odo = np.vstack([self.odo, [pose.x_m, pose.y_m, pose.theta_rad]])
         self.bumped = app(self.bumped, False)
+        if self.sensors is not None:
+            self.sensors.add_robot(robot_id, pose.x_m, pose.y_m, pose.theta_rad)
 
     # --- motion ------------------------------------------------------------------------
 
@@ -226,9 +151,16 @@ class World:
             self.v_cmd[i], self.w_cmd[i] = cmd.v_mps, cmd.omega_radps
         sub = dt_s / self.config.substeps
         self.bumped[:] = False
-        for _ in range(self.config.substeps):
+        start = self._poses() if self.sensors is not None else None
+        for j in range(self.config.substeps):
+            before = self._poses() if self.sensors is not None else None
             self._substep(sub)
-        self._update_odometry(dt_s)
+            if self.sensors is not None and before is not None:
+                self.sensors.substep(self.t_s + j * sub, sub, before, self._poses())
+        if self.sensors is not None and self.sensors.odometry is not None and start is not None:
+            self.odo = self.sensors.odometry_step(start, self._poses())
+        else:
+            self._update_odometry(dt_s)
         self.t_s += dt_s
         self._sonar_cache.clear()
         self._ranges = None
@@ -243,14 +175,15 @@ class World:
                 self.v, self.w, self.v_cmd, self.w_cmd, self.robot, dt_s
             )
             x, y, th = integrate_arcs(self.x, self.y, self.th, self.v, self.w, dt_s)
-        touching = self._touching(x, y, self.robot.radius_m)
+        radius_m = self.robot.radius_m
+        touching = self.contacts.touching(x, y, radius_m)
         if not touching:  # the usual case: every robot moves
             self.x, self.y, self.th = x, y, th
         else:
             blocked = np.zeros(len(self._ids), dtype=bool)
             for i, other in touching:
                 blocked[i] = True
-                self._record_contact(self._ids[i], other)
+                self.contacts.record(i, other, self.t_s)
             keep = ~blocked
             self.x, self.y, self.th = (
                 np.where(keep, x, self.x),
@@ -259,68 +192,7 @@ class World:
             )
             self.v, self.w = np.where(keep, self.v, 0.0), np.where(keep, self.w, 0.0)
             self.bumped |= blocked
-        # An episode lasts until the robot has backed CONTACT_RELEASE_M away, so a robot
-        # pushing against a wall is one collision, not one per sub-step.
-        if self._contacts:  # (none under way, the usual case: nothing to release)
-            loose = self._touching(self.x, self.y, self.robot.radius_m + CONTACT_RELEASE_M)
-            still = {(self._ids[i], o) for i, o in loose}
-            self._contacts &= still
-        self._contacts |= {(self._ids[i], o) for i, o in touching}
-
-    def _record_contact(self, rid: str, other: str) -> None:
-        if (rid, other) not in self._contacts:
-            self.collisions.append(Collision(round(self.t_s, 9), rid, other))
-
-    def _touching(self, x: FloatArray, y: FloatArray, radius: float) -> list[tuple[int, str]]:
-        """(robot index, other) for every contact of discs of `radius` at x, y."""
-        found: list[tuple[int, str]] = []
-        if len(self._circles):
-            d = np.hypot(x[:, None] - self._circles[:, 0], y[:, None] - self._circles[:, 1])
-            for i, k in zip(*np.nonzero(d < self._circles[:, 2] + radius), strict=True):
-                found.append((int(i), f"obstacle:{int(k)}"))
-        if self._edges.ax.size:
-            found += self._polygon_contacts(x, y, radius)
-        found += self._robot_contacts(x, y, radius)
-        return found
-
-    def _polygon_contacts(
-        self, x: FloatArray, y: FloatArray, radius: float
-    ) -> list[tuple[int, str]]:
-        found = []
-        offset = len(self.config.circles)
-        for i in range(len(x)):
-            near = _segment_distance(float(x[i]), float(y[i]), self._edges) < radius
-            owners = set(self._edges.owner[near].tolist())
-            for k, poly in enumerate(self.config.polygons):
-                if k in owners or _inside_polygon(float(x[i]), float(y[i]), poly.vertices_m):
-                    found.append((i, f"obstacle:{offset + k}"))
-        return found
-
-    def _robot_contacts(self, x: FloatArray, y: FloatArray, radius: float) -> list[tuple[int, str]]:
-        if not _any_pair_within(x, y, 2 * radius):
-            return []  # the usual case, settled without building the grid
-        cells: dict[tuple[int, int], list[int]] = {}
-        for i, key in enumerate(
-            zip(
-                (x // _GRID_CELL_M).astype(int).tolist(),
-                (y // _GRID_CELL_M).astype(int).tolist(),
-                strict=True,
-            )
-        ):
-            cells.setdefault(key, []).append(i)
-        found = []
-        for (cx, cy), members in cells.items():
-            near = [
-                j
-                for dx in (-1, 0, 1)
-                for dy in (-1, 0, 1)
-                for j in cells.get((cx + dx, cy + dy), ())
-            ]
-            for i in members:
-                for j in near:
-                    if i != j and math.hypot(x[i] - x[j], y[i] - y[j]) < 2 * radius:
-                        found.append((i, self._ids[j]))
-        return found
+        self.contacts.settle(touching, self.x, self.y, radius_m)
 
     def _update_odometry(self, dt_s: float) -> None:
         n = self.noise
@@ -332,7 +204,18 @@ class World:
         ox, oy, oth = integrate_arcs(self.odo[:, 0], self.odo[:, 1], self.odo[:, 2], v, w, dt_s)
         self.odo = np.column_stack([ox, oy, oth])
 
+    def _poses(self) -> FloatArray:
+        return np.column_stack([self.x, self.y, self.th])
+
     # --- sensing -----------------------------------------------------------------------
+
+    def positioning(self, robot_id: str) -> tuple[tuple[PoseFix, ...], tuple[RelativeFix, ...]]:
+        """The pose fixes and relative measurements that have reached `robot_id` since it
+        last asked (none without simulated positioning sensors).
+        """
+        if self.sensors is None:
+            return (), ()
+        return self.sensors.take(self._index[robot_id], self.t_s)
 
     def truth(self, robot_id: str) -> tuple[Pose2D, Twist2D]:
         """Ground-truth pose and twist."""
@@ -491,7 +374,7 @@ class World:
             cy.append(circles[k, 1])
             r.append(circles[k, 2])
         if idx.size == len(self._ids):
-            ri, j = _close_pairs(self.x, self.y, reach)
+            ri, j = close_pairs(self.x, self.y, reach)
         else:
             ri, j = np.nonzero(np.ones((idx.size, len(self._ids)), dtype=bool))
             ri, j = ri[j != idx[ri]], j[j != idx[ri]]

@@ -330,4 +330,8 @@ def run_metrics(log: RunLog) -> dict[str, Any]:
     }
     if log.scenario.leader_profile is None:
         metrics["navigation"] = navigation_metrics(log)
+    if log.scenario.localisation.estimator:
+        from phalanx.analysis.estimation import estimation_metrics
+
+        metrics["estimation"] = estimation_metrics(log)
     return metrics

@@ -131,6 +131,12 @@ def print_summary(metrics: dict[str, Any]) -> None:
         f"{metrics['deadlock_reverses']}, wall time {metrics['wall_time_s']:.2f} s "
         f"({metrics['realtime_factor']:.0f}x real time)"
     )
+    for rid, est in metrics.get("estimation", {}).get("robots", {}).items():
+        console.print(
+            f"{rid} estimate: max error {est['position_m']['max']:.3g} m, "
+            f"{est['heading_deg']['max']:.3g} deg; NEES in its 95 % band "
+            f"{100 * est['nees_in_band']:.0f} % of steps"
+        )
     nav = metrics.get("navigation")
     if nav:
         reached = (
@@ -266,37 +272,54 @@ def default_cases() -> list[Case]:
 
 
 def write_report(docs: Path, out_root: Path, *, workers: int = 2) -> list[dict[str, Any]]:
-    """Run the matrix and write docs/RESULTS.md with its figures (keeping the navigation
-    benchmark's section, which `bench/bench_montecarlo.py` writes).
+    """Run the matrix and write docs/RESULTS.md with its figures (keeping the sections
+    the benchmarks write between their markers, `KEPT_SECTIONS`).
     """
     cases = default_cases()
     results = run_matrix(cases, out_root, workers=workers)
     figures = copy_figures(cases, out_root, docs)
     path = docs / "RESULTS.md"
-    kept = section_of(path.read_text(encoding="utf-8")) if path.exists() else ""
-    text = results_markdown(cases, results, figures)
-    path.write_text(with_section(text, kept) if kept else text, encoding="utf-8")
+    old = path.read_text(encoding="utf-8") if path.exists() else ""
+    text = keep_sections(results_markdown(cases, results, figures), old)
+    path.write_text(text, encoding="utf-8")
     return results
 
 
-# docs/RESULTS.md holds two generated parts: the paper matrix (`phalanx report`) and,
-# between these markers, the navigation benchmark (`bench/bench_montecarlo.py`). Each
-# tool rewrites its own part and keeps the other.
+def keep_sections(text: str, old: str) -> str:
+    """`text` followed by the sections of `old` that other tools write (`KEPT_SECTIONS`)."""
+    for begin, end in KEPT_SECTIONS:
+        kept = section_of(old, begin=begin, end=end)
+        if kept:
+            text = with_section(text, kept, begin=begin, end=end)
+    return text
+
+
+# docs/RESULTS.md holds generated parts: the paper matrix (`phalanx report`) and, between
+# their markers, the navigation benchmark (`bench/bench_montecarlo.py`) and the formation
+# on real sensing (`bench/bench_localisation.py`). Each tool rewrites its own part and
+# keeps the others.
 SECTION_BEGIN = "<!-- navigation benchmark: written by bench/bench_montecarlo.py -->"
 SECTION_END = "<!-- end of navigation benchmark -->"
+LOCALISATION_BEGIN = "<!-- localisation benchmark: written by bench/bench_localisation.py -->"
+LOCALISATION_END = "<!-- end of localisation benchmark -->"
+KEPT_SECTIONS = ((SECTION_BEGIN, SECTION_END), (LOCALISATION_BEGIN, LOCALISATION_END))
 
 
-def section_of(text: str) -> str:
-    """The navigation benchmark's part of a RESULTS.md text, markers included ("" if none)."""
-    start, end = text.find(SECTION_BEGIN), text.find(SECTION_END)
-    if start < 0 or end < start:
+def section_of(text: str, *, begin: str = SECTION_BEGIN, end: str = SECTION_END) -> str:
+    """The part of a RESULTS.md text between `begin` and `end` (the navigation
+    benchmark's by default), markers included ("" if none).
+    """
+    start, stop = text.find(begin), text.find(end)
+    if start < 0 or stop < start:
         return ""
-    return text[start : end + len(SECTION_END)]
+    return text[start : stop + len(end)]
 
 
-def with_section(text: str, section: str) -> str:
-    """`text` with its navigation benchmark part replaced by (or ended with) `section`."""
-    old = section_of(text)
+def with_section(
+    text: str, section: str, *, begin: str = SECTION_BEGIN, end: str = SECTION_END
+) -> str:
+    """`text` with its part between `begin` and `end` replaced by (or ended with) `section`."""
+    old = section_of(text, begin=begin, end=end)
     if old:
         return text.replace(old, section)
     return text.rstrip() + "\n\n" + section + "\n"

@@ -77,6 +77,14 @@ def write_recording(log: RunLog, path: Path, *, recording_id: str | None = None)
                 angular_pct=errors[1],
                 orientation_deg=errors[2],
             )
+            if tr.cov.shape[0] == len(log.t_s):
+                tel.log_estimates(
+                    rid,
+                    t_s=log.t_s,
+                    estimate=tr.estimate,
+                    cov=tr.cov,
+                    truth_xy=np.column_stack([tr.x_m, tr.y_m]),
+                )
             for event in log.transitions[rid]:
                 tel.log_transition(
                     rid,

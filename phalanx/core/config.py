@@ -13,6 +13,7 @@ from typing import Annotated, Literal, Self
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from phalanx.core.geometry import Pose2D
+from phalanx.core.localisation import LocalisationConfig
 
 PositiveFloat = Annotated[float, Field(gt=0.0)]
 NonNegativeFloat = Annotated[float, Field(ge=0.0)]
@@ -269,9 +270,11 @@ class LeadershipConfig(Model):
 
 
 class SensorEvent(Model):
-    """A scripted sensor event (the paper's Simulink signal builder)."""
+    """A scripted sensor event (the paper's Simulink signal builder); `markers_hidden`:
+    the cameras of `robots` (every robot when empty) see no marker.
+    """
 
-    kind: Literal["all_sonars_blocked", "bumper"] = "all_sonars_blocked"
+    kind: Literal["all_sonars_blocked", "bumper", "markers_hidden"] = "all_sonars_blocked"
     start_s: NonNegativeFloat
     duration_s: PositiveFloat
     robots: tuple[str, ...] = ()
@@ -361,6 +364,7 @@ class Scenario(Model):
     events: tuple[SensorEvent, ...] = ()
     world: WorldConfig = WorldConfig()
     noise: NoiseConfig = NoiseConfig()
+    localisation: LocalisationConfig = LocalisationConfig()
     settle_s: NonNegativeFloat = 5.0
     initial_settle_s: NonNegativeFloat = 30.0
     leader_timeout_s: PositiveFloat = 0.5
@@ -376,6 +380,9 @@ class Scenario(Model):
         for slot in self.formation.slots:
             if slot.follows is not None and slot.follows not in slotted:
                 raise ValueError(f"slot {slot.robot!r} follows unknown robot {slot.follows!r}")
+        white = self.noise.odometry_v_std_frac or self.noise.odometry_omega_std_radps
+        if white and self.localisation.odometry.any:
+            raise ValueError("give odometry errors in [noise] or [localisation.odometry], not both")
         return self
 
     @property

@@ -50,6 +50,11 @@ class PeerState:
     clock; twist (m/s, rad/s) it executes from `stamp_s` on, so a receiver can
     dead-reckon the pose to its own time; `leader_id`, the robot it tracks ("" while it
     leads); and its flags (see `PeerFlags`), so a robot tracking it needs nothing else.
+
+    `cov`: the covariance of the pose, when the robot estimates it (its pose estimator
+    is on), as the upper triangle `(xx, xy, xt, yy, yt, tt)` in m^2, m rad and rad^2
+    (`phalanx.core.fixes`); empty when the robot steers from its odometry as given
+    (perfect sensing), which a receiver takes as exact.
     """
 
     robot_id: str
@@ -73,6 +78,7 @@ class PeerState:
     waypoint: int = 0
     deadlocks: int = 0
     profile_s: float = 0.0
+    cov: tuple[float, ...] = ()
 
     @property
     def pose(self) -> Pose2D:

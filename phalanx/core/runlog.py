@@ -45,12 +45,19 @@ class RobotTrace:
     leaders: list[str] = field(default_factory=list)  # who led the formation, in its view
     epochs: list[int] = field(default_factory=list)
     formed: list[bool] = field(default_factory=list)  # in its slot (not off avoiding)
+    # What the robot published as its pose (x, y, theta: its estimate, or its odometry
+    # without the estimator) and the covariance with it (xx, xy, xt, yy, yt, tt; NaN
+    # where it published none), one row per step.
+    estimate: FloatArray = field(default_factory=lambda: np.zeros((0, 3)))
+    cov: FloatArray = field(default_factory=lambda: np.zeros((0, 6)))
 
     @classmethod
     def empty(cls, n: int) -> RobotTrace:
-        """Zeroed arrays for `n` steps."""
+        """Zeroed arrays for `n` steps (estimates and covariances NaN)."""
         z = np.zeros
-        return cls(z(n), z(n), z(n), z(n), z(n), z(n), z(n), np.ones(n, dtype=np.int8))
+        trace = cls(z(n), z(n), z(n), z(n), z(n), z(n), z(n), np.ones(n, dtype=np.int8))
+        trace.estimate, trace.cov = np.full((n, 3), np.nan), np.full((n, 6), np.nan)
+        return trace
 
     def truncated(self, n: int) -> RobotTrace:
         """The first `n` steps."""
@@ -68,6 +75,8 @@ class RobotTrace:
             self.leaders[:n],
             self.epochs[:n],
             self.formed[:n],
+            self.estimate[:n],
+            self.cov[:n],
         )
 
     def pose(self, k: int) -> Pose2D:

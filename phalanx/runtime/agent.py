@@ -94,7 +94,8 @@ class AgentRuntime:
         """Robots whose full state this one needs: everyone in lockstep; else those on
         its follow-tree path to the leader (any of them may become the one it tracks).
         """
-        if self.lockstep:
+        if self.lockstep or self.scenario.localisation.markers is not None:
+            # (relative measurements may be of any robot before this one: hear them all)
             return tuple(r for r in self.formation.robot_ids if r != self.robot_id)
         leader = self.formation.root if self.last is None else self.last.state.formation_leader_id
         if leader == self.robot_id:
@@ -243,6 +244,7 @@ class AgentRuntime:
             sonar_rays=sonar_rays(self.robot, state.pose, observation.status.sonar_ranges_m),
             fsm_state=state.fsm_state,
             leader_id=state.leader_id,
+            cov=state.cov,
         )
 
     def _report(self) -> AgentReport:

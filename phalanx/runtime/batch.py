@@ -17,6 +17,7 @@ from __future__ import annotations
 import time
 from collections import deque
 from collections.abc import Callable
+from dataclasses import replace
 
 import numpy as np
 import numpy.typing as npt
@@ -85,10 +86,12 @@ class BatchRunner:
 
     def _trace(self, i: int) -> RobotTrace:
         """Robot i's trace: its arrays are rows of the run's columns."""
-        c = self._columns
-        return RobotTrace(
+        c, n = self._columns, self.steps
+        trace = RobotTrace(
             c[0, i], c[1, i], c[2, i], c[3, i], c[4, i], c[5, i], c[6, i], self._direction[i]
         )
+        trace.estimate, trace.cov = np.full((n, 3), np.nan), np.full((n, 6), np.nan)
+        return trace
 
     def step(self, k: int) -> None:
         """Control step `k`: sense, think, record, then integrate the world."""
@@ -118,14 +121,16 @@ class BatchRunner:
         readings = self.sonar.read_all(ranges).readings
         odometry = self.world.odometries()
         agents = self.agents
-        heard = [
-            agent.hear(Observation(odometry[i], statuses[i], readings[i]), peers, t_s)
-            for i, agent in enumerate(agents.values())
+        observed = [
+            Observation(odometry[i], statuses[i], readings[i], None, *self.world.positioning(rid))
+            for i, rid in enumerate(agents)
         ]
+        pairs = zip(agents.values(), observed, strict=True)
+        heard = [agent.hear(obs, peers, t_s) for agent, obs in pairs]
         masked = mask_readings(self.sonar, readings, heard, self._slot_masks)
         return [
-            (rid, agent, Observation(odometry[i], statuses[i], readings[i], masked[i]))
-            for i, (rid, agent) in enumerate(agents.items())
+            (rid, agent, replace(obs, masked=masked[i]))
+            for i, ((rid, agent), obs) in enumerate(zip(agents.items(), observed, strict=True))
         ]
 
     def _record(self, rid: str, i: int, k: int, out: StepOutput) -> None:
@@ -137,6 +142,9 @@ class BatchRunner:
         tr.leaders.append(state.formation_leader_id)
         tr.epochs.append(state.epoch)
         tr.formed.append(state.formed)
+        tr.estimate[k] = (state.x_m, state.y_m, state.theta_rad)
+        if state.cov:
+            tr.cov[k] = state.cov
         self.transitions[rid].extend(out.events)
         self.last[rid] = out
 

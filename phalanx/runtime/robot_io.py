@@ -25,6 +25,7 @@ from phalanx.core.geometry import Pose2D, Twist2D, dead_reckon
 from phalanx.core.robot import Odometry, RobotStatus
 from phalanx.drivers.safety import SafeDriver
 from phalanx.runtime.clock import Tick
+from phalanx.runtime.positioning import PositioningInbox, frame_fixes, frame_relative
 from phalanx.runtime.signals import Stoppable
 from phalanx.wire.keys import robot_key
 from phalanx.wire.messages import SenseFrame, VelocityCommand
@@ -72,8 +73,16 @@ def pose_now(odometry: Odometry, now_s: float) -> Pose2D:
 class WorldLink:
     """A simulated robot: sense frames from the world are its readings and its clock."""
 
-    def __init__(self, fleet: str, robot_id: str, *, frame_timeout_s: float) -> None:
+    def __init__(
+        self,
+        fleet: str,
+        robot_id: str,
+        *,
+        frame_timeout_s: float,
+        robot_ids: tuple[str, ...] = (),
+    ) -> None:
         self.fleet, self.robot_id = fleet, robot_id
+        self.robot_ids = robot_ids  # the scenario's, in order: relative targets by index
         self.frame_timeout_s = frame_timeout_s
         self.frames: queue.Queue[SenseFrame] = queue.Queue()
         self.world_lost = False  # ended because the world's frames stopped coming
@@ -127,7 +136,8 @@ class WorldLink:
         status = RobotStatus(
             sonar_ranges_m=frame.sonar_ranges_m, bumpers=frame.bumpers, motors_enabled=True
         )
-        return Observation(odometry, status)
+        fixes, relative = frame_fixes(frame), frame_relative(frame, self.robot_ids)
+        return Observation(odometry, status, fixes=fixes, relative=relative)
 
     def write(self, tick: Tick, command: Twist2D) -> None:
         """The command for the frame's tick, to the world (which waits on it in lockstep)."""
@@ -150,12 +160,24 @@ class WorldLink:
 class DriverIO:
     """A robot on a driver, through the safety wrapper (limits, watchdog, E-stop)."""
 
-    def __init__(self, driver: SafeDriver, robot: RobotParams, *, origin: Pose2D) -> None:
+    def __init__(
+        self,
+        driver: SafeDriver,
+        robot: RobotParams,
+        *,
+        origin: Pose2D,
+        positioning: PositioningInbox | None = None,
+    ) -> None:
         self.driver, self.robot, self.origin = driver, robot, origin
+        self.positioning = positioning
         self.driver_errors = 0
 
     def attach(self, session: FleetSession) -> None:
-        """Nothing to subscribe to: the robot is on this computer's port or bus."""
+        """The robot is on this computer's port or bus; its positioning fixes, if it
+        uses any, come over the fleet's session.
+        """
+        if self.positioning is not None:
+            self.positioning.attach(session)
 
     def read(self, tick: Tick) -> Observation | None:
         """Odometry in the world frame at the control instant, and the robot's status."""
@@ -171,7 +193,10 @@ class DriverIO:
             # A backend without sonar (CAN drives) reports free space: it never blocks.
             free = (self.robot.sonar.max_range_m,) * len(self.robot.sonar.units)
             status = replace(status, sonar_ranges_m=free)
-        return Observation(Odometry(pose, odometry.twist, tick.t_s), status)
+        fixes, relative = self.positioning.drain() if self.positioning else ((), ())
+        return Observation(
+            Odometry(pose, odometry.twist, tick.t_s), status, fixes=fixes, relative=relative
+        )
 
     def write(self, tick: Tick, command: Twist2D) -> None:
         """The command, through the safety wrapper."""
@@ -182,5 +207,7 @@ class DriverIO:
             log.warning("command not sent at step %d: %s", tick.k, exc)
 
     def halt(self) -> None:
-        """Stop the robot (the wrapper keeps it stopped on close too)."""
+        """Stop the robot (the wrapper keeps it stopped on close too), and its camera."""
         self.driver.stop()
+        if self.positioning is not None:
+            self.positioning.close()

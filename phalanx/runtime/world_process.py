@@ -25,6 +25,12 @@ from phalanx.core.geometry import ZERO_TWIST, Twist2D
 from phalanx.core.limits import KinematicLimits
 from phalanx.core.runlog import RobotTrace, RunLog
 from phalanx.core.states import State, TransitionEvent
+from phalanx.runtime.positioning import (
+    fix_message,
+    flatten_fixes,
+    flatten_relative,
+    relative_message,
+)
 from phalanx.runtime.signals import Stoppable
 from phalanx.simulator.world import World
 from phalanx.telemetry.stream import PAPER_ANGULAR_BOUND_PCT, PAPER_LINEAR_BOUND_PCT, Telemetry
@@ -48,6 +54,7 @@ from phalanx.wire.messages import (
 from phalanx.wire.transport import FleetSession, TransportConfig, open_session
 
 log = logging.getLogger("phalanx.world")
+_Flat = tuple[tuple[float, ...], tuple[float, ...]]
 WORLD_ID = "world"
 
 
@@ -202,7 +209,9 @@ class WorldProcess:
                     return
         time.sleep(0.2)  # let the agents' subscriptions reach the world's publications
 
-    def _frame(self, rid: str, k: int, final: bool = False) -> SenseFrame:
+    def _frame(
+        self, rid: str, k: int, final: bool = False, positioning: _Flat = ((), ())
+    ) -> SenseFrame:
         odo, status = self.world.odometry(rid), self.world.status(rid)
         return SenseFrame(
             robot_id=rid,
@@ -217,7 +226,26 @@ class WorldProcess:
             sonar_ranges_m=status.sonar_ranges_m,
             bumpers=status.bumpers,
             final=final,
+            fixes=positioning[0],
+            relative=positioning[1],
         )
+
+    def _positioning(self, session: FleetSession, rid: str) -> _Flat:
+        """The robot's simulated positioning measurements due now: for its sense frame
+        or, for a robot on a driver (a run with an epoch), published on its `fix` and
+        `relative` keys as a motion-capture system and its camera would.
+        """
+        fixes, relative = self.world.positioning(rid)
+        epoch = self.options.epoch_s
+        if epoch is None:
+            return flatten_fixes(fixes), flatten_relative(relative, self.ids)
+        fleet = self.options.fleet
+        for fix in fixes:
+            session.publish(robot_key(fleet, rid, "fix"), fix_message(rid, fix, epoch_s=epoch))
+        for rel in relative:
+            message = relative_message(rid, rel, epoch_s=epoch)
+            session.publish(robot_key(fleet, rid, "relative"), message)
+        return (), ()
 
     def _tick(self, session: FleetSession, k: int) -> None:
         self.tick = k
@@ -228,7 +256,7 @@ class WorldProcess:
         for rid in self.ids:
             session.publish(
                 robot_key(self.options.fleet, rid, "sense"),
-                self._frame(rid, k),
+                self._frame(rid, k, positioning=self._positioning(session, rid)),
                 reliable_block=True,
             )
         if self.options.clock == "lockstep":
@@ -365,3 +393,7 @@ class WorldProcess:
                 tr.leaders.append(last.formation_leader_id or root if last else root)
                 tr.epochs.append(last.epoch if last else 0)
                 tr.formed.append(last.formed if last else True)
+                if last is not None:  # the pose it published (its estimate) and covariance
+                    tr.estimate[k] = (last.x_m, last.y_m, last.theta_rad)
+                    if last.cov:
+                        tr.cov[k] = last.cov

@@ -14,6 +14,7 @@ import numpy as np
 import numpy.typing as npt
 
 from phalanx.core.geometry import Pose2D, Twist2D
+from phalanx.telemetry.uncertainty import ellipse, position_std_m, send_ellipses
 
 FloatArray = npt.NDArray[np.float64]
 Point = tuple[float, float]
@@ -37,6 +38,7 @@ class StepRow:
     errors: tuple[float, float, float] | None = None
     rays: tuple[tuple[Point, Point], ...] = ()
     trail: tuple[Point, ...] | None = None  # the trail to redraw at this step, if any
+    cov: tuple[float, ...] = ()  # the pose's covariance, when the robot estimates it
 
 
 @dataclass(frozen=True, slots=True)
@@ -87,6 +89,13 @@ def send_step_rows(rec: Any, robot_id: str, rows: Sequence[StepRow]) -> None:
         )
     _send_rays(rec, base, rows, index)
     _send_tracking(rec, base, rows)
+    if any(r.cov for r in rows):
+        strips = [ellipse(r.pose.x_m, r.pose.y_m, r.cov) for r in rows]
+        send_ellipses(rec, rr, f"{base}/covariance", index, strips)
+        stds = [position_std_m(r.cov) for r in rows]
+        rec.send_columns(
+            f"{base}/estimate/std_m", indexes=index, columns=rr.Scalars.columns(scalars=stds)
+        )
     for row in rows:
         if row.trail is not None:
             rec.set_time("sim_time", duration=row.t_s)

@@ -3,7 +3,9 @@
 Entity layout (units and frames in the names):
     world/obstacles                      static outlines
     world/truth/<id>                     ground-truth position (the world process)
-    robots/<id>/pose, /heading, /trail   where the robot believes it is
+    robots/<id>/pose, /heading, /trail   where the robot believes it is (its estimate)
+    robots/<id>/covariance               its estimate's 2-sigma ellipse (pose estimator on)
+    robots/<id>/estimate/{std_m,error_m} its sigma, and (batch runs) its error on the truth
     robots/<id>/slot_target              the rigid-body target it tracks
     robots/<id>/sonar                    sonar rays in the world frame
     robots/<id>/cmd/{v_mps,omega_degps}  commanded twist
@@ -39,6 +41,7 @@ from phalanx.telemetry.layout import (
     send_truth_rows,
 )
 from phalanx.telemetry.sinks import Outbox, TelemetrySink, rerun_sdk
+from phalanx.telemetry.uncertainty import ellipse, position_std_m, send_ellipses
 
 FloatArray = npt.NDArray[np.float64]
 TRAIL_POINTS = 600
@@ -162,6 +165,7 @@ class Telemetry(Closing):
         sonar_rays: Sequence[tuple[Vec2, Vec2]] = (),
         fsm_state: str = "",
         leader_id: str = "",
+        cov: tuple[float, ...] = (),
     ) -> None:
         """One control step of one robot (live agents); sent in batches of steps."""
         self.logged_steps[robot_id] = self.logged_steps.get(robot_id, 0) + 1
@@ -186,6 +190,7 @@ class Telemetry(Closing):
             errors=errors,
             rays=tuple(((a.x_m, a.y_m), (b.x_m, b.y_m)) for a, b in sonar_rays),
             trail=trail_points,
+            cov=cov,
         )
         self._outbox.add_row(robot_id, row, lambda rec, rows: send_step_rows(rec, robot_id, rows))
 
@@ -252,6 +257,38 @@ class Telemetry(Closing):
         self._outbox.submit(
             lambda rec: rec.log(f"{base}/trail", rerun_sdk().LineStrips2D([trail]), static=True)
         )
+
+    def log_estimates(
+        self,
+        robot_id: str,
+        *,
+        t_s: FloatArray,
+        estimate: FloatArray,
+        cov: FloatArray,
+        truth_xy: FloatArray,
+    ) -> None:
+        """A whole run's published poses (n x 3), their covariances (n x 6, NaN rows:
+        none) and their error against the truth (n x 2), as columns (the batch runner).
+        """
+        if not self._outbox.enabled or not np.isfinite(cov).any():
+            return
+        base = f"robots/{robot_id}"
+        every = TRAIL_EVERY_STEPS  # an ellipse a second is plenty on a whole run's map
+        rows = range(0, len(t_s), every)
+        strips = [ellipse(estimate[k, 0], estimate[k, 1], tuple(cov[k])) for k in rows]
+        times = t_s[::every]
+
+        def job(rec: Any) -> None:
+            rr = rerun_sdk()
+            index = [rr.TimeColumn("sim_time", duration=times)]
+            send_ellipses(rec, rr, f"{base}/covariance", index, strips)
+
+        self._outbox.submit(job)
+        self._columns(f"{base}/estimate/xy", t_s, {"points": estimate[:, :2]})
+        error = np.hypot(*(estimate[:, :2] - truth_xy).T)
+        self._columns(f"{base}/estimate/error_m", t_s, {"scalars": error})
+        stds = np.array([position_std_m(tuple(c)) for c in cov])
+        self._columns(f"{base}/estimate/std_m", t_s, {"scalars": stds})
 
     def _columns(
         self, path: str, t_s: FloatArray, data: dict[str, Any], *, static: bool = False

@@ -29,6 +29,8 @@ from phalanx.wire.messages import (
     ClockTick,
     LeaderAnnouncement,
     Message,
+    PoseFixMessage,
+    RelativeFixMessage,
     RobotFlags,
     RobotState,
     SenseFrame,
@@ -65,6 +67,7 @@ _STATE_FIELDS: tuple[tuple[str, str], ...] = (
     ("waypoint", "I"),
     ("deadlocks", "I"),
     ("profile_s", "d"),
+    ("cov", "D"),  # empty (2 bytes) unless the robot runs its pose estimator
 )
 LAYOUTS: dict[type[Message], tuple[int, tuple[tuple[str, str], ...]]] = {
     RobotState: (1, _STATE_FIELDS),
@@ -88,6 +91,8 @@ LAYOUTS: dict[type[Message], tuple[int, tuple[tuple[str, str], ...]]] = {
             ("sonar_ranges_m", "D"),
             ("bumpers", "B"),
             ("final", "?"),
+            ("fixes", "D"),  # empty (2 bytes each) without simulated positioning
+            ("relative", "D"),
         ),
     ),
     AgentEvent: (
@@ -118,6 +123,32 @@ LAYOUTS: dict[type[Message], tuple[int, tuple[tuple[str, str], ...]]] = {
             ("stamp_s", "d"),
             ("previous_id", "s"),
             ("reason", "s"),
+        ),
+    ),
+    PoseFixMessage: (
+        9,
+        (
+            ("robot_id", "s"),
+            ("stamp_s", "d"),
+            ("x_m", "d"),
+            ("y_m", "d"),
+            ("theta_rad", "d"),
+            ("std_m", "d"),
+            ("std_rad", "d"),
+        ),
+    ),
+    RelativeFixMessage: (
+        10,
+        (
+            ("robot_id", "s"),
+            ("target_id", "s"),
+            ("stamp_s", "d"),
+            ("range_m", "d"),
+            ("bearing_rad", "d"),
+            ("heading_rad", "d"),
+            ("std_range_m", "d"),
+            ("std_bearing_rad", "d"),
+            ("std_heading_rad", "d"),
         ),
     ),
 }

@@ -8,6 +8,10 @@ robot/<id>/sense    SenseFrame from the world (sim driver)
 robot/<id>/cmd      VelocityCommand to the world (sim driver)
 robot/<id>/event    AgentEvent (behaviour transitions)
 robot/<id>/report   AgentReport at the end of a run
+robot/<id>/fix      PoseFixMessage: an absolute pose fix (`phalanx mocap`, or the world
+                    simulating motion capture for robots on drivers)
+robot/<id>/relative RelativeFixMessage: another robot seen by this one's camera (the world
+                    simulating it for robots on drivers)
 leader              LeaderAnnouncement (who leads, under which epoch)
 alive/<id>          liveliness token of each process
 status/<id>         queryable: a process's counters as JSON

@@ -6,9 +6,10 @@ Encoding and decoding (and the drop-and-count of malformed payloads) live in
 
 from __future__ import annotations
 
+import math
 from typing import Final, Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from phalanx.core.geometry import Pose2D, Twist2D
 from phalanx.core.peers import PeerFlags, PeerState
@@ -34,7 +35,10 @@ class RobotState(Message):
     executes from `stamp_s` on, so a receiver can dead-reckon the pose to its own time.
     `leader_id` is the robot this one tracks ("" while it leads the formation); the
     rest are its behaviour flags (see `RobotFlags`), the state carries them too so a
-    robot that tracks this one needs only this message.
+    robot that tracks this one needs only this message. `cov`: the pose's covariance
+    when the robot runs its pose estimator (upper triangle xx, xy, xt, yy, yt, tt in
+    m^2, m rad, rad^2; see `check_pose_cov`), empty when it steers from its odometry as
+    given.
     """
 
     version: Literal[1] = 1
@@ -59,6 +63,12 @@ class RobotState(Message):
     waypoint: int = Field(default=0, ge=0)
     deadlocks: int = Field(default=0, ge=0)
     profile_s: float = Field(default=0.0, ge=0.0)
+    cov: tuple[float, ...] = ()
+
+    @field_validator("cov")
+    @classmethod
+    def _cov_is_a_pose_covariance(cls, cov: tuple[float, ...]) -> tuple[float, ...]:
+        return check_pose_cov(cov)
 
     @property
     def pose(self) -> Pose2D:
@@ -128,6 +138,17 @@ class RobotFlags(Message):
 
 
 _FLAG_FIELDS = tuple(RobotFlags.model_fields)
+FIX_FIELDS = ("stamp_s", "x_m", "y_m", "theta_rad", "std_m", "std_rad")
+RELATIVE_FIELDS = (
+    "stamp_s", "target", "range_m", "bearing_rad", "heading_rad", "std_range_m",
+    "std_bearing_rad", "std_heading_rad",
+)  # fmt: skip
+MAX_MEASUREMENTS = 1000  # per frame: 10 s of 100 Hz motion capture
+# A pose variance beyond these means the robot has no idea where it is: (1 km)^2 and
+# (pi rad)^2; larger ones are not physics but a broken sender.
+MAX_POSITION_VAR_M2 = 1e6
+MAX_HEADING_VAR_RAD2 = math.pi**2
+_COV_TOLERANCE = 1e-9
 # Every field but the wire's `version` header: the brain's plain values.
 _PEER_STATE_FIELDS = tuple(f for f in RobotState.model_fields if f != "version")
 _PEER_FLAG_FIELDS = tuple(f for f in RobotFlags.model_fields if f != "version")
@@ -189,6 +210,61 @@ class SenseFrame(Message):
     sonar_ranges_m: tuple[float, ...] = ()
     bumpers: tuple[bool, ...] = ()
     final: bool = False
+    # Positioning measurements that reached the robot since its last frame (simulated
+    # sensors, `phalanx.simulator.sensors`), flattened: `fixes` in groups of
+    # FIX_FIELDS, `relative` in groups of RELATIVE_FIELDS (target: its index in the
+    # scenario's robot list; heading 0 with std 0: not measured). Stamps in sim time.
+    fixes: tuple[float, ...] = ()
+    relative: tuple[float, ...] = ()
+
+    @field_validator("fixes")
+    @classmethod
+    def _whole_fixes(cls, values: tuple[float, ...]) -> tuple[float, ...]:
+        return _groups_of(values, len(FIX_FIELDS), "fixes")
+
+    @field_validator("relative")
+    @classmethod
+    def _whole_relatives(cls, values: tuple[float, ...]) -> tuple[float, ...]:
+        return _groups_of(values, len(RELATIVE_FIELDS), "relative")
+
+
+class PoseFixMessage(Message):
+    """An absolute pose fix of robot `robot_id` on `.../robot/<id>/fix` (a motion-capture
+    bridge, `phalanx mocap`, or the world process simulating one for robots on drivers).
+
+    Pose in the fleet's world frame (m, rad), taken at `stamp_s` in Unix time (the
+    receiving agent turns it into fleet time with its epoch), with the source's standard
+    deviations (`std_m` on x and y, `std_rad` on the heading).
+    """
+
+    version: Literal[1] = 1
+    robot_id: str
+    stamp_s: float = Field(ge=0.0)
+    x_m: float = Field(ge=-1e4, le=1e4)
+    y_m: float = Field(ge=-1e4, le=1e4)
+    theta_rad: float = Field(ge=-2 * math.pi, le=2 * math.pi)
+    std_m: float = Field(gt=0.0, le=10.0)
+    std_rad: float = Field(gt=0.0, le=math.pi)
+
+
+class RelativeFixMessage(Message):
+    """Robot `target_id` seen from robot `robot_id` on `.../robot/<id>/relative` (the world
+    process simulating the camera of a robot on a driver): range (m) and bearing (rad,
+    counter-clockwise from the robot's heading) of the target's centre and, when
+    `std_heading_rad` > 0, the target's heading relative to the robot's; taken at
+    `stamp_s` in Unix time.
+    """
+
+    version: Literal[1] = 1
+    robot_id: str
+    target_id: str
+    stamp_s: float = Field(ge=0.0)
+    range_m: float = Field(ge=0.0, le=100.0)
+    bearing_rad: float = Field(ge=-2 * math.pi, le=2 * math.pi)
+    heading_rad: float = Field(default=0.0, ge=-2 * math.pi, le=2 * math.pi)
+    std_range_m: float = Field(gt=0.0, le=10.0)
+    std_bearing_rad: float = Field(gt=0.0, le=math.pi)
+    std_heading_rad: float = Field(default=0.0, ge=0.0, le=math.pi)
 
 
 class AgentEvent(Message):
@@ -215,3 +291,33 @@ class AgentReport(Message):
     step_p50_us: float = Field(default=0.0, ge=0.0)  # control step: core, publish, telemetry
     step_p99_us: float = Field(default=0.0, ge=0.0)
     telemetry_dropped: int = Field(default=0, ge=0)
+
+
+def check_pose_cov(cov: tuple[float, ...]) -> tuple[float, ...]:
+    """A pose covariance as the wire carries it, checked: empty, or the six values of the
+    upper triangle (xx, xy, xt, yy, yt, tt), variances within physics
+    (`MAX_POSITION_VAR_M2`, `MAX_HEADING_VAR_RAD2`) and each covariance no larger than
+    its variances allow (|c_ij| <= sqrt(c_ii c_jj)).
+    """
+    if not cov:
+        return cov
+    if len(cov) != 6:
+        raise ValueError(f"cov: expected 0 or 6 values (xx, xy, xt, yy, yt, tt), got {len(cov)}")
+    xx, xy, xt, yy, yt, tt = cov
+    for name, var, bound in (("xx", xx, MAX_POSITION_VAR_M2), ("yy", yy, MAX_POSITION_VAR_M2),
+                             ("tt", tt, MAX_HEADING_VAR_RAD2)):  # fmt: skip
+        if not 0.0 <= var <= bound:
+            raise ValueError(f"cov: variance {name} must be within [0, {bound:g}], got {var!r}")
+    for name, c, a, b in (("xy", xy, xx, yy), ("xt", xt, xx, tt), ("yt", yt, yy, tt)):
+        if abs(c) > math.sqrt(a * b) * (1.0 + _COV_TOLERANCE) + _COV_TOLERANCE:
+            raise ValueError(f"cov: |{name}| = {abs(c)!r} exceeds what its variances allow")
+    return cov
+
+
+def _groups_of(values: tuple[float, ...], size: int, name: str) -> tuple[float, ...]:
+    if len(values) % size or len(values) > size * MAX_MEASUREMENTS:
+        raise ValueError(
+            f"{name}: expected whole groups of {size} values, at most {MAX_MEASUREMENTS}, "
+            f"got {len(values)} values"
+        )
+    return values

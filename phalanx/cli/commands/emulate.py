@@ -30,6 +30,13 @@ def emulate(
     connect: Annotated[
         list[str] | None, typer.Option("--connect", help="Zenoh endpoint (with --world).")
     ] = None,
+    odometry_errors: Annotated[
+        Path | None,
+        typer.Option(
+            help="Stand-alone: report odometry with this scenario's wheel errors "
+            "([localisation.odometry])."
+        ),
+    ] = None,
 ) -> None:
     """Emulate a robot: stand-alone, or moved by a world process over Zenoh."""
     from phalanx.core.config_files import load_robot, load_scenario
@@ -58,6 +65,9 @@ def emulate(
     link = PtyLink() if pty else TcpLink(tcp or 8101, host)
     stop = stop_on_signals()
     options = EmulatorOptions(subtype=subtype, watchdog_s=watchdog)
+    if odometry_errors is not None and bridge is None:
+        errors_from = load_scenario(odometry_errors)
+        options.odometry_errors, options.seed = errors_from.localisation.odometry, errors_from.seed
     try:
         with ArcosEmulator(link, params, options, body) as emulator:
             where = link.device if isinstance(link, PtyLink) else f"{link.host}:{link.port}"

@@ -126,6 +126,13 @@ def agent(
     watchdog: Annotated[
         float, typer.Option(help="Robot drivers: stop if no command for this long (s).")
     ] = 0.5,
+    camera: Annotated[
+        str | None,
+        typer.Option(
+            help="Robot drivers: a camera reading the other robots' fiducial markers, "
+            "DEVICE=CALIBRATION.toml (e.g. /dev/video0=cam.toml)."
+        ),
+    ] = None,
     frame_timeout: Annotated[
         float,
         typer.Option(
@@ -159,7 +166,7 @@ def agent(
     with _telemetry(recording_id, telemetry_file, telemetry_url, robot) as telemetry:
         report, world_lost = _run_agent(
             robot, config, params, transport, fleet, clock, stop, telemetry, backend,
-            epoch, watchdog, frame_timeout,
+            epoch, watchdog, frame_timeout, camera,
         )  # fmt: skip
     typer.echo(
         f"{robot}: {report.steps} steps, {report.saturations} saturations, "
@@ -195,6 +202,7 @@ def _run_agent(
     epoch: float | None,
     watchdog: float,
     frame_timeout_s: float,
+    camera: str | None = None,
 ) -> tuple[AgentReport, bool]:
     """Run the agent to its end: its report, and whether the world's frames stopped."""
     import time
@@ -205,7 +213,8 @@ def _run_agent(
     tel = telemetry if telemetry.sink.kind != "off" else None
     if backend is None:  # a simulated robot: the world's frames are its ticks
         options = RuntimeOptions(fleet=fleet, transport=transport, clock=_clock(clock))
-        link = WorldLink(fleet, robot, frame_timeout_s=frame_timeout_s)
+        ids = tuple(r.id for r in config.robots)
+        link = WorldLink(fleet, robot, frame_timeout_s=frame_timeout_s, robot_ids=ids)
         runtime = AgentRuntime(robot, config, params, options, clock=link, io=link, telemetry=tel)
         return runtime.run(stop), link.world_lost
     # A robot driver: the agent keeps its own clock; commands go through the safety layer.
@@ -220,7 +229,12 @@ def _run_agent(
     steps = round(config.duration_s / config.dt_s)
     with safe:
         ticks = EpochClock(epoch_s=epoch or time.time(), dt_s=config.dt_s, steps=steps)
-        io = DriverIO(safe, params, origin=config.start_pose(robot))
+        from phalanx.runtime.positioning import PositioningInbox, open_camera
+
+        inbox = PositioningInbox(fleet, robot, epoch_s=ticks.epoch_s)
+        if camera is not None:
+            inbox.camera = open_camera(camera, robot, config, epoch_s=ticks.epoch_s)
+        io = DriverIO(safe, params, origin=config.start_pose(robot), positioning=inbox)
         runtime = AgentRuntime(robot, config, params, options, clock=ticks, io=io, telemetry=tel)
         return runtime.run(stop), False
 
