@@ -61,19 +61,33 @@ def test_checksum_xors_an_odd_last_byte() -> None:
     assert checksum(b"") == 0
 
 
-sips = st.builds(
-    Sip,
-    moving=st.booleans(),
-    x=st.integers(0, 0x7FFF),
-    y=st.integers(0, 0x7FFF),
-    th=st.integers(-2048, 2047),
-    left_vel=st.integers(-2000, 2000),
-    right_vel=st.integers(-2000, 2000),
-    battery_dv=st.integers(0, 255),
-    stall_bumpers=st.integers(0, 0xFFFF),
-    flags=st.integers(0, 0xFFFF),
-    sonars=st.lists(st.tuples(st.integers(0, 15), st.integers(0, 5000)), max_size=16).map(tuple),
-    rot_vel_x10=st.none() | st.integers(-3000, 3000),
+_tails = st.one_of(
+    st.just({}),
+    st.fixed_dictionaries(
+        {
+            "rot_vel_x10": st.integers(-3000, 3000),
+            "battery_tail_dv": st.integers(0, 300),
+            "fault_flags": st.none() | st.integers(0, 0xFFFF),
+        }
+    ),
+)
+sips = _tails.flatmap(
+    lambda tail: st.builds(
+        Sip,
+        moving=st.booleans(),
+        x=st.integers(0, 0x7FFF),
+        y=st.integers(0, 0x7FFF),
+        th=st.integers(-2048, 2047),
+        left_vel=st.integers(-2000, 2000),
+        right_vel=st.integers(-2000, 2000),
+        battery_dv=st.integers(0, 255),
+        stall_bumpers=st.integers(0, 0xFFFF),
+        flags=st.integers(0, 0xFFFF),
+        sonars=st.lists(st.tuples(st.integers(0, 15), st.integers(0, 5000)), max_size=16).map(
+            tuple
+        ),
+        **{k: st.just(v) for k, v in tail.items()},
+    )
 )
 
 
@@ -261,12 +275,18 @@ def test_firmware_watchdog_stops_and_resumes() -> None:
     options = EmulatorOptions(watchdog_s=0.3)
     with (
         ArcosEmulator(TcpLink(0), ROBOT, options) as emulator,
-        ArcosDriver(_tcp(emulator, pulse_s=5.0, link_timeout_s=5.0), robot=ROBOT) as driver,
+        ArcosDriver(_tcp(emulator, link_timeout_s=5.0), robot=ROBOT) as driver,
     ):
         driver.set_velocity(Twist2D(0.2, 0.0))
+        assert _eventually(lambda: emulator.body.state().twist.v_mps > 0.1, 2.0)
+        time.sleep(0.5)  # the driver keeps the robot's 0.3 s watchdog fed (PULSE at 1/4)
+        assert emulator.stats.watchdog_stops == 0
+        emulator.unplug()  # silence: the firmware stops the motors on its own
         assert _eventually(lambda: emulator.stats.watchdog_stops == 1, 2.0)
-        assert emulator.body.state().setpoint == Twist2D(0.0, 0.0)
-        driver.stop()  # any packet: the firmware resumes (here, the STOP itself)
+        assert _eventually(lambda: emulator.body.state().twist.v_mps == 0.0, 2.0)
+        emulator.unplug(False)  # packets again: the last setpoints resume (ARCOS)
+        assert _eventually(lambda: emulator.body.state().twist.v_mps > 0.1, 2.0)
+        driver.stop()
         assert _eventually(lambda: emulator.body.state().setpoint == Twist2D(0.0, 0.0), 1.0)
 
 
