@@ -17,6 +17,7 @@ import logging
 import math
 import threading
 import time
+from collections import deque
 from dataclasses import dataclass, field
 
 from phalanx.core.config import RobotParams
@@ -71,18 +72,25 @@ class EmulatorOptions:
 
 @dataclass
 class EmulatorStats:
-    """What the emulator saw and did; `received_s`: when each command last arrived."""
+    """What the emulator saw and did; `received`: the latest commands (monotonic time of
+    arrival, name), oldest first.
+    """
 
     frames: int = 0
     sips_sent: int = 0
     watchdog_stops: int = 0
     commands: dict[str, int] = field(default_factory=dict)
-    received_s: dict[str, float] = field(default_factory=dict)
+    received: deque[tuple[float, str]] = field(default_factory=lambda: deque(maxlen=1000))
+
+    def first_after(self, name: str, since_s: float) -> float | None:
+        """When command `name` first arrived at or after `since_s` (None: not since)."""
+        return next((t for t, n in list(self.received) if n == name and t >= since_s), None)
 
 
 @dataclass
 class _Faults:
     garble_bytes: int = 0
+    garble_until_s: float = 0.0
     drop_sips: int = 0
     estop_button: bool = False
     unplugged: bool = False
@@ -146,6 +154,11 @@ class ArcosEmulator(Closing):
         with self._lock:
             self._faults.garble_bytes += n_bytes
 
+    def garble_for(self, seconds: float) -> None:
+        """Corrupt every byte sent for the next `seconds` (a noisy line)."""
+        with self._lock:
+            self._faults.garble_until_s = time.monotonic() + seconds
+
     def drop_sips(self, count: int) -> None:
         """Skip the next `count` SIPs."""
         with self._lock:
@@ -182,6 +195,14 @@ class ArcosEmulator(Closing):
     def odometry_pose(self) -> Pose2D:
         """The body's pose in the firmware's odometry frame (what SIPs report, in m/rad)."""
         return self._odom_origin.relative(self.body.state().pose)
+
+    @property
+    def target(self) -> Twist2D:
+        """The speeds the firmware is bringing the wheels to (m/s, rad/s): what it was last
+        told, within its limits; zero after STOP, E_STOP or its watchdog.
+        """
+        with self._lock:
+            return self.motion.target
 
     @property
     def limits(self) -> FirmwareLimits:
@@ -249,7 +270,7 @@ class ArcosEmulator(Closing):
 
     def _count(self, name: str) -> None:
         self.stats.commands[name] = self.stats.commands.get(name, 0) + 1
-        self.stats.received_s[name] = time.monotonic()
+        self.stats.received.append((time.monotonic(), name))
 
     def _handle(self, body: bytes) -> None:
         self.stats.frames += 1
@@ -370,7 +391,9 @@ class ArcosEmulator(Closing):
     def _send(self, data: bytes) -> None:
         if self._faults.unplugged:
             return
-        if self._faults.garble_bytes:
+        if time.monotonic() < self._faults.garble_until_s:
+            data = bytes(b ^ 0x5A for b in data)
+        elif self._faults.garble_bytes:
             n = min(self._faults.garble_bytes, len(data))
             self._faults.garble_bytes -= n
             data = bytes(b ^ 0x5A for b in data[:n]) + data[n:]

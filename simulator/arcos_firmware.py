@@ -167,6 +167,12 @@ class Motion:
     # -- the profile -----------------------------------------------------------------
 
     @property
+    def target(self) -> Twist2D:
+        """What the profile is heading for now (m/s, rad/s): zero while stopping or held."""
+        v_mmps, w_degps = self._targets(None)
+        return Twist2D(v_mmps / 1000.0, math.radians(w_degps))
+
+    @property
     def busy(self) -> bool:
         """Whether the profile is changing (ramping, or driving to a position)."""
         targets = self._targets(None)
