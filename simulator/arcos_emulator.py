@@ -223,10 +223,13 @@ class ArcosEmulator(Closing):
         self._odom_origin = getattr(self, "_odom_origin", Pose2D(0.0, 0.0, 0.0))
         # A new connection starts from the FLASH defaults (operations manual: SETV & co.
         # revert when the client disconnects).
+        # The wheels keep turning as they were and come to rest at the FLASH deceleration.
+        moving = getattr(self, "motion", None)
         self.motion = Motion(
             self.rated, diff_conv=self.factors.diff, vel2_divisor=VEL2_DIVISOR_MMPS
         )
-        self.body.command(Twist2D(0.0, 0.0))
+        if moving is not None:
+            self.motion.v_mmps, self.motion.w_degps = moving.v_mmps, moving.w_degps
 
     def _serve(self) -> None:
         next_sip = time.monotonic()
