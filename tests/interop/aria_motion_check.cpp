@@ -62,6 +62,10 @@ int main(int argc, char **argv)
   }
   robot.runAsync(true);
   robot.lock();
+  robot.enableMotors();
+  robot.unlock();
+  ArUtil::sleep(500);  // a few SIPs in: the battery readings are the robot's
+  robot.lock();
   const ArRobotConfigPacketReader *config = robot.getOrigRobotConfig();
   std::printf(
       "PHALANX step=config trans_vel_max=%d rot_vel_max=%d trans_accel=%d trans_decel=%d "
@@ -70,9 +74,7 @@ int main(int argc, char **argv)
       config->getTransDecel(), config->getRotAccel(), config->getRotDecel(),
       config->getWatchdog(), config->getTransVelTop(), robot.getBatteryVoltage(),
       robot.getRealBatteryVoltage());
-  robot.enableMotors();
   robot.unlock();
-  ArUtil::sleep(500);
   report(robot, "start");
 
   // Both wheels backwards at 200 mm/s for 2 s (VEL2 with a negative argument).

@@ -130,12 +130,12 @@ class Amrisim:
         os.kill(self.proc.pid, signal.SIGSTOP if paused else signal.SIGCONT)
 
     def close(self) -> None:
-        for proc in (self.proc, self.xvfb):
-            if proc is not None:
-                if proc is self.proc:
-                    with contextlib.suppress(ProcessLookupError):
-                        os.kill(proc.pid, signal.SIGCONT)
-                _stop(proc)
+        if self.proc is not None:  # a simulator: nothing to save, no need to wait for it
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(self.proc.pid, signal.SIGKILL)
+            self.proc.wait(5.0)
+        if self.xvfb is not None:
+            _stop(self.xvfb)
 
 
 @pytest.fixture
