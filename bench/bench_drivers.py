@@ -89,7 +89,8 @@ def arcos_latency(name: str, link: Link, repeats: int) -> None:
 def arcos_unplug(repeats: int) -> None:
     stopped, noticed = [], []
     for _ in range(repeats):
-        with arcos(TcpLink(0)) as (emulator, driver):
+        # A serial cable (a pty): no connection to drop, only the firmware watchdog is left.
+        with arcos(PtyLink()) as (emulator, driver):
             driver.set_velocity(Twist2D(0.2, 0.0))
             _until(lambda: emulator.body.state().twist.v_mps > 0.1)
             t0 = time.perf_counter()
@@ -202,8 +203,11 @@ def can_latency(repeats: int) -> None:
 def main() -> None:
     parser = argparse.ArgumentParser()
     parser.add_argument("--repeats", type=int, default=30)
-    parser.add_argument("--only", choices=["sip-loss"], default=None)
+    parser.add_argument("--only", choices=["sip-loss", "unplug"], default=None)
     args = parser.parse_args()
+    if args.only == "unplug":
+        arcos_unplug(max(3, args.repeats // 10))
+        return
     if args.only == "sip-loss":
         arcos_sip_loss(args.repeats)
         arcos_reconnect_blocking(20.0)
