@@ -23,12 +23,13 @@ from dataclasses import dataclass, field
 from phalanx.core.config import RobotParams
 from phalanx.core.geometry import Pose2D, Twist2D
 from phalanx.core.lifecycle import Closing
-from phalanx.core.motion import Body
+from phalanx.core.motion import Body, BodyState
 from phalanx.protocols.arcos import (
     SYNC0,
     SYNC1,
     SYNC2,
     Cmd,
+    ConvFactors,
     FrameParser,
     RobotConfig,
     Sip,
@@ -52,11 +53,8 @@ VEL2_DIVISOR_MMPS = 20.0  # AriaCoda params/p3dx*.p Vel2Divisor
 
 @dataclass
 class EmulatorOptions:
-    """Firmware settings of the emulated robot.
-
-    The accelerations' tops are what E_STOP brakes at (the emulated motors' capability):
-    AMRISim brakes an E_STOP at once; 1000 mm/s² is what ARIA assumes for a robot that
-    sends no CONFIG (AriaCoda `ArRobot.cpp`).
+    """Firmware settings of the emulated robot. E_STOP brakes at the accelerations' tops
+    (AMRISim at once; 1000 mm/s² is what ARIA assumes of a robot without CONFIG).
     """
 
     name: str = "phalanx-emu"
@@ -192,17 +190,16 @@ class ArcosEmulator(Closing):
     # -- what the firmware is doing --------------------------------------------------
 
     @property
-    def odometry_pose(self) -> Pose2D:
-        """The body's pose in the firmware's odometry frame (what SIPs report, in m/rad)."""
-        return self._odom_origin.relative(self.body.state().pose)
-
-    @property
     def target(self) -> Twist2D:
         """The speeds the firmware is bringing the wheels to (m/s, rad/s): what it was last
         told, within its limits; zero after STOP, E_STOP or its watchdog.
         """
         with self._lock:
             return self.motion.target
+
+    def config(self) -> RobotConfig:
+        """The CONFIG packet it sends now (working values as SETV & co. left them)."""
+        return _config_of(self.options, self.rated, self.motion.limits)
 
     @property
     def limits(self) -> FirmwareLimits:
@@ -313,19 +310,15 @@ class ArcosEmulator(Closing):
         if cmd == Cmd.CLOSE:
             self._reset_session()
         elif cmd == Cmd.CONFIG:
-            self._send(frame(encode_config(self._config())))
-        elif cmd in (Cmd.STOP, Cmd.E_STOP, Cmd.SETO):
-            self._no_argument(cmd)
-        elif arg is not None:
-            self._with_argument(cmd, arg)
-
-    def _no_argument(self, cmd: int) -> None:
-        if cmd == Cmd.STOP:
+            self._send(frame(encode_config(self.config())))
+        elif cmd == Cmd.STOP:
             self.motion.stop()
         elif cmd == Cmd.E_STOP:
             self.motion.estop()
-        else:  # SETO: the odometry frame starts here
+        elif cmd == Cmd.SETO:  # the odometry frame starts here
             self._odom_origin = self.body.state().pose
+        elif arg is not None:
+            self._with_argument(cmd, arg)
 
     def _with_argument(self, cmd: int, arg: int) -> None:
         m = self.motion
@@ -357,31 +350,6 @@ class ArcosEmulator(Closing):
         elif cmd == Cmd.BUMPSTALL:
             self._bumpstall = arg if 0 <= arg <= 3 else self._bumpstall
 
-    def _config(self) -> RobotConfig:
-        o, lim, rated = self.options, self.motion.limits, self.rated
-        return RobotConfig(
-            robot_type="Pioneer",
-            subtype=o.subtype,
-            serial=o.serial,
-            rot_vel_top_degps=round(rated.rot_vel_top),
-            trans_vel_top_mmps=round(rated.trans_vel_top),
-            rot_accel_top_degps2=round(rated.rot_accel_top),
-            trans_accel_top_mmps2=round(rated.trans_accel_top),
-            name=o.name,
-            sip_cycle_ms=round(o.sip_cycle_s * 1000),
-            front_sonar=1,
-            rear_sonar=1,
-            low_battery_dv=round(o.low_battery_v * 10),
-            watchdog_ms=round(o.watchdog_s * 1000),
-            rot_vel_max_degps=round(lim.rot_vel_max),
-            trans_vel_max_mmps=round(lim.trans_vel_max),
-            rot_accel_degps2=round(lim.rot_accel),
-            rot_decel_degps2=round(lim.rot_decel),
-            trans_accel_mmps2=round(lim.trans_accel),
-            trans_decel_mmps2=round(lim.trans_decel),
-            firmware_version="phalanx-1.0",
-        )
-
     def _watchdog(self, now: float) -> None:
         with self._lock:
             silent_s = now - self._last_packet
@@ -407,37 +375,74 @@ class ArcosEmulator(Closing):
             if self._faults.drop_sips:
                 self._faults.drop_sips -= 1
                 return
-            self._send(encode_sip(self._sip()))
+            flags = 0x0001 if self._motors_enabled else 0
+            flags |= 0x001E if self._sonar_on else 0  # bits 1-4: the sonar arrays
+            flags |= 0x0020 if self._faults.estop_button else 0
+            state = self.body.state()
+            sonars = self.body.sonar_ranges_m() if self._sonar_on else None
+            pose = self._odom_origin.relative(state.pose)
+            sip = _sip_of(
+                state, pose, self.factors, flags=flags, sonars=sonars,
+                battery_v=self.options.battery_v,
+            )  # fmt: skip
+            self._send(encode_sip(sip))
             self.stats.sips_sent += 1
 
-    def _sip(self) -> Sip:
-        state = self.body.state()
-        pose = self._odom_origin.relative(state.pose)
-        f = self.factors
-        half_track_mm = 1.0 / f.diff  # (rvel - lvel) / 2 * diff = omega
-        v_mmps = state.twist.v_mps * 1000.0 / f.vel_mmps
-        dv = state.twist.omega_radps * half_track_mm
-        flags = 0x0001 if self._motors_enabled else 0
-        flags |= 0x001E if self._sonar_on else 0  # bits 1-4: the sonar arrays
-        flags |= 0x0020 if self._faults.estop_button else 0
-        sonars: tuple[tuple[int, int], ...] = ()
-        if self._sonar_on:
-            sonars = tuple(
-                (i, round(r * 1000.0 / f.range_mm))
-                for i, r in enumerate(self.body.sonar_ranges_m())
-            )
-        th = round(pose.theta_rad / f.angle_rad)
-        return Sip(
-            moving=abs(state.twist.v_mps) > 0 or abs(state.twist.omega_radps) > 0,
-            x=round(pose.x_m * 1000.0 / f.dist_mm) & 0x7FFF,
-            y=round(pose.y_m * 1000.0 / f.dist_mm) & 0x7FFF,
-            th=(th + 2048) % 4096 - 2048,
-            left_vel=round(v_mmps - dv),
-            right_vel=round(v_mmps + dv),
-            battery_dv=round(self.options.battery_v * 10),
-            stall_bumpers=0x0101 if state.stalled else 0,
-            flags=flags,
-            sonars=sonars,
-            rot_vel_x10=round(math.degrees(state.twist.omega_radps) * 10),
-            fault_flags=0,
-        )
+
+def _config_of(o: EmulatorOptions, rated: FirmwareLimits, lim: FirmwareLimits) -> RobotConfig:
+    """The CONFIG packet of a robot with options `o`, tops `rated`, working values `lim`."""
+    return RobotConfig(
+        robot_type="Pioneer",
+        subtype=o.subtype,
+        serial=o.serial,
+        rot_vel_top_degps=round(rated.rot_vel_top),
+        trans_vel_top_mmps=round(rated.trans_vel_top),
+        rot_accel_top_degps2=round(rated.rot_accel_top),
+        trans_accel_top_mmps2=round(rated.trans_accel_top),
+        name=o.name,
+        sip_cycle_ms=round(o.sip_cycle_s * 1000),
+        front_sonar=1,
+        rear_sonar=1,
+        low_battery_dv=round(o.low_battery_v * 10),
+        watchdog_ms=round(o.watchdog_s * 1000),
+        rot_vel_max_degps=round(lim.rot_vel_max),
+        trans_vel_max_mmps=round(lim.trans_vel_max),
+        rot_accel_degps2=round(lim.rot_accel),
+        rot_decel_degps2=round(lim.rot_decel),
+        trans_accel_mmps2=round(lim.trans_accel),
+        trans_decel_mmps2=round(lim.trans_decel),
+        firmware_version="phalanx-1.0",
+    )
+
+
+def _sip_of(
+    state: BodyState,
+    pose: Pose2D,
+    f: ConvFactors,
+    *,
+    flags: int,
+    sonars: tuple[float, ...] | None,
+    battery_v: float,
+) -> Sip:
+    """The SIP of a body in `state` at odometry `pose` (`sonars`: ranges in m, None: off)."""
+    half_track_mm = 1.0 / f.diff  # (rvel - lvel) / 2 * diff = omega
+    v_mmps = state.twist.v_mps * 1000.0 / f.vel_mmps
+    dv = state.twist.omega_radps * half_track_mm
+    readings: tuple[tuple[int, int], ...] = ()
+    if sonars is not None:
+        readings = tuple((i, round(r * 1000.0 / f.range_mm)) for i, r in enumerate(sonars))
+    th = round(pose.theta_rad / f.angle_rad)
+    return Sip(
+        moving=abs(state.twist.v_mps) > 0 or abs(state.twist.omega_radps) > 0,
+        x=round(pose.x_m * 1000.0 / f.dist_mm) & 0x7FFF,
+        y=round(pose.y_m * 1000.0 / f.dist_mm) & 0x7FFF,
+        th=(th + 2048) % 4096 - 2048,
+        left_vel=round(v_mmps - dv),
+        right_vel=round(v_mmps + dv),
+        battery_dv=round(battery_v * 10),
+        stall_bumpers=0x0101 if state.stalled else 0,
+        flags=flags,
+        sonars=readings,
+        rot_vel_x10=round(math.degrees(state.twist.omega_radps) * 10),
+        fault_flags=0,
+    )

@@ -348,7 +348,7 @@ def test_the_driver_reads_every_config_field_the_emulator_writes(
     tcp_emulator: ArcosEmulator,
 ) -> None:
     with ArcosDriver(_tcp(tcp_emulator), robot=ROBOT) as driver:
-        written = tcp_emulator._config()
+        written = tcp_emulator.config()
         read = driver.robot_config
         assert read is not None
         for name in ("trans_vel_max_mmps", "rot_vel_max_degps", "watchdog_ms", "serial", "name"):

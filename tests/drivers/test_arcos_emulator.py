@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import logging
 import math
+import re
 import socket
 import time
 from collections.abc import Iterator
@@ -278,5 +279,8 @@ def test_the_watchdog_says_how_long_it_heard_nothing(caplog: pytest.LogCaptureFi
                 time.sleep(0.02)
         finally:
             client.sock.close()
-    (line,) = [r.getMessage() for r in caplog.records if "watchdog" in r.getMessage()]
-    assert "no packet for 0.3 s" in line
+    lines = [r.getMessage() for r in caplog.records if "watchdog" in r.getMessage()]
+    assert lines
+    for line in lines:  # the silence (0.3 s and a loop step), not the monotonic clock
+        silence_s = float(re.search(r"no packet for ([\d.]+) s", line).group(1))  # type: ignore[union-attr]
+        assert 0.3 <= silence_s <= 0.5, line
