@@ -21,6 +21,7 @@ from typing import Any
 
 from pydantic import ValidationError
 
+from phalanx.core.config_files import load_robot
 from phalanx.core.errors import DeploymentError, TransportError
 from phalanx.core.lifecycle import Closing
 from phalanx.hosts.deployment import LoadedDeployment
@@ -34,7 +35,7 @@ from phalanx.hosts.protocol import (
 )
 from phalanx.hosts.wiring import client_transport
 from phalanx.wire.keys import host_key, host_of, hosts_key, logs_key, robots_key, status_key
-from phalanx.wire.messages import RobotState
+from phalanx.wire.messages import FleetBounds, RobotState
 from phalanx.wire.transport import FleetSession, TransportConfig, open_session
 
 RATE_WINDOW_S = 2.0
@@ -118,7 +119,10 @@ class FleetClient(Closing):
 
     def _wire(self, fleet: str) -> None:
         self.session.watch_alive(hosts_key(fleet, "alive"), self.watch.on_host)
-        self.session.subscribe(robots_key(fleet, "state"), RobotState, self.watch.on_state)
+        bounds = FleetBounds.of(self.loaded.scenario, load_robot(self.loaded.scenario.robot))
+        self.session.subscribe(
+            robots_key(fleet, "state"), RobotState, self.watch.on_state, context=bounds
+        )
         self.session.hold(self.session.zenoh.declare_subscriber(logs_key(fleet), self.watch.on_log))
 
     @property
@@ -148,6 +152,18 @@ class FleetClient(Closing):
         """The world's own status (tick, missed deadlines), if it answers."""
         replies = self.session.query_status(status_key(self.spec.fleet, "world"), 0.5)
         return replies[0] if replies else None
+
+    def process_statuses(self, timeout_s: float = 0.5) -> dict[str, dict[str, Any]]:
+        """Every fleet process's own status (its counters, drops included), by robot id
+        ("world" for the world); a reply naming no process of the deployment is left out.
+        """
+        names = {r.id for r in self.spec.robots} | {"world"}
+        out = {}
+        for reply in self.session.query_status(status_key(self.spec.fleet, "*"), timeout_s):
+            name = reply.get("robot_id", "world" if "tick" in reply else None)
+            if isinstance(name, str) and name in names:
+                out[name] = reply
+        return out
 
     def wait_for_hosts(self, timeout_s: float, say: Callable[[str], None]) -> dict[str, HostStatus]:
         """Every host's status once all are present; DeploymentError naming the missing."""

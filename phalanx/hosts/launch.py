@@ -79,7 +79,23 @@ def launch(
             _drain_logs(client.watch, output, run)
         for line in run.results:
             output.event(line)
-    return code
+        problems = deaths(run.statuses)
+        for problem in problems:
+            output.event(f"ended unexpectedly: {problem}")
+    return 1 if problems and code == 0 else code
+
+
+def deaths(statuses: dict[str, HostStatus | None]) -> list[str]:
+    """Every process of the run that died on its own (crashed, restarted or failed), with
+    why: a run with any is not a clean finish, whatever the world says.
+    """
+    out = []
+    for host, status in statuses.items():
+        for child in status.children if status is not None else ():
+            if child.crashes or child.state == "failed":
+                restarted = f", restarted {child.restarts}x" if child.restarts else ""
+                out.append(f"{child.name} on {host}: {child.last_error or child.state}{restarted}")
+    return out
 
 
 def _follow(
@@ -93,12 +109,18 @@ def _follow(
     timeout_s = options.timeout_s or _default_timeout_s(loaded)
     deadline = run.started + timeout_s
     robots = [r.id for r in loaded.spec.robots]
-    ticks = scenario_ticks(apply_overrides(loaded.scenario, list(options.overrides)))
+    overrides = list(options.overrides)
+    ticks = scenario_ticks(
+        apply_overrides(loaded.scenario, overrides, source=str(loaded.scenario_path))
+    )
     while not stop.wait(POLL_S):
         _drain_logs(client.watch, output, run)
         run.statuses.update(client.statuses())
-        world = client.world_status()
-        rows = fleet_rows(loaded, run.statuses, client.watch, world=world, total_ticks=ticks)
+        processes = client.process_statuses(0.3)
+        rows = fleet_rows(
+            loaded, run.statuses, client.watch, world=processes.get("world"),
+            total_ticks=ticks, processes=processes,
+        )  # fmt: skip
         output.update(rows)
         if run.up_at is None and client.watch.seen_since(robots, run.spawned):
             run.up_at = time.monotonic()

@@ -81,6 +81,7 @@ class ChildStatus(Wire):
     state: ChildState
     pid: int | None = None
     restarts: int = 0
+    crashes: int = 0  # times it ended on its own with an error (finished runs exit 0)
     exit_code: int | None = None
     last_error: str = ""
     log_dropped: int = 0
