@@ -34,11 +34,11 @@ from pathlib import Path
 from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests" / "faults"))
-from fleetlab import CLI, WEDGE, Fleet, child_running, running_fleet, wait_for  # noqa: E402
+from fleetlab import CLI, WEDGE, Fleet, child_running, running_fleet, wait_for
 
-from phalanx.wire.codec import encode  # noqa: E402
-from phalanx.wire.keys import leader_key, robot_key  # noqa: E402
-from phalanx.wire.messages import (  # noqa: E402
+from phalanx.wire.codec import encode
+from phalanx.wire.keys import leader_key, robot_key
+from phalanx.wire.messages import (
     AgentEvent,
     AgentReport,
     LeaderAnnouncement,
@@ -63,22 +63,52 @@ def _flags(**values: Any) -> RobotFlags:
 
 def _state(**values: Any) -> RobotState:
     base = {
-        "robot_id": "r2", "seq": 1, "stamp_s": 0.0, "x_m": 0.0, "y_m": 0.0, "theta_rad": 0.0,
-        "v_mps": 0.0, "omega_radps": 0.0, "fsm_state": "FORMATION_TRACK", "obstacle": False,
-        "direction": 1, "leader_id": "r1", "epoch": 0, "formation_leader_id": "r1",
-        "clear": False, "formed": True, "blocked_s": 0.0, "dead_end": False, "waypoint": 0,
-        "deadlocks": 0, "profile_s": 0.0,
-    }  # fmt: skip
+        "robot_id": "r2",
+        "seq": 1,
+        "stamp_s": 0.0,
+        "x_m": 0.0,
+        "y_m": 0.0,
+        "theta_rad": 0.0,
+        "v_mps": 0.0,
+        "omega_radps": 0.0,
+        "fsm_state": "FORMATION_TRACK",
+        "obstacle": False,
+        "direction": 1,
+        "leader_id": "r1",
+        "epoch": 0,
+        "formation_leader_id": "r1",
+        "clear": False,
+        "formed": True,
+        "blocked_s": 0.0,
+        "dead_end": False,
+        "waypoint": 0,
+        "deadlocks": 0,
+        "profile_s": 0.0,
+    }
     return RobotState.model_construct(**{**base, **values})
 
 
 def _frame(**values: Any) -> SenseFrame:
     base = {
-        "robot_id": "r2", "tick": 1, "t_s": 0.1, "dt_s": 0.1, "x_m": 0.0, "y_m": 0.0,
-        "theta_rad": 0.0, "v_mps": 0.0, "omega_radps": 0.0, "sonar_ranges_m": (5.0,) * 16,
-        "bumpers": (), "final": False,
-    }  # fmt: skip
+        "robot_id": "r2",
+        "tick": 1,
+        "t_s": 0.1,
+        "dt_s": 0.1,
+        "x_m": 0.0,
+        "y_m": 0.0,
+        "theta_rad": 0.0,
+        "v_mps": 0.0,
+        "omega_radps": 0.0,
+        "sonar_ranges_m": (5.0,) * 16,
+        "bumpers": (),
+        "final": False,
+    }
     return SenseFrame.model_construct(**{**base, **values})
+
+
+def _need(condition: bool, why: str) -> None:
+    if not condition:
+        raise RuntimeError(why)
 
 
 def _settle(fleet: Fleet, s: float = 2.0) -> None:
@@ -108,12 +138,11 @@ def kill_leader(work: Path, args: argparse.Namespace) -> Result:
     trials = []
     for trial in range(args.trials):
         with running_fleet(work / f"kill{trial}", fleet=f"kill{trial}") as fleet:
-            assert fleet.wait_tracking(), "followers never tracked"
+            _need(fleet.wait_tracking(), "followers never tracked")
             time.sleep(random.uniform(0.0, 2.0))
             killed = time.monotonic()
             fleet.signal("r1", signal.SIGKILL)
-            wait_for(lambda: _first(fleet, "r2", killed, _leads) is not None
-                     or _first(fleet, "r3", killed, _leads) is not None, 10.0)  # fmt: skip
+            wait_for(lambda t=killed: _led(fleet, t), 10.0)
             time.sleep(0.5)
             row = {}
             for rid in ("r2", "r3"):
@@ -123,13 +152,24 @@ def kill_leader(work: Path, args: argparse.Namespace) -> Result:
             row["new_leader_s"] = min((x for x in leads if x is not None), default=None)
             row["crashed"] = fleet.crashed(allowed=(0, -9))
             trials.append(row)
-    return {"trials": trials, **_span(trials, ("r2_hold_s", "r3_hold_s"), "hold_s"),
-            **_span(trials, ("r2_zero_s", "r3_zero_s"), "zero_s"),
-            **_span(trials, ("new_leader_s",), "new_leader_s")}  # fmt: skip
+    return {
+        "trials": trials,
+        **_span(trials, ("r2_hold_s", "r3_hold_s"), "hold_s"),
+        **_span(trials, ("r2_zero_s", "r3_zero_s"), "zero_s"),
+        **_span(trials, ("new_leader_s",), "new_leader_s"),
+    }
+
+
+def _led(fleet: Fleet, after: float) -> bool:
+    return any(_first(fleet, r, after, _leads) is not None for r in ("r2", "r3"))
 
 
 def _leads(state: Any) -> bool:
     return state.leader_id == "" and state.fsm_state in ("NAVIGATE", "WANDER")
+
+
+def _holds(state: Any) -> bool:
+    return state.fsm_state == "HOLD"
 
 
 def _zero(state: Any) -> bool:
@@ -152,7 +192,7 @@ def freeze_leader(work: Path, args: argparse.Namespace) -> Result:
     rows = {}
     for frozen_s in (0.8, 3.0):
         with running_fleet(work / f"freeze{frozen_s}", fleet=f"fz{int(frozen_s * 10)}") as fleet:
-            assert fleet.wait_tracking(), "followers never tracked"
+            _need(fleet.wait_tracking(), "followers never tracked")
             frozen = time.monotonic()
             fleet.signal("r1", signal.SIGSTOP)
             time.sleep(frozen_s)
@@ -160,7 +200,9 @@ def freeze_leader(work: Path, args: argparse.Namespace) -> Result:
             now_s = _fleet_time(fleet)
             fleet.signal("r1", signal.SIGCONT)
             time.sleep(3.0)
-            noticed = [_first(fleet, r, frozen, lambda s: s.fsm_state == "HOLD") for r in ("r2", "r3")]
+            noticed = [
+                _first(fleet, r, frozen, lambda s: s.fsm_state == "HOLD") for r in ("r2", "r3")
+            ]
             after = fleet.watch.since("r1", resumed)
             stale = [s for s in after if s.state.stamp_s < now_s - 0.5]
             rows[f"frozen_{frozen_s}s"] = {
@@ -176,8 +218,16 @@ def freeze_leader(work: Path, args: argparse.Namespace) -> Result:
 # --- payloads --------------------------------------------------------------------------
 
 TOPICS = ("state", "flags", "sense", "cmd", "event", "report")
-GARBAGE = [b"", b"\x00", b"\x01\x01\xff", b"{not json", b'{"version": 99}', bytes(range(256)),
-           b'{"version":1,"robot_id":"r2","t_s":NaN}', b"\x01\x02" + bytes(110)]  # fmt: skip
+GARBAGE = [
+    b"",
+    b"\x00",
+    b"\x01\x01\xff",
+    b"{not json",
+    b'{"version": 99}',
+    bytes(range(256)),
+    b'{"version":1,"robot_id":"r2","t_s":NaN}',
+    b"\x01\x02" + bytes(110),
+]
 
 
 def _decode_total(status: dict[str, Any]) -> int:
@@ -192,9 +242,9 @@ def junk(work: Path, args: argparse.Namespace) -> Result:
     """Random, truncated, non-finite and wrong-version payloads on every key of every
     robot and on `leader`: who crashed, and what the status queryables counted."""
     with running_fleet(work / "junk", fleet="junk") as fleet:
-        assert fleet.wait_tracking(), "followers never tracked"
+        _need(fleet.wait_tracking(), "followers never tracked")
         session = fleet.session
-        assert session is not None
+        _need(session is not None, "no session")
         before = {s.get("robot_id", "world"): _decode_total(s) for s in fleet.status()}
         valid = encode(_state(stamp_s=_fleet_time(fleet)), "packed")
         payloads = [*GARBAGE, valid[:-3], valid + b"\x00", bytes([valid[0], 9]) + valid[2:]]
@@ -217,11 +267,20 @@ def junk(work: Path, args: argparse.Namespace) -> Result:
 def epoch_json(work: Path, args: argparse.Namespace) -> Result:
     """Flags at epoch 2**40 in JSON (schema-valid then): who crashed."""
     with running_fleet(work / "ej", fleet="ej") as fleet:
-        assert fleet.wait_tracking(), "followers never tracked"
+        _need(fleet.wait_tracking(), "followers never tracked")
         for _ in range(20):  # stamped ahead so each stays r3's newest flags for a while
-            doc = {"version": 1, "robot_id": "r3", "seq": 10**6, "stamp_s": _fleet_time(fleet) + 0.3,
-                   "fsm_state": "FORMATION_TRACK", "epoch": 2**40, "formation_leader_id": "r3"}
-            fleet.session.publish_raw(robot_key(fleet.fleet, "r3", "flags"), json.dumps(doc).encode())  # type: ignore[union-attr]  # noqa: E501
+            doc = {
+                "version": 1,
+                "robot_id": "r3",
+                "seq": 10**6,
+                "stamp_s": _fleet_time(fleet) + 0.3,
+                "fsm_state": "FORMATION_TRACK",
+                "epoch": 2**40,
+                "formation_leader_id": "r3",
+            }
+            fleet.session.publish_raw(
+                robot_key(fleet.fleet, "r3", "flags"), json.dumps(doc).encode()
+            )  # type: ignore[union-attr]
             time.sleep(0.05)
         _settle(fleet, 3.0)
         return {"crashed": fleet.crashed()}
@@ -232,16 +291,24 @@ def epoch_max(work: Path, args: argparse.Namespace) -> Result:
     """Packed flags of r3 at epoch 2**32-1 naming r1 the leader, then r1 killed: who
     crashed."""
     with running_fleet(work / "em", fleet="em") as fleet:
-        assert fleet.wait_tracking(), "followers never tracked"
+        _need(fleet.wait_tracking(), "followers never tracked")
         for _ in range(20):
-            flags = _flags(robot_id="r3", stamp_s=_fleet_time(fleet) + 0.3, epoch=2**32 - 1,
-                           formation_leader_id="r1")  # fmt: skip
-            fleet.session.publish_raw(robot_key(fleet.fleet, "r3", "flags"), encode(flags, "packed"))  # type: ignore[union-attr]  # noqa: E501
+            flags = _flags(
+                robot_id="r3",
+                stamp_s=_fleet_time(fleet) + 0.3,
+                epoch=2**32 - 1,
+                formation_leader_id="r1",
+            )
+            fleet.session.publish_raw(
+                robot_key(fleet.fleet, "r3", "flags"), encode(flags, "packed")
+            )  # type: ignore[union-attr]
             time.sleep(0.05)
         fleet.signal("r1", signal.SIGKILL)
         _settle(fleet, 4.0)
-        epochs = {r: (fleet.watch.latest(r).state.epoch if fleet.watch.latest(r) else None)
-                  for r in ("r2", "r3")}  # fmt: skip
+        epochs = {
+            r: (fleet.watch.latest(r).state.epoch if fleet.watch.latest(r) else None)
+            for r in ("r2", "r3")
+        }
         return {"crashed": fleet.crashed(allowed=(0, -9)), "epochs": epochs}
 
 
@@ -249,9 +316,11 @@ def epoch_max(work: Path, args: argparse.Namespace) -> Result:
 def stamp_huge(work: Path, args: argparse.Namespace) -> Result:
     """A state of r2 stamped 1e308: tracebacks per process."""
     with running_fleet(work / "sh", fleet="sh") as fleet:
-        assert fleet.wait_tracking(), "followers never tracked"
+        _need(fleet.wait_tracking(), "followers never tracked")
         for _ in range(3):
-            fleet.session.publish_raw(robot_key(fleet.fleet, "r2", "state"), encode(_state(stamp_s=1e308), "packed"))  # type: ignore[union-attr]  # noqa: E501
+            fleet.session.publish_raw(
+                robot_key(fleet.fleet, "r2", "state"), encode(_state(stamp_s=1e308), "packed")
+            )  # type: ignore[union-attr]
         _settle(fleet)
         return {"tracebacks": fleet.tracebacks(), "crashed": fleet.crashed()}
 
@@ -261,14 +330,22 @@ def sense_huge(work: Path, args: argparse.Namespace) -> Result:
     """A sense frame for r2 with t_s = 1.8e308 (the largest float): does r2 take the lead,
     or crash."""
     with running_fleet(work / "sf", fleet="sf") as fleet:
-        assert fleet.wait_tracking(), "followers never tracked"
+        _need(fleet.wait_tracking(), "followers never tracked")
         sent = time.monotonic()
-        fleet.session.publish_raw(robot_key(fleet.fleet, "r2", "sense"), encode(_frame(t_s=sys.float_info.max, tick=round(_fleet_time(fleet) / 0.1) + 3), "packed"))  # type: ignore[union-attr]  # noqa: E501
+        fleet.session.publish_raw(
+            robot_key(fleet.fleet, "r2", "sense"),
+            encode(
+                _frame(t_s=sys.float_info.max, tick=round(_fleet_time(fleet) / 0.1) + 3), "packed"
+            ),
+        )  # type: ignore[union-attr]
         _settle(fleet, 3.0)
         took = _first(fleet, "r2", sent, _leads)
         announced = [a.leader_id for a in fleet.watch.announcements]
-        return {"r2_took_the_lead": took is not None or "r2" in announced,
-                "announcements": announced, "crashed": fleet.crashed()}  # fmt: skip
+        return {
+            "r2_took_the_lead": took is not None or "r2" in announced,
+            "announcements": announced,
+            "crashed": fleet.crashed(),
+        }
 
 
 @probe
@@ -276,9 +353,12 @@ def forged_final(work: Path, args: argparse.Namespace) -> Result:
     """A sense frame for r2 with final = true, mid-run: r2's exit code (0 = a silent
     ending a supervisor takes for a finished run)."""
     with running_fleet(work / "ff", fleet="ff") as fleet:
-        assert fleet.wait_tracking(), "followers never tracked"
+        _need(fleet.wait_tracking(), "followers never tracked")
         k = round(_fleet_time(fleet) / 0.1)
-        fleet.session.publish_raw(robot_key(fleet.fleet, "r2", "sense"), encode(_frame(tick=k, t_s=k * 0.1, final=True), "packed"))  # type: ignore[union-attr]  # noqa: E501
+        fleet.session.publish_raw(
+            robot_key(fleet.fleet, "r2", "sense"),
+            encode(_frame(tick=k, t_s=k * 0.1, final=True), "packed"),
+        )  # type: ignore[union-attr]
         code = fleet.wait_exit("r2", 8.0)
         return {"r2_exit_code": code, "r2_still_running": code is None}
 
@@ -288,12 +368,17 @@ def event_unknown(work: Path, args: argparse.Namespace) -> Result:
     """An event naming r9 (a robot not in the fleet), then the run's end: the world's
     exit code and what its results folder holds."""
     with running_fleet(work / "eu", fleet="eu", duration_s=12.0) as fleet:
-        assert fleet.wait_tracking(timeout_s=60.0, after_s=1.0), "followers never tracked"
-        event = AgentEvent.model_construct(robot_id="r9", t_s=1.0, source="A", target="B", reason="x")
-        fleet.session.publish_raw(robot_key(fleet.fleet, "r9", "event"), encode(event, "packed"))  # type: ignore[union-attr]  # noqa: E501
+        _need(fleet.wait_tracking(timeout_s=60.0, after_s=1.0), "followers never tracked")
+        event = AgentEvent.model_construct(
+            robot_id="r9", t_s=1.0, source="A", target="B", reason="x"
+        )
+        fleet.session.publish_raw(robot_key(fleet.fleet, "r9", "event"), encode(event, "packed"))  # type: ignore[union-attr]
         code = fleet.wait_exit("world", 60.0)
-        return {"world_exit_code": code, "metrics_json": (fleet.out / "metrics.json").exists(),
-                "figures": len(list(fleet.out.glob("*.png"))) if fleet.out.exists() else 0}
+        return {
+            "world_exit_code": code,
+            "metrics_json": (fleet.out / "metrics.json").exists(),
+            "figures": len(list(fleet.out.glob("*.png"))) if fleet.out.exists() else 0,
+        }
 
 
 @probe
@@ -301,7 +386,7 @@ def flood(work: Path, args: argparse.Namespace) -> Result:
     """10 000 payloads (random bytes) on r1's flags as fast as the observer can send:
     how many r2's status counted (decoded, malformed, dropped by a full ring)."""
     with running_fleet(work / "fl", fleet="fl") as fleet:
-        assert fleet.wait_tracking(), "followers never tracked"
+        _need(fleet.wait_tracking(), "followers never tracked")
 
         def counted() -> int:
             statuses = [s for s in fleet.status("r2") if s.get("robot_id") == "r2"]
@@ -318,19 +403,23 @@ def flood(work: Path, args: argparse.Namespace) -> Result:
         rng = random.Random(1)
         key = robot_key(fleet.fleet, "r1", "flags")
         for _ in range(n):
-            fleet.session.publish_raw(key, bytes(rng.randrange(256) for _ in range(40)))  # type: ignore[union-attr]  # noqa: E501
+            fleet.session.publish_raw(key, bytes(rng.randrange(256) for _ in range(40)))  # type: ignore[union-attr]
         _settle(fleet, 2.0)
         after = counted()
         # Legitimate flags keep arriving meanwhile (a few a second): an upper bound.
-        return {"sent": n, "counted_by_r2": after - before, "uncounted": n - (after - before),
-                "crashed": fleet.crashed()}  # fmt: skip
+        return {
+            "sent": n,
+            "counted_by_r2": after - before,
+            "uncounted": n - (after - before),
+            "crashed": fleet.crashed(),
+        }
 
 
 @probe
 def world_status(work: Path, args: argparse.Namespace) -> Result:
     """What the world's status queryable answers."""
     with running_fleet(work / "ws", fleet="ws") as fleet:
-        assert fleet.wait_tracking(), "followers never tracked"
+        _need(fleet.wait_tracking(), "followers never tracked")
         replies = fleet.status("world")
         keys = sorted(replies[0]) if replies else []
         return {"keys": keys, "has_decode_counters": "decode" in keys}
@@ -341,11 +430,12 @@ def junk_leaders(work: Path, args: argparse.Namespace) -> Result:
     """Announcements of leaders r!, b1 and r9, then the run's end: what metrics.json's
     runtime.leadership lists."""
     with running_fleet(work / "jl", fleet="jl", duration_s=12.0) as fleet:
-        assert fleet.wait_tracking(timeout_s=60.0, after_s=1.0), "followers never tracked"
+        _need(fleet.wait_tracking(timeout_s=60.0, after_s=1.0), "followers never tracked")
         for leader in ("r!", "b1", "r9"):
-            message = LeaderAnnouncement.model_construct(leader_id=leader, epoch=7, stamp_s=1.0,
-                                                         previous_id="r1", reason="forged")  # fmt: skip
-            fleet.session.publish_raw(leader_key(fleet.fleet), encode(message, "json"))  # type: ignore[union-attr]  # noqa: E501
+            message = LeaderAnnouncement.model_construct(
+                leader_id=leader, epoch=7, stamp_s=1.0, previous_id="r1", reason="forged"
+            )
+            fleet.session.publish_raw(leader_key(fleet.fleet), encode(message, "json"))  # type: ignore[union-attr]
         fleet.wait_exit("world", 60.0)
         return _metrics_runtime(fleet, "leadership", lambda v: [a["leader_id"] for a in v])
 
@@ -363,13 +453,21 @@ def forged_reports(work: Path, args: argparse.Namespace) -> Result:
     """Reports naming 17 robots outside the fleet (on their own keys) and three on the
     wrong key: how many agents metrics.json's runtime.agents lists for 3 robots."""
     with running_fleet(work / "fr", fleet="fr", duration_s=12.0) as fleet:
-        assert fleet.wait_tracking(timeout_s=60.0, after_s=1.0), "followers never tracked"
+        _need(fleet.wait_tracking(timeout_s=60.0, after_s=1.0), "followers never tracked")
         for i in range(20):
             rid = f"x{i}"
-            report = AgentReport(robot_id=rid, steps=1, saturations=0, accel_limited=0,
-                                 dropped_messages=0, late_peer_steps=0)  # fmt: skip
+            report = AgentReport(
+                robot_id=rid,
+                steps=1,
+                saturations=0,
+                accel_limited=0,
+                dropped_messages=0,
+                late_peer_steps=0,
+            )
             key_rid = rid if i < 17 else "r1"
-            fleet.session.publish_raw(robot_key(fleet.fleet, key_rid, "report"), encode(report, "packed"))  # type: ignore[union-attr]  # noqa: E501
+            fleet.session.publish_raw(
+                robot_key(fleet.fleet, key_rid, "report"), encode(report, "packed")
+            )  # type: ignore[union-attr]
         fleet.wait_exit("world", 60.0)
         return _metrics_runtime(fleet, "agents", lambda v: sorted(v or {}))
 
@@ -380,8 +478,13 @@ def collect(strategy: Any, n: int, seed: int = 0) -> list[bytes]:
 
     out: list[bytes] = []
 
-    @settings(max_examples=n, database=None, derandomize=True, deadline=None,
-              suppress_health_check=list(HealthCheck))  # fmt: skip
+    @settings(
+        max_examples=n,
+        database=None,
+        derandomize=True,
+        deadline=None,
+        suppress_health_check=list(HealthCheck),
+    )
     @given(strategy)
     def draw(payload: bytes) -> None:
         out.append(payload)
@@ -390,24 +493,30 @@ def collect(strategy: Any, n: int, seed: int = 0) -> list[bytes]:
     return out
 
 
-def valid_payloads(t_s: float) -> dict[str, tuple[type, list[bytes]]]:
-    """A few valid payloads per topic at fleet time `t_s` (what mutations start from)."""
+def valid_payloads(t_s: float) -> dict[str, tuple[type, list[Any]]]:
+    """A valid message per topic at fleet time `t_s` (what perturbations start from)."""
     from phalanx.wire.messages import VelocityCommand
 
     k = round(t_s / 0.1)
     cmd = VelocityCommand(robot_id="r2", tick=k, stamp_s=k * 0.1, v_mps=0.1, omega_radps=0.0)
     event = AgentEvent(robot_id="r2", t_s=t_s, source="HOLD", target="FORMATION_TRACK", reason="x")
-    report = AgentReport(robot_id="r2", steps=1, saturations=0, accel_limited=0,
-                         dropped_messages=0, late_peer_steps=0)  # fmt: skip
+    report = AgentReport(
+        robot_id="r2",
+        steps=1,
+        saturations=0,
+        accel_limited=0,
+        dropped_messages=0,
+        late_peer_steps=0,
+    )
     leader = LeaderAnnouncement(leader_id="r2", epoch=1, stamp_s=t_s, previous_id="r1")
     return {
-        "state": (RobotState, [encode(_state(stamp_s=t_s), f) for f in ("packed", "json")]),
-        "flags": (RobotFlags, [encode(_flags(stamp_s=t_s), f) for f in ("packed", "json")]),
-        "sense": (SenseFrame, [encode(_frame(tick=k + 1, t_s=(k + 1) * 0.1), f) for f in ("packed", "json")]),  # noqa: E501
-        "cmd": (VelocityCommand, [encode(cmd, f) for f in ("packed", "json")]),
-        "event": (AgentEvent, [encode(event, f) for f in ("packed", "json")]),
-        "report": (AgentReport, [encode(report, f) for f in ("packed", "json")]),
-        "leader": (LeaderAnnouncement, [encode(leader, f) for f in ("packed", "json")]),
+        "state": (RobotState, [_state(stamp_s=t_s)]),
+        "flags": (RobotFlags, [_flags(stamp_s=t_s)]),
+        "sense": (SenseFrame, [_frame(tick=k + 1, t_s=(k + 1) * 0.1)]),
+        "cmd": (VelocityCommand, [cmd]),
+        "event": (AgentEvent, [event]),
+        "report": (AgentReport, [report]),
+        "leader": (LeaderAnnouncement, [leader]),
     }
 
 
@@ -416,25 +525,32 @@ def fuzz(work: Path, args: argparse.Namespace) -> Result:
     """`--per-key` hostile payloads (hypothesis strategies from the wire models: random,
     truncated, bit-flipped, schema-shaped with extreme values) on every key the world
     and the agents subscribe to, over Zenoh: who crashed."""
-    from hypothesis import strategies as st
     from wirefuzz import hostile_payloads
 
     with running_fleet(work / "fz", fleet="fz") as fleet:
-        assert fleet.wait_tracking(), "followers never tracked"
+        _need(fleet.wait_tracking(), "followers never tracked")
         session = fleet.session
-        assert session is not None
+        _need(session is not None, "no session")
         sent = {}
         for topic, (model, valid) in valid_payloads(_fleet_time(fleet)).items():
-            payloads = collect(hostile_payloads(model, st.sampled_from(valid)), args.per_key)
-            key = leader_key(fleet.fleet) if topic == "leader" else robot_key(fleet.fleet, "r2", topic)
+            payloads = collect(hostile_payloads(model, lambda v=valid: v), args.per_key)
+            key = (
+                leader_key(fleet.fleet)
+                if topic == "leader"
+                else robot_key(fleet.fleet, "r2", topic)
+            )
             for i, payload in enumerate(payloads):
                 session.publish_raw(key, payload)
                 if i % 50 == 49:
                     time.sleep(0.05)  # a peer, not a flood: let every payload be decoded
             sent[topic] = len(payloads)
         _settle(fleet, 3.0)
-        return {"sent": sent, "crashed": fleet.crashed(), "tracebacks": fleet.tracebacks(),
-                "exit_codes": fleet.exit_codes()}  # fmt: skip
+        return {
+            "sent": sent,
+            "crashed": fleet.crashed(),
+            "tracebacks": fleet.tracebacks(),
+            "exit_codes": fleet.exit_codes(),
+        }
 
 
 # --- phalanx up ------------------------------------------------------------------------
@@ -442,8 +558,21 @@ def fuzz(work: Path, args: argparse.Namespace) -> Result:
 
 def _up(work: Path, name: str, victim: str, duration_s: float = 20.0) -> Result:
     out = work / name
-    argv = [*CLI, "up", str(WEDGE), "--out", str(out), "--fleet", name, "--clock", "realtime",
-            "--timeout", "120", "--set", f"duration_s={duration_s}"]  # fmt: skip
+    argv = [
+        *CLI,
+        "up",
+        str(WEDGE),
+        "--out",
+        str(out),
+        "--fleet",
+        name,
+        "--clock",
+        "realtime",
+        "--timeout",
+        "120",
+        "--set",
+        f"duration_s={duration_s}",
+    ]
     with (work / f"{name}.log").open("wb") as log:
         proc = subprocess.Popen(argv, stdout=log, stderr=subprocess.STDOUT)
         wait_for(lambda: child_running(proc.pid, "--robot", "r3") is not None, 30.0, 0.1)
@@ -462,10 +591,14 @@ def _up(work: Path, name: str, victim: str, duration_s: float = 20.0) -> Result:
         from phalanx.telemetry.rrd import summarize
 
         recording_ok = sum(summarize(out / "run.rrd").rows.values()) > 0
-    return {"exit_code": code, "killed_pid": pid, "results": files,
-            "run_rrd_reads_back": recording_ok,
-            "says_which": victim in text and ("killed" in text or "SIGKILL" in text or "-9" in text),
-            "tracebacks": text.count("Traceback")}  # fmt: skip
+    return {
+        "exit_code": code,
+        "killed_pid": pid,
+        "results": files,
+        "run_rrd_reads_back": recording_ok,
+        "says_which": victim in text and any(w in text for w in ("killed", "SIGKILL", "-9")),
+        "tracebacks": text.count("Traceback"),
+    }
 
 
 @probe

@@ -79,7 +79,8 @@ class CommandLimiter:
 
     def apply(self, command: Twist2D, dt_s: float, *, emergency: bool = False) -> Twist2D:
         """The command the robot may execute this step (`emergency`: a stop that cannot
-        wait, braked at the robot's emergency limits)."""
+        wait, braked at the robot's emergency limits).
+        """
         v, w = command.v_mps, command.omega_radps
         if not (math.isfinite(v) and math.isfinite(w)):
             v, w = 0.0, 0.0  # never forward a NaN to a motor: brake within the limits

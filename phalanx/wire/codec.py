@@ -215,8 +215,9 @@ class _UnknownVersion(ValueError):
 class DecodeStats:
     """Every payload a process was sent and did not act on, by message kind: malformed
     (including values outside the receiver's bounds), of an unknown version, refused by
-    the receiver (`rejected`: on another robot's key, or its handler failed), or lost in a
-    full ring before it was decoded (`ring_dropped`); and the last failure's reason.
+    the receiver (`rejected`: on another robot's key), lost in a full ring before it was
+    decoded (`ring_dropped`), or valid but its handler failed (`handler_errors`: a bug,
+    counted so it never takes the process down); and the last failure's reason.
     """
 
     ok: Counter[str] = field(default_factory=Counter)
@@ -224,12 +225,19 @@ class DecodeStats:
     unknown_version: Counter[str] = field(default_factory=Counter)
     rejected: Counter[str] = field(default_factory=Counter)
     ring_dropped: Counter[str] = field(default_factory=Counter)
+    handler_errors: Counter[str] = field(default_factory=Counter)  # a bug: should stay 0
     last_error: str = ""
 
     @property
     def dropped(self) -> int:
         """Payloads dropped for any reason."""
-        counters = (self.malformed, self.unknown_version, self.rejected, self.ring_dropped)
+        counters = (
+            self.malformed,
+            self.unknown_version,
+            self.rejected,
+            self.ring_dropped,
+            self.handler_errors,
+        )
         return sum(sum(c.values()) for c in counters)
 
     def as_dict(self) -> dict[str, Any]:
@@ -240,6 +248,7 @@ class DecodeStats:
             "unknown_version": dict(self.unknown_version),
             "rejected": dict(self.rejected),
             "ring_dropped": dict(self.ring_dropped),
+            "handler_errors": dict(self.handler_errors),
             "dropped": self.dropped,
             "last_error": self.last_error,
         }

@@ -194,7 +194,7 @@ def deliver(
     try:
         on_message(key, value)
     except Exception as exc:  # counted and logged, never raised into Zenoh's thread
-        stats.count("rejected", name, f"{name}: handler failed: {type(exc).__name__}: {exc}")
+        stats.count("handler_errors", name, f"{name}: handler failed: {type(exc).__name__}: {exc}")
         log.warning("a %s on %s could not be handled: %s", name, key, exc)
 
 

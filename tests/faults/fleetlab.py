@@ -108,10 +108,30 @@ class Fleet:
     def argv(self, name: str) -> list[str]:
         """The command line of the world or of robot `name`'s agent."""
         if name == "world":
-            return [*CLI, "world", str(self.scenario), *self.common, "--listen", self.endpoint,
-                    "--out", str(self.out), "--no-recording", *self.world_args]  # fmt: skip
-        return [*CLI, "agent", str(self.scenario), "--robot", name, *self.common,
-                "--mode", "client", "--connect", self.endpoint]  # fmt: skip
+            return [
+                *CLI,
+                "world",
+                str(self.scenario),
+                *self.common,
+                "--listen",
+                self.endpoint,
+                "--out",
+                str(self.out),
+                "--no-recording",
+                *self.world_args,
+            ]
+        return [
+            *CLI,
+            "agent",
+            str(self.scenario),
+            "--robot",
+            name,
+            *self.common,
+            "--mode",
+            "client",
+            "--connect",
+            self.endpoint,
+        ]
 
     def log_path(self, name: str) -> Path:
         """Where process `name`'s output goes (appended on a restart)."""
@@ -182,9 +202,7 @@ class Fleet:
 
         session = open_session(TransportConfig(mode="client", connect=(self.endpoint,)))
         session.subscribe(robots_key(self.fleet, "state"), RobotState, self.watch.on_state)
-        session.subscribe(
-            leader_key(self.fleet), LeaderAnnouncement, self.watch.on_announcement
-        )
+        session.subscribe(leader_key(self.fleet), LeaderAnnouncement, self.watch.on_announcement)
         self.session = session
         return session
 
@@ -204,7 +222,7 @@ class Fleet:
 
     def status(self, name: str = "*", timeout_s: float = 2.0) -> list[dict[str, Any]]:
         """Status replies of process `name` (or every process)."""
-        assert self.session is not None  # noqa: S101 - connect() first
+        assert self.session is not None
         return self.session.query_status(f"phalanx/{self.fleet}/status/{name}", timeout_s)
 
 
