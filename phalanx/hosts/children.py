@@ -22,6 +22,7 @@ from typing import IO, Literal
 from phalanx.hosts.deployment import RestartPolicy
 from phalanx.hosts.protocol import ACTIVE_STATES, MAX_LOG_LINE, ChildState, ChildStatus, line_level
 from phalanx.runtime.exits import exit_reason
+from phalanx.runtime.signals import supervised_env
 
 LOG_LINES_PER_S = 200.0
 __all__ = ["LogLevel", "ManagedChild", "backoff_delay_s", "exit_reason"]
@@ -68,7 +69,7 @@ class ManagedChild:
 
     def start(self, *, workdir: Path) -> None:
         """Start (again), output piped to a reader thread."""
-        env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+        env = {**supervised_env(), "PYTHONUNBUFFERED": "1"}
         self.process = subprocess.Popen(  # noqa: S603 - argv built from the deployment file
             self.argv,
             stdin=subprocess.DEVNULL,

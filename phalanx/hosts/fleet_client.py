@@ -34,7 +34,15 @@ from phalanx.hosts.protocol import (
     StopRequest,
 )
 from phalanx.hosts.wiring import client_transport
-from phalanx.wire.keys import host_key, host_of, hosts_key, logs_key, robots_key, status_key
+from phalanx.wire.keys import (
+    host_key,
+    host_of,
+    hosts_key,
+    logs_key,
+    robots_key,
+    status_key,
+    statuses_key,
+)
 from phalanx.wire.messages import FleetBounds, RobotState
 from phalanx.wire.transport import FleetSession, TransportConfig, open_session
 
@@ -159,7 +167,7 @@ class FleetClient(Closing):
         """
         names = {r.id for r in self.spec.robots} | {"world"}
         out = {}
-        for reply in self.session.query_status(status_key(self.spec.fleet, "*"), timeout_s):
+        for reply in self.session.query_status(statuses_key(self.spec.fleet), timeout_s):
             name = reply.get("robot_id", "world" if "tick" in reply else None)
             if isinstance(name, str) and name in names:
                 out[name] = reply

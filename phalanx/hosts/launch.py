@@ -45,6 +45,7 @@ class _Run:
     world_done_at: float | None = None
     statuses: dict[str, HostStatus | None] = field(default_factory=dict)
     results: list[str] = field(default_factory=list)
+    hosts_lost: set[str] = field(default_factory=set)  # hosts whose daemon is out of sight
 
 
 def launch(
@@ -79,7 +80,8 @@ def launch(
             _drain_logs(client.watch, output, run)
         for line in run.results:
             output.event(line)
-        problems = deaths(run.statuses)
+        problems = [f"host {h}: its daemon went away" for h in sorted(run.hosts_lost)]
+        problems += deaths(run.statuses)
         for problem in problems:
             output.event(f"ended unexpectedly: {problem}")
     return 1 if problems and code == 0 else code
@@ -115,6 +117,7 @@ def _follow(
     )
     while not stop.wait(POLL_S):
         _drain_logs(client.watch, output, run)
+        _watch_hosts(client, run, output)
         run.statuses.update(client.statuses())
         processes = client.process_statuses(0.3)
         rows = fleet_rows(
@@ -135,6 +138,19 @@ def _follow(
             return 1
     output.event("interrupted")
     return 1
+
+
+def _watch_hosts(client: FleetClient, run: _Run, output: Output) -> None:
+    """Say when a host's daemon goes out of sight, and when it is back (a host still out
+    of sight at the end is an ending that was not asked for).
+    """
+    present = client.watch.present()
+    for host in sorted(set(client.host_names) - present - run.hosts_lost):
+        output.event(f"host {host} lost (its daemon's liveliness token is gone)")
+        run.hosts_lost.add(host)
+    for host in sorted(run.hosts_lost & present):
+        output.event(f"host {host} is back")
+        run.hosts_lost.discard(host)
 
 
 def _default_timeout_s(loaded: LoadedDeployment) -> float:

@@ -90,6 +90,7 @@ class AgentRuntime:
         self.steps = 0
         self.announcements: deque[LeaderAnnouncement] = deque(maxlen=ANNOUNCEMENTS_KEPT)
         self.unsent = 0  # own messages that could not be encoded or sent (logged)
+        self.stale_steps = 0  # real-time steps too late to send (a frozen process)
         self.last: StepOutput | None = None
         self._paths: dict[str, tuple[str, ...]] = {}  # follow-tree path to each leader
         self._session: FleetSession | None = None
@@ -162,6 +163,7 @@ class AgentRuntime:
             "late_peer_steps": self.inbox.late_steps,
             "flags_skipped": self.flags_out.skipped,
             "unsent": self.unsent,
+            "stale_steps": self.stale_steps,
             "dropped": self._session.stats.dropped if self._session else 0,
             "decode": stats,
             **self.io.counters(),
@@ -178,6 +180,7 @@ class AgentRuntime:
                 formation=self.formation,
                 joining=True,
             )
+        began = time.monotonic()
         self.inbox.drain()
         delay_s = max(self.scenario.comm_delay_s, self.scenario.dt_s)
         peers, flags = self.inbox.for_step(
@@ -185,8 +188,11 @@ class AgentRuntime:
         )  # (the bounded wait for peers is not step time)
         started = time.perf_counter()
         out = self.agent.step(observation, peers, tick.t_s, None if self.lockstep else flags)
-        self.io.write(tick, out.command)  # first: the world (lockstep) waits on it
-        self._publish(out)
+        if self._stale(began, tick):
+            self.inbox.keep_own(out.state, out.flags)
+        else:
+            self.io.write(tick, out.command)  # first: the world (lockstep) waits on it
+            self._publish(out)
         if self.telemetry is not None:
             self._log_step(tick, observation, out, peers)
         self.last = out
@@ -195,6 +201,20 @@ class AgentRuntime:
         if not self.lockstep:
             self.inbox.follow(self.watched)  # the leader may have changed: hear the new path
         return out
+
+    def _stale(self, began: float, tick: Tick) -> bool:
+        """Whether this real-time step took so long (the process was frozen, or starved)
+        that its command and state are stale: older than a peer would accept. Such a step
+        is not sent (a leader resumed after a freeze would claim the lead with old news);
+        the next step, on the newest frame, is.
+        """
+        limit_s = self.scenario.leader_timeout_s
+        took_s = time.monotonic() - began
+        if self.lockstep or (took_s <= limit_s and self.io.lag_s(tick) <= limit_s):
+            return False
+        self.stale_steps += 1
+        log.warning("%s: step %d is over %.1f s late: not sent", self.robot_id, tick.k, limit_s)
+        return True
 
     def _send(self, key: str, build: Callable[[], Message], *, block: bool = False) -> None:
         """Publish what `build` makes; a message that cannot be built or sent (a value

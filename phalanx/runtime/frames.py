@@ -63,6 +63,11 @@ class FrameBox:
             self._frames.append(frame)
             self._arrived.notify()
 
+    def newest_tick(self) -> int | None:
+        """The newest tick waiting (None: nothing waits)."""
+        with self._arrived:
+            return max((f.tick for f in self._frames if not f.final), default=None)
+
     def take(self, timeout_s: float) -> list[SenseFrame]:
         """Every frame waiting, oldest first; waits up to `timeout_s` for one."""
         with self._arrived:

@@ -21,7 +21,7 @@ from pathlib import Path
 
 from phalanx.core.config import Scenario
 from phalanx.runtime.exits import EXIT_FAILED, EXIT_FINISHED, agent_exit_reason, exit_reason
-from phalanx.runtime.signals import Stoppable
+from phalanx.runtime.signals import Stoppable, supervised_env
 from phalanx.wire.transport import free_tcp_port, loopback_endpoint
 
 log = logging.getLogger("phalanx.up")
@@ -64,7 +64,9 @@ class Child:
         """Start (again)."""
         self.reported = False
         self.started_at = time.monotonic()
-        self.process = subprocess.Popen(self.argv)  # noqa: S603 - our own interpreter and CLI
+        self.process = subprocess.Popen(  # noqa: S603 - our own interpreter and CLI
+            self.argv, env=supervised_env()
+        )
 
     def poll(self) -> int | None:
         """Exit code if it has ended."""

@@ -62,6 +62,10 @@ class RobotIO(Protocol):
         """What the robot's side counted (for the status queryable)."""
         ...
 
+    def lag_s(self, tick: Tick) -> float:
+        """How far (s) the robot's side has moved on past `tick` already."""
+        ...
+
 
 def pose_now(odometry: Odometry, now_s: float) -> Pose2D:
     """The odometry pose carried forward along its twist from its stamp to `now_s`.
@@ -178,6 +182,12 @@ class WorldLink:
     def halt(self) -> None:
         """Nothing to do: the world stops a robot whose agent is gone."""
 
+    def lag_s(self, tick: Tick) -> float:
+        """How many ticks' time the world has sent past `tick` (frames waiting)."""
+        newest = self._box.newest_tick()
+        dt_s = self.bounds.dt_s if self.bounds is not None else 0.1
+        return 0.0 if newest is None else max(0, newest - tick.k) * dt_s
+
     def counters(self) -> dict[str, int]:
         """Frames acted on, and skipped as stale (the robot was late)."""
         counts = self.gate.counts
@@ -221,6 +231,10 @@ class DriverIO:
     def halt(self) -> None:
         """Stop the robot (the wrapper keeps it stopped on close too)."""
         self.driver.stop()
+
+    def lag_s(self, tick: Tick) -> float:
+        """None: the robot's own clock skips the ticks it is late for."""
+        return 0.0
 
     def counters(self) -> dict[str, int]:
         """Readings and commands the driver failed."""

@@ -54,6 +54,11 @@ def status_key(fleet: str, process_id: str) -> str:
     return f"phalanx/{_name(fleet, 'fleet')}/status/{_name(process_id, 'process id')}"
 
 
+def statuses_key(fleet: str) -> str:
+    """Every process's status queryable: `phalanx/<fleet>/status/*`."""
+    return f"phalanx/{_name(fleet, 'fleet')}/status/*"
+
+
 def robot_of(key: str) -> str:
     """The robot id in a `phalanx/<fleet>/robot/<id>/...` key ("" for any other key)."""
     parts = key.split("/")

@@ -265,3 +265,87 @@ def child_running(parent: int, *needle: str) -> int | None:
         if all(n in argv for n in needle):
             return pid
     return None
+
+
+# --- a deployment on loopback: three host daemons, optionally through a router ------------
+
+HOSTS = ("laptop", "robot-a", "robot-b")
+PLACEMENT = {"r1": "robot-a", "r2": "robot-b", "r3": "robot-b"}
+
+
+def deployment_file(
+    workdir: Path, *, name: str, duration_s: float, router: bool = False, recording: bool = True
+) -> tuple[Path, int | None]:
+    """The paper wedge on three loopback hosts (the world on `laptop`), every host linked
+    through a `phalanx router` if `router`; the file and the router's port."""
+    router_port = free_tcp_port() if router else None
+    lines = [
+        f'name = "{name}"', f'fleet = "{name}"', f'scenario = "{WEDGE}"', 'clock = "realtime"',
+        f'overrides = ["duration_s={duration_s}"]',
+        "[zenoh]", "lease_ms = 500", "retry_max_ms = 250",
+    ]  # fmt: skip
+    if router_port is not None:
+        lines.append(f'router = {{ address = "127.0.0.1", port = {router_port} }}')
+    lines += ["[world]", 'host = "laptop"', f'out_dir = "{workdir / "results"}"',
+              f"recording = {'true' if recording else 'false'}"]  # fmt: skip
+    for host in HOSTS:
+        lines += [
+            "[[hosts]]",
+            f'name = "{host}"',
+            'address = "127.0.0.1"',
+            f"port = {free_tcp_port()}",
+        ]
+    for rid, host in PLACEMENT.items():
+        lines += ["[[robots]]", f'id = "{rid}"', f'host = "{host}"']
+    path = workdir / f"{name}.toml"
+    path.write_text("\n".join(lines) + "\n")
+    return path, router_port
+
+
+@dataclass
+class Hosts:
+    """Host daemons (and a router) started by a test, each with its log file."""
+
+    workdir: Path
+    deployment: Path
+    procs: dict[str, subprocess.Popen[bytes]] = field(default_factory=dict)
+
+    def start(self, name: str) -> subprocess.Popen[bytes]:
+        """Start host `name`'s daemon, or the router (`name` "router")."""
+        argv = [*CLI, "router", str(self.deployment)] if name == "router" else [
+            *CLI, "host", str(self.deployment), "--name", name, "--quiet"]  # fmt: skip
+        with (self.workdir / f"host-{name}.log").open("ab") as out:
+            self.procs[name] = subprocess.Popen(argv, stdout=out, stderr=subprocess.STDOUT)
+        return self.procs[name]
+
+    def log(self, name: str) -> str:
+        """Host `name`'s log so far."""
+        path = self.workdir / f"host-{name}.log"
+        return path.read_text(errors="replace") if path.exists() else ""
+
+    def stop(self) -> None:
+        """SIGTERM every daemon and the router (SIGCONT first), SIGKILL after 20 s."""
+        for proc in self.procs.values():
+            if proc.poll() is None:
+                os.kill(proc.pid, signal.SIGCONT)
+                proc.send_signal(signal.SIGTERM)
+        for proc in self.procs.values():
+            try:
+                proc.wait(20)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait(5)
+
+
+@contextmanager
+def running_hosts(workdir: Path, deployment: Path, *, router: bool) -> Iterator[Hosts]:
+    """The deployment's daemons (and its router) running; all stopped after."""
+    hosts = Hosts(workdir, deployment)
+    try:
+        if router:
+            hosts.start("router")
+        for name in HOSTS:
+            hosts.start(name)
+        yield hosts
+    finally:
+        hosts.stop()

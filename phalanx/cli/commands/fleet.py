@@ -66,9 +66,11 @@ def _transport(mode: str, listen: list[str] | None, connect: list[str] | None) -
 
 
 def _stop_on_signals() -> Stoppable:
-    from phalanx.runtime.signals import stop_on_signals
+    from phalanx.runtime.signals import die_with_parent, stop_on_signals
 
-    return stop_on_signals()
+    stop = stop_on_signals()
+    die_with_parent()  # a supervised process stops when its supervisor dies
+    return stop
 
 
 def _clock(value: str) -> Literal["lockstep", "realtime"]:
