@@ -196,7 +196,7 @@ class HostDaemon:
 
     def stop(self, request: StopRequest) -> None:
         """Stop some or all of this host's processes (SIGTERM, then SIGKILL)."""
-        self.checks.check_deployment(request.deployment)
+        self.checks.check_deployment(request.deployment, request.digest)
         if request.run_id is not None and request.run_id != self.run_id:
             raise RequestRefused(
                 f"run {request.run_id!r} is not this host's (its run: {self.run_id!r})"

@@ -259,7 +259,7 @@ class FleetClient(Closing):
 
     def stop(self, run_id: str | None = None) -> dict[str, HostReply | None]:
         """Ask every present host to stop its processes (of `run_id`, if given)."""
-        request = StopRequest(deployment=self.spec.name, run_id=run_id)
+        request = StopRequest(deployment=self.spec.name, digest=self.loaded.digest, run_id=run_id)
         payload = request.model_dump_json().encode("utf-8")
         present = [h for h in self.host_names if h in self.watch.present()]
         return self.ask("stop", dict.fromkeys(present, payload))

@@ -369,7 +369,7 @@ class DaemonUnderTest:
         from phalanx.hosts.protocol import SpawnRequest, StopRequest
 
         spawn = SpawnRequest(deployment="loopback", digest="0" * 64, run_id="run-1")
-        stop = StopRequest(deployment="loopback", run_id="run-1")
+        stop = StopRequest(deployment="loopback", digest="0" * 64, run_id="run-1")
         return {
             "daemon/spawn": (SpawnRequest, "spawn", lambda: [spawn]),
             "daemon/stop": (StopRequest, "stop", lambda: [stop]),
