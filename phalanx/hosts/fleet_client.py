@@ -47,6 +47,7 @@ from phalanx.wire.messages import FleetBounds, RobotState
 from phalanx.wire.transport import FleetSession, TransportConfig, open_session
 
 RATE_WINDOW_S = 2.0
+MAX_LOG_QUEUE = 10_000  # log lines waiting for the launcher's next look
 ASK_TIMEOUT_S = 1.5
 
 
@@ -58,9 +59,10 @@ class FleetWatch:
         self.states: dict[str, RobotState] = {}
         self.first_seen: dict[str, float] = {}
         self._arrivals: dict[str, deque[float]] = {}
-        self.logs: queue.SimpleQueue[LogLine] = queue.SimpleQueue()
+        self.logs: queue.Queue[LogLine] = queue.Queue(maxsize=MAX_LOG_QUEUE)
         self.hosts_present: set[str] = set()
         self.malformed_logs = 0
+        self.dropped_logs = 0  # lines beyond MAX_LOG_QUEUE waiting (a flood)
 
     def on_state(self, _key: str, state: RobotState) -> None:
         """A robot's state (callback side)."""
@@ -74,9 +76,15 @@ class FleetWatch:
     def on_log(self, sample: Any) -> None:
         """A child's output line (callback side); malformed ones are counted."""
         try:
-            self.logs.put(LogLine.model_validate_json(sample.payload.to_bytes()))
+            line = LogLine.model_validate_json(sample.payload.to_bytes())
+            if line.host != host_of(str(sample.key_expr)):  # a line on another host's key
+                self.malformed_logs += 1
+                return
+            self.logs.put_nowait(line)
         except ValidationError:
             self.malformed_logs += 1
+        except queue.Full:
+            self.dropped_logs += 1
 
     def on_host(self, key: str, alive: bool) -> None:
         """A host daemon's token appeared or vanished (callback side)."""

@@ -52,6 +52,9 @@ WORLD_ID = "world"
 # Transitions and leadership announcements kept for the run's log; more (a flood) are
 # dropped and counted.
 MAX_LOG_ENTRIES = 100_000
+# Commands and states are kept for ticks up to this far ahead of the world's (a late one
+# is fine; one for a tick this far off is no agent's, and would only take memory).
+AHEAD_S = 2.0
 
 
 @dataclass
@@ -166,8 +169,18 @@ class WorldProcess:
         session.watch_alive(alive_pattern(fleet), self._on_alive)
         session.serve_status(status_key(fleet, WORLD_ID), self._status)
 
+    def _too_far_ahead(self, tick: int, name: str, robot_id: str) -> bool:
+        """Whether `tick` is beyond the window kept (then counted as refused)."""
+        if tick <= self.tick + max(2, round(AHEAD_S / self.scenario.dt_s)):
+            return False
+        if self.stats is not None:
+            self.stats.count("rejected", name, f"{name} of {robot_id} for tick {tick}")
+        return True
+
     # (The session has checked every message: a robot of this fleet, on its own key.)
     def _on_command(self, _key: str, cmd: VelocityCommand) -> None:
+        if self._too_far_ahead(cmd.tick, "VelocityCommand", cmd.robot_id):
+            return
         received = time.monotonic()
         with self.inbox.cond:
             sent = self._sent_at.get(cmd.tick)
@@ -179,7 +192,7 @@ class WorldProcess:
 
     def _on_state(self, _key: str, state: RobotState) -> None:
         tick = round(state.stamp_s / self.scenario.dt_s)
-        if tick < self.steps:
+        if tick < self.steps and not self._too_far_ahead(tick, "RobotState", state.robot_id):
             with self.inbox.cond:
                 self.inbox.states[state.robot_id][tick] = state
 

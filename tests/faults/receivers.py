@@ -135,7 +135,8 @@ class AgentUnderTest:
         from phalanx.wire.messages import FleetBounds
         from phalanx.wire.transport import TransportConfig
 
-        self.scenario = apply_overrides(load_scenario(WEDGE), ["duration_s=600"])
+        # A day: longer than any campaign's steps (the frames of a run's end are refused).
+        self.scenario = apply_overrides(load_scenario(WEDGE), ["duration_s=86400"])
         self.robot = load_robot(self.scenario.robot)
         self.limits = run_limits(self.robot, self.scenario.limits)
         bounds = FleetBounds.of(self.scenario, self.robot)
@@ -437,7 +438,7 @@ class LauncherUnderTest:
         reply = HostReply(ok=True, status=status)
         return {
             "launcher/state": (RobotState, robot_key(FLEET, "r2", "state"), lambda: [state]),
-            "launcher/log": (LogLine, "log", lambda: [line]),
+            "launcher/log": (LogLine, "phalanx/fuzz/host/robot-a/log/r1", lambda: [line]),
             "launcher/reply": (HostReply, "reply", lambda: [reply]),
         }
 
@@ -445,7 +446,7 @@ class LauncherUnderTest:
         """A payload arrives (state, log line, or a host's reply to a request)."""
         from phalanx.hosts.fleet_client import _first_reply
 
-        if key == "log":
+        if "/log/" in key:
             self.watch.on_log(_Sample(key, _Bytes(payload)))
         elif key == "reply":
             _first_reply([_Reply(_Sample("k", _Bytes(payload)))])
