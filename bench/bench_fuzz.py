@@ -21,6 +21,7 @@ import json
 import sys
 import tempfile
 import time
+import warnings
 import zlib
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
@@ -64,6 +65,7 @@ def run_key(clock: str | None, key: str, per_key: int, seed: int) -> dict[str, A
     )
 
     logging.disable(logging.WARNING)  # a refused request logs a line: millions of them here
+    warnings.simplefilter("error")  # as the test suite does: a warning is a failure
     started = time.perf_counter()
     with tempfile.TemporaryDirectory() as tmp:
         kind = key.split("/")[0]

@@ -190,6 +190,12 @@ class RobotState(Message):
     deadlocks: Count = 0
     profile_s: Seconds = 0.0
 
+    @model_validator(mode="after")
+    def _tracks_another(self) -> Self:
+        if self.leader_id == self.robot_id:  # a leader tracks nobody: ""
+            raise ValueError(f"{self.robot_id} cannot track itself")
+        return self
+
     @property
     def pose(self) -> Pose2D:
         """The robot's pose."""
