@@ -105,6 +105,7 @@ class Parts:
             State.FORMATION_TRACK: track,
             State.FORMATION_REVERSE: track,
             State.AVOID: self.avoid,
+            State.HOLD: StandStill(emergency=True),
         }
         return {state: table.get(state, still) for state in State}
 

@@ -196,7 +196,7 @@ class HostDaemon:
 
     def stop(self, request: StopRequest) -> None:
         """Stop some or all of this host's processes (SIGTERM, then SIGKILL)."""
-        self.checks.check_deployment(request.deployment)
+        self.checks.check_deployment(request.deployment, request.digest)
         if request.run_id is not None and request.run_id != self.run_id:
             raise RequestRefused(
                 f"run {request.run_id!r} is not this host's (its run: {self.run_id!r})"
@@ -297,9 +297,12 @@ class HostDaemon:
             child.state = "finished"
             log.info("host %s: %s finished", self.name, child.name)
             return
+        child.crashes += 1
         child.join_output(0.5)  # its last words are the likely reason
         last = child.last_error or (child.lines[-1] if child.lines else "")
         child.last_error = f"{exit_reason(code)}: {last}" if last else exit_reason(code)
+        if child.kind == "world" and self.run_id is not None:
+            self._mark_results(f"world: {exit_reason(code)}")
         if child.kind == "agent" and child.backoff_steps < child.policy.max_restarts:
             delay_s = backoff_delay_s(child.policy, child.backoff_steps)
             child.backoff_steps += 1
@@ -314,6 +317,17 @@ class HostDaemon:
         else:
             child.state = "failed"
             log.error("host %s: %s failed (%s)", self.name, child.name, exit_reason(code))
+
+    def _mark_results(self, problem: str) -> None:
+        """The world died: its results folder says so, with what survived."""
+        from phalanx.analysis.results import mark_results
+
+        assert self.run_id is not None  # noqa: S101 - checked by the caller
+        folder = self._results_dir(self.run_id)
+        try:
+            mark_results(folder, problems=[problem])
+        except OSError as exc:
+            log.error("host %s: cannot mark %s incomplete: %s", self.name, folder, exc)
 
     def shutdown(self) -> None:
         """Stop every child: SIGTERM, SIGKILL after the grace period; bounded."""

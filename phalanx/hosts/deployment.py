@@ -262,7 +262,7 @@ def load_deployment(name_or_path: str | Path) -> LoadedDeployment:
         raise ConfigError(f"{path}: scenario {spec.scenario!r}: no such file ({scenario_path})")
     scenario = load_scenario(scenario_path)
     if spec.overrides:
-        scenario = apply_overrides(scenario, list(spec.overrides))
+        scenario = apply_overrides(scenario, list(spec.overrides), source=f"{path}: overrides")
     digest = hashlib.sha256(path.read_bytes() + b"\0" + scenario_path.read_bytes()).hexdigest()
     loaded = LoadedDeployment(path, spec, scenario_path, scenario, digest)
     _check_against_scenario(loaded)

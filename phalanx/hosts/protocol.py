@@ -64,10 +64,14 @@ class SpawnRequest(Wire):
 
 
 class StopRequest(Wire):
-    """Stop processes on a host: all of them, or some robots (and/or the world)."""
+    """Stop processes on a host: all of them, or some robots (and/or the world). Like a
+    spawn, it carries the digest of the deployment's files: only a launcher holding
+    them (`phalanx launch`, `phalanx stop`) can end a fleet's processes.
+    """
 
     version: Literal[1] = PROTOCOL_VERSION
     deployment: Name
+    digest: Digest
     run_id: RunId | None = None  # only if this run is the host's current one
     robots: tuple[Name, ...] = Field(default=(), max_length=256)  # empty: all
     world: bool = True
@@ -81,6 +85,7 @@ class ChildStatus(Wire):
     state: ChildState
     pid: int | None = None
     restarts: int = 0
+    crashes: int = 0  # times it ended on its own with an error (finished runs exit 0)
     exit_code: int | None = None
     last_error: str = ""
     log_dropped: int = 0

@@ -71,7 +71,9 @@ class RequestChecks:
             raise RequestRefused(
                 f"deployment {self.spec.name!r} does not allow overrides (allow_overrides = false)"
             )
-        apply_overrides(self.loaded.scenario, list(overrides))  # ConfigError if invalid
+        apply_overrides(  # ConfigError if invalid
+            self.loaded.scenario, list(overrides), source=str(self.loaded.scenario_path)
+        )
         return overrides
 
     @staticmethod

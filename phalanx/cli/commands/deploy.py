@@ -114,7 +114,7 @@ def _check_overrides(loaded: LoadedDeployment, overrides: list[str]) -> None:
 
     if overrides:
         try:
-            apply_overrides(loaded.scenario, overrides)
+            apply_overrides(loaded.scenario, overrides, source=str(loaded.scenario_path))
         except ConfigError as exc:
             raise typer.BadParameter(str(exc)) from exc
 
@@ -178,7 +178,10 @@ def status(
             time.sleep(listen_s)
             statuses = client.statuses()
             skews = client.clock_skews()
-            rows = fleet_rows(loaded, statuses, client.watch, world=client.world_status())
+            processes = client.process_statuses()
+            rows = fleet_rows(
+                loaded, statuses, client.watch, world=processes.get("world"), processes=processes
+            )
     except DeploymentError as exc:
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(2) from exc
