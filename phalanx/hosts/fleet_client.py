@@ -34,6 +34,7 @@ from phalanx.hosts.protocol import (
     StopRequest,
 )
 from phalanx.hosts.wiring import client_transport
+from phalanx.wire.bounds import FleetBounds
 from phalanx.wire.keys import (
     host_key,
     host_of,
@@ -43,7 +44,7 @@ from phalanx.wire.keys import (
     status_key,
     statuses_key,
 )
-from phalanx.wire.messages import FleetBounds, RobotState
+from phalanx.wire.messages import RobotState
 from phalanx.wire.transport import FleetSession, TransportConfig, open_session
 
 RATE_WINDOW_S = 2.0

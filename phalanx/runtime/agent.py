@@ -29,13 +29,11 @@ from phalanx.runtime.peers import FlagsThrottle, PeerInbox
 from phalanx.runtime.robot_io import RobotIO
 from phalanx.runtime.signals import Stoppable
 from phalanx.telemetry.stream import Telemetry, sonar_rays
+from phalanx.wire.bounds import MAX_TEXT, UINT32_MAX, FleetBounds
 from phalanx.wire.keys import alive_key, alive_pattern, leader_key, robot_key, status_key
 from phalanx.wire.messages import (
-    MAX_TEXT,
-    UINT32_MAX,
     AgentEvent,
     AgentReport,
-    FleetBounds,
     LeaderAnnouncement,
     Message,
     RobotFlags,

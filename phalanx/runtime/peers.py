@@ -16,8 +16,9 @@ from typing import TypeVar
 
 from phalanx.core.formation import Formation
 from phalanx.core.peers import PeerFlags, PeerState
+from phalanx.wire.bounds import FleetBounds
 from phalanx.wire.keys import robot_key, robots_key
-from phalanx.wire.messages import FleetBounds, RobotFlags, RobotState
+from phalanx.wire.messages import RobotFlags, RobotState
 from phalanx.wire.transport import FleetSession, History, Polled
 
 EPS_S = 1e-6

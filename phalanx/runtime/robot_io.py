@@ -27,9 +27,10 @@ from phalanx.runtime.clock import Tick
 from phalanx.runtime.frames import Ending, FrameBox, FrameGate
 from phalanx.runtime.positioning import PositioningInbox, frame_fixes, frame_relative
 from phalanx.runtime.signals import Stoppable
+from phalanx.wire.bounds import FleetBounds
 from phalanx.wire.codec import DecodeStats
 from phalanx.wire.keys import robot_key
-from phalanx.wire.messages import FleetBounds, SenseFrame, VelocityCommand
+from phalanx.wire.messages import SenseFrame, VelocityCommand
 from phalanx.wire.transport import FleetSession
 
 log = logging.getLogger("phalanx.agent")

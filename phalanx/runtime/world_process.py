@@ -25,15 +25,11 @@ from phalanx.core.geometry import ZERO_TWIST, Twist2D
 from phalanx.core.limits import KinematicLimits
 from phalanx.core.runlog import RobotTrace, RunLog
 from phalanx.core.states import State, TransitionEvent
-from phalanx.runtime.positioning import (
-    fix_message,
-    flatten_fixes,
-    flatten_relative,
-    relative_message,
-)
 from phalanx.runtime.signals import Stoppable
+from phalanx.runtime.world_frames import Flat, publish_positioning, sense_frame
 from phalanx.simulator.world import World
 from phalanx.telemetry.stream import PAPER_ANGULAR_BOUND_PCT, PAPER_LINEAR_BOUND_PCT, Telemetry
+from phalanx.wire.bounds import FleetBounds
 from phalanx.wire.keys import (
     alive_key,
     alive_pattern,
@@ -45,16 +41,13 @@ from phalanx.wire.keys import (
 from phalanx.wire.messages import (
     AgentEvent,
     AgentReport,
-    FleetBounds,
     LeaderAnnouncement,
     RobotState,
-    SenseFrame,
     VelocityCommand,
 )
 from phalanx.wire.transport import FleetSession, TransportConfig, open_session
 
 log = logging.getLogger("phalanx.world")
-_Flat = tuple[tuple[float, ...], tuple[float, ...]]
 WORLD_ID = "world"
 # Transitions and leadership announcements kept for the run's log; more (a flood) are
 # dropped and counted.
@@ -253,43 +246,10 @@ class WorldProcess:
                     return
         time.sleep(0.2)  # let the agents' subscriptions reach the world's publications
 
-    def _frame(
-        self, rid: str, k: int, final: bool = False, positioning: _Flat = ((), ())
-    ) -> SenseFrame:
-        odo, status = self.world.odometry(rid), self.world.status(rid)
-        return SenseFrame(
-            robot_id=rid,
-            tick=k,
-            t_s=float(k * self.scenario.dt_s),
-            dt_s=self.scenario.dt_s,
-            x_m=odo.pose.x_m,
-            y_m=odo.pose.y_m,
-            theta_rad=odo.pose.theta_rad,
-            v_mps=odo.twist.v_mps,
-            omega_radps=odo.twist.omega_radps,
-            sonar_ranges_m=status.sonar_ranges_m,
-            bumpers=status.bumpers,
-            final=final,
-            fixes=positioning[0],
-            relative=positioning[1],
-        )
-
-    def _positioning(self, session: FleetSession, rid: str) -> _Flat:
-        """The robot's simulated positioning measurements due now: for its sense frame
-        or, for a robot on a driver (a run with an epoch), published on its `fix` and
-        `relative` keys as a motion-capture system and its camera would.
-        """
+    def _positioning(self, session: FleetSession, rid: str) -> Flat:
         fixes, relative = self.world.positioning(rid)
-        epoch = self.options.epoch_s
-        if epoch is None:
-            return flatten_fixes(fixes), flatten_relative(relative, self.ids)
-        fleet = self.options.fleet
-        for fix in fixes:
-            session.publish(robot_key(fleet, rid, "fix"), fix_message(rid, fix, epoch_s=epoch))
-        for rel in relative:
-            message = relative_message(rid, rel, epoch_s=epoch)
-            session.publish(robot_key(fleet, rid, "relative"), message)
-        return (), ()
+        epoch, fleet = self.options.epoch_s, self.options.fleet
+        return publish_positioning(session, fleet, rid, fixes, relative, self.ids, epoch_s=epoch)
 
     def _tick(self, session: FleetSession, k: int) -> None:
         self.tick = k
@@ -301,7 +261,13 @@ class WorldProcess:
         for rid in self.ids:
             session.publish(
                 robot_key(self.options.fleet, rid, "sense"),
-                self._frame(rid, k, positioning=self._positioning(session, rid)),
+                sense_frame(
+                    self.world,
+                    rid,
+                    k,
+                    self.scenario.dt_s,
+                    positioning=self._positioning(session, rid),
+                ),
                 reliable_block=True,
             )
         if self.options.clock == "lockstep":
@@ -370,7 +336,7 @@ class WorldProcess:
         for rid in self.ids:
             session.publish(
                 robot_key(self.options.fleet, rid, "sense"),
-                self._frame(rid, self.tick, final=True),
+                sense_frame(self.world, rid, self.tick, self.scenario.dt_s, final=True),
                 reliable_block=True,
             )
         deadline = time.monotonic() + self.options.report_timeout_s

@@ -133,7 +133,7 @@ class AgentUnderTest:
     def __init__(self, *, clock: str = "realtime") -> None:
         from phalanx.runtime.agent import AgentRuntime, RuntimeOptions
         from phalanx.runtime.robot_io import WorldLink
-        from phalanx.wire.messages import FleetBounds
+        from phalanx.wire.bounds import FleetBounds
         from phalanx.wire.transport import TransportConfig
 
         # A day: longer than any campaign's steps (the frames of a run's end are refused).
@@ -502,7 +502,7 @@ class LauncherUnderTest:
 
     def __init__(self) -> None:
         from phalanx.hosts.fleet_client import FleetWatch
-        from phalanx.wire.messages import FleetBounds
+        from phalanx.wire.bounds import FleetBounds
 
         scenario = load_scenario(WEDGE)
         self.watch = FleetWatch()

@@ -216,7 +216,7 @@ def _run_agent(
     from phalanx.runtime.agent import AgentRuntime, RuntimeOptions
     from phalanx.runtime.exits import EXIT_FINISHED, EXIT_RUN_CUT_SHORT, EXIT_WORLD_LOST
     from phalanx.runtime.robot_io import WorldLink
-    from phalanx.wire.messages import FleetBounds
+    from phalanx.wire.bounds import FleetBounds
 
     tel = telemetry if telemetry.sink.kind != "off" else None
     if backend is None:  # a simulated robot: the world's frames are its ticks
