@@ -33,6 +33,7 @@ from phalanx.hosts.protocol import (
     SpawnRequest,
     StopRequest,
 )
+from phalanx.hosts.request_auth import sign
 from phalanx.hosts.wiring import client_transport
 from phalanx.wire.bounds import FleetBounds
 from phalanx.wire.keys import (
@@ -119,6 +120,7 @@ class FleetClient(Closing):
 
     def __init__(self, loaded: LoadedDeployment, transport: TransportConfig) -> None:
         self.loaded, self.spec = loaded, loaded.spec
+        self.identity = transport.tls  # a secured fleet: requests are signed with it
         try:
             self.session: FleetSession = open_session(transport)
         except TransportError as exc:
@@ -253,8 +255,9 @@ class FleetClient(Closing):
             run_id=run_id,
             epoch_unix=epoch_unix,
             overrides=overrides,
+            issued_unix=time.time(),
         )
-        payload = request.model_dump_json().encode("utf-8")
+        payload = self._signed(request.model_dump_json().encode("utf-8"))
         busy = [h for h in self.host_names if self.spec.robots_on(h) or self.spec.runs_world(h)]
         replies = self.ask("spawn", dict.fromkeys(busy, payload), timeout_s=5.0)
         problems = [
@@ -268,10 +271,21 @@ class FleetClient(Closing):
 
     def stop(self, run_id: str | None = None) -> dict[str, HostReply | None]:
         """Ask every present host to stop its processes (of `run_id`, if given)."""
-        request = StopRequest(deployment=self.spec.name, digest=self.loaded.digest, run_id=run_id)
-        payload = request.model_dump_json().encode("utf-8")
+        request = StopRequest(
+            deployment=self.spec.name,
+            digest=self.loaded.digest,
+            run_id=run_id,
+            issued_unix=time.time(),
+        )
+        payload = self._signed(request.model_dump_json().encode("utf-8"))
         present = [h for h in self.host_names if h in self.watch.present()]
         return self.ask("stop", dict.fromkeys(present, payload))
+
+    def _signed(self, request: bytes) -> bytes:
+        """The request as sent: signed by this client's identity on a secured fleet."""
+        if not self.spec.secured or self.identity is None:
+            return request
+        return sign(request, self.identity)
 
     def wait_stopped(self, timeout_s: float) -> list[str]:
         """Wait (bounded) until no present host has an active child; the ones left."""

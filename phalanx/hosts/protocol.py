@@ -61,6 +61,7 @@ class SpawnRequest(Wire):
     world: bool = True  # start the world too, if it runs on this host
     epoch_unix: float | None = None  # step 0 of robots on real drivers (Unix time)
     overrides: tuple[Override, ...] = Field(default=(), max_length=32)
+    issued_unix: float | None = None  # when the launcher sent it (a secured fleet's window)
 
 
 class StopRequest(Wire):
@@ -75,6 +76,7 @@ class StopRequest(Wire):
     run_id: RunId | None = None  # only if this run is the host's current one
     robots: tuple[Name, ...] = Field(default=(), max_length=256)  # empty: all
     world: bool = True
+    issued_unix: float | None = None  # when the launcher sent it (a secured fleet's window)
 
 
 class ChildStatus(Wire):

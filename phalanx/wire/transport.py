@@ -29,6 +29,7 @@ from phalanx.core.lifecycle import Closing
 from phalanx.wire.codec import DecodeStats, decode, encode
 from phalanx.wire.keys import robot_of
 from phalanx.wire.messages import Message
+from phalanx.wire.security import AccessControl, TlsFiles, apply_security
 
 log = logging.getLogger("phalanx.transport")
 MAX_STATUS_BYTES = 1024 * 1024
@@ -56,6 +57,9 @@ class TransportConfig(BaseModel):
     # Multicast scouting in router mode: connect to routers found that way, one link per
     # pair (only the router with the greater Zenoh id connects).
     autoconnect_routers: bool = False
+    # `tls/` endpoints: this process's identity; a router's access-control list.
+    tls: TlsFiles | None = None
+    acl: AccessControl | None = None
 
 
 def zenoh_config(cfg: TransportConfig) -> Any:
@@ -82,6 +86,7 @@ def zenoh_config(cfg: TransportConfig) -> Any:
         conf.insert_json5("scouting/multicast/autoconnect", json.dumps(autoconnect))
         strategy = {"router": {"to_router": "greater-zid", "to_peer": "always"}}
         conf.insert_json5("scouting/multicast/autoconnect_strategy", json.dumps(strategy))
+    apply_security(conf, cfg.tls, cfg.acl)
     return conf
 
 
@@ -365,7 +370,8 @@ def _open_with_retry(cfg: TransportConfig) -> Any:
             return zenoh.open(zenoh_config(cfg))
         except Exception as exc:  # zenoh raises its own ZError
             if time.monotonic() + delay_s > deadline:
-                raise TransportError(f"cannot open a Zenoh session with {cfg}: {exc}") from exc
+                shown = cfg.model_dump(exclude={"acl"}, exclude_defaults=True)
+                raise TransportError(f"cannot open a Zenoh session with {shown}: {exc}") from exc
             time.sleep(delay_s)
             delay_s = min(1.0, delay_s * 2)
 

@@ -34,6 +34,9 @@ ConnectOpt = Annotated[
     list[str] | None, typer.Option("--connect", help="Zenoh endpoint to connect to.")
 ]
 ModeOpt = Annotated[str, typer.Option(help="Zenoh mode: peer, client or router.")]
+TlsCaOpt = Annotated[str | None, typer.Option(help="tls/ endpoints: the fleet CA's certificate.")]
+TlsCertOpt = Annotated[str | None, typer.Option(help="tls/ endpoints: this process's certificate.")]
+TlsKeyOpt = Annotated[str | None, typer.Option(help="tls/ endpoints: this process's key.")]
 RecordingIdOpt = Annotated[
     str | None, typer.Option(help="Telemetry: the fleet run's Rerun recording id (shared).")
 ]
@@ -57,12 +60,26 @@ def _scenario(path: Path, overrides: list[str] | None) -> Scenario:
     return apply_overrides(config, overrides, source=str(path)) if overrides else config
 
 
-def _transport(mode: str, listen: list[str] | None, connect: list[str] | None) -> TransportConfig:
+def _transport(
+    mode: str,
+    listen: list[str] | None,
+    connect: list[str] | None,
+    tls: tuple[str | None, str | None, str | None] = (None, None, None),
+) -> TransportConfig:
+    from phalanx.wire.security import TlsFiles
     from phalanx.wire.transport import TransportConfig
 
     if mode not in ("peer", "client", "router"):
         raise typer.BadParameter(f"expected peer, client or router, got {mode!r}")
-    return TransportConfig(mode=mode, listen=tuple(listen or ()), connect=tuple(connect or ()))
+    files = None
+    if any(tls):
+        ca, cert, key = tls
+        if ca is None or cert is None or key is None:
+            raise typer.BadParameter("give --tls-ca, --tls-cert and --tls-key together")
+        files = TlsFiles(ca=ca, cert=cert, key=key)
+    return TransportConfig(
+        mode=mode, listen=tuple(listen or ()), connect=tuple(connect or ()), tls=files
+    )
 
 
 def _stop_on_signals() -> Stoppable:
@@ -89,6 +106,9 @@ def agent(
     listen: ListenOpt = None,
     connect: ConnectOpt = None,
     mode: ModeOpt = "peer",
+    tls_ca: TlsCaOpt = None,
+    tls_cert: TlsCertOpt = None,
+    tls_key: TlsKeyOpt = None,
     set_: SetOpt = None,
     driver: Annotated[
         str,
@@ -153,7 +173,7 @@ def agent(
     config = _scenario(scenario, set_)
     if robot not in {r.id for r in config.robots}:
         raise typer.BadParameter(f"robot {robot!r} is not in {scenario}")
-    transport = _transport(mode, listen, connect)
+    transport = _transport(mode, listen, connect, (tls_ca, tls_cert, tls_key))
     params = load_robot(config.robot)
     shortcuts = {
         "--arcos-port": arcos_port,
@@ -353,6 +373,9 @@ def world(
     listen: ListenOpt = None,
     connect: ConnectOpt = None,
     mode: ModeOpt = "router",
+    tls_ca: TlsCaOpt = None,
+    tls_cert: TlsCertOpt = None,
+    tls_key: TlsKeyOpt = None,
     set_: SetOpt = None,
     out: Annotated[Path | None, typer.Option(help="Results folder.")] = None,
     recording: Annotated[bool, typer.Option(help="Write a Rerun .rrd.")] = True,
@@ -371,7 +394,7 @@ def world(
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s world %(levelname)s %(message)s")
     config = _scenario(scenario, set_)
-    transport = _transport(mode, listen, connect)
+    transport = _transport(mode, listen, connect, (tls_ca, tls_cert, tls_key))
     options = WorldOptions(
         fleet=fleet, transport=transport, clock=_clock(clock), speed=speed, epoch_s=epoch
     )
