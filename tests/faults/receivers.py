@@ -113,6 +113,15 @@ def _matches(pattern: str, key: str) -> bool:
     )
 
 
+def _held_to_limits(commands: list[tuple[float, float]], limits: Any) -> None:
+    """Every command finite and within the run's limits (m/s, rad/s)."""
+    for v, w in commands:
+        assert math.isfinite(v), v
+        assert math.isfinite(w), w
+        assert abs(v) <= limits.v_max_mps + 1e-9, v
+        assert abs(w) <= limits.omega_max_radps + 1e-9, w
+
+
 class _Stop:
     """Never set: wait for the next frame."""
 
@@ -256,11 +265,7 @@ class AgentUnderTest:
 
     def check(self) -> None:
         """The commands stayed finite and within the run's limits; status serialises."""
-        for v, w in self.commands:
-            assert math.isfinite(v), v
-            assert math.isfinite(w), w
-            assert abs(v) <= self.limits.v_max_mps + 1e-9, v
-            assert abs(w) <= self.limits.omega_max_radps + 1e-9, w
+        _held_to_limits(self.commands, self.limits)
         self.commands.clear()
         json.dumps(self.session.status())
         assert not self.session.stats.handler_errors, self.session.stats.last_error
@@ -355,11 +360,7 @@ class DriverAgentUnderTest:
 
     def check(self) -> None:
         """Commands finite and within the run's limits; status serialises."""
-        for v, w in self.commands:
-            assert math.isfinite(v), v
-            assert math.isfinite(w), w
-            assert abs(v) <= self.limits.v_max_mps + 1e-9, v
-            assert abs(w) <= self.limits.omega_max_radps + 1e-9, w
+        _held_to_limits(self.commands, self.limits)
         self.commands.clear()
         json.dumps(self.session.status())
         assert not self.session.stats.handler_errors, self.session.stats.last_error
