@@ -32,6 +32,20 @@ class Observation:
     fixes: tuple[PoseFix, ...] = ()
     relative: tuple[RelativeFix, ...] = ()
 
+    def with_odometry(self, odometry: Odometry) -> Observation:
+        """The observation with `odometry` (itself when that is already its own)."""
+        if odometry is self.odometry:
+            return self
+        return Observation(
+            odometry, self.status, self.sonar, self.masked, self.fixes, self.relative
+        )
+
+    def with_masked(self, masked: MaskedEchoes) -> Observation:
+        """The observation with `masked` (`dataclasses.replace`, without its cost)."""
+        return Observation(
+            self.odometry, self.status, self.sonar, masked, self.fixes, self.relative
+        )
+
 
 @dataclass(frozen=True, slots=True)
 class FleetView:

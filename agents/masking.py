@@ -40,6 +40,8 @@ from phalanx.core.states import OUT_OF_FORMATION
 TRACKED_MASK_M = 0.1
 EXPECTED_MASK_M = 0.15
 _AHEAD_BEHIND_RAD = np.array([0.0, np.pi])
+_AHEAD_BEHIND_COS = np.cos(_AHEAD_BEHIND_RAD)[:, None]
+_AHEAD_BEHIND_SIN = np.sin(_AHEAD_BEHIND_RAD)[:, None]
 
 
 @dataclass(frozen=True)
@@ -239,7 +241,7 @@ def _slots_met(sonar: SonarGeometry, r: FloatArray, slots: SlotMasks, rows: Bool
     owner = slots.owner[idx]
     dirs = (slots.cos[idx], slots.sin[idx])
     hit = sonar.arcs_meet_at(r[owner], slots.cx[idx], slots.cy[idx], slots.slot_radius_m, dirs)
-    starts = np.flatnonzero(np.r_[True, owner[1:] != owner[:-1]])
+    starts = np.flatnonzero(np.concatenate(([True], owner[1:] != owner[:-1])))
     met[owner[starts]] = np.logical_or.reduceat(hit, starts, axis=0)
     return met
 
@@ -273,8 +275,7 @@ def _clearances(
     """Per robot, `clearance_along` ahead and behind (before the floor at zero) of the
     ray points `keep` marks: (robots, 2).
     """
-    c = np.cos(_AHEAD_BEHIND_RAD)[:, None]
-    s = np.sin(_AHEAD_BEHIND_RAD)[:, None]
+    c, s = _AHEAD_BEHIND_COS, _AHEAD_BEHIND_SIN
     px, py = x[:, None, :], y[:, None, :]
     f = px * c + py * s
     lat2 = np.square(py * c - px * s)
