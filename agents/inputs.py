@@ -9,10 +9,12 @@ from dataclasses import dataclass
 from phalanx.agents.leadership import LeadershipChange, LiveFlags
 from phalanx.agents.perception import MaskedEchoes, SonarEchoes
 from phalanx.core.fixes import PoseFix, RelativeFix
+from phalanx.core.frozen import quick_init
 from phalanx.core.peers import PeerState
 from phalanx.core.robot import Odometry, RobotStatus
 
 
+@quick_init
 @dataclass(frozen=True, slots=True)
 class Observation:
     """What a robot senses this step (from its driver, or the simulated world): odometry,
@@ -47,6 +49,7 @@ class Observation:
         )
 
 
+@quick_init
 @dataclass(frozen=True, slots=True)
 class FleetView:
     """A robot's view of its fleet this step: the flags heard lately (`live`), the

@@ -31,6 +31,7 @@ from phalanx.agents.perception import (
     SonarEchoes,
     SonarGeometry,
 )
+from phalanx.core.frozen import quick_init
 from phalanx.core.geometry import Pose2D, Vec2
 from phalanx.core.rigid_body import predict_leader
 from phalanx.core.states import OUT_OF_FORMATION
@@ -65,6 +66,7 @@ class FixedDiscs:
         return cls(cx, cy, radius_m, sonar.nearest_dirs(cx, cy), cut)
 
 
+@quick_init
 @dataclass(frozen=True, slots=True)
 class MaskInputs:
     """What one robot's masking needs of its step: its view of the fleet (whom it
