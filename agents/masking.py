@@ -259,10 +259,13 @@ def _tracked_met(
         lead = heard.view.lead
         if lead is not None:
             predicted = predict_leader(lead.pose, lead.twist, max(0.0, heard.t_s - lead.stamp_s))
-            centre = heard.pose.to_body(predicted.position)
+            # `heard.pose.to_body(predicted.position)` in floats, operation for operation
+            pose = heard.pose
+            dx, dy = predicted.x_m - pose.x_m, predicted.y_m - pose.y_m
+            c, s = math.cos(-pose.theta_rad), math.sin(-pose.theta_rad)
             rows.append(i)
-            cx.append(centre.x_m)
-            cy.append(centre.y_m)
+            cx.append(c * dx - s * dy)
+            cy.append(s * dx + c * dy)
     met = np.zeros(r.shape, dtype=bool)
     if rows:
         ccx, ccy = np.array(cx).reshape(-1, 1), np.array(cy).reshape(-1, 1)
