@@ -14,6 +14,7 @@ truth and commands are recorded as columns. Each agent's step is its own.
 
 from __future__ import annotations
 
+import gc
 import time
 from collections import deque
 from collections.abc import Callable
@@ -76,12 +77,19 @@ class BatchRunner:
     ) -> RunLog:
         """Step every robot to the end of the scenario (or until `until(self)` holds)."""
         started = time.perf_counter()
-        for k in range(self.steps):
-            self.step(k)
-            if progress is not None:
-                progress(k + 1, self.steps)
-            if until is not None and until(self):
-                break
+        # What exists now (the fleet, the world, the traces) lives for the whole run: the
+        # garbage collector's full passes skip it meanwhile (a fifth of a 1000-robot run's
+        # time went into traversing it again and again).
+        gc.freeze()
+        try:
+            for k in range(self.steps):
+                self.step(k)
+                if progress is not None:
+                    progress(k + 1, self.steps)
+                if until is not None and until(self):
+                    break
+        finally:
+            gc.unfreeze()
         return self._log(time.perf_counter() - started)
 
     def _trace(self, i: int) -> RobotTrace:
