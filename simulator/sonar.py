@@ -99,14 +99,9 @@ def ray_circle_hits(
     """Distance along each ray (unit direction) to the nearest circle, inf if none."""
     if cx.size == 0:
         return np.full(ox.shape, np.inf)
-    fx, fy = ox[:, None] - cx[None, :], oy[:, None] - cy[None, :]
-    b = fx * dx[:, None] + fy * dy[:, None]
-    c = fx * fx + fy * fy - r[None, :] ** 2
-    disc = b * b - c
-    root = np.sqrt(np.maximum(disc, 0.0))
-    t_near, t_far = -b - root, -b + root
-    t = np.where(t_near >= 0.0, t_near, np.where(t_far >= 0.0, 0.0, np.inf))
-    t = np.where(disc >= 0.0, t, np.inf)
+    t = circle_hits_at(
+        ox[:, None], oy[:, None], dx[:, None], dy[:, None], cx[None, :], cy[None, :], r[None, :]
+    )  # every ray against every circle
     return np.asarray(np.min(t, axis=1), dtype=np.float64)
 
 
@@ -154,8 +149,9 @@ def circle_hits_at(
     cy: FloatArray,
     r: FloatArray,
 ) -> FloatArray:
-    """Distance along ray e (origin, unit direction) to circle e, inf if it misses: the
-    arithmetic of `ray_circle_hits`, element by element.
+    """Distance along ray e (origin, unit direction) to circle e, inf if it misses,
+    element by element (arrays that broadcast together: `ray_circle_hits` gives it every
+    ray against every circle).
     """
     fx, fy = ox - cx, oy - cy
     b = fx * dx + fy * dy
