@@ -10,6 +10,7 @@ from __future__ import annotations
 import importlib
 import pkgutil
 import sys
+from collections.abc import Callable
 from typing import Annotated
 
 import typer
@@ -48,12 +49,33 @@ def _register_commands() -> None:
 _register_commands()
 
 
+def _profiled(run: Callable[[], None], folder: str) -> None:
+    """Run under cProfile (the main thread) and write `<command>-<pid>.prof` in `folder`:
+    how the multi-process path is profiled, one file per process of a fleet.
+    """
+    import cProfile
+    import os
+
+    command = next((a for a in sys.argv[1:] if not a.startswith("-")), "phalanx")
+    profile = cProfile.Profile()
+    try:
+        profile.runcall(run)
+    finally:
+        profile.dump_stats(os.path.join(folder, f"{command}-{os.getpid()}.prof"))
+
+
 def main() -> None:
-    """Entry point of the `phalanx` console script."""
+    """Entry point of the `phalanx` console script (`PHALANX_PROFILE=<folder>` profiles it)."""
+    import os
+
     from phalanx.core.errors import ConfigError, DeploymentError, PhalanxError
 
+    folder = os.environ.get("PHALANX_PROFILE")
     try:
-        app()
+        if folder:
+            _profiled(app, folder)
+        else:
+            app()
     except PhalanxError as exc:
         if _options["debug"]:
             raise

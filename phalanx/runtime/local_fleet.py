@@ -80,7 +80,9 @@ def _cli() -> list[str]:
 def plan(scenario_path: Path, scenario: Scenario, options: UpOptions) -> list[Child]:
     """The world and agent command lines."""
     endpoint = loopback_endpoint(free_tcp_port())
-    common = ["--fleet", options.fleet, "--clock", options.clock, *options.overrides]
+    # Every process on this machine: Zenoh's low-latency transport (see TransportConfig).
+    common = ["--fleet", options.fleet, "--clock", options.clock, "--lowlatency"]
+    common += options.overrides
     world = [
         *_cli(),
         "world",

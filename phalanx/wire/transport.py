@@ -33,6 +33,9 @@ from phalanx.wire.security import AccessControl, TlsFiles, apply_security
 
 log = logging.getLogger("phalanx.transport")
 MAX_STATUS_BYTES = 1024 * 1024
+# The largest payload sent on a low-latency session: under Zenoh's 64 KiB batch with room
+# for its headers (a fleet's messages are a few hundred bytes; a status reply a few KiB).
+LOWLATENCY_MAX_BYTES = 60_000
 M = TypeVar("M", bound=Message)
 _open_sessions: set[int] = set()
 _registry_lock = threading.Lock()
@@ -60,6 +63,14 @@ class TransportConfig(BaseModel):
     # `tls/` endpoints: this process's identity; a router's access-control list.
     tls: TlsFiles | None = None
     acl: AccessControl | None = None
+    # Zenoh's low-latency transport: a put writes its message to the link itself (no
+    # transmission queue, no batching thread to wake: about half the CPU and latency of a
+    # round trip here), no priorities, no fragmentation. For a fleet on one machine
+    # (`phalanx up`): nothing bulky shares its links, every message is far under one
+    # batch, and a process that stops is dropped by its lease. A message over a batch
+    # would be lost and the link reset, so the session refuses to send one (see
+    # `LOWLATENCY_MAX_BYTES`). Give it to every process of the fleet.
+    lowlatency: bool = False
 
 
 def zenoh_config(cfg: TransportConfig) -> Any:
@@ -86,6 +97,9 @@ def zenoh_config(cfg: TransportConfig) -> Any:
         conf.insert_json5("scouting/multicast/autoconnect", json.dumps(autoconnect))
         strategy = {"router": {"to_router": "greater-zid", "to_peer": "always"}}
         conf.insert_json5("scouting/multicast/autoconnect_strategy", json.dumps(strategy))
+    if cfg.lowlatency:  # Zenoh refuses the low-latency transport with priorities on
+        conf.insert_json5("transport/unicast/lowlatency", "true")
+        conf.insert_json5("transport/unicast/qos/enabled", "false")
     apply_security(conf, cfg.tls, cfg.acl)
     return conf
 
@@ -228,6 +242,7 @@ class FleetSession(Closing):
         self.stats = DecodeStats()
         self._keep: list[Any] = []
         self._publishers: dict[str, Any] = {}
+        self._max_bytes = LOWLATENCY_MAX_BYTES if cfg.lowlatency else None
         self._closed = False
         with _registry_lock:
             _open_sessions.add(id(self))
@@ -242,7 +257,16 @@ class FleetSession(Closing):
         publisher = self._publishers.get(key)
         if publisher is None:
             publisher = self._declare_publisher(key, reliable_block)
-        publisher.put(encode(message))
+        publisher.put(self._fits(encode(message), key))
+
+    def _fits(self, payload: bytes, key: str) -> bytes:
+        """`payload`, if this session's links carry it whole (else a TransportError)."""
+        if self._max_bytes is not None and len(payload) > self._max_bytes:
+            raise TransportError(
+                f"{key}: a low-latency session sends at most {self._max_bytes} bytes a "
+                f"message, this one has {len(payload)}"
+            )
+        return payload
 
     def publish_raw(self, key: str, payload: bytes) -> None:
         """Put raw bytes (tests inject malformed payloads with this)."""
@@ -312,7 +336,11 @@ class FleetSession(Closing):
         """Answer queries on `key` with `status()` as JSON."""
 
         def callback(query: Any) -> None:
-            query.reply(key, json.dumps(status()).encode("utf-8"))
+            payload = json.dumps(status()).encode("utf-8")
+            try:
+                query.reply(key, self._fits(payload, key))
+            except TransportError as exc:
+                query.reply(key, json.dumps({"error": str(exc)}).encode("utf-8"))
 
         self._keep.append(self._session.declare_queryable(key, callback))
 

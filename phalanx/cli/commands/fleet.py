@@ -34,6 +34,14 @@ ConnectOpt = Annotated[
     list[str] | None, typer.Option("--connect", help="Zenoh endpoint to connect to.")
 ]
 ModeOpt = Annotated[str, typer.Option(help="Zenoh mode: peer, client or router.")]
+LowLatencyOpt = Annotated[
+    bool,
+    typer.Option(
+        "--lowlatency",
+        help="Zenoh's low-latency transport (no priorities, messages under 64 KiB): for a "
+        "fleet on one machine, as phalanx up runs it.",
+    ),
+]
 TlsCaOpt = Annotated[str | None, typer.Option(help="tls/ endpoints: the fleet CA's certificate.")]
 TlsCertOpt = Annotated[str | None, typer.Option(help="tls/ endpoints: this process's certificate.")]
 TlsKeyOpt = Annotated[str | None, typer.Option(help="tls/ endpoints: this process's key.")]
@@ -65,6 +73,8 @@ def _transport(
     listen: list[str] | None,
     connect: list[str] | None,
     tls: tuple[str | None, str | None, str | None] = (None, None, None),
+    *,
+    lowlatency: bool = False,
 ) -> TransportConfig:
     from phalanx.wire.security import TlsFiles
     from phalanx.wire.transport import TransportConfig
@@ -78,7 +88,11 @@ def _transport(
             raise typer.BadParameter("give --tls-ca, --tls-cert and --tls-key together")
         files = TlsFiles(ca=ca, cert=cert, key=key)
     return TransportConfig(
-        mode=mode, listen=tuple(listen or ()), connect=tuple(connect or ()), tls=files
+        mode=mode,
+        listen=tuple(listen or ()),
+        connect=tuple(connect or ()),
+        tls=files,
+        lowlatency=lowlatency,
     )
 
 
@@ -106,6 +120,7 @@ def agent(
     listen: ListenOpt = None,
     connect: ConnectOpt = None,
     mode: ModeOpt = "peer",
+    lowlatency: LowLatencyOpt = False,
     tls_ca: TlsCaOpt = None,
     tls_cert: TlsCertOpt = None,
     tls_key: TlsKeyOpt = None,
@@ -173,7 +188,9 @@ def agent(
     config = _scenario(scenario, set_)
     if robot not in {r.id for r in config.robots}:
         raise typer.BadParameter(f"robot {robot!r} is not in {scenario}")
-    transport = _transport(mode, listen, connect, (tls_ca, tls_cert, tls_key))
+    transport = _transport(
+        mode, listen, connect, (tls_ca, tls_cert, tls_key), lowlatency=lowlatency
+    )
     params = load_robot(config.robot)
     shortcuts = {
         "--arcos-port": arcos_port,
@@ -373,6 +390,7 @@ def world(
     listen: ListenOpt = None,
     connect: ConnectOpt = None,
     mode: ModeOpt = "router",
+    lowlatency: LowLatencyOpt = False,
     tls_ca: TlsCaOpt = None,
     tls_cert: TlsCertOpt = None,
     tls_key: TlsKeyOpt = None,
@@ -394,7 +412,9 @@ def world(
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s world %(levelname)s %(message)s")
     config = _scenario(scenario, set_)
-    transport = _transport(mode, listen, connect, (tls_ca, tls_cert, tls_key))
+    transport = _transport(
+        mode, listen, connect, (tls_ca, tls_cert, tls_key), lowlatency=lowlatency
+    )
     options = WorldOptions(
         fleet=fleet, transport=transport, clock=_clock(clock), speed=speed, epoch_s=epoch
     )

@@ -1,0 +1,77 @@
+"""Zenoh's low-latency transport, as `phalanx up` runs a fleet on one machine: messages
+cross it, one too big for a batch is refused before it can reset the link, and every
+process `phalanx up` starts asks for it."""
+
+from __future__ import annotations
+
+import threading
+
+import pytest
+
+from phalanx.core.config_files import CONFIG_ROOT, load_scenario
+from phalanx.runtime.local_fleet import UpOptions, plan
+from phalanx.wire.messages import AgentEvent
+from phalanx.wire.transport import (
+    LOWLATENCY_MAX_BYTES,
+    TransportConfig,
+    free_tcp_port,
+    loopback_endpoint,
+    open_session,
+    zenoh_config,
+)
+
+pytestmark = pytest.mark.integration
+WEDGE = CONFIG_ROOT / "scenarios" / "paper_wedge.toml"
+
+
+def _event(reason: str) -> AgentEvent:
+    return AgentEvent(robot_id="r1", t_s=1.0, source="HOLD", target="NAVIGATE", reason=reason)
+
+
+def test_the_config_turns_priorities_off_with_it() -> None:
+    """Zenoh refuses the low-latency transport with priorities (QoS) on."""
+    on = zenoh_config(TransportConfig(lowlatency=True))
+    off = zenoh_config(TransportConfig())
+    assert on.get_json("transport/unicast/lowlatency") == "true"
+    assert on.get_json("transport/unicast/qos/enabled") == "false"
+    assert off.get_json("transport/unicast/lowlatency") == "false"
+    assert off.get_json("transport/unicast/qos/enabled") == "true"
+
+
+def test_messages_cross_and_an_oversized_status_is_refused_not_sent() -> None:
+    """A status reply over a batch would be lost and reset the link: an error is sent in
+    its place, and the link carries the next message."""
+    endpoint = loopback_endpoint(free_tcp_port())
+    router = TransportConfig(mode="router", listen=(endpoint,), lowlatency=True)
+    client = TransportConfig(mode="client", connect=(endpoint,), lowlatency=True)
+    got: list[str] = []
+    arrived = threading.Event()
+
+    def on_event(_key: str, event: AgentEvent) -> None:
+        got.append(event.reason)
+        arrived.set()
+
+    with open_session(router) as world, open_session(client) as robot:
+        world.subscribe("phalanx/t/robots/r1/event", AgentEvent, on_event)
+        for _ in range(50):  # until the subscription has reached the client
+            robot.publish("phalanx/t/robots/r1/event", _event("first"), reliable_block=True)
+            if arrived.wait(0.1):
+                break
+        assert "first" in got
+        sizes = {"small": 10, "huge": LOWLATENCY_MAX_BYTES}
+        for name, size in sizes.items():
+            world.serve_status(f"phalanx/t/status/{name}", lambda n=size: {"pad": "x" * n})
+        assert robot.query_status("phalanx/t/status/small") == [{"pad": "x" * 10}]
+        (reply,) = robot.query_status("phalanx/t/status/huge")
+        assert "at most 60000 bytes" in reply["error"]
+        arrived.clear()
+        robot.publish("phalanx/t/robots/r1/event", _event("after"), reliable_block=True)
+        assert arrived.wait(5.0)  # the link was never reset
+        assert got[-1] == "after"
+
+
+def test_up_starts_every_process_on_it() -> None:
+    children = plan(WEDGE, load_scenario(WEDGE), UpOptions(fleet="ll"))
+    assert len(children) == 4
+    for child in children:
+        assert "--lowlatency" in child.argv, child.name
