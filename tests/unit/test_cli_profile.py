@@ -14,7 +14,7 @@ def test_a_command_writes_its_profile(tmp_path: Path) -> None:
     env = {**os.environ, "PHALANX_PROFILE": str(tmp_path)}
     done = subprocess.run(
         [sys.executable, "-m", "phalanx", "fsm", "--table"],
-        env=env, capture_output=True, text=True, timeout=60, check=False,
+        env=env, cwd=tmp_path, capture_output=True, text=True, timeout=60, check=False,
     )  # fmt: skip
     assert done.returncode == 0, done.stderr[-2000:]
     (profile,) = tmp_path.glob("fsm-*.prof")
