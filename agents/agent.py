@@ -46,7 +46,8 @@ from phalanx.core.config import RobotParams, Scenario
 from phalanx.core.formation import Formation
 from phalanx.core.geometry import Pose2D, Twist2D, wrap_angle
 from phalanx.core.limits import run_limits
-from phalanx.core.peers import PeerFlags, PeerState
+from phalanx.core.mapfile import GridMap
+from phalanx.core.peers import PeerFlags, PeerState, Scan
 from phalanx.core.robot import Odometry, RobotStatus
 from phalanx.core.states import OUT_OF_FORMATION, State, TransitionEvent
 
@@ -74,6 +75,7 @@ class StepOutput:
     leadership: LeadershipChange | None = None
     saturations: int = 0
     accel_limited: int = 0
+    scan: Scan | None = None  # this step's sonar reading, for the fleet's shared map
 
     @property
     def flags(self) -> PeerFlags:
@@ -92,6 +94,7 @@ class Agent:
         robot: RobotParams,
         formation: Formation,
         joining: bool = False,
+        prior_map: GridMap | None = None,
     ) -> None:
         self.robot_id = robot_id
         self.scenario = scenario
@@ -102,7 +105,7 @@ class Agent:
         self.leadership = Leadership(
             robot_id, formation, scenario.leadership, timeout_s=scenario.leader_timeout_s
         )
-        self.parts = Parts(robot_id, scenario, robot, formation, self.limits)
+        self.parts = Parts(robot_id, scenario, robot, formation, self.limits, prior_map)
         self.fsm: StateMachine[StackContext] = behaviour_machine(self._initial_state(joining))
         self.parent_id = formation.leader_of(robot_id)
         self.formed = not joining
@@ -177,7 +180,7 @@ class Agent:
         sensing = self.parts.senses.read(
             observation, view, stance, t_s=t_s, assume_formed=assume_formed
         )
-        self._estimate(observation.odometry, sensing, view)
+        self._estimate(observation.odometry, sensing, view, t_s)
         ctx = self._context(observation, sensing, view, stance, t_s)
         moment = Moment(t_s, self.fsm.state, observation.odometry, sensing, view, ctx.others_busy)
         event = self.fsm.update(ctx, t_s)
@@ -249,6 +252,8 @@ class Agent:
         head = live.get(lsh.leader_id)
         if not lsh.is_leader and head is not None:
             self.parts.progress.copy_from(head)
+            self.parts.keeper.copy_from(head)
+        self.parts.apply_shape()
         self.parent_id = lsh.tracked(live)
         lead = peers.get(self.parent_id) if self.parent_id else None
         if lead is not None and t_s - lead.stamp_s > self.scenario.leader_timeout_s:
@@ -279,7 +284,7 @@ class Agent:
             observation, odometry=Odometry(estimate.pose, odometry.twist, odometry.stamp_s)
         )
 
-    def _estimate(self, odometry: Odometry, sensing: Sensing, view: FleetView) -> None:
+    def _estimate(self, odometry: Odometry, sensing: Sensing, view: FleetView, t_s: float) -> None:
         """Move the memories on: the leader's waypoints, how long each way has been
         blocked, who stopped for an obstacle, the path crossed, the active behaviour's
         progress (ground backed over, angle turned).
@@ -287,6 +292,8 @@ class Agent:
         parts = self.parts
         if view.is_leader:
             parts.advance_waypoints(odometry.pose)
+            if self.fsm.state == State.NAVIGATE:
+                parts.weigh_shapes(odometry.pose, t_s)
         parts.blocked.update(sensing.blocked, self.dt_s)
         stopped = view.live.stopped - {self.robot_id}
         if self.fsm.state != State.DEADLOCK_REVERSE:
@@ -354,6 +361,8 @@ class Agent:
             safe_distance_m=deadlock_cfg.safe_distance_m,
             path_used_up=parts.reverse.path_used_up,
             turned=parts.turn.turned,
+            reshape_wanted=parts.keeper.reshape_wanted,
+            reshaped=parts.reshape.reshaped,
             confirm_s=self.scenario.navigation.confirm_s,
             threshold_mps=self.scenario.controller.reverse_threshold_mps,
             others_busy=len(live.busy) > (self.robot_id in live.busy),
@@ -439,6 +448,9 @@ class Agent:
             deadlocks=progress.deadlocks,
             profile_s=progress.profile_s,
             cov=self._cov,
+            shape_source=self.parts.keeper.key.source,
+            shape_target=self.parts.keeper.key.target,
+            morph=self.parts.keeper.key.morph,
         )
         return StepOutput(
             command,
@@ -447,4 +459,5 @@ class Agent:
             view.took,
             self.limiter.saturations,
             self.limiter.accel_limited,
+            self.parts.planner.scan,
         )

@@ -9,7 +9,7 @@ from dataclasses import dataclass
 from phalanx.agents.leadership import LeadershipChange, LiveFlags
 from phalanx.agents.perception import MaskedEchoes, SonarEchoes
 from phalanx.core.fixes import PoseFix, RelativeFix
-from phalanx.core.peers import PeerState
+from phalanx.core.peers import PeerState, Scan
 from phalanx.core.robot import Odometry, RobotStatus
 
 
@@ -17,7 +17,8 @@ from phalanx.core.robot import Odometry, RobotStatus
 class Observation:
     """What a robot senses this step (from its driver, or the simulated world): odometry,
     its status, and the positioning measurements that arrived since the last step (pose
-    fixes, relative measurements of other robots), each stamped when it was taken.
+    fixes, relative measurements of other robots), each stamped when it was taken, and
+    the sonar scans the fleet shared since the last step (`phalanx.agents.fleetmap`).
 
     `sonar`: the sonar ranges of `status` already read as geometry, and `masked`: that
     reading with the formation's robots masked out for this robot's step (the batch
@@ -31,6 +32,7 @@ class Observation:
     masked: MaskedEchoes | None = None
     fixes: tuple[PoseFix, ...] = ()
     relative: tuple[RelativeFix, ...] = ()
+    scans: tuple[Scan, ...] = ()  # the fleet's sonar scans for the shared map (last step's)
 
 
 @dataclass(frozen=True, slots=True)

@@ -95,17 +95,27 @@ class Senses:
         self.sonar, self.shape, self.limits = sonar, shape, limits
         self.planner, self.progress, self.plan = planner, progress, plan
         self.stall = StallWatch(self.nav.stall_s)
-        # The robots near enough in the shape for the sonar to hear (only these are masked).
-        audible_m = sonar.mount_m + sonar.max_range_m + shape.radius_m + EXPECTED_MASK_M
-        self._maskable = shape.slots_within(audible_m + 1.0)
-        # ... with where their echoes would come from worked out once (the shape is rigid)
-        slot_ids = [r for r in self._maskable if r != robot_id]
-        discs = FixedDiscs.of(
-            sonar, [self._maskable[r] for r in slot_ids], shape.radius_m + EXPECTED_MASK_M
-        )
+        self.remask((shape.offsets,))
+
+    def remask(self, shapes: tuple[dict[str, Vec2], ...]) -> None:
+        """Where the formation's robots are expected (every slot they have in `shapes`,
+        offsets from this robot's slot): the robots near enough for the sonar to hear
+        are masked, with where their echoes would come from worked out once (the shape
+        is rigid between two changes).
+        """
+        shape, sonar = self.shape, self.sonar
+        audible_m = sonar.mount_m + sonar.max_range_m + shape.radius_m + EXPECTED_MASK_M + 1.0
+        slots = [
+            (r, p)
+            for offsets in shapes
+            for r, p in offsets.items()
+            if r != self.robot_id and p.norm() < audible_m
+        ]
+        discs = FixedDiscs.of(sonar, [p for _, p in slots], shape.radius_m + EXPECTED_MASK_M)
         self.slot_masks = SlotMasks.of(
-            slot_ids, discs, tracked_radius_m=shape.radius_m, half_width_m=shape.half_width_m
-        )
+            [r for r, _ in slots], discs, tracked_radius_m=shape.radius_m,
+            half_width_m=shape.half_width_m,
+        )  # fmt: skip
 
     def read(
         self,
@@ -129,7 +139,8 @@ class Senses:
             mask = mask_readings(self.sonar, [reading], [inputs], self.slot_masks)[0]
         raw, masked, ahead_m, behind_m = reading.raw, mask.points, mask.ahead_m, mask.behind_m
         if self.plan != "scripted" and self.nav.reactive:
-            self.planner.see(pose, self.sonar, reading.ranges_m, mask.echo)
+            self.planner.add(observation.scans)
+            self.planner.see(pose, self.sonar, reading.ranges_m, mask.echo, t_s)
         bumper = any(status.bumpers)
         dead_end = self._boxed_in(pose, masked, stance.state)
         # (short-circuit kept: the stall watch only runs with room ahead)

@@ -229,9 +229,16 @@ class NavigationConfig(Model):
     leadership still work): for studies whose obstacles are scripted sensor events, such
     as the paper's (its signal builder), where the controllers alone are measured.
     Never on a real robot.
+
+    `reshape`: a navigating leader may change the formation's shape (shrink it, fold it
+    into a column) where the scenario's shape does not fit, and back
+    (`phalanx.agents.reshape`). `prior_map`: a map_server YAML file (`phalanx.core.mapfile`)
+    the fleet's map starts from (a path, or a name under `configs/maps/`).
     """
 
     reactive: bool = True
+    reshape: bool = True
+    prior_map: str = Field(default="", max_length=4096)
     waypoints: tuple[tuple[float, float], ...] = ()
     goal_tolerance_m: PositiveFloat = 0.5
     cruise_mps: PositiveFloat = 0.2

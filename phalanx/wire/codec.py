@@ -68,6 +68,9 @@ _STATE_FIELDS: tuple[tuple[str, str], ...] = (
     ("deadlocks", "I"),
     ("profile_s", "d"),
     ("cov", "D"),  # empty (2 bytes) unless the robot runs its pose estimator
+    ("shape_source", "b"),  # the shape the group is in or moving between, and how far
+    ("shape_target", "b"),
+    ("morph", "d"),
 )
 LAYOUTS: dict[type[Message], tuple[int, tuple[tuple[str, str], ...]]] = {
     RobotState: (1, _STATE_FIELDS),

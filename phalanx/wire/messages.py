@@ -13,6 +13,10 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from phalanx.core.geometry import Pose2D, Twist2D
 from phalanx.core.peers import PeerFlags, PeerState
+from phalanx.core.shapes import SHAPE_NAMES
+
+# The shapes a group may be in (`phalanx.core.shapes`): an index beyond them is refused.
+MAX_SHAPE: Final = len(SHAPE_NAMES) - 1
 
 WIRE_VERSION: Final = 1
 
@@ -64,6 +68,9 @@ class RobotState(Message):
     deadlocks: int = Field(default=0, ge=0)
     profile_s: float = Field(default=0.0, ge=0.0)
     cov: tuple[float, ...] = ()
+    shape_source: int = Field(default=0, ge=0, le=MAX_SHAPE)
+    shape_target: int = Field(default=0, ge=0, le=MAX_SHAPE)
+    morph: float = Field(default=1.0, ge=0.0, le=1.0)
 
     @field_validator("cov")
     @classmethod
@@ -107,7 +114,9 @@ class RobotFlags(Message):
     `clear`: its path ahead is free far enough to lead; `formed`: it is in its slot (a
     robot that is not may not be tracked); `formation_leader_id`/`epoch`: who it thinks
     leads, and under which epoch; `waypoint`, `deadlocks`, `profile_s`: the group's
-    progress (next waypoint, deadlocks at it, scripted profile clock in s).
+    progress (next waypoint, deadlocks at it, scripted profile clock in s);
+    `shape_source`, `shape_target`, `morph`: the shape the group is in or moving between
+    (0 the scenario's, 1 shrunk, 2 column; `morph` of the way, 1 = there).
     """
 
     version: Literal[1] = 1
@@ -126,6 +135,9 @@ class RobotFlags(Message):
     waypoint: int = Field(default=0, ge=0)
     deadlocks: int = Field(default=0, ge=0)
     profile_s: float = Field(default=0.0, ge=0.0)
+    shape_source: int = Field(default=0, ge=0, le=MAX_SHAPE)
+    shape_target: int = Field(default=0, ge=0, le=MAX_SHAPE)
+    morph: float = Field(default=1.0, ge=0.0, le=1.0)
 
     @classmethod
     def of(cls, flags: PeerFlags) -> RobotFlags:
