@@ -71,8 +71,6 @@ class Parts:
             ShapeBook(formation), robot.radius_m, enabled=nav.reshape and self.plan == "goto"
         )
         self._applied: ShapeKey = NOMINAL_KEY
-        if self.keeper.enabled:
-            self.planner.footprint_m = self.keeper.footprint_m(NOMINAL_KEY.target)
         self.senses = Senses(
             robot_id, scenario, sonar=SonarGeometry.from_params(robot), shape=self.shape,
             limits=limits, planner=self.planner, progress=self.progress, plan=self.plan,
@@ -132,7 +130,7 @@ class Parts:
     def apply_shape(self) -> None:
         """Take the shape in effect (`keeper.key`) wherever it is used: the slots this
         robot tracks and steers the group by, where the sonar expects the others (both
-        shapes' slots while between two), the route's footprint.
+        shapes' slots while between two), the route's keep-off distance.
         """
         key = self.keeper.key
         if key == self._applied:
@@ -149,7 +147,6 @@ class Parts:
             here = book.shapes
             self.senses.remask(tuple(_offsets(here[s], self.shape.robot_id) for s in sorted(ends)))
         self.planner.keep_off_m = self.shape.half_span_m
-        self.planner.footprint_m = self.keeper.footprint_m(key.target)
 
     def weigh_shapes(self, pose: Pose2D, t_s: float) -> None:
         """The navigating leader weighs the shapes for the way to its next waypoint."""

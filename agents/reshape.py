@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 from phalanx.agents.behaviours.base import Behaviour, Moment
 from phalanx.agents.leadership import FlagsView
 from phalanx.agents.mapping import OccupancyMap
-from phalanx.agents.route import ROUTE_AHEAD_M
+from phalanx.agents.route import DETOUR_M, DETOUR_SHARE, ROUTE_AHEAD_M
 from phalanx.agents.shape import Shape
 from phalanx.core.geometry import ZERO_TWIST, Twist2D, Vec2
 from phalanx.core.shapes import SCENARIO_SHAPE, SHAPE_NAMES, ShapeBook, ShapeKey
@@ -33,9 +33,6 @@ RESHAPE_MIN_S = 3.0
 SETTLE_S = 2.0
 # A footprint keeps this much more than the shape's half-span off obstacles (m).
 FOOTPRINT_MARGIN_M = 0.15
-# A wider shape is taken when its route is at most this much longer than the best.
-DETOUR_SHARE = 1.25
-DETOUR_M = 2.0
 # How often the leader weighs the shapes (s), how many times running a change must be
 # wanted, and how long after a reshape before the next.
 DECIDE_S = 1.0

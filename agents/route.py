@@ -21,6 +21,10 @@ from phalanx.core.peers import Scan
 # Route re-planning period (s) and how far along the route to head for (m).
 REPLAN_S = 1.0
 ROUTE_AHEAD_M = 2.0
+# The route for the shape's footprint is taken when it is at most this much longer than
+# the route for a robot alone (else the reactive layer squeezes by, or the shape folds).
+DETOUR_SHARE = 1.25
+DETOUR_M = 2.0
 
 
 class RoutePlanner:
@@ -75,7 +79,7 @@ class RoutePlanner:
     def towards(self, pose: Pose2D, goal: Vec2, t_s: float) -> Vec2:
         """Where to head for next: along the cheapest route round everything the map
         shows so far (re-planned every `REPLAN_S`), closed where the shape's footprint
-        (`footprint_m`) does not fit when a route exists that way, and keeping the
+        (`footprint_m`) does not fit if that way is not much longer, and keeping the
         shape's half-width off obstacles where there is room (followers go round what
         the shape does not clear); straight for the goal without a map.
         """
@@ -84,16 +88,16 @@ class RoutePlanner:
             return goal
         if t_s - self._planned_s >= REPLAN_S or self.carrot is None:
             self._planned_s = t_s
-            planned = None
-            if self.footprint_m > 0.0:
-                planned = grid.plan(
+            planned = grid.plan(
+                pose.position, goal, keep_off_m=self.keep_off_m, ahead_m=ROUTE_AHEAD_M
+            )
+            if planned is not None and self.footprint_m > 0.0:
+                fits = grid.plan(
                     pose.position, goal, keep_off_m=self.keep_off_m, ahead_m=ROUTE_AHEAD_M,
                     footprint_m=self.footprint_m,
                 )  # fmt: skip
-            if planned is None:
-                planned = grid.plan(
-                    pose.position, goal, keep_off_m=self.keep_off_m, ahead_m=ROUTE_AHEAD_M
-                )
+                if fits is not None and fits[1] <= planned[1] * DETOUR_SHARE + DETOUR_M:
+                    planned = fits
             self.carrot = None if planned is None else planned[0]
         return self.carrot or goal
 

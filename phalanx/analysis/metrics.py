@@ -28,6 +28,7 @@ import numpy.typing as npt
 from phalanx.core.geometry import Twist2D, wrap_angle
 from phalanx.core.rigid_body import rigid_body_target
 from phalanx.core.runlog import RunLog
+from phalanx.core.shapes import ShapeBook, ShapeKey
 from phalanx.core.states import ROBOT_STATES
 
 FloatArray = npt.NDArray[np.float64]
@@ -125,7 +126,7 @@ def is_follower(log: RunLog, robot: str) -> bool:
 
 def _series_against(log: RunLog, follower: str, leader: str, mask: BoolArray) -> ErrorSeries:
     lt, ft = log.traces[leader], log.traces[follower]
-    l_d, phi_d = log.formation.polar_of(follower, leader)
+    l_d, phi_d = _desired_polar(log, follower, leader)
     dx, dy = ft.x_m - lt.x_m, ft.y_m - lt.y_m
     c, s = np.cos(lt.theta_rad), np.sin(lt.theta_rad)
     bx, by = c * dx + s * dy, -s * dx + c * dy
@@ -147,12 +148,41 @@ def _series_against(log: RunLog, follower: str, leader: str, mask: BoolArray) ->
 def _orientation_error_rad(log: RunLog, leader: str, follower: str, mask: BoolArray) -> FloatArray:
     lt, ft = log.traces[leader], log.traces[follower]
     slot = log.formation.slot_of(follower, leader)
+    keys = _shape_keys(log, follower)
+    book = ShapeBook(log.formation) if keys else None
     out = np.full(len(log.t_s), np.nan)
     for k in np.flatnonzero(mask).tolist():
         twist = Twist2D(float(lt.cmd_v_mps[k]), float(lt.cmd_omega_radps[k]))
+        if book is not None:
+            slot = book.formation(keys[k]).slot_of(follower, leader)
         target, _ = rigid_body_target(lt.pose(k), twist, slot)
         out[k] = wrap_angle(float(ft.theta_rad[k]) - target.theta_rad)
     return out
+
+
+def _shape_keys(log: RunLog, robot: str) -> list[ShapeKey]:
+    """The shape `robot` was in at every step, or [] if always the scenario's."""
+    shapes = log.traces[robot].shapes
+    if len(shapes) != len(log.t_s) or all(s == (0, 0, 1.0) for s in shapes):
+        return []
+    return [ShapeKey(*s) for s in shapes]
+
+
+def _desired_polar(
+    log: RunLog, follower: str, leader: str
+) -> tuple[float | FloatArray, float | FloatArray]:
+    """(l_d, phi_d) of `follower` against `leader`: the scenario's shape's, or per step
+    the shape the follower was in (a group that changed its shape on the way).
+    """
+    keys = _shape_keys(log, follower)
+    if not keys:
+        return log.formation.polar_of(follower, leader)
+    book = ShapeBook(log.formation)
+    polar = {k: book.formation(k).polar_of(follower, leader) for k in set(keys)}
+    return (
+        np.array([polar[k][0] for k in keys]),
+        np.array([polar[k][1] for k in keys]),
+    )
 
 
 def phase_masks(log: RunLog) -> tuple[BoolArray, BoolArray]:
@@ -218,7 +248,7 @@ def follower_metrics(log: RunLog, follower: str) -> dict[str, Any]:
 # States in which a robot is off its slot on purpose, or the shape is being turned about:
 # a formation's error is not measured then, nor for `settle_s` after.
 EPISODE_STATES = frozenset(
-    {"AVOID", "EMERGENCY_STOP", "HOLD", "JOIN", "DEADLOCK_TURN", "STUCK"} | ROBOT_STATES
+    {"AVOID", "EMERGENCY_STOP", "HOLD", "JOIN", "DEADLOCK_TURN", "STUCK", "RESHAPE"} | ROBOT_STATES
 )
 TURNING_ON_THE_SPOT_MPS = 0.005
 
@@ -235,6 +265,8 @@ def episode_mask(log: RunLog) -> BoolArray:
         busy |= np.array([s in EPISODE_STATES for s in tr.states], dtype=bool)
         if len(tr.formed) == len(t):
             busy |= ~np.array(tr.formed, dtype=bool)
+        if len(tr.shapes) == len(t):
+            busy |= np.array([s[2] < 1.0 for s in tr.shapes], dtype=bool)  # reshaping
     for k, rid in enumerate(leader_series(log)):
         tr = log.traces[rid]
         spinning = (
@@ -275,7 +307,19 @@ def navigation_metrics(log: RunLog) -> dict[str, Any]:
         "stuck_reason": stuck[0][1] if stuck else "",
         "episode_share": busy_share,
         "calm": errors,
+        "reshapes": sum(1 for e in transitions if e.target == "RESHAPE"),
+        "scenario_shape_share": _scenario_shape_share(log),
     }
+
+
+def _scenario_shape_share(log: RunLog) -> float:
+    """The share of steps the group (its leader's view) was in the scenario's shape."""
+    leaders = leader_series(log)
+    shapes = {rid: tr.shapes for rid, tr in log.traces.items()}
+    n = len(leaders)
+    if not n or any(len(s) != n for s in shapes.values()):
+        return 1.0
+    return sum(shapes[rid][k] == (0, 0, 1.0) for k, rid in enumerate(leaders)) / n
 
 
 def _calm_errors(log: RunLog, followers: list[str], calm: BoolArray) -> dict[str, Any]:

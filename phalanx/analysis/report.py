@@ -302,7 +302,13 @@ SECTION_BEGIN = "<!-- navigation benchmark: written by bench/bench_montecarlo.py
 SECTION_END = "<!-- end of navigation benchmark -->"
 LOCALISATION_BEGIN = "<!-- localisation benchmark: written by bench/bench_localisation.py -->"
 LOCALISATION_END = "<!-- end of localisation benchmark -->"
-KEPT_SECTIONS = ((SECTION_BEGIN, SECTION_END), (LOCALISATION_BEGIN, LOCALISATION_END))
+SWEEP_BEGIN = "<!-- sweep: written by phalanx sweep -->"
+SWEEP_END = "<!-- end of sweep -->"
+KEPT_SECTIONS = (
+    (SECTION_BEGIN, SECTION_END),
+    (SWEEP_BEGIN, SWEEP_END),
+    (LOCALISATION_BEGIN, LOCALISATION_END),
+)
 
 
 def section_of(text: str, *, begin: str = SECTION_BEGIN, end: str = SECTION_END) -> str:
