@@ -122,10 +122,12 @@ class Parts:
         return {state: table.get(state, still) for state in State}
 
     def _go_to_goal(self, limits: KinematicLimits) -> Steered:
-        return GoToGoal(
+        go = GoToGoal(
             self.scenario, shape=self.shape, limits=limits, steering=self.steering,
             course=self.course, planner=self.planner, progress=self.progress,
         )  # fmt: skip
+        go.keeper = self.keeper
+        return go
 
     def apply_shape(self) -> None:
         """Take the shape in effect (`keeper.key`) wherever it is used: the slots this
@@ -153,7 +155,7 @@ class Parts:
         waypoints = self.scenario.navigation.waypoints
         if self.keeper.enabled and self.progress.waypoint < len(waypoints):
             goal = self.course.escape or Vec2(*waypoints[self.progress.waypoint])
-            self.keeper.decide(self.planner.map, pose.position, goal, t_s)
+            self.keeper.decide(self.planner.map, pose, goal, t_s)
 
     def advance_waypoints(self, pose: Pose2D) -> None:
         """The leader's waypoint bookkeeping: a reached waypoint resets the retries (and

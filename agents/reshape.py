@@ -23,7 +23,7 @@ from phalanx.agents.leadership import FlagsView
 from phalanx.agents.mapping import OccupancyMap
 from phalanx.agents.route import DETOUR_M, DETOUR_SHARE, ROUTE_AHEAD_M
 from phalanx.agents.shape import Shape
-from phalanx.core.geometry import ZERO_TWIST, Twist2D, Vec2
+from phalanx.core.geometry import ZERO_TWIST, Pose2D, Twist2D, Vec2
 from phalanx.core.shapes import SCENARIO_SHAPE, SHAPE_NAMES, ShapeBook, ShapeKey
 
 # Slots slide at this speed (m/s) in the formation frame during a reshape, and it
@@ -38,6 +38,8 @@ FOOTPRINT_MARGIN_M = 0.15
 DECIDE_S = 1.0
 CONFIRM = 2
 DWELL_S = 5.0
+# The sonar showing the way too narrow for the shape this long folds the group.
+SQUEEZE_S = 1.0
 
 
 @dataclass
@@ -55,6 +57,7 @@ class ShapeKeeper:
     _count: int = 0
     _decided_s: float = -math.inf
     _settled_s: float = -math.inf
+    squeezed_s: float = 0.0  # how long the sonar has shown the way too narrow for the shape
 
     def copy_from(self, leader: FlagsView) -> None:
         """Take the leader's shape as it published it."""
@@ -69,7 +72,26 @@ class ShapeKeeper:
         """The leader wants another shape than the one it is in (or is between two)."""
         return self.enabled and (self.wanted != self.key.target or not self.key.settled)
 
-    def decide(self, grid: OccupancyMap | None, start: Vec2, goal: Vec2, t_s: float) -> None:
+    def squeeze(self, squeezed: bool, dt_s: float) -> None:
+        """The leader's sonar this step: the way ahead free for itself but not for the
+        whole shape. Held `SQUEEZE_S`, the group folds at once (the map may not show yet
+        that there is no way round).
+        """
+        self.squeezed_s = self.squeezed_s + dt_s if squeezed else 0.0
+        narrowest = max(s for s in range(len(SHAPE_NAMES)) if s == 0 or self.book.differs(s))
+        if self.enabled and self.squeezed_s >= SQUEEZE_S and self.key.target != narrowest:
+            self.wanted = narrowest
+            self._candidate, self._count = narrowest, CONFIRM
+
+    def fits(self, grid: OccupancyMap, pose: Pose2D, shape: int) -> bool:
+        """Whether every slot of `shape`, and of the shape in effect, is clear of the
+        map's obstacles with the leader at `pose` (room to change between them here).
+        """
+        clearance = self.radius_m + FOOTPRINT_MARGIN_M
+        slots = [*self.book.shapes[shape].values(), *self.book.shapes[self.key.target].values()]
+        return all(grid.clear_within(pose.to_world(p), clearance) for p in slots)
+
+    def decide(self, grid: OccupancyMap | None, pose: Pose2D, goal: Vec2, t_s: float) -> None:
         """Weigh the shapes (every `DECIDE_S`): the widest whose route is about as good as
         the best; a change is wanted once it has come out `CONFIRM` times running, not
         within `DWELL_S` of the last reshape, and a wider shape only if it fits here.
@@ -77,22 +99,17 @@ class ShapeKeeper:
         if not self.enabled or grid is None or t_s - self._decided_s < DECIDE_S:
             return
         self._decided_s = t_s
-        best = self._best(grid, start, goal)
+        best = self._best(grid, pose.position, goal)
         if best is None or t_s - self._settled_s < DWELL_S:
             self._count = 0
             return
         wider = self.footprint_m(best) > self.footprint_m(self.key.target)
-        if wider and not grid.clear_within(start, self.book_reach_m(best)):
+        if wider and (self.squeezed_s > 0.0 or not self.fits(grid, pose, best)):
             best = self.key.target
         self._count = self._count + 1 if best == self._candidate else 1
         self._candidate = best
         if self._count >= CONFIRM:
             self.wanted = best
-
-    def book_reach_m(self, shape: int) -> float:
-        """How far the shape's slots reach from the leader's, plus a robot and margin."""
-        reach = max((p.norm() for p in self.book.shapes[shape].values()), default=0.0)
-        return reach + self.radius_m + FOOTPRINT_MARGIN_M
 
     def _best(self, grid: OccupancyMap, start: Vec2, goal: Vec2) -> int | None:
         shapes = [s for s in range(len(SHAPE_NAMES)) if s == 0 or self.book.differs(s)]

@@ -12,25 +12,24 @@ import typer
 
 def sweep(
     family: Annotated[
-        list[str], typer.Option(help="Scenario family: field, narrow, deadend, corridor.")
-    ] = ["field"],  # noqa: B006, E501
-    shape: Annotated[list[str], typer.Option(help="Formations.")] = [
-        "wedge",
-        "inline",
-        "collateral",
-    ],  # noqa: B006, E501
-    robots: Annotated[list[int], typer.Option(help="Group sizes.")] = [3],  # noqa: B006
-    controller: Annotated[list[str], typer.Option(help="Follower controllers.")] = ["ours"],  # noqa: B006
+        list[str] | None,
+        typer.Option(help="Scenario family: field, narrow, deadend, corridor (default field)."),
+    ] = None,
+    shape: Annotated[list[str] | None, typer.Option(help="Formations (default all three).")] = None,
+    robots: Annotated[list[int] | None, typer.Option(help="Group sizes (default 3).")] = None,
+    controller: Annotated[
+        list[str] | None, typer.Option(help="Follower controllers (default ours).")
+    ] = None,
     seeds: Annotated[int, typer.Option(min=1, max=100000, help="Seeds 0..N-1.")] = 100,
     first_seed: Annotated[int, typer.Option(min=0, help="First seed.")] = 0,
     workers: Annotated[int, typer.Option(min=1, max=256, help="Local worker processes.")] = 2,
     address: Annotated[
         str | None,
         typer.Option(help="A Dask scheduler (tcp://host:8786) instead of local workers."),
-    ] = None,  # noqa: E501
+    ] = None,
     out: Annotated[
         Path, typer.Option(help="Results file (JSON lines; finished runs are not re-run).")
-    ] = Path("results/sweep/runs.jsonl"),  # noqa: E501
+    ] = Path("results/sweep/runs.jsonl"),
     write: Annotated[bool, typer.Option(help="Rewrite docs/RESULTS.md's sweep section.")] = False,
     docs: Annotated[Path, typer.Option(help="Where RESULTS.md is.")] = Path("docs"),
 ) -> None:
@@ -40,6 +39,10 @@ def sweep(
     from phalanx.analysis import sweep as sw
     from phalanx.analysis.report import SWEEP_BEGIN, SWEEP_END, with_section
 
+    family = family or ["field"]
+    shape = shape or ["wedge", "inline", "collateral"]
+    robots = robots or [3]
+    controller = controller or ["ours"]
     try:
         todo = sw.jobs(family, shape, robots, range(first_seed, first_seed + seeds), controller)
         todo[0].scenario() if todo else None
