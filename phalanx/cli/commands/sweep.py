@@ -32,6 +32,10 @@ def sweep(
     ] = Path("results/sweep/runs.jsonl"),
     write: Annotated[bool, typer.Option(help="Rewrite docs/RESULTS.md's sweep section.")] = False,
     docs: Annotated[Path, typer.Option(help="Where RESULTS.md is.")] = Path("docs"),
+    set_: Annotated[
+        list[str] | None,
+        typer.Option("--set", help="PATH=VALUE: override a field of every run's scenario."),
+    ] = None,
 ) -> None:
     """Run the sweep, print the table (and write it into docs/RESULTS.md with --write)."""
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeElapsedColumn
@@ -44,7 +48,10 @@ def sweep(
     robots = robots or [3]
     controller = controller or ["ours"]
     try:
-        todo = sw.jobs(family, shape, robots, range(first_seed, first_seed + seeds), controller)
+        overrides = [_assignment(a) for a in set_ or []]
+        todo = sw.jobs(
+            family, shape, robots, range(first_seed, first_seed + seeds), controller, overrides
+        )
         todo[0].scenario() if todo else None
     except ValueError as exc:
         raise typer.BadParameter(str(exc)) from exc
@@ -76,6 +83,20 @@ def sweep(
             with_section(text, section, begin=SWEEP_BEGIN, end=SWEEP_END), encoding="utf-8"
         )
         typer.echo(f"wrote {path}")
+
+
+def _assignment(text: str) -> tuple[str, object]:
+    """`PATH=VALUE` (a TOML value; a bare word is a string)."""
+    import tomllib
+
+    path, sep, value = text.partition("=")
+    if not sep or not path.strip():
+        raise ValueError(f"--set expects PATH=VALUE, got {text!r}")
+    try:
+        parsed: object = tomllib.loads(f"v = {value}")["v"]
+    except tomllib.TOMLDecodeError:
+        parsed = value
+    return path.strip(), parsed
 
 
 def register(app: typer.Typer) -> None:
