@@ -9,14 +9,20 @@ python-can's virtual bus), prints:
 - frames parsed per second: the ARCOS frame parser and SIP decoder on a recorded stream;
 - lost link -> motors stopped: ARCOS cable unplugged (silence both ways) until the
   firmware watchdog stops the motors (2 s on a P3DX) and until the driver reports the link
-  lost; CAN heartbeat lost until both wheels are commanded to zero.
+  lost; CAN heartbeat lost until both wheels are commanded to zero;
+- ARCOS SIPs lost while the link still carries commands (docs/RELIABILITY.md): the driver
+  declaring them lost -> its STOP arriving at the robot, and -> the robot at rest; the
+  longest control-step call (set_velocity, read_odometry, read_status at 20 Hz) while the
+  driver reconnects to a silent robot, against one control period (50 ms).
 
-    .venv/bin/python bench/bench_drivers.py [--repeats 30]
+    .venv/bin/python bench/bench_drivers.py [--repeats 30] [--only sip-loss]
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import math
 import statistics
 import time
 from collections.abc import Callable, Iterator
@@ -25,6 +31,7 @@ from contextlib import contextmanager
 from calibration import Calibration
 
 from phalanx.core.config_files import load_robot
+from phalanx.core.errors import DriverError
 from phalanx.core.geometry import Twist2D
 from phalanx.drivers.arcos import ArcosDriver, ArcosSettings
 from phalanx.drivers.canopen import CanopenDriver, CanopenSettings
@@ -72,7 +79,7 @@ def arcos_latency(name: str, link: Link, repeats: int) -> None:
             _until(lambda: driver.read_odometry().twist.v_mps == 0.0)
             t0 = time.perf_counter()
             driver.set_velocity(Twist2D(v, 0.0))
-            to_robot.append(_until(lambda v=v: emulator.body.state().setpoint.v_mps == v))
+            to_robot.append(_until(lambda v=v: emulator.target.v_mps == v))
             t1 = time.perf_counter() - t0
             seen = _until(lambda v=v: driver.read_odometry().twist.v_mps * v > 0.0)
             to_motion.append(t1 + seen)
@@ -84,7 +91,8 @@ def arcos_latency(name: str, link: Link, repeats: int) -> None:
 def arcos_unplug(repeats: int) -> None:
     stopped, noticed = [], []
     for _ in range(repeats):
-        with arcos(TcpLink(0)) as (emulator, driver):
+        # A serial cable (a pty): no connection to drop, only the firmware watchdog is left.
+        with arcos(PtyLink()) as (emulator, driver):
             driver.set_velocity(Twist2D(0.2, 0.0))
             _until(lambda: emulator.body.state().twist.v_mps > 0.1)
             t0 = time.perf_counter()
@@ -96,6 +104,44 @@ def arcos_unplug(repeats: int) -> None:
             emulator.unplug(False)
     print(f"arcos unplugged -> driver reports link lost {_pct(noticed)}")
     print(f"arcos unplugged -> motors stopped (firmware watchdog 2 s) {_pct(stopped)}")
+
+
+def arcos_sip_loss(repeats: int) -> None:
+    to_stop, to_rest = [], []
+    for _ in range(repeats):
+        with arcos(TcpLink(0)) as (emulator, driver):
+            driver.set_velocity(Twist2D(0.2, 0.0))
+            _until(lambda: emulator.body.state().twist.v_mps > 0.19)
+            emulator.drop_sips(20)  # SIPs stop; commands still reach the robot
+            _until(lambda: driver.stats.sips_lost_s is not None, timeout_s=5.0)
+            lost_s = driver.stats.sips_lost_s or float("nan")
+            _until(lambda s=lost_s: emulator.stats.first_after("STOP", s) is not None)
+            to_stop.append((emulator.stats.first_after("STOP", lost_s) or math.nan) - lost_s)
+            _until(lambda: emulator.body.state().twist.v_mps == 0.0)
+            to_rest.append(time.monotonic() - lost_s)
+    worst = max(to_stop) * 1e3
+    print(f"arcos SIPs lost -> STOP at the robot        {_pct(to_stop)} (max {worst:.2f} ms)")
+    print(f"arcos SIPs lost -> robot at rest (0.2 m/s)  {_pct(to_rest)}")
+
+
+def arcos_reconnect_blocking(seconds: float) -> None:
+    calls: list[float] = []
+    with arcos(TcpLink(0)) as (emulator, driver):
+        emulator.unplug()  # silence: every reconnect attempt runs into its timeouts
+        started = time.monotonic()
+        while time.monotonic() - started < seconds:
+            for call in (driver.read_odometry, driver.read_status,
+                         lambda: driver.set_velocity(Twist2D(0.2, 0.0))):  # fmt: skip
+                t0 = time.perf_counter()
+                with contextlib.suppress(DriverError):
+                    call()
+                calls.append(time.perf_counter() - t0)
+            time.sleep(0.05)
+        attempts = driver.stats.reconnect_failures
+    print(
+        f"arcos control calls while reconnecting ({attempts} attempts in {seconds:.0f} s): "
+        f"{_pct(calls)}, longest {max(calls) * 1e3:.2f} ms (one control period: 50 ms)"
+    )
 
 
 def parse_rate() -> None:
@@ -160,11 +206,21 @@ def main() -> None:
     Calibration.measure()  # (the unit every time below can be divided by, on any machine)
     parser = argparse.ArgumentParser()
     parser.add_argument("--repeats", type=int, default=30)
+    parser.add_argument("--only", choices=["sip-loss", "unplug"], default=None)
     args = parser.parse_args()
+    if args.only == "unplug":
+        arcos_unplug(max(3, args.repeats // 10))
+        return
+    if args.only == "sip-loss":
+        arcos_sip_loss(args.repeats)
+        arcos_reconnect_blocking(20.0)
+        return
     arcos_latency("pty", PtyLink(), args.repeats)
     arcos_latency("tcp", TcpLink(0), args.repeats)
     parse_rate()
     arcos_unplug(max(3, args.repeats // 10))
+    arcos_sip_loss(max(3, args.repeats // 3))
+    arcos_reconnect_blocking(10.0)
     can_latency(args.repeats)
 
 

@@ -1,14 +1,23 @@
 """The `arcos` backend: a Pioneer P3DX over its ARCOS client protocol, on a serial port
-(pyserial) or TCP (MobileSim convention, port 8101), both in `arcos_link`.
+(pyserial) or TCP (MobileSim/AMRISim convention, port 8101), both in `arcos_link`.
 
-Connection as ARIA does it (AriaCoda `src/ArRobot.cpp`, `ArRobotConnector`): SYNC0,
-SYNC1, SYNC2 (whose reply names the robot subtype, which selects the conversion
-factors), OPEN, PULSE, CONFIG (the robot's own velocity limits and watchdog), ENABLE 1,
-SONAR 1. A reader thread parses SIPs into odometry (15-bit position counters unwrapped),
-sonar, bumpers, battery and motor state (`SipTracker`); garbage, truncated frames and
-bad checksums are skipped and counted. Motion is VEL (mm/s) and RVEL (deg/s); PULSE keeps
-the firmware's watchdog fed when no command is due. A link that stops delivering SIPs is
-declared lost and reopened with back-off; motion must then be commanded again.
+Connection as ARIA does it (`arcos_handshake`). A reader thread parses SIPs into odometry
+(15-bit position counters unwrapped), sonar, bumpers, battery and motor state
+(`arcos_tracker`); garbage, truncated frames and bad checksums are skipped and counted.
+The robot's CONFIG packet gives its own speed limits (`robot_limits()`, which the safety
+wrapper adopts when tighter), its watchdog (the keep-alive runs at a quarter of it at
+most) and its accelerations (raised to the robot file's when lower, within the robot's
+tops, so that it brakes as the agent expects). Motion is VEL (mm/s) and RVEL (deg/s);
+PULSE keeps the firmware's watchdog fed when no command is due.
+
+Faults. When no good SIP has come for `link_timeout_s` (the robot went silent, or its
+SIPs arrive garbled while the link may still carry commands) the driver sends STOP at
+once, reports the link lost, refuses motion and reconnects on its reader thread (trying
+`fallbacks` too, and only to the same robot); the control thread is never blocked by it.
+Motion must then be commanded again. E-stop: `estop()` and the robot's own E-stop
+button latch in the driver (status `estopped`, motion refused) until `connect()` resets
+it deliberately, whether or not the firmware latches it (AMRISim does not: it reports
+no E-stop afterwards and moves on the next command).
 """
 
 from __future__ import annotations
@@ -18,181 +27,24 @@ import logging
 import math
 import threading
 import time
-from dataclasses import dataclass
-
-from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from phalanx.core.config import RobotParams
-from phalanx.core.errors import DriverError, DriverTimeout, DriverUnavailable, ProtocolError
-from phalanx.core.geometry import Pose2D, Twist2D, wrap_angle
+from phalanx.core.errors import DriverError, DriverTimeout, DriverUnavailable
+from phalanx.core.geometry import Twist2D
 from phalanx.core.lifecycle import Closing
 from phalanx.core.robot import Odometry, RobotStatus
-from phalanx.drivers.arcos_link import Link, open_link
-from phalanx.protocols.arcos import (
-    CONFIG_PAC,
-    SIP_MOVING,
-    SIP_STOPPED,
-    SYNC0,
-    SYNC1,
-    SYNC2,
-    Cmd,
-    ConvFactors,
-    FrameParser,
-    RobotConfig,
-    Sip,
-    command,
-    decode_config,
-    decode_sip,
-    factors_for,
-    parse_sync2,
-    wrap_delta,
-)
+from phalanx.drivers.arcos_handshake import Connection, HandshakeOptions, Identity, open_connection
+from phalanx.drivers.arcos_link import Link
+from phalanx.drivers.arcos_settings import ArcosSettings
+from phalanx.drivers.arcos_tracker import ArcosStats, SipTracker
+from phalanx.protocols.arcos import Cmd, FrameParser, RobotConfig, command, factors_for
 
+__all__ = ["ArcosDriver", "ArcosSettings"]
 log = logging.getLogger("phalanx.arcos")
-N_SONARS = 16
-FRAME_OVERHEAD_BYTES = 5  # FA FB, the length byte, the two checksum bytes
-
-
-class ArcosSettings(BaseModel):
-    """How to reach the robot. Exactly one of `port` (serial device) or `tcp` (host:port)."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
-    port: str | None = None
-    tcp: str | None = None
-    baud: int = Field(default=9600, gt=0, description="9600 at power-up; 19200-115200 if set")
-    connect_timeout_s: float = Field(default=5.0, gt=0.0)
-    sync_retries: int = Field(default=5, ge=1)
-    pulse_s: float = Field(default=0.5, gt=0.0, description="keep-alive period (ARIA: 0.5)")
-    link_timeout_s: float = Field(default=1.0, gt=0.0, description="no SIP this long = lost")
-    reconnect: bool = True
-    reconnect_backoff_max_s: float = Field(default=2.0, gt=0.0)
-    sonar: bool = True
-
-    @model_validator(mode="after")
-    def _one_link(self) -> ArcosSettings:
-        if (self.port is None) == (self.tcp is None):
-            raise ValueError("give exactly one of port (serial device) or tcp (host:port)")
-        if self.tcp is not None:
-            host, sep, port = self.tcp.rpartition(":")
-            if not sep or not host or not port.isdigit():
-                raise ValueError(f"tcp must be host:port, got {self.tcp!r}")
-        return self
-
-    @property
-    def address(self) -> str:
-        """The serial device or host:port, for messages."""
-        return self.port or self.tcp or "?"
-
-
-@dataclass
-class ArcosStats:
-    """Counters of the link."""
-
-    sips: int = 0
-    bad_sips: int = 0
-    other_frames: int = 0
-    reconnects: int = 0
-    links_lost: int = 0
-    commands_sent: int = 0
-
-
-class SipTracker:
-    """What the robot's packets say: SIPs into odometry, sonar, bumpers, battery and motor
-    state; the CONFIG packet into the robot's own limits. No I/O, no lock: the driver
-    calls it with its lock held.
-    """
-
-    def __init__(self, stats: ArcosStats) -> None:
-        self.stats = stats
-        self.factors = ConvFactors()  # set from the SYNC2 reply's subtype
-        self.config: RobotConfig | None = None
-        self.sip: Sip | None = None
-        self.odometry: Odometry | None = None
-        self.sonar_m: tuple[float, ...] = (5.0,) * N_SONARS
-        self.last_sip_s = time.monotonic()
-        self._pose = Pose2D(0.0, 0.0, 0.0)
-        self._last_xy: tuple[int, int] | None = None
-        self._th0: float | None = None
-
-    def new_session(self) -> None:
-        """A new connection: position counters restart, the integrated pose carries on."""
-        self._last_xy, self._th0 = None, None
-
-    def take(self, body: bytes, *, byte_time_s: float) -> bool:
-        """Account for one frame's body; True if it was a good SIP.
-
-        A SIP is stamped when the robot sent it: its arrival less its time on the wire
-        (the whole frame at `byte_time_s` a byte).
-        """
-        kind = body[0]
-        if kind in (SIP_STOPPED, SIP_MOVING):
-            try:
-                sip = decode_sip(body)
-            except ProtocolError:
-                self.stats.bad_sips += 1
-                return False
-            wire_s = (len(body) + FRAME_OVERHEAD_BYTES) * byte_time_s
-            self._on_sip(sip, time.monotonic() - wire_s)
-            return True
-        if kind == CONFIG_PAC:
-            try:
-                self.config = decode_config(body)
-            except ProtocolError:
-                self.stats.bad_sips += 1
-        else:
-            self.stats.other_frames += 1
-        return False
-
-    def status(self, link_fault: str) -> RobotStatus:
-        """Sonar (m), bumpers, battery and motor state of the latest SIP, and `link_fault`."""
-        faults = (link_fault,) if link_fault else ()
-        sip = self.sip
-        if sip is None:
-            return RobotStatus(faults=faults or ("no SIP yet",))
-        return RobotStatus(
-            sonar_ranges_m=self.sonar_m,
-            bumpers=sip.bumpers,
-            battery_v=sip.battery_dv / 10.0,
-            motors_enabled=sip.motors_enabled and not link_fault,
-            estopped=sip.estopped,
-            stalled=sip.left_stall or sip.right_stall,
-            faults=faults,
-        )
-
-    def _on_sip(self, sip: Sip, measured_s: float) -> None:
-        f = self.factors
-        now = time.monotonic()
-        th = wrap_angle(sip.th * f.angle_rad)
-        if self._last_xy is None or self._th0 is None:
-            self._th0 = wrap_angle(th - self._pose.theta_rad)
-            self._last_xy = (sip.x, sip.y)
-        dx_mm = wrap_delta(sip.x, self._last_xy[0]) * f.dist_mm
-        dy_mm = wrap_delta(sip.y, self._last_xy[1]) * f.dist_mm
-        self._last_xy = (sip.x, sip.y)
-        # ARCOS integrates x, y in its own frame; ours starts at the first SIP's pose.
-        c, s = math.cos(-self._th0), math.sin(-self._th0)
-        pose = Pose2D(
-            self._pose.x_m + (c * dx_mm - s * dy_mm) / 1000.0,
-            self._pose.y_m + (s * dx_mm + c * dy_mm) / 1000.0,
-            wrap_angle(th - self._th0),
-        )
-        v = (sip.left_vel + sip.right_vel) / 2.0 * f.vel_mmps / 1000.0
-        w = (sip.right_vel - sip.left_vel) / 2.0 * f.vel_mmps * f.diff
-        self._pose = pose
-        self.odometry = Odometry(pose, Twist2D(v, w), measured_s)
-        ranges = list(self.sonar_m)
-        for index, range_raw in sip.sonars:
-            if 0 <= index < N_SONARS:
-                ranges[index] = range_raw * f.range_mm / 1000.0
-        self.sonar_m = tuple(ranges)
-        self.sip = sip
-        self.last_sip_s = now
-        self.stats.sips += 1
 
 
 class ArcosDriver(Closing):
-    """A P3DX over ARCOS; implements the Driver protocol (`robot` is unused for now)."""
+    """A P3DX over ARCOS; implements the Driver protocol."""
 
     name = "arcos"
 
@@ -204,41 +56,67 @@ class ArcosDriver(Closing):
         self.readings = SipTracker(self.stats)
         self.robot_name = ""
         self.subtype = ""
+        self.address = settings.address
+        self.identity: Identity | None = None  # the first robot that answered
+        self._address_index = 0
         self._link: Link | None = None
-        self._lock = threading.RLock()  # guards the link and the readings
+        self._lock = threading.RLock()  # the link and the readings; never held over I/O waits
         self._write_lock = threading.Lock()
         self._stop = threading.Event()
         self._reader: threading.Thread | None = None
         self._closed = False
         self._last_sent_s = 0.0
+        self._pulse_s = settings.pulse_s
         self._link_fault = ""
+        self._estop = ""  # why the E-stop latch holds ("" when it does not)
 
     # -- Driver protocol -------------------------------------------------------------
 
     def connect(self) -> None:
-        """Open the link and run the handshake; raises DriverError if the robot is absent."""
+        """Open the link and run the handshake; when connected already, reset the E-stop
+        latch and re-enable the motors. DriverError if the robot is absent, the link is
+        down (it is reconnecting), or the robot's E-stop button is still pressed.
+        """
+        with self._lock:
+            self._check_open()
+            if self._link is not None and not self._link_fault:
+                self._reset_estop()
+                self._write(command(Cmd.ENABLE, 1))
+                return
+            if self._reader is not None:
+                raise DriverUnavailable(f"link to {self.address} down, reconnecting")
+        connection = self._open(enable=True)
         with self._lock:
             if self._closed:
-                raise DriverError("driver closed; make a new one")
-            if self._link is not None and not self._link_fault:
-                self._write(command(Cmd.ENABLE, 1))  # connected already: re-enable motors
-                return
-            self._open_and_handshake()
-        if self._reader is None:
+                connection.link.close()
+                raise DriverError("driver closed while connecting")
+            self._install(connection)
             self._stop.clear()
-            self._reader = threading.Thread(
-                target=self._read_loop, name="arcos-reader", daemon=True
-            )
+            self._reader = threading.Thread(target=self._read_loop, name="arcos-reader")
+            self._reader.daemon = True
             self._reader.start()
 
     def set_velocity(self, twist: Twist2D) -> None:
-        """VEL (mm/s) and RVEL (deg/s). Non-finite values raise ValueError."""
+        """VEL (mm/s) and RVEL (deg/s). Non-finite values raise ValueError; motion while the
+        link is down or the E-stop latch holds raises DriverUnavailable (a zero command
+        then sends nothing: the robot is already held at rest).
+        """
         if not (math.isfinite(twist.v_mps) and math.isfinite(twist.omega_radps)):
             raise ValueError(f"non-finite velocity command {twist}")
         v_mm = round(twist.v_mps * 1000.0 / self.readings.factors.vel_mmps)
         w_deg = round(math.degrees(twist.omega_radps))
-        self._send(command(Cmd.VEL, v_mm))
-        self._send(command(Cmd.RVEL, w_deg))
+        with self._lock:
+            self._check_open()
+            if self._link_fault or self._estop:
+                if v_mm == 0 and w_deg == 0:
+                    return
+                if self._link_fault:
+                    raise DriverUnavailable(f"link down: {self._link_fault}")
+                raise DriverUnavailable(
+                    f"robot E-stopped ({self._estop}): reset it deliberately (connect) first"
+                )
+            self._write(command(Cmd.VEL, v_mm))
+            self._write(command(Cmd.RVEL, w_deg))
 
     def read_odometry(self) -> Odometry:
         """The pose integrated from SIPs since connect (odometry frame) and the twist.
@@ -252,17 +130,27 @@ class ArcosDriver(Closing):
             return self.readings.odometry
 
     def read_status(self) -> RobotStatus:
-        """Sonar (m), bumpers, battery, motor and link state from the latest SIP."""
+        """Sonar (m), bumpers, battery (V), motor and link state from the latest SIP, with
+        the E-stop latch.
+        """
         with self._lock:
-            return self.readings.status(self._link_fault)
+            return self.readings.status(link_fault=self._link_fault, estop=self._estop)
 
     def stop(self) -> None:
         """STOP: decelerate to rest; motors stay enabled."""
-        self._send(command(Cmd.STOP))
+        with self._lock:
+            self._check_open()
+            if self._link_fault:
+                raise DriverUnavailable(f"link down: {self._link_fault}")
+            self._write(command(Cmd.STOP))
 
     def estop(self) -> None:
-        """E_STOP: stop at once and disable the motors (ENABLE 1 or reconnect to resume)."""
-        self._send(command(Cmd.E_STOP))
+        """E_STOP (the firmware brakes as hard as it can), latched here until `connect()`."""
+        with self._lock:
+            self._estop = self._estop or "e-stop (commanded)"
+            if self._link is not None and not self._closed:
+                with contextlib.suppress(DriverError):  # the reader notices a dead link
+                    self._write(command(Cmd.E_STOP))
 
     def close(self) -> None:
         """STOP, CLOSE and release the link; safe to call twice."""
@@ -289,10 +177,19 @@ class ArcosDriver(Closing):
 
     # -- extras -----------------------------------------------------------------------
 
+    @property
+    def robot_config(self) -> RobotConfig | None:
+        """The robot's CONFIG packet, if it sent one."""
+        return self.readings.config
+
     def robot_limits(self) -> tuple[float, float] | None:
-        """(v max m/s, omega max rad/s) from the robot's CONFIG packet, if it sent one."""
+        """(v max m/s, omega max rad/s): the robot's working maxima from its CONFIG packet
+        (TransVelMax, RotVelMax), None if it sent none or they are 0 (older firmware).
+        """
         config = self.readings.config
-        if config is None or config.trans_vel_max_mmps <= 0:
+        if config is None or not config.has("trans_vel_max_mmps"):
+            return None
+        if config.trans_vel_max_mmps <= 0 or config.rot_vel_max_degps <= 0:
             return None
         return config.trans_vel_max_mmps / 1000.0, math.radians(config.rot_vel_max_degps)
 
@@ -302,69 +199,104 @@ class ArcosDriver(Closing):
         with self._lock:
             return self._link is not None and not self._link_fault
 
-    # -- link ------------------------------------------------------------------------
+    # -- connection ------------------------------------------------------------------
 
-    def _open_and_handshake(self) -> None:
+    def _handshake(self, *, enable: bool) -> HandshakeOptions:
+        s = self.settings
+        return HandshakeOptions(
+            connect_timeout_s=s.connect_timeout_s,
+            sync_retries=s.sync_retries,
+            config_timeout_s=s.config_timeout_s,
+            baud=s.baud,
+            sonar=s.sonar,
+            enable=enable,
+        )
+
+    def _open(self, *, enable: bool) -> Connection:
+        """A connection to the robot: its addresses in turn, from the last one that
+        worked; only the robot that answered first is accepted. Holds no lock.
+        """
+        addresses = self.settings.addresses
+        errors: list[DriverError] = []
+        for i in range(len(addresses)):
+            index = (self._address_index + i) % len(addresses)
+            address, tcp = addresses[index]
+            try:
+                connection = open_connection(
+                    address,
+                    self._handshake(enable=enable),
+                    tcp=tcp,
+                    stats=self.parser.stats,
+                    abort=self._stop,
+                )
+            except DriverError as exc:
+                errors.append(exc)
+                continue
+            if self.identity is not None and not self.identity.same_robot(connection.identity):
+                connection.link.close()
+                errors.append(
+                    DriverUnavailable(f"{address}: another robot answered ({connection.identity})")
+                )
+                continue
+            self._address_index = index
+            return connection
+        if len(errors) == 1:
+            raise errors[0]
+        raise DriverUnavailable("; ".join(str(e) for e in errors))
+
+    def _install(self, connection: Connection) -> None:
+        """Make `connection` the driver's link (lock held)."""
         if self._link is not None:
             self._link.close()
-        s = self.settings
-        self._link = open_link(port=s.port, tcp=s.tcp, baud=s.baud, timeout_s=s.connect_timeout_s)
-        self.parser = FrameParser(stats=self.parser.stats)
-        try:
-            self._sync()
-            self._write(command(Cmd.OPEN))
-            self._write(command(Cmd.PULSE))
-            self._write(command(Cmd.CONFIG))
-            self._write(command(Cmd.ENABLE, 1))
-            self._write(command(Cmd.SONAR, 1 if self.settings.sonar else 0))
-            self._await_first_sip()
-        except DriverError:
-            self._link.close()
-            self._link = None
-            raise
-
-    def _sync(self) -> None:
-        for _attempt in range(self.settings.sync_retries):
-            if self._try_sync():
-                return
-            self._write(command(Cmd.CLOSE))  # an old connection may be open: close, resync
-            time.sleep(0.1)
-        raise DriverTimeout(f"no ARCOS sync from {self.settings.address}")
-
-    def _try_sync(self) -> bool:
-        per_step_s = self.settings.connect_timeout_s / 3
-        for step in (SYNC0, SYNC1, SYNC2):
-            self._write(command(step))
-            body = self._await_frame(lambda b, s=step: b[0] == s, per_step_s)
-            if body is None:
-                return False
-            if step == SYNC2:
-                self.robot_name, _type, self.subtype = parse_sync2(body)
-                self.readings.factors = factors_for(self.subtype)
-        return True
-
-    def _await_frame(self, wanted: object, timeout_s: float) -> bytes | None:
-        assert self._link is not None  # noqa: S101 - called with an open link
-        deadline = time.monotonic() + timeout_s
-        while (left := deadline - time.monotonic()) > 0:
-            for body in self.parser.feed(self._link.read(min(left, 0.05))):
-                if body[0] in (SIP_STOPPED, SIP_MOVING) and not wanted(body):  # type: ignore[operator]
-                    return None  # SIPs during sync: an old connection is still open
-                if wanted(body):  # type: ignore[operator]
-                    return body
-        return None
-
-    def _await_first_sip(self) -> None:
-        assert self._link is not None  # noqa: S101
-        deadline = time.monotonic() + self.settings.connect_timeout_s
+        self._link = connection.link
+        self.parser = connection.parser
+        self.address = connection.address
+        self.identity = self.identity or connection.identity
+        self.robot_name, self.subtype = connection.identity.name, connection.identity.subtype
+        self.readings.factors = factors_for(self.subtype)
+        self.readings.config = connection.config
         self.readings.new_session()
-        sips = self.stats.sips
-        while time.monotonic() < deadline:
-            for body in self.parser.feed(self._link.read(0.05)):
-                self._dispatch(body)
-            if self.stats.sips > sips:
-                return
-        raise DriverTimeout(f"robot at {self.settings.address} opened but sends no SIPs")
+        self._link_fault = ""
+        self._last_sent_s = time.monotonic()
+        self._pulse_s = self.settings.pulse_s
+        for body in connection.frames:
+            self._dispatch(body)
+        if connection.config is not None:
+            self._adopt(connection.config)
+
+    def _adopt(self, config: RobotConfig) -> None:
+        """The robot's watchdog sets the keep-alive; its (de)accelerations are raised to
+        the robot file's if lower (within its tops), so STOP brakes as the agent expects.
+        """
+        if config.has("watchdog_ms") and config.watchdog_ms > 0:
+            self._pulse_s = min(self.settings.pulse_s, config.watchdog_ms / 4000.0)
+        if not self.settings.adopt_accelerations or not config.has("trans_decel_mmps2"):
+            return
+        r, c = self.robot, config
+        trans_top, rot_top = c.trans_accel_top_mmps2, c.rot_accel_top_degps2
+        wanted = (
+            (Cmd.SETA, 1, c.trans_accel_mmps2, r.accel_mps2 * 1000.0, trans_top),
+            (Cmd.SETA, -1, c.trans_decel_mmps2, r.decel_mps2 * 1000.0, trans_top),
+            (Cmd.SETRA, 1, c.rot_accel_degps2, r.rot_accel_degps2, rot_top),
+            (Cmd.SETRA, -1, c.rot_decel_degps2, r.rot_accel_degps2, rot_top),
+        )
+        for cmd, sign, have, want, top in wanted:
+            value = round(min(want, top) if top > 0 else want)
+            if 0 < have < value:
+                log.info("raising the robot's %s %d to %d", cmd.name, sign * have, sign * value)
+                self._write(command(cmd, sign * value))
+
+    def _reset_estop(self) -> None:
+        sip = self.readings.sip
+        if sip is not None and sip.estopped:
+            raise DriverError("the robot's E-stop button is still pressed: release it first")
+        if self._estop:
+            log.info("E-stop latch reset (was: %s)", self._estop)
+        self._estop = ""
+
+    def _check_open(self) -> None:
+        if self._closed:
+            raise DriverError("driver closed; make a new one")
 
     def _write(self, data: bytes) -> None:
         link = self._link
@@ -375,74 +307,89 @@ class ArcosDriver(Closing):
             self._last_sent_s = time.monotonic()
             self.stats.commands_sent += 1
 
-    def _send(self, data: bytes) -> None:
-        with self._lock:
-            if self._closed:
-                raise DriverError("driver closed")
-            if self._link_fault:
-                raise DriverUnavailable(f"link down: {self._link_fault}")
-            self._write(data)
-
     # -- reader ----------------------------------------------------------------------
 
     def _read_loop(self) -> None:
         backoff_s = 0.1
         while not self._stop.is_set():
             link = self._link
-            try:
-                self._read_once(link)
-                backoff_s = 0.1
-            except DriverError as exc:
-                self._lose_link(str(exc), link)
-            except Exception as exc:
-                log.exception("ARCOS reader: unexpected error")
-                self._lose_link(f"{type(exc).__name__}: {exc}", link)
-            else:
+            if link is None:
+                if not self.settings.reconnect or self._stop.wait(backoff_s):
+                    return
+                ok = self._reconnect()
+                backoff_s = 0.1 if ok else min(2 * backoff_s, self.settings.reconnect_backoff_max_s)
                 continue
-            if not self.settings.reconnect or self._stop.wait(backoff_s):
-                return
-            backoff_s = min(2 * backoff_s, self.settings.reconnect_backoff_max_s)
-            self._try_reconnect()
+            try:
+                data = link.read(0.05)
+            except DriverError as exc:
+                self._lose(str(exc), link)
+                continue
+            except Exception as exc:
+                if not self._stop.is_set():
+                    log.exception("ARCOS reader: unexpected error")
+                self._lose(f"{type(exc).__name__}: {exc}", link)
+                continue
+            self._take(data, link)
 
-    def _read_once(self, link: Link | None) -> None:
-        if link is None:
-            raise DriverUnavailable("no link")
-        data = link.read(0.05)
+    def _take(self, data: bytes, link: Link) -> None:
         with self._lock:
+            if link is not self._link:
+                return
             for body in self.parser.feed(data):
                 self._dispatch(body)
             now = time.monotonic()
             silent_s = now - self.readings.last_sip_s
             if silent_s > self.settings.link_timeout_s:
-                raise DriverTimeout(f"no SIP for {silent_s:.2f} s")
-            if now - self._last_sent_s > self.settings.pulse_s:
-                self._write(command(Cmd.PULSE))
+                self._lose(f"no SIP for {silent_s:.2f} s", link)
+            elif now - self._last_sent_s > self._pulse_s:
+                try:
+                    self._write(command(Cmd.PULSE))
+                except DriverError as exc:
+                    self._lose(str(exc), link)
 
-    def _lose_link(self, reason: str, link: Link | None) -> None:
+    def _lose(self, reason: str, link: Link) -> None:
+        """SIPs stopped or the link broke: STOP first (the link may still carry commands
+        though SIPs no longer arrive), then let the link go; the reader reconnects.
+        """
         with self._lock:
-            if self._closed or (link is not None and link is not self._link):
+            if self._closed or link is not self._link:
                 return  # closed on purpose, or already replaced by a new link
-            if not self._link_fault:
-                self.stats.links_lost += 1
-                log.warning("ARCOS link to %s lost: %s", self.settings.address, reason)
+            self.stats.links_lost += 1
+            self.stats.sips_lost_s = time.monotonic()
+            try:
+                self._write(command(Cmd.STOP))
+                self.stats.loss_stop_s = time.monotonic()
+            except DriverError:
+                self.stats.loss_stop_s = None
+            log.warning("ARCOS link to %s lost (%s): STOP sent, reconnecting", self.address, reason)
             self._link_fault = f"link lost: {reason}"
-            if self._link is not None:
-                self._link.close()
-                self._link = None
+            self._link = None
+        link.close()
 
-    def _try_reconnect(self) -> None:
+    def _reconnect(self) -> bool:
         with self._lock:
             if self._closed:
-                return
-            try:
-                self._open_and_handshake()
-            except DriverError as exc:
+                return False
+            enable = not self._estop
+        try:
+            connection = self._open(enable=enable)  # no lock held: control steps go on
+        except DriverError as exc:
+            with self._lock:
                 self._link_fault = f"link lost: {exc}"
-                return
+                self.stats.reconnect_failures += 1
+            return False
+        with self._lock:
+            if self._closed:
+                connection.link.close()
+                return False
+            self._install(connection)
             self.stats.reconnects += 1
-            log.info("ARCOS link to %s back", self.settings.address)
+        log.info("ARCOS link to %s back", connection.address)
+        return True
 
     def _dispatch(self, body: bytes) -> None:
         byte_time_s = self._link.byte_time_s if self._link is not None else 0.0
-        if self.readings.take(body, byte_time_s=byte_time_s):
-            self._link_fault = ""  # SIPs arrive: the link is up
+        sip = self.readings.take(body, byte_time_s=byte_time_s)
+        if sip is not None and sip.estopped and not self._estop:
+            self._estop = "the robot's E-stop button"
+            log.warning("the robot reports its E-stop button pressed: latched")

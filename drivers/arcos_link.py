@@ -102,8 +102,8 @@ class TcpLink:
 
     def read(self, timeout_s: float) -> bytes:
         """What has arrived, waiting up to `timeout_s`."""
-        self._sock.settimeout(timeout_s)
         try:
+            self._sock.settimeout(timeout_s)
             data = self._sock.recv(4096)
         except TimeoutError:
             return b""

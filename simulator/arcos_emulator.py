@@ -2,38 +2,35 @@
 or TCP (the MobileSim convention, port 8101), moving a simulated body.
 
 It answers the sync/open handshake, streams standard SIPs every SIP cycle after OPEN,
-obeys ENABLE, VEL, RVEL, VEL2, STOP, E_STOP, SONAR, CONFIG and CLOSE, and runs the
-firmware watchdog: no client packet for `watchdog_s` stops the motors, the next packet
-resumes the last setpoints (ARCOS behaviour, docs/HARDWARE.md). Faults can be
-injected while it runs: garbled bytes, dropped SIPs, stalled wheels, the e-stop button,
-an unplugged cable (silence both ways), a disconnect.
+answers CONFIG with the whole CONFIG packet, and obeys every motion command ARIA uses
+(VEL, RVEL, ROTATE, VEL2 with signed wheels, MOVE, HEAD, DHEAD, STOP, E_STOP, SETV, SETRV,
+SETA, SETRA, SETO, ENABLE, SONAR, BUMPSTALL; `arcos_firmware` has the motion), each from
+the moment it arrives. It runs the firmware watchdog: no client packet for `watchdog_s`
+stops the motors, the next packet resumes the last setpoints (ARCOS behaviour,
+docs/HARDWARE.md). Faults can be injected while it runs: garbled bytes, dropped SIPs,
+stalled wheels, the e-stop button, an unplugged cable (silence both ways), a disconnect.
 """
 
 from __future__ import annotations
 
-import contextlib
 import logging
 import math
-import os
-import select
-import socket
-import termios
 import threading
 import time
-import tty
+from collections import deque
 from dataclasses import dataclass, field
-from typing import Protocol
 
 from phalanx.core.config import RobotParams
 from phalanx.core.geometry import Pose2D, Twist2D
 from phalanx.core.lifecycle import Closing
 from phalanx.core.localisation import OdometryErrors
-from phalanx.core.motion import Body
+from phalanx.core.motion import Body, BodyState
 from phalanx.protocols.arcos import (
     SYNC0,
     SYNC1,
     SYNC2,
     Cmd,
+    ConvFactors,
     FrameParser,
     RobotConfig,
     Sip,
@@ -41,143 +38,36 @@ from phalanx.protocols.arcos import (
     encode_config,
     encode_sip,
     factors_for,
+    frame,
     int_arg,
     sync2_reply,
+    vel2_wheels,
 )
+from phalanx.simulator.arcos_firmware import FirmwareLimits, Motion
+from phalanx.simulator.arcos_links import Link, PtyLink, TcpLink
 from phalanx.simulator.sensors.odometry import OdometryTracker
 
+__all__ = ["ArcosEmulator", "EmulatorOptions", "Link", "PtyLink", "TcpLink"]
 log = logging.getLogger("phalanx.emulator")
-
-
-class Link(Protocol):
-    """A byte pipe to the one connected client."""
-
-    def read(self, timeout_s: float) -> bytes | None:
-        """Bytes received (b"" if none in time); None when the client is gone."""
-        ...
-
-    def write(self, data: bytes) -> None:
-        """Send bytes (dropped when no client is connected)."""
-        ...
-
-    def drop_client(self) -> None:
-        """Disconnect the current client (the link stays usable for the next one)."""
-        ...
-
-    def close(self) -> None:
-        """Release everything."""
-        ...
-
-
-class PtyLink:
-    """The robot's end of a pseudo-terminal; clients open `device` with pyserial."""
-
-    def __init__(self) -> None:
-        self._master, self._slave = os.openpty()
-        tty.setraw(self._slave)
-        attrs = termios.tcgetattr(self._slave)
-        attrs[3] &= ~termios.ECHO
-        termios.tcsetattr(self._slave, termios.TCSANOW, attrs)
-        self.device = os.ttyname(self._slave)
-        self._closed = False
-
-    def read(self, timeout_s: float) -> bytes | None:
-        """Bytes from the client side."""
-        if self._closed:
-            return None
-        ready, _, _ = select.select([self._master], [], [], timeout_s)
-        if not ready:
-            return b""
-        try:
-            return os.read(self._master, 4096)
-        except OSError:
-            return b""  # no client has the device open: nothing to read
-
-    def write(self, data: bytes) -> None:
-        """Bytes to the client side."""
-        if not self._closed:
-            with contextlib.suppress(OSError):
-                os.write(self._master, data)
-
-    def drop_client(self) -> None:
-        """A pty cannot be unplugged without removing it: closing it is the unplug."""
-        self.close()
-
-    def close(self) -> None:
-        """Close both ends (the device disappears)."""
-        if not self._closed:
-            self._closed = True
-            for fd in (self._master, self._slave):
-                with contextlib.suppress(OSError):
-                    os.close(fd)
-
-
-class TcpLink:
-    """A listening TCP socket that serves one client at a time (MobileSim style)."""
-
-    def __init__(self, port: int = 8101, host: str = "127.0.0.1") -> None:
-        self._server = socket.create_server((host, port), reuse_port=False)
-        self._server.setblocking(False)
-        self.port = self._server.getsockname()[1]
-        self.host = host
-        self._client: socket.socket | None = None
-        self._closed = False
-
-    def read(self, timeout_s: float) -> bytes | None:
-        """Accept a client if none; bytes from it."""
-        if self._closed:
-            return None
-        sock = self._client or self._server
-        ready, _, _ = select.select([sock], [], [], timeout_s)
-        if not ready:
-            return b""
-        if self._client is None:
-            with contextlib.suppress(BlockingIOError):
-                self._client, _ = self._server.accept()
-                self._client.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-            return b""
-        try:
-            data = self._client.recv(4096)
-        except OSError:
-            data = b""
-        if not data:
-            self.drop_client()
-            return None
-        return data
-
-    def write(self, data: bytes) -> None:
-        """Send to the client, if any."""
-        if self._client is not None:
-            try:
-                self._client.sendall(data)
-            except OSError:
-                self.drop_client()
-
-    def drop_client(self) -> None:
-        """Close the client's connection; wait for the next one."""
-        if self._client is not None:
-            with contextlib.suppress(OSError):
-                self._client.close()
-            self._client = None
-
-    def close(self) -> None:
-        """Close the client and the listening socket."""
-        if not self._closed:
-            self._closed = True
-            self.drop_client()
-            with contextlib.suppress(OSError):
-                self._server.close()
+STEP_S = 0.01  # the motion profile's time step while it changes
+VEL2_DIVISOR_MMPS = 20.0  # AriaCoda params/p3dx*.p Vel2Divisor
 
 
 @dataclass
 class EmulatorOptions:
-    """Firmware settings of the emulated robot."""
+    """Firmware settings of the emulated robot. E_STOP brakes at the accelerations' tops
+    (AMRISim at once; 1000 mm/s² is what ARIA assumes of a robot without CONFIG).
+    """
 
     name: str = "phalanx-emu"
     subtype: str = "p3dx-sh"
+    serial: str = "PHALANX-EMU"
     sip_cycle_s: float = 0.1
     watchdog_s: float = 2.0
     battery_v: float = 12.5
+    low_battery_v: float = 11.0
+    trans_accel_top_mmps2: float = 1000.0
+    rot_accel_top_degps2: float = 300.0
     # The odometry a SIP reports carries these wheel errors (seeded): a body moved by the
     # world already has the world's odometry, so only a stand-alone emulator sets them.
     odometry_errors: OdometryErrors | None = None
@@ -186,24 +76,36 @@ class EmulatorOptions:
 
 @dataclass
 class EmulatorStats:
-    """What the emulator saw and did."""
+    """What the emulator saw and did; `received`: the latest commands (monotonic time of
+    arrival, name), oldest first.
+    """
 
     frames: int = 0
     sips_sent: int = 0
     watchdog_stops: int = 0
     commands: dict[str, int] = field(default_factory=dict)
+    received: deque[tuple[float, str]] = field(default_factory=lambda: deque(maxlen=1000))
+
+    def first_after(self, name: str, since_s: float) -> float | None:
+        """When command `name` first arrived at or after `since_s` (None: not since)."""
+        return next((t for t, n in list(self.received) if n == name and t >= since_s), None)
 
 
 @dataclass
 class _Faults:
     garble_bytes: int = 0
+    garble_until_s: float = 0.0
     drop_sips: int = 0
     estop_button: bool = False
     unplugged: bool = False
 
 
 class ArcosEmulator(Closing):
-    """Runs the robot side of ARCOS on `link` in a thread, moving `body`."""
+    """Runs the robot side of ARCOS on `link` in a thread, moving `body`.
+
+    Without a `body` it moves its own, able to brake at the firmware's tops (an E_STOP);
+    a body given (e.g. one the world moves) keeps its own limits.
+    """
 
     def __init__(
         self,
@@ -215,22 +117,27 @@ class ArcosEmulator(Closing):
         self.link = link
         self.robot = robot
         self.options = options or EmulatorOptions()
-        self.body = body or Body(robot)
         self.factors = factors_for(self.options.subtype)
+        o = self.options
+        self.rated = FirmwareLimits.of(
+            robot, trans_accel_top=o.trans_accel_top_mmps2, rot_accel_top=o.rot_accel_top_degps2
+        )
+        self.body = body or Body(self.rated.body_params(robot))
         self.stats = EmulatorStats()
         self.parser = FrameParser()
         self._odometry: OdometryTracker | None = None
-        errors = self.options.odometry_errors
+        errors = o.odometry_errors
         if errors is not None and errors.any:
             start = self.body.state().pose
             self._odometry = OdometryTracker(
-                errors, track_m=robot.track_width_m, seed=self.options.seed,
+                errors, track_m=robot.track_width_m, seed=o.seed,
                 start=(start.x_m, start.y_m, start.theta_rad),
             )  # fmt: skip
         self._faults = _Faults()
         self._lock = threading.Lock()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
+        self._stepped_s = time.monotonic()
         self._reset_session()
 
     # -- lifecycle -------------------------------------------------------------------
@@ -259,6 +166,11 @@ class ArcosEmulator(Closing):
         with self._lock:
             self._faults.garble_bytes += n_bytes
 
+    def garble_for(self, seconds: float) -> None:
+        """Corrupt every byte sent for the next `seconds` (a noisy line)."""
+        with self._lock:
+            self._faults.garble_until_s = time.monotonic() + seconds
+
     def drop_sips(self, count: int) -> None:
         """Skip the next `count` SIPs."""
         with self._lock:
@@ -269,11 +181,14 @@ class ArcosEmulator(Closing):
         self.body.stall(stalled)
 
     def press_estop(self, pressed: bool = True) -> None:
-        """The red button: motors stop and stay disabled while pressed."""
+        """The red button: the motors brake at once and stay disabled while it is pressed
+        (and after: released, they wait for ENABLE 1).
+        """
         with self._lock:
             self._faults.estop_button = pressed
             if pressed:
                 self._motors_enabled = False
+                self.motion.estop()
 
     def unplug(self, unplugged: bool = True) -> None:
         """Cut the cable: nothing in, nothing out; the firmware watchdog does the rest."""
@@ -286,6 +201,26 @@ class ArcosEmulator(Closing):
             self.link.drop_client()
             self._reset_session()
 
+    # -- what the firmware is doing --------------------------------------------------
+
+    @property
+    def target(self) -> Twist2D:
+        """The speeds the firmware is bringing the wheels to (m/s, rad/s): what it was last
+        told, within its limits; zero after STOP, E_STOP or its watchdog.
+        """
+        with self._lock:
+            return self.motion.target
+
+    def config(self) -> RobotConfig:
+        """The CONFIG packet it sends now (working values as SETV & co. left them)."""
+        return _config_of(self.options, self.rated, self.motion.limits)
+
+    @property
+    def limits(self) -> FirmwareLimits:
+        """The working maxima and (de)accelerations now (SETV, SETA, ... change them)."""
+        with self._lock:
+            return self.motion.limits
+
     # -- protocol --------------------------------------------------------------------
 
     def _reset_session(self) -> None:
@@ -293,16 +228,28 @@ class ArcosEmulator(Closing):
         self._open = False
         self._motors_enabled = False
         self._sonar_on = True
-        self._setpoint = Twist2D(0.0, 0.0)
+        self._bumpstall = 0
         self._last_packet = time.monotonic()
         self._watchdog_tripped = False
-        self.body.command(Twist2D(0.0, 0.0))
+        self._odom_origin = getattr(self, "_odom_origin", Pose2D(0.0, 0.0, 0.0))
+        # A new connection starts from the FLASH defaults (operations manual: SETV & co.
+        # revert when the client disconnects).
+        # The wheels keep turning as they were and come to rest at the FLASH deceleration.
+        moving = getattr(self, "motion", None)
+        self.motion = Motion(
+            self.rated, diff_conv=self.factors.diff, vel2_divisor=VEL2_DIVISOR_MMPS
+        )
+        if moving is not None:
+            self.motion.v_mmps, self.motion.w_degps = moving.v_mmps, moving.w_degps
 
     def _serve(self) -> None:
         next_sip = time.monotonic()
-        last_step = time.monotonic()
         while not self._stop.is_set():
-            data = self.link.read(max(0.0, min(0.02, next_sip - time.monotonic())))
+            now = time.monotonic()
+            wait_s = next_sip - now
+            if self.motion.busy:
+                wait_s = min(wait_s, STEP_S)
+            data = self.link.read(max(0.0, wait_s))
             if data is None:  # the client went away: back to waiting for a sync
                 with self._lock:
                     self._reset_session()
@@ -311,21 +258,33 @@ class ArcosEmulator(Closing):
                 continue
             if self._faults.unplugged:
                 data = b""
+            self._advance(time.monotonic())  # commands act from the moment they arrive
             for body in self.parser.feed(data):
                 self._handle(body)
             now = time.monotonic()
             self._watchdog(now)
             if now >= next_sip:
-                self.body.step(now - last_step)
-                last_step = now
                 next_sip += self.options.sip_cycle_s
                 if next_sip < now:
                     next_sip = now + self.options.sip_cycle_s
                 if self._open:
                     self._send_sip()
 
+    def _advance(self, now: float) -> None:
+        """Run the motion profile and the body from the last step to `now`."""
+        with self._lock:
+            dt_s = now - self._stepped_s
+            self._stepped_s = now
+            if dt_s <= 0.0:
+                return
+            pose = self._odom_origin.relative(self.body.state().pose)
+            twist = self.motion.step(dt_s, pose)
+            self.body.command(twist if self._motors_enabled else Twist2D(0.0, 0.0))
+        self.body.step(dt_s)
+
     def _count(self, name: str) -> None:
         self.stats.commands[name] = self.stats.commands.get(name, 0) + 1
+        self.stats.received.append((time.monotonic(), name))
 
     def _handle(self, body: bytes) -> None:
         self.stats.frames += 1
@@ -334,7 +293,7 @@ class ArcosEmulator(Closing):
             self._last_packet = time.monotonic()
             if self._watchdog_tripped:
                 self._watchdog_tripped = False
-                self._apply_setpoint()  # packets are back: resume the last setpoints
+                self.motion.held = False  # packets are back: resume the last setpoints
             if not self._open:
                 self._handle_sync(cmd)
                 return
@@ -364,66 +323,62 @@ class ArcosEmulator(Closing):
         self._count(name)
         if cmd == Cmd.CLOSE:
             self._reset_session()
-        elif cmd == Cmd.ENABLE and arg is not None:
-            self._motors_enabled = bool(arg) and not self._faults.estop_button
-            self._apply_setpoint()
-        elif cmd == Cmd.VEL and arg is not None:
-            self._setpoint = Twist2D(
-                arg * self.factors.vel_mmps / 1000.0, self._setpoint.omega_radps
-            )
-            self._apply_setpoint()
-        elif cmd == Cmd.RVEL and arg is not None:
-            self._setpoint = Twist2D(self._setpoint.v_mps, math.radians(arg))
-            self._apply_setpoint()
-        elif cmd == Cmd.VEL2 and arg is not None:
-            raw = abs(arg) & 0xFFFF  # ARIA's com2Bytes: left in the high byte, right low
-            left = _signed_byte(raw >> 8) * 20.0  # Vel2Divisor 20 mm/s
-            right = _signed_byte(raw & 0xFF) * 20.0
-            v = (left + right) / 2000.0
-            w = (right - left) / 2.0 * self.factors.diff
-            self._setpoint = Twist2D(v, w)
-            self._apply_setpoint()
-        elif cmd == Cmd.STOP:
-            self._setpoint = Twist2D(0.0, 0.0)
-            self._apply_setpoint()
-        elif cmd == Cmd.E_STOP:
-            self._setpoint = Twist2D(0.0, 0.0)
-            self._motors_enabled = False
-            self._apply_setpoint()
-        elif cmd == Cmd.SONAR and arg is not None:
-            self._sonar_on = bool(arg)
         elif cmd == Cmd.CONFIG:
-            self._send(encode_config(self._config(), self.options.name))
+            self._send(frame(encode_config(self.config())))
+        elif cmd == Cmd.STOP:
+            self.motion.stop()
+        elif cmd == Cmd.E_STOP:
+            self.motion.estop()
+        elif cmd == Cmd.SETO:  # the odometry frame starts here
+            self._odom_origin = self.body.state().pose
+        elif arg is not None:
+            self._with_argument(cmd, arg)
 
-    def _config(self) -> RobotConfig:
-        return RobotConfig(
-            robot_type="Pioneer",
-            subtype=self.options.subtype,
-            trans_vel_top_mmps=round(self.robot.v_max_mps * 1000),
-            rot_vel_top_degps=round(self.robot.omega_max_degps),
-            sip_cycle_ms=round(self.options.sip_cycle_s * 1000),
-            watchdog_ms=round(self.options.watchdog_s * 1000),
-            trans_vel_max_mmps=round(self.robot.v_max_mps * 1000),
-            rot_vel_max_degps=round(self.robot.omega_max_degps),
-        )
-
-    def _apply_setpoint(self) -> None:
-        moving = self._motors_enabled and not self._watchdog_tripped
-        self.body.command(self._setpoint if moving else Twist2D(0.0, 0.0))
+    def _with_argument(self, cmd: int, arg: int) -> None:
+        m = self.motion
+        pose = self._odom_origin.relative(self.body.state().pose)
+        moving = self._motors_enabled  # a disabled robot ignores motion commands
+        if cmd == Cmd.ENABLE:
+            self._motors_enabled = bool(arg) and not self._faults.estop_button
+            if not self._motors_enabled:
+                m.stop()
+        elif cmd == Cmd.VEL and moving:
+            m.vel(arg * self.factors.vel_mmps)
+        elif cmd in (Cmd.RVEL, Cmd.ROTATE) and moving:
+            m.rvel(arg)
+        elif cmd == Cmd.VEL2 and moving:
+            m.vel2(*vel2_wheels(arg))
+        elif cmd == Cmd.MOVE and moving:
+            m.move(arg, pose)  # mm, as AMRISim and ARIA take it
+        elif cmd == Cmd.HEAD and moving:
+            m.head(arg)
+        elif cmd == Cmd.DHEAD and moving:
+            m.dhead(arg, pose)
+        elif cmd in (Cmd.SETV, Cmd.SETRV):
+            m.set_limit("trans_vel_max" if cmd == Cmd.SETV else "rot_vel_max", arg)
+        elif cmd in (Cmd.SETA, Cmd.SETRA):
+            kind = "trans" if cmd == Cmd.SETA else "rot"
+            m.set_limit(f"{kind}_{'accel' if arg >= 0 else 'decel'}", abs(arg))
+        elif cmd == Cmd.SONAR:
+            self._sonar_on = bool(arg)
+        elif cmd == Cmd.BUMPSTALL:
+            self._bumpstall = arg if 0 <= arg <= 3 else self._bumpstall
 
     def _watchdog(self, now: float) -> None:
         with self._lock:
-            late = now - self._last_packet > self.options.watchdog_s
-            if self._open and late and not self._watchdog_tripped:
+            silent_s = now - self._last_packet
+            if self._open and silent_s > self.options.watchdog_s and not self._watchdog_tripped:
                 self._watchdog_tripped = True
+                self.motion.held = True
                 self.stats.watchdog_stops += 1
-                self._apply_setpoint()
-                log.warning("emulator watchdog: no packet for %.1f s, motors stopped", now)
+                log.warning("emulator watchdog: no packet for %.1f s, motors stopped", silent_s)
 
     def _send(self, data: bytes) -> None:
         if self._faults.unplugged:
             return
-        if self._faults.garble_bytes:
+        if time.monotonic() < self._faults.garble_until_s:
+            data = bytes(b ^ 0x5A for b in data)
+        elif self._faults.garble_bytes:
             n = min(self._faults.garble_bytes, len(data))
             self._faults.garble_bytes -= n
             data = bytes(b ^ 0x5A for b in data[:n]) + data[n:]
@@ -434,45 +389,83 @@ class ArcosEmulator(Closing):
             if self._faults.drop_sips:
                 self._faults.drop_sips -= 1
                 return
-            self._send(encode_sip(self._sip()))
+            flags = 0x0001 if self._motors_enabled else 0
+            flags |= 0x001E if self._sonar_on else 0  # bits 1-4: the sonar arrays
+            flags |= 0x0020 if self._faults.estop_button else 0
+            state = self.body.state()
+            sonars = self.body.sonar_ranges_m() if self._sonar_on else None
+            pose = self._odom_origin.relative(_measured(self._odometry, state.pose))
+            sip = _sip_of(
+                state, pose, self.factors, flags=flags, sonars=sonars,
+                battery_v=self.options.battery_v,
+            )  # fmt: skip
+            self._send(encode_sip(sip))
             self.stats.sips_sent += 1
 
-    def _sip(self) -> Sip:
-        state = self.body.state()
-        if self._odometry is not None:  # the wheels' errors on the true motion
-            state.pose = Pose2D(*self._odometry.report(*_xyt(state.pose)))
-        f = self.factors
-        half_track_mm = 1.0 / f.diff  # (rvel - lvel) / 2 * diff = omega
-        v_mmps = state.twist.v_mps * 1000.0 / f.vel_mmps
-        dv = state.twist.omega_radps * half_track_mm
-        flags = 0x0001 if self._motors_enabled else 0
-        flags |= 0x0002 if self._sonar_on else 0
-        flags |= 0x0020 if self._faults.estop_button else 0
-        sonars: tuple[tuple[int, int], ...] = ()
-        if self._sonar_on:
-            sonars = tuple(
-                (i, round(r * 1000.0 / f.range_mm))
-                for i, r in enumerate(self.body.sonar_ranges_m())
-            )
-        th = round(state.pose.theta_rad / f.angle_rad)
-        return Sip(
-            moving=abs(state.twist.v_mps) > 0 or abs(state.twist.omega_radps) > 0,
-            x=round(state.pose.x_m * 1000.0 / f.dist_mm) & 0x7FFF,
-            y=round(state.pose.y_m * 1000.0 / f.dist_mm) & 0x7FFF,
-            th=(th + 2048) % 4096 - 2048,
-            left_vel=round(v_mmps - dv),
-            right_vel=round(v_mmps + dv),
-            battery_dv=round(self.options.battery_v * 10),
-            stall_bumpers=0x0101 if state.stalled else 0,
-            flags=flags,
-            sonars=sonars,
-            rot_vel_x10=round(math.degrees(state.twist.omega_radps) * 10),
-        )
+
+def _config_of(o: EmulatorOptions, rated: FirmwareLimits, lim: FirmwareLimits) -> RobotConfig:
+    """The CONFIG packet of a robot with options `o`, tops `rated`, working values `lim`."""
+    return RobotConfig(
+        robot_type="Pioneer",
+        subtype=o.subtype,
+        serial=o.serial,
+        rot_vel_top_degps=round(rated.rot_vel_top),
+        trans_vel_top_mmps=round(rated.trans_vel_top),
+        rot_accel_top_degps2=round(rated.rot_accel_top),
+        trans_accel_top_mmps2=round(rated.trans_accel_top),
+        name=o.name,
+        sip_cycle_ms=round(o.sip_cycle_s * 1000),
+        front_sonar=1,
+        rear_sonar=1,
+        low_battery_dv=round(o.low_battery_v * 10),
+        watchdog_ms=round(o.watchdog_s * 1000),
+        rot_vel_max_degps=round(lim.rot_vel_max),
+        trans_vel_max_mmps=round(lim.trans_vel_max),
+        rot_accel_degps2=round(lim.rot_accel),
+        rot_decel_degps2=round(lim.rot_decel),
+        trans_accel_mmps2=round(lim.trans_accel),
+        trans_decel_mmps2=round(lim.trans_decel),
+        firmware_version="phalanx-1.0",
+    )
 
 
-def _xyt(pose: Pose2D) -> tuple[float, float, float]:
-    return pose.x_m, pose.y_m, pose.theta_rad
+def _sip_of(
+    state: BodyState,
+    pose: Pose2D,
+    f: ConvFactors,
+    *,
+    flags: int,
+    sonars: tuple[float, ...] | None,
+    battery_v: float,
+) -> Sip:
+    """The SIP of a body in `state` at odometry `pose` (`sonars`: ranges in m, None: off)."""
+    half_track_mm = 1.0 / f.diff  # (rvel - lvel) / 2 * diff = omega
+    v_mmps = state.twist.v_mps * 1000.0 / f.vel_mmps
+    dv = state.twist.omega_radps * half_track_mm
+    readings: tuple[tuple[int, int], ...] = ()
+    if sonars is not None:
+        readings = tuple((i, round(r * 1000.0 / f.range_mm)) for i, r in enumerate(sonars))
+    th = round(pose.theta_rad / f.angle_rad)
+    return Sip(
+        moving=abs(state.twist.v_mps) > 0 or abs(state.twist.omega_radps) > 0,
+        x=round(pose.x_m * 1000.0 / f.dist_mm) & 0x7FFF,
+        y=round(pose.y_m * 1000.0 / f.dist_mm) & 0x7FFF,
+        th=(th + 2048) % 4096 - 2048,
+        left_vel=round(v_mmps - dv),
+        right_vel=round(v_mmps + dv),
+        battery_dv=round(battery_v * 10),
+        stall_bumpers=0x0101 if state.stalled else 0,
+        flags=flags,
+        sonars=readings,
+        rot_vel_x10=round(math.degrees(state.twist.omega_radps) * 10),
+        fault_flags=0,
+    )
 
 
-def _signed_byte(value: int) -> int:
-    return value - 256 if value > 127 else value
+def _measured(odometry: OdometryTracker | None, pose: Pose2D) -> Pose2D:
+    """The pose the wheels measure when the body is at `pose` (with the odometry error
+    model, which advances at each SIP; exact without it).
+    """
+    if odometry is None:
+        return pose
+    return Pose2D(*odometry.report(pose.x_m, pose.y_m, pose.theta_rad))

@@ -8,8 +8,14 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from hypothesis import settings
 
 from phalanx.wire.transport import open_session_count
+
+# CI replays the same examples every run (a property that fails there fails every time,
+# and can be reproduced); a developer's run explores new ones. `.ci/run` selects "ci".
+settings.register_profile("ci", derandomize=True, print_blob=True)
+settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "default"))
 
 REPO = Path(__file__).resolve().parent.parent
 SCENARIOS = REPO / "configs" / "scenarios"

@@ -1,10 +1,12 @@
-"""ARCOS wire protocol, both sides: framing, checksums, commands, SIPs and CONFIG packets.
+"""ARCOS wire protocol, both sides: framing, checksums, commands and SIPs.
 
 Pure functions and a byte-stream parser, no I/O: the `arcos` driver (client side) and
-the robot emulator (`phalanx.simulator.arcos_emulator`, robot side) share it. Facts from
-AriaCoda `src/ArRobotPacket.cpp` (framing, checksum), `include/Aria/ArCommands.h`
-(command numbers), `src/ArRobot.cpp` (SIP layout, odometry wrap-around) and the Pioneer 3
-operations manual; docs/HARDWARE.md has the facts and the test vectors the tests pin.
+the robot emulator (`phalanx.simulator.arcos_emulator`, robot side) share it; the CONFIG
+packet is `phalanx.protocols.arcos_config`. Facts from AriaCoda `src/ArRobotPacket.cpp`
+and `src/ArRobotPacketSender.cpp` (framing, checksum, integer arguments),
+`include/Aria/ArCommands.h` (command numbers), `src/ArRobot.cpp` (SIP layout, odometry
+wrap-around), AMRISim's `EmulatePioneer.cc` (the robot side) and the Pioneer 3 operations
+manual; docs/HARDWARE.md has the facts and the test vectors the tests pin.
 
 A frame: `FA FB | N | cmd | args... | chk_hi chk_lo`, N = bytes from cmd through the
 checksum. Ints are 16-bit little-endian, preceded by 0x3B (>= 0) or 0x1B (< 0, magnitude
@@ -20,6 +22,7 @@ from dataclasses import dataclass, field
 from enum import IntEnum
 
 from phalanx.core.errors import ProtocolError
+from phalanx.protocols.arcos_config import CONFIG_PAC, RobotConfig, decode_config, encode_config
 
 HEADER = b"\xfa\xfb"
 MAX_LENGTH = 204  # ARCOS ignores a length byte above this (ArRobotPacket)
@@ -39,9 +42,12 @@ class Cmd(IntEnum):
     SETA = 5
     SETV = 6
     SETO = 7
+    MOVE = 8
     ROTATE = 9
     SETRV = 10
     VEL = 11
+    HEAD = 12
+    DHEAD = 13
     CONFIG = 18
     ENCODER = 19
     RVEL = 21
@@ -55,7 +61,7 @@ class Cmd(IntEnum):
 
 SYNC0, SYNC1, SYNC2 = 0, 1, 2
 SIP_STOPPED, SIP_MOVING = 0x32, 0x33
-CONFIG_PAC = 0x20
+__all__ = ["CONFIG_PAC", "RobotConfig", "decode_config", "encode_config"]  # re-exported
 
 
 def checksum(body: bytes) -> int:
@@ -95,6 +101,29 @@ def int_arg(body: bytes) -> int | None:
         return None
     magnitude = int(struct.unpack_from("<H", body, 2)[0])
     return magnitude if body[1] == ARG_INT_POS else -magnitude
+
+
+def vel2_arg(left: int, right: int) -> int:
+    """VEL2's argument for wheel speeds in Vel2Divisor units (each clamped to a signed
+    byte): the left wheel in the high byte, the right in the low byte, and the 16 bits
+    read as one signed value, as ARIA's `com2Bytes` builds it (`setVel2(-200, -200)` on a
+    P3DX: -10, -10 -> 0xF6F6 -> -2314, sent as 0x1B and magnitude 2314).
+    """
+    lo, hi = (max(-128, min(127, w)) & 0xFF for w in (right, left))
+    raw = hi << 8 | lo
+    return raw - 0x10000 if raw & 0x8000 else raw
+
+
+def vel2_wheels(arg: int) -> tuple[int, int]:
+    """(left, right) in Vel2Divisor units from VEL2's signed argument: the two bytes of
+    its two's-complement value, each a signed byte (never the magnitude's bytes).
+    """
+    raw = arg & 0xFFFF
+    return _signed_byte(raw >> 8), _signed_byte(raw & 0xFF)
+
+
+def _signed_byte(value: int) -> int:
+    return value - 0x100 if value & 0x80 else value
 
 
 @dataclass
@@ -181,7 +210,20 @@ class Sip:
     flags: int = 0
     compass: int = 0
     sonars: tuple[tuple[int, int], ...] = ()  # (index, range) of the sonars updated
-    rot_vel_x10: int | None = None  # rotvel (deg/s x 10), in the optional tail
+    # The optional tail (ArRobot::processMotorPacket reads each field only if bytes remain):
+    # the battery again, in decivolts over two bytes (ARIA's "real" battery voltage), the
+    # yaw rate (deg/s x 10) and the fault flags. Encoded when rot_vel_x10 is set.
+    rot_vel_x10: int | None = None
+    battery_tail_dv: int | None = None
+    fault_flags: int | None = None
+
+    @property
+    def battery_v(self) -> float | None:
+        """Battery volts: the tail's two-byte value if sent, else the byte; None when both
+        are 0 (firmware that reports state of charge instead of volts, battery type 2).
+        """
+        dv = self.battery_tail_dv or self.battery_dv
+        return dv / 10.0 if dv else None
 
     @property
     def motors_enabled(self) -> bool:
@@ -235,8 +277,11 @@ def encode_sip(sip: Sip) -> bytes:
     for index, range_mm in sip.sonars:
         body += struct.pack("<BH", index, min(range_mm, 0xFFFF))
     if sip.rot_vel_x10 is not None:
-        # gripstate, anport, analog, digin, digout, batteryX10, chargestate, rotvel
-        body += bytes(5) + struct.pack("<HBh", sip.battery_dv * 10, 0, sip.rot_vel_x10)
+        # anport (2), analog, digin, digout; battery (decivolts, 2 bytes), charge state, rotvel
+        battery = sip.battery_dv if sip.battery_tail_dv is None else sip.battery_tail_dv
+        body += bytes(5) + struct.pack("<HBh", battery, 0, sip.rot_vel_x10)
+        if sip.fault_flags is not None:
+            body += struct.pack("<H", sip.fault_flags)
     return frame(bytes(body))
 
 
@@ -254,9 +299,11 @@ def decode_sip(body: bytes) -> Sip:
         raise ProtocolError(f"SIP announces {nsonar} sonars, has room for fewer")
     sonars = tuple(struct.unpack_from("<BH", body, offset + 3 * i) for i in range(nsonar))
     offset += 3 * nsonar
-    rot_vel = None
+    rot_vel = battery_tail = faults = None
     if len(body) >= offset + 10:
-        (rot_vel,) = struct.unpack_from("<h", body, offset + 8)
+        battery_tail, _charge, rot_vel = struct.unpack_from("<HBh", body, offset + 5)
+    if len(body) >= offset + 12:
+        (faults,) = struct.unpack_from("<H", body, offset + 10)
     return Sip(
         moving=body[0] == SIP_MOVING,
         x=x & 0x7FFF,
@@ -271,6 +318,8 @@ def decode_sip(body: bytes) -> Sip:
         compass=compass,
         sonars=sonars,
         rot_vel_x10=rot_vel,
+        battery_tail_dv=battery_tail,
+        fault_flags=faults,
     )
 
 
@@ -282,76 +331,6 @@ def wrap_delta(now: int, last: int) -> int:
     elif d < -0x1000:
         d += 0x8000
     return d
-
-
-@dataclass(frozen=True)
-class RobotConfig:
-    """The fields of a CONFIGpac the driver uses (units as ARCOS sends them)."""
-
-    robot_type: str
-    subtype: str
-    trans_vel_top_mmps: int
-    rot_vel_top_degps: int
-    sip_cycle_ms: int
-    watchdog_ms: int
-    trans_vel_max_mmps: int
-    rot_vel_max_degps: int
-
-
-# CONFIGpac: type 0x20, then robot type, subtype, serial number as NUL-terminated strings,
-# then (Pioneer 3 operations manual, ArRobotConfigPacketReader) 4mots, rotveltop,
-# transveltop, rotaccTop, transaccTop, pwmmax, name (string), sipcycle, hostbaud, auxbaud,
-# gripper, front sonar, rear sonar, low battery, revcount, watchdog, ..., transvelmax,
-# rotvelmax. We write and read the prefix up to rotvelmax in that order, with the
-# unused fields set to 0.
-_CFG_A = struct.Struct("<BHHHHH")  # fourmots rotveltop transveltop rotacctop transacctop pwmmax
-_CFG_B = struct.Struct("<BBBHBBHHHHHHHHH")
-
-
-def encode_config(cfg: RobotConfig, name: str = "phalanx") -> bytes:
-    """The CONFIGpac frame for `cfg` (robot side)."""
-    body = bytearray((CONFIG_PAC,))
-    for text in (cfg.robot_type, cfg.subtype, "EMU-0001"):
-        body += text.encode("ascii") + b"\0"
-    body += _CFG_A.pack(0, cfg.rot_vel_top_degps, cfg.trans_vel_top_mmps, 0, 0, 0)
-    body += name.encode("ascii") + b"\0"
-    body += _CFG_B.pack(
-        cfg.sip_cycle_ms, 0, 0, 0, 0, 0, 0, 0, 0, cfg.watchdog_ms, 0, 0, 0,
-        cfg.trans_vel_max_mmps, cfg.rot_vel_max_degps,
-    )  # fmt: skip
-    return frame(bytes(body))
-
-
-def _cstrings(body: bytes, offset: int, count: int) -> tuple[list[str], int]:
-    out = []
-    for _ in range(count):
-        end = body.index(b"\0", offset)
-        out.append(body[offset:end].decode("ascii", "replace"))
-        offset = end + 1
-    return out, offset
-
-
-def decode_config(body: bytes) -> RobotConfig:
-    """Parse a CONFIGpac body; ProtocolError if malformed."""
-    try:
-        if body[0] != CONFIG_PAC:
-            raise ProtocolError(f"not a CONFIGpac: type {body[0]:#x}")
-        (robot_type, subtype, _serial), offset = _cstrings(body, 1, 3)
-        _, rotveltop, transveltop, _, _, _ = _CFG_A.unpack_from(body, offset)
-        _, offset = _cstrings(body, offset + _CFG_A.size, 1)
-        fields = _CFG_B.unpack_from(body, offset)
-    except (IndexError, ValueError, struct.error) as exc:
-        raise ProtocolError(f"malformed CONFIGpac: {exc}") from exc
-    return RobotConfig(
-        robot_type=robot_type,
-        subtype=subtype,
-        trans_vel_top_mmps=transveltop,
-        rot_vel_top_degps=rotveltop,
-        sip_cycle_ms=fields[0],
-        watchdog_ms=fields[9],
-        trans_vel_max_mmps=fields[13],
-        rot_vel_max_degps=fields[14],
-    )
 
 
 def sync2_reply(name: str, robot_type: str, subtype: str) -> bytes:

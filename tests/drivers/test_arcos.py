@@ -31,6 +31,7 @@ from phalanx.protocols.arcos import (
     frame,
     wrap_delta,
 )
+from phalanx.protocols.arcos_config import FIELDS
 from phalanx.simulator.arcos_emulator import ArcosEmulator, EmulatorOptions, PtyLink, TcpLink
 
 pytestmark = pytest.mark.drivers
@@ -61,19 +62,33 @@ def test_checksum_xors_an_odd_last_byte() -> None:
     assert checksum(b"") == 0
 
 
-sips = st.builds(
-    Sip,
-    moving=st.booleans(),
-    x=st.integers(0, 0x7FFF),
-    y=st.integers(0, 0x7FFF),
-    th=st.integers(-2048, 2047),
-    left_vel=st.integers(-2000, 2000),
-    right_vel=st.integers(-2000, 2000),
-    battery_dv=st.integers(0, 255),
-    stall_bumpers=st.integers(0, 0xFFFF),
-    flags=st.integers(0, 0xFFFF),
-    sonars=st.lists(st.tuples(st.integers(0, 15), st.integers(0, 5000)), max_size=16).map(tuple),
-    rot_vel_x10=st.none() | st.integers(-3000, 3000),
+_tails = st.one_of(
+    st.just({}),
+    st.fixed_dictionaries(
+        {
+            "rot_vel_x10": st.integers(-3000, 3000),
+            "battery_tail_dv": st.integers(0, 300),
+            "fault_flags": st.none() | st.integers(0, 0xFFFF),
+        }
+    ),
+)
+sips = _tails.flatmap(
+    lambda tail: st.builds(
+        Sip,
+        moving=st.booleans(),
+        x=st.integers(0, 0x7FFF),
+        y=st.integers(0, 0x7FFF),
+        th=st.integers(-2048, 2047),
+        left_vel=st.integers(-2000, 2000),
+        right_vel=st.integers(-2000, 2000),
+        battery_dv=st.integers(0, 255),
+        stall_bumpers=st.integers(0, 0xFFFF),
+        flags=st.integers(0, 0xFFFF),
+        sonars=st.lists(st.tuples(st.integers(0, 15), st.integers(0, 5000)), max_size=16).map(
+            tuple
+        ),
+        **{k: st.just(v) for k, v in tail.items()},
+    )
 )
 
 
@@ -261,12 +276,18 @@ def test_firmware_watchdog_stops_and_resumes() -> None:
     options = EmulatorOptions(watchdog_s=0.3)
     with (
         ArcosEmulator(TcpLink(0), ROBOT, options) as emulator,
-        ArcosDriver(_tcp(emulator, pulse_s=5.0, link_timeout_s=5.0), robot=ROBOT) as driver,
+        ArcosDriver(_tcp(emulator, link_timeout_s=5.0), robot=ROBOT) as driver,
     ):
         driver.set_velocity(Twist2D(0.2, 0.0))
+        assert _eventually(lambda: emulator.body.state().twist.v_mps > 0.1, 2.0)
+        time.sleep(0.5)  # the driver keeps the robot's 0.3 s watchdog fed (PULSE at 1/4)
+        assert emulator.stats.watchdog_stops == 0
+        emulator.unplug()  # silence: the firmware stops the motors on its own
         assert _eventually(lambda: emulator.stats.watchdog_stops == 1, 2.0)
-        assert emulator.body.state().setpoint == Twist2D(0.0, 0.0)
-        driver.stop()  # any packet: the firmware resumes (here, the STOP itself)
+        assert _eventually(lambda: emulator.body.state().twist.v_mps == 0.0, 2.0)
+        emulator.unplug(False)  # packets again: the last setpoints resume (ARCOS)
+        assert _eventually(lambda: emulator.body.state().twist.v_mps > 0.1, 2.0)
+        driver.stop()
         assert _eventually(lambda: emulator.body.state().setpoint == Twist2D(0.0, 0.0), 1.0)
 
 
@@ -318,3 +339,122 @@ def test_settings_reject_ambiguous_links() -> None:
         ArcosSettings()
     with pytest.raises(ValueError, match="host:port"):
         ArcosSettings(tcp="localhost")
+
+
+# -- what the driver makes of the robot's CONFIG packet, E-stops and addresses --------
+
+
+def test_the_driver_reads_every_config_field_the_emulator_writes(
+    tcp_emulator: ArcosEmulator,
+) -> None:
+    with ArcosDriver(_tcp(tcp_emulator), robot=ROBOT) as driver:
+        written = tcp_emulator.config()
+        read = driver.robot_config
+        assert read is not None
+        for name in ("trans_vel_max_mmps", "rot_vel_max_degps", "watchdog_ms", "serial", "name"):
+            assert getattr(read, name) == getattr(written, name), name
+        assert read == written  # every field, in order
+        assert read.fields_read == len(FIELDS)
+
+
+def test_the_keepalive_follows_the_robots_watchdog() -> None:
+    # A robot whose watchdog is 0.3 s: PULSE at most every 75 ms, so it never trips.
+    options = EmulatorOptions(watchdog_s=0.3)
+    with (
+        ArcosEmulator(TcpLink(0), ROBOT, options) as emulator,
+        ArcosDriver(_tcp(emulator), robot=ROBOT) as driver,
+    ):
+        driver.set_velocity(Twist2D(0.2, 0.0))
+        time.sleep(1.5)
+        assert emulator.stats.watchdog_stops == 0
+        assert emulator.body.state().setpoint.v_mps > 0.1
+
+
+def test_a_robot_that_brakes_softer_than_the_robot_file_is_told_to_brake_harder() -> None:
+    soft = ROBOT.model_copy(update={"decel_mps2": 0.1, "rot_accel_degps2": 50.0})
+    with (
+        ArcosEmulator(TcpLink(0), soft) as emulator,
+        ArcosDriver(_tcp(emulator), robot=ROBOT) as driver,
+    ):
+        assert driver.robot_config is not None
+        assert driver.robot_config.trans_decel_mmps2 == 100
+        assert _eventually(lambda: emulator.limits.trans_decel == 300.0, 1.0)
+        assert emulator.limits.rot_decel == 100.0
+        assert emulator.limits.trans_accel == 300.0  # already the robot file's: untouched
+
+
+def test_an_estop_holds_in_the_driver_though_the_firmware_lets_go(
+    tcp_emulator: ArcosEmulator,
+) -> None:
+    with ArcosDriver(_tcp(tcp_emulator), robot=ROBOT) as driver:
+        driver.set_velocity(Twist2D(0.3, 0.0))
+        assert _eventually(lambda: tcp_emulator.body.state().twist.v_mps > 0.2, 3.0)
+        driver.estop()
+        assert _eventually(lambda: tcp_emulator.body.state().twist.v_mps == 0.0, 1.0)
+        vels = tcp_emulator.stats.commands.get("VEL", 0)
+        assert driver.read_status().estopped
+        assert not driver.read_status().motors_enabled
+        with pytest.raises(Exception, match="E-stopped"):
+            driver.set_velocity(Twist2D(0.3, 0.0))
+        driver.set_velocity(Twist2D(0.0, 0.0))  # a zero command: accepted, nothing sent
+        time.sleep(0.3)
+        assert tcp_emulator.stats.commands.get("VEL", 0) == vels  # nothing reached it
+        assert tcp_emulator.body.state().twist.v_mps == 0.0
+        driver.connect()  # the deliberate reset
+        assert not driver.read_status().estopped
+        driver.set_velocity(Twist2D(0.2, 0.0))
+        assert _eventually(lambda: tcp_emulator.body.state().twist.v_mps > 0.1, 3.0)
+
+
+def test_the_robots_estop_button_latches_until_released_and_reset(
+    tcp_emulator: ArcosEmulator,
+) -> None:
+    with ArcosDriver(_tcp(tcp_emulator), robot=ROBOT) as driver:
+        tcp_emulator.press_estop()
+        assert _eventually(lambda: driver.read_status().estopped, 1.0)
+        with pytest.raises(Exception, match="still pressed"):
+            driver.connect()
+        tcp_emulator.press_estop(False)
+        time.sleep(0.3)
+        assert driver.read_status().estopped  # released, but nobody reset it
+        driver.connect()
+        assert _eventually(lambda: driver.read_status().motors_enabled, 1.0)
+        assert not driver.read_status().estopped
+
+
+def test_a_lost_robot_is_found_again_at_a_fallback_address() -> None:
+    with (
+        ArcosEmulator(TcpLink(0), ROBOT) as first,
+        ArcosEmulator(TcpLink(0), ROBOT) as second,  # the same robot, as its serial says
+    ):
+        settings = _tcp(first, fallbacks=(f"127.0.0.1:{second.link.port}",))  # type: ignore[attr-defined]
+        with ArcosDriver(settings, robot=ROBOT) as driver:
+            first.close()
+            assert _eventually(lambda: not driver.link_up, 2.0)
+            assert _eventually(lambda: driver.link_up, 8.0)
+            assert driver.address == f"127.0.0.1:{second.link.port}"  # type: ignore[attr-defined]
+
+
+def test_another_robot_at_a_fallback_address_is_not_taken_for_this_one() -> None:
+    other = EmulatorOptions(name="other-robot", serial="OTHER-0002")
+    with (
+        ArcosEmulator(TcpLink(0), ROBOT) as first,
+        ArcosEmulator(TcpLink(0), ROBOT, other) as second,
+    ):
+        settings = _tcp(
+            first,
+            fallbacks=(f"127.0.0.1:{second.link.port}",),
+            connect_timeout_s=0.5,  # type: ignore[attr-defined]
+        )
+        with ArcosDriver(settings, robot=ROBOT) as driver:
+            first.close()
+            assert _eventually(lambda: "another robot" in str(driver.read_status().faults), 5.0)
+            assert not driver.link_up
+
+
+def test_fallbacks_must_be_serial_devices_or_host_ports() -> None:
+    with pytest.raises(ValueError, match="fallback"):
+        ArcosSettings(port="/dev/ttyUSB0", fallbacks=("ttyUSB1",))
+    assert ArcosSettings(port="/dev/ttyUSB0", fallbacks=("/dev/ttyUSB1", "lab:8102")).addresses == (
+        ("/dev/ttyUSB0", False), ("/dev/ttyUSB1", False), ("lab:8102", True),
+    )  # fmt: skip

@@ -5,9 +5,12 @@ from __future__ import annotations
 import logging
 import time
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import typer
+
+if TYPE_CHECKING:
+    from phalanx.core.motion import Body
 
 
 def emulate(
@@ -40,7 +43,6 @@ def emulate(
 ) -> None:
     """Emulate a robot: stand-alone, or moved by a world process over Zenoh."""
     from phalanx.core.config_files import load_robot, load_scenario
-    from phalanx.core.motion import Body
     from phalanx.runtime.arcos_bridge import WorldBody, WorldBridge
     from phalanx.runtime.signals import stop_on_signals
     from phalanx.simulator.arcos_emulator import ArcosEmulator, EmulatorOptions, PtyLink, TcpLink
@@ -52,7 +54,7 @@ def emulate(
         raise typer.BadParameter("give exactly one of --pty or --tcp PORT")
     logging.basicConfig(level=logging.INFO, format="%(asctime)s emulator %(levelname)s %(message)s")
     params = load_robot(model)
-    body: Body = Body(params)
+    body: Body | None = None  # stand-alone: the emulator's own, able to brake at its tops
     bridge = None
     if world is not None:
         if robot is None:
