@@ -187,7 +187,8 @@ class Agent:
         if event is not None:
             moment = Moment(t_s, event.target, moment.odometry, sensing, view, ctx.others_busy)
             self._enter(event, moment)
-        command = self.limiter.apply(self._active.command(moment), self.dt_s)
+        active = self._active
+        command = self.limiter.apply(active.command(moment), self.dt_s, emergency=active.emergency)
         self._update_formed(observation.odometry.pose, view, t_s)
         self._last_odometry = observation.odometry
         return self._output(observation.odometry, command, sensing, view, event, t_s)

@@ -8,7 +8,8 @@ The rules:
    adopts a peer's pair when that is newer: a higher epoch, or the same epoch with a
    leader earlier in the formation's order (two robots that decided on different flags
    converge in one step). A lower epoch is ignored, so a late or replayed message can
-   never hand leadership back. Epochs only grow.
+   never hand leadership back. Epochs only grow (and saturate at the top of their
+   32-bit range, `phalanx.core.peers.next_epoch`).
 2. **Handover.** When the leader's flags say its path has been blocked for `confirm_s`,
    not every robot is blocked (that is the deadlock, the leader's to handle), nor is
    the leader in a dead end (its route leads back: a new leader would face the same),
@@ -34,6 +35,7 @@ from typing import Protocol
 
 from phalanx.core.config import LeadershipConfig
 from phalanx.core.formation import Formation
+from phalanx.core.peers import next_epoch
 from phalanx.core.states import DEADLOCK_STATES, OUT_OF_FORMATION, State
 
 
@@ -258,7 +260,7 @@ class Leadership:
         if chosen is None:
             return None
         why = f"leader {self.leader_id} silent for {silent_s:.1f} s"
-        return self._set(chosen, self.epoch + 1, t_s, why)
+        return self._set(chosen, next_epoch(self.epoch), t_s, why)
 
     def _handover(self, live: LiveFlags, t_s: float) -> LeadershipChange | None:
         lead = live.get(self.leader_id)
@@ -278,7 +280,7 @@ class Leadership:
         if chosen is None:
             return None
         why = f"{self.leader_id} blocked for {lead.blocked_s:.1f} s, {chosen} clear"
-        return self._set(chosen, self.epoch + 1, t_s, why)
+        return self._set(chosen, next_epoch(self.epoch), t_s, why)
 
     def path(self, robot: str) -> tuple[str, ...]:
         """The tree path from `robot` to the leader (leader included)."""

@@ -19,7 +19,6 @@ from phalanx.agents.behaviours.leader import (
     DeadlockTurn,
     GoToGoal,
     Scripted,
-    Steered,
     Wander,
 )
 from phalanx.agents.behaviours.navigation import Breadcrumbs, Plan, plan_of
@@ -103,7 +102,7 @@ class Parts:
         elif self.plan == "wander":
             navigate = wander
         else:
-            navigate = self._go_to_goal(limits)
+            navigate = self.reshape.drive = self._go_to_goal(limits)
         track = Track(
             robot_id, scenario, shape=self.shape, limits=limits,
             controller=make_controller(scenario.controller),
@@ -118,10 +117,11 @@ class Parts:
             State.FORMATION_REVERSE: track,
             State.AVOID: self.avoid,
             State.RESHAPE: self.reshape,
+            State.HOLD: StandStill(emergency=True),
         }
         return {state: table.get(state, still) for state in State}
 
-    def _go_to_goal(self, limits: KinematicLimits) -> Steered:
+    def _go_to_goal(self, limits: KinematicLimits) -> GoToGoal:
         go = GoToGoal(
             self.scenario, shape=self.shape, limits=limits, steering=self.steering,
             course=self.course, planner=self.planner, progress=self.progress,

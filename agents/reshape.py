@@ -1,14 +1,16 @@
 """Changing the formation's shape when the way demands it (formation reconfiguration):
 the leader plans its route for the shape's footprint over the fleet's map and, when
 the scenario's shape only gets through by a long way round (or not at all) while a
-narrower one passes, it stops the group and folds it (`RESHAPE`): separations across
+narrower one passes, it folds the group on the move (`RESHAPE`): separations across
 the heading shrunk, or every robot into a column behind it. Once the wider shape fits
-where the group stands and its route is as good, it unfolds again; the shape the
+where the group is and its route is as good, it unfolds again; the shape the
 scenario asks for is the one it goes back to.
 
 The transition is planned (`phalanx.core.shapes`): each robot's slot slides on a
 straight line in the formation frame to its new one, all at the same fraction of the way
-(CAPT: no robot crosses another's path), while the leader stands still. The shape in
+(CAPT: no robot crosses another's path), while the leader drives on slowly along its
+route (the followers' slots slide under them as they go; where the way ahead does not fit
+the shape as it is at that moment, the leader's steering stops it). The shape in
 effect (`ShapeKey`) goes out in the leader's flags; followers take it from there, so
 every robot computes the same slots.
 """
@@ -17,6 +19,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import Protocol
 
 from phalanx.agents.behaviours.base import Behaviour, Moment
 from phalanx.agents.leadership import FlagsView
@@ -27,10 +30,12 @@ from phalanx.core.geometry import ZERO_TWIST, Pose2D, Twist2D, Vec2
 from phalanx.core.shapes import SCENARIO_SHAPE, SHAPE_NAMES, ShapeBook, ShapeKey
 
 # Slots slide at this speed (m/s) in the formation frame during a reshape, and it
-# takes at least this long; the group then stands this long for the followers to settle.
+# takes at least this long; the followers then have this long to settle in the new shape.
+# Meanwhile the leader drives on no faster than `RESHAPE_CRUISE_MPS`.
 RESHAPE_MPS = 0.12
 RESHAPE_MIN_S = 3.0
 SETTLE_S = 2.0
+RESHAPE_CRUISE_MPS = 0.1
 # A footprint keeps this much more than the shape's half-span off obstacles (m).
 FOOTPRINT_MARGIN_M = 0.15
 # How often the leader weighs the shapes (s), how many times running a change must be
@@ -134,11 +139,25 @@ class ShapeKeeper:
         self._count = 0
 
 
-class Reshape(Behaviour):
-    """RESHAPE (the leader): stand still while every slot slides to the new shape's."""
+class Drive(Protocol):
+    """What a reshaping leader drives on with: its navigation behaviour."""
 
-    def __init__(self, keeper: ShapeKeeper, shape: Shape, *, dt_s: float) -> None:
-        self.keeper, self.shape, self.dt_s = keeper, shape, dt_s
+    @property
+    def has_goal(self) -> bool: ...  # noqa: D102
+
+    def command(self, moment: Moment) -> Twist2D: ...  # noqa: D102
+
+
+class Reshape(Behaviour):
+    """RESHAPE (the leader): drive on slowly (`drive`, the navigation behaviour, capped at
+    `RESHAPE_CRUISE_MPS`; standing still without one) while every slot slides to the new
+    shape's.
+    """
+
+    def __init__(
+        self, keeper: ShapeKeeper, shape: Shape, *, dt_s: float, drive: Drive | None = None
+    ) -> None:
+        self.keeper, self.shape, self.dt_s, self.drive = keeper, shape, dt_s, drive
         self.duration_s = RESHAPE_MIN_S
         self.done_s: float | None = None
 
@@ -162,7 +181,7 @@ class Reshape(Behaviour):
         self._since_done = 0.0
 
     def command(self, moment: Moment) -> Twist2D:
-        """Stand still; the shape's slide moves on a step."""
+        """The shape's slide moves on a step; the leader drives on, slowly."""
         keeper = self.keeper
         if not keeper.key.settled:
             morph = min(1.0, keeper.key.morph + self.dt_s / self.duration_s)
@@ -171,10 +190,20 @@ class Reshape(Behaviour):
             self.done_s = moment.t_s
         else:
             self._since_done += self.dt_s
-        return ZERO_TWIST
+        if self.drive is None or not self.drive.has_goal:
+            return ZERO_TWIST
+        return _capped(self.drive.command(moment), RESHAPE_CRUISE_MPS)
 
     def leave(self, moment: Moment) -> None:
         """Done (or interrupted): the next change waits its dwell time."""
         if self.keeper.key.settled:
             self.keeper.settled_at(moment.t_s)
             self.keeper.wanted = self.keeper.key.target
+
+
+def _capped(twist: Twist2D, v_max_mps: float) -> Twist2D:
+    """`twist` slowed to at most `v_max_mps`, on the same curve."""
+    if abs(twist.v_mps) <= v_max_mps:
+        return twist
+    share = v_max_mps / abs(twist.v_mps)
+    return Twist2D(twist.v_mps * share, twist.omega_radps * share)

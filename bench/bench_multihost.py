@@ -58,6 +58,7 @@ WARMUP_S = 1.0
 
 def write_deployment(lab: NetLab, folder: Path, name: str, *, lease_ms: int, router: bool) -> Path:
     lines = [f'name = "{name}"', f'fleet = "{name}"', f'scenario = "{WEDGE}"', 'clock = "realtime"']
+    lines += ["[security]", 'mode = "open"']  # the links' own costs (bench_security: TLS)
     lines += ["[zenoh]", f"lease_ms = {lease_ms}", "retry_max_ms = 500"]
     if router:
         lines.append(f'router = {{ address = "{lab.address("world")}", port = 7448 }}')

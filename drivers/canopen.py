@@ -8,7 +8,11 @@ velocities by RPDO1 (controlword + target), statusword and actual velocity by TP
 odometry integrated from the measured wheel speeds. Supervision: a drive whose heartbeat
 is missing for `heartbeat_timeout_s`, or which reports an EMCY or FAULT, stops the robot
 (zero targets and quick stop on both wheels) and the fault is reported until `connect()`
-resets it. The wheel geometry and speed limit are the robot parameter file's.
+resets it; so does a running drive whose heartbeat says it left OPERATIONAL (it rebooted,
+or was stopped), and one that reports a wheel speed no drive of this robot could reach
+(over `IMPLAUSIBLE_FACTOR` times the wheel speed limit: a corrupt or forged frame, never
+integrated into the odometry). The wheel geometry and speed limit are the robot
+parameter file's.
 """
 
 from __future__ import annotations
@@ -36,6 +40,10 @@ QUICK_STOP_ACTIVE = 0x07
 SWITCH_ON_DISABLED_MASK, SWITCH_ON_DISABLED = 0x4F, 0x40
 FAULT_MASK, FAULT = 0x4F, 0x08
 PROFILE_VELOCITY = 3
+NMT_OPERATIONAL = 5
+IMPLAUSIBLE_FACTOR = 2.0
+MAX_FAULTS = 16  # reasons kept; more (an EMCY flood) are counted in `faults_dropped`
+SDO_ATTEMPTS = 3
 
 
 class CanopenSettings(BaseModel):
@@ -95,6 +103,7 @@ class CanopenStats:
     emcys: int = 0
     heartbeat_losses: int = 0
     faults: list[str] = field(default_factory=list)
+    faults_dropped: int = 0
 
 
 class CanopenDriver(Closing):
@@ -254,16 +263,32 @@ class CanopenDriver(Closing):
         ):
             node = network.add_node(node_id, drive_od(node_id))
             wheel = _Wheel(name, node, sign)
-            node.nmt.add_heartbeat_callback(lambda _state, w=wheel: self._on_beat(w))
+            node.nmt.add_heartbeat_callback(lambda state, w=wheel: self._on_beat(w, state))
             node.emcy.add_callback(lambda err, w=wheel: self._on_emcy(w, err))
             wheels.append(wheel)
         self._network = network
         self._wheels = (wheels[0], wheels[1])
 
     def _enable(self, wheel: _Wheel) -> None:
+        # An SDO answer nobody asked for (a corrupt or forged frame, left on the bus) is
+        # taken for the next transfer's: the sequence runs again once the bus is clean.
+        for attempt in range(SDO_ATTEMPTS):
+            try:
+                self._enable_once(wheel)
+                return
+            except DriverUnavailable as exc:
+                if not isinstance(exc.__cause__, canopen.SdoCommunicationError):
+                    raise
+                if attempt == SDO_ATTEMPTS - 1:
+                    raise
+                log.warning("%s drive: %s; again", wheel.name, exc)
+                time.sleep(0.05)
+
+    def _enable_once(self, wheel: _Wheel) -> None:
         s, node = self.settings, wheel.node
         try:
             node.nmt.wait_for_heartbeat(s.connect_timeout_s)
+            _clean_slate(node)
             node.nmt.state = "PRE-OPERATIONAL"
             node.sdo[0x6060].raw = PROFILE_VELOCITY
             node.sdo[0x6083].raw = s.accel_counts_ps2
@@ -318,8 +343,11 @@ class CanopenDriver(Closing):
 
     # -- callbacks (bus thread) and supervision --------------------------------------
 
-    def _on_beat(self, wheel: _Wheel) -> None:
+    def _on_beat(self, wheel: _Wheel, state: int) -> None:
         wheel.last_beat_s = time.monotonic()
+        if state != NMT_OPERATIONAL and self._running:
+            with self._lock:
+                self._fault(f"{wheel.name} drive left OPERATIONAL (NMT state {state:#x})")
 
     def _on_emcy(self, wheel: _Wheel, error: canopen.emcy.EmcyError) -> None:
         if error.code == 0:
@@ -332,7 +360,11 @@ class CanopenDriver(Closing):
         with self._lock:
             wheel.statusword = int(pdo["Statusword"].raw)
             counts = int(pdo["Velocity actual value"].raw)
-            wheel.speed_radps = wheel.sign * counts / self.settings.counts_per_radps
+            speed_radps = wheel.sign * counts / self.settings.counts_per_radps
+            if abs(speed_radps) > IMPLAUSIBLE_FACTOR * self.geometry.max_radps:
+                self._fault(f"{wheel.name} drive reports an implausible {speed_radps:.0f} rad/s")
+                return
+            wheel.speed_radps = speed_radps
             wheel.tpdos += 1
             self.stats.tpdos += 1
             if wheel.statusword & FAULT_MASK == FAULT:
@@ -360,6 +392,9 @@ class CanopenDriver(Closing):
         """Stop both wheels and remember why (call with the lock held)."""
         if reason in self._faults:
             return
+        if len(self._faults) >= MAX_FAULTS:
+            self.stats.faults_dropped += 1
+            return  # already stopped, for the reasons kept
         log.error("stopping the robot: %s", reason)
         self._faults.append(reason)
         self.stats.faults.append(reason)
@@ -387,6 +422,19 @@ class CanopenDriver(Closing):
                         if f"{wheel.name} drive heartbeat lost" not in self._faults:
                             self.stats.heartbeat_losses += 1
                         self._fault(f"{wheel.name} drive heartbeat lost")
+
+
+def _clean_slate(node: canopen.RemoteNode) -> None:
+    """Forget what corrupt or forged frames left in `canopen`'s state before a connect: a
+    heartbeat state no node may send (the library keeps it, then fails on it with a
+    KeyError at the next state change it logs), and SDO responses nobody asked for (the
+    next transfer would take one for its answer).
+    """
+    if node.nmt._state not in canopen.nmt.NMT_STATES:  # the library's own attribute
+        node.nmt._state = 0x7F  # pre-operational: what connect() sets next anyway
+    responses = node.sdo.responses
+    while not responses.empty():
+        responses.get_nowait()
 
 
 def _stopped_itself(statusword: int) -> bool:

@@ -103,7 +103,9 @@ def test_an_agent_step_is_a_short_orchestration() -> None:
 
 
 def test_nothing_in_the_repository_points_outside_it() -> None:
-    outside = ("../shared", "DESIGN.md", "STYLE.md", "shared/notes")
+    # Spelled in pieces, so that this test is not itself a file naming those places.
+    team = "sha" + "red"
+    outside = (f"../{team}", "DES" + "IGN.md", "STY" + "LE.md", f"{team}/notes")
     hits = []
     for path in REPO.rglob("*"):
         parts = path.relative_to(REPO).parts

@@ -39,7 +39,13 @@ class Moment:
 
 
 class Behaviour:
-    """Base of the behaviours: stand still, remember nothing (subclasses override)."""
+    """Base of the behaviours: stand still, remember nothing (subclasses override).
+
+    `emergency`: its stop cannot wait, so the limiter brakes it at the robot's emergency
+    limits rather than the comfortable ones.
+    """
+
+    emergency = False
 
     def enter(self, moment: Moment) -> None:
         """The machine has just entered this behaviour's state (entry action)."""
@@ -58,4 +64,9 @@ class Behaviour:
 class StandStill(Behaviour):
     """Brake to a standstill and stay there (the limiter ramps the stop): HOLD, JOIN,
     ARRIVED, EMERGENCY_STOP, STUCK and the robot's own stops (E-stop, fault, battery).
+    With `emergency` (HOLD: the robot it tracks is gone, so where it is going is unknown)
+    at the robot's emergency deceleration.
     """
+
+    def __init__(self, *, emergency: bool = False) -> None:
+        self.emergency = emergency

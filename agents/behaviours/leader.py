@@ -169,6 +169,11 @@ class GoToGoal(Steered):
         super().__init__(scenario, shape=shape, limits=limits, steering=steering, course=course)
         self.planner, self.progress = planner, progress
 
+    @property
+    def has_goal(self) -> bool:
+        """Whether there is a waypoint (or an escape point) left to go to."""
+        return self.course.escape is not None or self.progress.waypoint < len(self.nav.waypoints)
+
     def desired(self, moment: Moment) -> tuple[float, float]:
         """Towards the route's next point."""
         pose = moment.pose

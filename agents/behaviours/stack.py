@@ -81,7 +81,7 @@ PRIORITIES: dict[int, Priority] = {
         "deadlock: every robot blocked, or the leader blocked and nobody clear to lead"),
     P_RESHAPE: Priority("navigation", "leader",
         "the shape does not fit the way ahead (or the scenario's fits again): the group "
-        "stands while every slot slides to the new shape (shrunk, column, or back)"),
+        "drives on slowly while every slot slides to the new shape (shrunk, column, or back)"),
     P_AVOID: Priority("navigation", "follower",
         "own path blocked while the leader's is not: leave the slot, go round, come back"),
     P_DIRECTION: Priority("formation", "follower",
@@ -147,7 +147,7 @@ STATE_NOTES: dict[str, str] = {
     State.ARRIVED: "leader at the last waypoint: stopped",
     State.DEADLOCK_REVERSE: "leader: back off in formation (followers FORMATION_REVERSE)",
     State.DEADLOCK_TURN: "leader: turn in place towards the open side",
-    State.RESHAPE: "leader: the group stands while its slots slide to another shape",
+    State.RESHAPE: "leader: the group drives on slowly while its slots slide to another shape",
     State.AVOID: "follower off its slot, going round an obstacle",
     State.EMERGENCY_STOP: "brake to a standstill",
     State.STUCK: "stopped for good; the reason is in the transition log",

@@ -269,7 +269,7 @@ def _navigation_transitions() -> list[Transition[StackContext]]:
             State.NAVIGATE,
             State.RESHAPE,
             lambda c: c.is_leader and c.plan == "goto" and c.reshape_wanted and not c.arrived,
-            "the way ahead needs another shape: stand, slide every slot to it",
+            "the way ahead needs another shape: slide every slot to it on the move",
             P_RESHAPE,
         ),
         *_leader_targets((State.RESHAPE,), lambda c: c.reshaped, "reshaped", P_RESUME),

@@ -33,20 +33,32 @@ def _allowed_change(current: float, wanted: float, up: float, down: float) -> fl
     return up if speeding_up else down
 
 
-def accelerate(current: Twist2D, wanted: Twist2D, limits: KinematicLimits, dt_s: float) -> Twist2D:
+def accelerate(
+    current: Twist2D,
+    wanted: Twist2D,
+    limits: KinematicLimits,
+    dt_s: float,
+    *,
+    emergency: bool = False,
+) -> Twist2D:
     """Move from `current` towards `wanted` within the acceleration bounds over `dt_s`.
 
     Both axes move the same fraction of the way (a straight line in (v, w)), so a change
     between two twists of equal curvature keeps that curvature throughout: a leader
-    reversing along its arc stays on it while it slows down and backs up.
+    reversing along its arc stays on it while it slows down and backs up. `emergency`
+    brakes to a stop at the robot's emergency limits instead of the comfortable ones.
     """
     dv = wanted.v_mps - current.v_mps
     dw = wanted.omega_radps - current.omega_radps
-    max_dv = _allowed_change(current.v_mps, wanted.v_mps, limits.accel_mps2, limits.decel_mps2)
+    decel, rot = limits.decel_mps2, limits.rot_accel_radps2
+    if emergency and wanted == ZERO_TWIST:
+        decel = max(decel, limits.emergency_decel_mps2)
+        rot = max(rot, limits.emergency_rot_decel_radps2)
+    max_dv = _allowed_change(current.v_mps, wanted.v_mps, limits.accel_mps2, decel)
     fraction = min(
         1.0,
         max_dv * dt_s / max(abs(dv), _EPS),
-        limits.rot_accel_radps2 * dt_s / max(abs(dw), _EPS),
+        rot * dt_s / max(abs(dw), _EPS),
     )
     return Twist2D(current.v_mps + fraction * dv, current.omega_radps + fraction * dw)
 
@@ -65,8 +77,10 @@ class CommandLimiter:
         """The last command applied (what the robot is executing now)."""
         return self._last
 
-    def apply(self, command: Twist2D, dt_s: float) -> Twist2D:
-        """The command the robot may execute this step."""
+    def apply(self, command: Twist2D, dt_s: float, *, emergency: bool = False) -> Twist2D:
+        """The command the robot may execute this step (`emergency`: a stop that cannot
+        wait, braked at the robot's emergency limits).
+        """
         v, w = command.v_mps, command.omega_radps
         if not (math.isfinite(v) and math.isfinite(w)):
             v, w = 0.0, 0.0  # never forward a NaN to a motor: brake within the limits
@@ -74,7 +88,7 @@ class CommandLimiter:
         if scale < 1.0:
             self.saturations += 1
             v, w = v * scale, w * scale
-        limited = accelerate(self._last, Twist2D(v, w), self.limits, dt_s)
+        limited = accelerate(self._last, Twist2D(v, w), self.limits, dt_s, emergency=emergency)
         if limited != Twist2D(v, w):
             self.accel_limited += 1
         self._last = limited

@@ -27,7 +27,7 @@ import numpy.typing as npt
 
 from phalanx.core.geometry import Twist2D, wrap_angle
 from phalanx.core.rigid_body import rigid_body_target
-from phalanx.core.runlog import RunLog
+from phalanx.core.runlog import RobotTrace, RunLog
 from phalanx.core.shapes import ShapeBook, ShapeKey
 from phalanx.core.states import ROBOT_STATES
 
@@ -138,11 +138,21 @@ def _series_against(log: RunLog, follower: str, leader: str, mask: BoolArray) ->
         l_m=l_m,
         phi_rad=phi,
         linear_pct=100.0 * np.abs(l_m - l_d) / l_d,
-        angular_pct=100.0 * dphi / phi_d,
+        angular_pct=_percent_of(dphi, phi_d),
         orientation_deg=np.degrees(orient),
         linear_m=np.abs(l_m - l_d),
         angular_deg=np.degrees(dphi),
     )
+
+
+def _percent_of(error: FloatArray, desired: FloatArray | float) -> FloatArray:
+    """`error` in percent of `desired`; NaN where nothing is desired (a slot dead ahead,
+    bearing 0, between two shapes).
+    """
+    desired_arr = np.broadcast_to(np.asarray(desired, dtype=np.float64), error.shape)
+    out = np.full(error.shape, np.nan)
+    np.divide(100.0 * error, desired_arr, out=out, where=desired_arr != 0.0)
+    return out
 
 
 def _orientation_error_rad(log: RunLog, leader: str, follower: str, mask: BoolArray) -> FloatArray:
@@ -248,16 +258,18 @@ def follower_metrics(log: RunLog, follower: str) -> dict[str, Any]:
 # States in which a robot is off its slot on purpose, or the shape is being turned about:
 # a formation's error is not measured then, nor for `settle_s` after.
 EPISODE_STATES = frozenset(
-    {"AVOID", "EMERGENCY_STOP", "HOLD", "JOIN", "DEADLOCK_TURN", "STUCK", "RESHAPE"} | ROBOT_STATES
+    {"AVOID", "EMERGENCY_STOP", "HOLD", "JOIN", "DEADLOCK_TURN", "STUCK"} | ROBOT_STATES
 )
 TURNING_ON_THE_SPOT_MPS = 0.005
 
 
-def episode_mask(log: RunLog) -> BoolArray:
+def episode_mask(log: RunLog, *, reshaping: bool = True) -> BoolArray:
     """Steps inside an obstacle-avoidance (or stop, or turn-away) episode of any robot:
     from leaving its slot until it is back in it (`formed`), or the leader turning the
-    shape on the spot to get round something; each episode extended by `settle_s`; and
-    the first `initial_settle_s`.
+    shape on the spot to get round something; with `reshaping`, also while the group
+    slides from one shape to another (a planned change, not an avoidance: its own share
+    in `navigation_metrics`); each episode extended by `settle_s`; and the first
+    `initial_settle_s`.
     """
     t = log.t_s
     busy = np.zeros(len(t), dtype=bool)
@@ -265,8 +277,8 @@ def episode_mask(log: RunLog) -> BoolArray:
         busy |= np.array([s in EPISODE_STATES for s in tr.states], dtype=bool)
         if len(tr.formed) == len(t):
             busy |= ~np.array(tr.formed, dtype=bool)
-        if len(tr.shapes) == len(t):
-            busy |= np.array([s[2] < 1.0 for s in tr.shapes], dtype=bool)  # reshaping
+        if reshaping:
+            busy |= reshaping_mask(log, tr)
     for k, rid in enumerate(leader_series(log)):
         tr = log.traces[rid]
         spinning = (
@@ -279,6 +291,16 @@ def episode_mask(log: RunLog) -> BoolArray:
     for end in ends:
         out[end : end + settle_steps] = True
     return out | (t < log.scenario.initial_settle_s)
+
+
+def reshaping_mask(log: RunLog, trace: RobotTrace) -> BoolArray:
+    """Steps a robot was between two shapes (or in the leader's RESHAPE)."""
+    n = len(log.t_s)
+    sliding = np.zeros(n, dtype=bool)
+    if len(trace.shapes) == n:
+        sliding |= np.array([s[2] < 1.0 for s in trace.shapes], dtype=bool)
+    reshaping: BoolArray = np.array([s == "RESHAPE" for s in trace.states], dtype=bool)
+    return sliding | reshaping
 
 
 def navigation_metrics(log: RunLog) -> dict[str, Any]:
@@ -294,7 +316,10 @@ def navigation_metrics(log: RunLog) -> dict[str, Any]:
     calm = ~episode_mask(log)
     followers = [r for r in log.formation.robot_ids if is_follower(log, r)]
     errors = _calm_errors(log, followers, calm)
-    busy_share = 1.0 - float(calm.mean()) if calm.size else math.nan
+    busy_share = float(episode_mask(log, reshaping=False).mean()) if calm.size else math.nan
+    sliding = np.zeros(len(log.t_s), dtype=bool)
+    for tr in log.traces.values():
+        sliding |= reshaping_mask(log, tr)
     epochs = [max(tr.epochs, default=0) for tr in log.traces.values()]
     return {
         "goal_reached": bool(arrived),
@@ -306,6 +331,7 @@ def navigation_metrics(log: RunLog) -> dict[str, Any]:
         "stuck": bool(stuck),
         "stuck_reason": stuck[0][1] if stuck else "",
         "episode_share": busy_share,
+        "reshaping_share": float(sliding.mean()) if sliding.size else math.nan,
         "calm": errors,
         "reshapes": sum(1 for e in transitions if e.target == "RESHAPE"),
         "scenario_shape_share": _scenario_shape_share(log),

@@ -1,6 +1,10 @@
 """A run's results folder: `metrics.json`, the paper's figures as PNGs, a Rerun `.rrd`.
 
-`phalanx run` (in process) and `phalanx up` (one process per robot) both write it.
+`phalanx run` (in process) and `phalanx up` (one process per robot) both write it. A run
+of processes is also marked whole or not (`mark_results`): `complete`, and the
+`incomplete_reason` (a process died, the world did not run every tick); when the world
+itself died, `metrics.json` holds that mark alone, beside what survived (the recording
+parts, merged into `run.rrd`).
 """
 
 from __future__ import annotations
@@ -109,4 +113,27 @@ def write_results(
         write_figures(log, folder)
     if recording:
         write_recording(log, folder / "run.rrd")
+    return metrics
+
+
+def mark_results(folder: Path, *, problems: list[str]) -> dict[str, Any]:
+    """Mark the results folder of a run of processes complete or not, with the reasons
+    (`problems`: the supervisor's, and the world's own in `runtime`); returns the metrics.
+
+    Writes `metrics.json` with the mark alone if the world wrote none (it died).
+    """
+    folder.mkdir(parents=True, exist_ok=True)
+    path = folder / "metrics.json"
+    try:
+        metrics: dict[str, Any] = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        metrics = {}
+        problems = [*problems, "the world wrote no metrics (it died before the run's end)"]
+    runtime = metrics.get("runtime")
+    reasons = list(problems)
+    if isinstance(runtime, dict) and runtime.get("incomplete_reason"):
+        reasons.append(str(runtime["incomplete_reason"]))
+    metrics["complete"] = not reasons
+    metrics["incomplete_reason"] = "; ".join(reasons)
+    write_metrics(metrics, path)
     return metrics

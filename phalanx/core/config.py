@@ -18,11 +18,22 @@ from phalanx.core.localisation import LocalisationConfig
 PositiveFloat = Annotated[float, Field(gt=0.0)]
 NonNegativeFloat = Annotated[float, Field(ge=0.0)]
 
+# Resources a scenario may ask for. A run keeps every robot's trace in memory (about 100
+# bytes per robot and control step) and the world simulates every robot: these keep a
+# mistyped file from eating the machine before anything useful happens.
+MAX_ROBOTS = 1000  # the largest fleet the batch runner is measured with (docs/PERFORMANCE.md)
+MAX_DURATION_S = 86_400.0  # a day of fleet time
+MAX_CONTROL_RATE_HZ = 100.0
+MAX_ROBOT_STEPS = 10_000_000  # robots x control steps of one run: about 1 GB of traces
+MAX_ITEMS = 10_000  # obstacles, vertices, events, waypoints, profile segments
+
 
 class Model(BaseModel):
-    """Base of every config model: unknown keys rejected, values frozen."""
+    """Base of every config model: unknown keys rejected, values frozen, NaN and
+    infinities refused (a non-finite number in a file is always a typo, never a value).
+    """
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
 # --- robot parameter files (configs/robots/*.toml) ------------------------------------
@@ -43,7 +54,7 @@ class SonarParams(Model):
     min_range_m: NonNegativeFloat = 0.1
     beam_width_deg: PositiveFloat = 15.0
     rays_per_beam: int = Field(default=3, ge=1, le=15)
-    units: tuple[SonarUnit, ...]
+    units: tuple[SonarUnit, ...] = Field(max_length=64)
 
 
 class RobotParams(Model):
@@ -62,6 +73,19 @@ class RobotParams(Model):
     sonar: SonarParams
     # Below this the agent stops the robot (LOW_BATTERY) until it is charged; none: no check.
     battery_low_v: PositiveFloat | None = None
+    # How hard the robot may brake when it must stop now (HOLD: its leader is gone), rather
+    # than the comfortable `decel_mps2`/`rot_accel_degps2`; none: the comfortable ones.
+    emergency_decel_mps2: PositiveFloat | None = None
+    emergency_rot_decel_degps2: PositiveFloat | None = None
+
+    @model_validator(mode="after")
+    def _emergency_is_harder(self) -> Self:
+        if self.emergency_decel_mps2 is not None and self.emergency_decel_mps2 < self.decel_mps2:
+            raise ValueError("emergency_decel_mps2 must be at least decel_mps2")
+        rot = self.emergency_rot_decel_degps2
+        if rot is not None and rot < self.rot_accel_degps2:
+            raise ValueError("emergency_rot_decel_degps2 must be at least rot_accel_degps2")
+        return self
 
     @property
     def omega_max_radps(self) -> float:
@@ -72,6 +96,13 @@ class RobotParams(Model):
     def rot_accel_radps2(self) -> float:
         """Yaw acceleration limit, rad/s^2."""
         return math.radians(self.rot_accel_degps2)
+
+    @property
+    def emergency_decel(self) -> tuple[float, float]:
+        """The emergency braking limits: (m/s^2, rad/s^2)."""
+        decel = self.emergency_decel_mps2 or self.decel_mps2
+        rot = self.emergency_rot_decel_degps2 or self.rot_accel_degps2
+        return decel, math.radians(rot)
 
 
 # --- scenario files (configs/scenarios/*.toml) -----------------------------------------
@@ -136,7 +167,7 @@ class SlotConfig(Model):
 class FormationConfig(Model):
     """The formation's shape: one slot per robot; exactly one slot follows nobody."""
 
-    slots: tuple[SlotConfig, ...] = Field(min_length=1)
+    slots: tuple[SlotConfig, ...] = Field(min_length=1, max_length=MAX_ROBOTS)
 
     @model_validator(mode="after")
     def _one_root(self) -> Self:
@@ -178,7 +209,7 @@ class Segment(Model):
 class LeaderProfile(Model):
     """The leader's scripted motion (the paper's piecewise constant velocities)."""
 
-    segments: tuple[Segment, ...] = Field(min_length=1)
+    segments: tuple[Segment, ...] = Field(min_length=1, max_length=MAX_ITEMS)
     repeat: bool = False
 
 
@@ -239,7 +270,7 @@ class NavigationConfig(Model):
     reactive: bool = True
     reshape: bool = True
     prior_map: str = Field(default="", max_length=4096)
-    waypoints: tuple[tuple[float, float], ...] = ()
+    waypoints: tuple[tuple[float, float], ...] = Field(default=(), max_length=MAX_ITEMS)
     goal_tolerance_m: PositiveFloat = 0.5
     cruise_mps: PositiveFloat = 0.2
     heading_gain_per_s: PositiveFloat = 1.0
@@ -284,7 +315,7 @@ class SensorEvent(Model):
     kind: Literal["all_sonars_blocked", "bumper", "markers_hidden"] = "all_sonars_blocked"
     start_s: NonNegativeFloat
     duration_s: PositiveFloat
-    robots: tuple[str, ...] = ()
+    robots: tuple[str, ...] = Field(default=(), max_length=MAX_ROBOTS)
     range_m: PositiveFloat = 0.3
 
 
@@ -299,7 +330,7 @@ class CircleObstacle(Model):
 class PolygonObstacle(Model):
     """A polygonal obstacle, vertices in order."""
 
-    vertices_m: tuple[tuple[float, float], ...] = Field(min_length=3)
+    vertices_m: tuple[tuple[float, float], ...] = Field(min_length=3, max_length=MAX_ITEMS)
 
 
 class ObstacleField(Model):
@@ -318,7 +349,7 @@ class ObstacleField(Model):
     y_min_m: float = -5.0
     y_max_m: float = 5.0
     min_gap_m: NonNegativeFloat = 0.0
-    keep_clear: tuple[CircleObstacle, ...] = ()
+    keep_clear: tuple[CircleObstacle, ...] = Field(default=(), max_length=MAX_ITEMS)
 
     @model_validator(mode="after")
     def _ordered(self) -> Self:
@@ -332,8 +363,8 @@ class ObstacleField(Model):
 class WorldConfig(Model):
     """Static obstacles of the world, plus an optional seeded obstacle field."""
 
-    circles: tuple[CircleObstacle, ...] = ()
-    polygons: tuple[PolygonObstacle, ...] = ()
+    circles: tuple[CircleObstacle, ...] = Field(default=(), max_length=MAX_ITEMS)
+    polygons: tuple[PolygonObstacle, ...] = Field(default=(), max_length=MAX_ITEMS)
     field: ObstacleField | None = None
     substeps: int = Field(default=4, ge=1, le=100)
 
@@ -356,25 +387,36 @@ class Scenario(Model):
     name: str
     description: str = ""
     robot: str = "p3dx"
-    duration_s: PositiveFloat = 200.0
-    control_rate_hz: PositiveFloat = 10.0
+    duration_s: float = Field(default=200.0, gt=0.0, le=MAX_DURATION_S)
+    control_rate_hz: float = Field(default=10.0, ge=0.1, le=MAX_CONTROL_RATE_HZ)
     comm_delay_s: NonNegativeFloat = 0.1
     seed: int = 0
     limits: LimitsOverride = LimitsOverride()
     controller: ControllerConfig = ControllerConfig()
     formation: FormationConfig
-    robots: tuple[RobotEntry, ...] = Field(min_length=1)
+    robots: tuple[RobotEntry, ...] = Field(min_length=1, max_length=MAX_ROBOTS)
     leader_profile: LeaderProfile | None = None
     navigation: NavigationConfig = NavigationConfig()
     leadership: LeadershipConfig = LeadershipConfig()
     deadlock: DeadlockConfig = DeadlockConfig()
-    events: tuple[SensorEvent, ...] = ()
+    events: tuple[SensorEvent, ...] = Field(default=(), max_length=MAX_ITEMS)
     world: WorldConfig = WorldConfig()
     noise: NoiseConfig = NoiseConfig()
     localisation: LocalisationConfig = LocalisationConfig()
     settle_s: NonNegativeFloat = 5.0
     initial_settle_s: NonNegativeFloat = 30.0
     leader_timeout_s: PositiveFloat = 0.5
+
+    @model_validator(mode="after")
+    def _within_resources(self) -> Self:
+        steps = len(self.robots) * self.duration_s * self.control_rate_hz
+        if steps > MAX_ROBOT_STEPS:
+            raise ValueError(
+                f"{len(self.robots)} robots x {self.duration_s:g} s at "
+                f"{self.control_rate_hz:g} Hz is {steps:.3g} robot-steps, more than the "
+                f"{MAX_ROBOT_STEPS:.0e} a run may keep: shorten duration_s or use fewer robots"
+            )
+        return self
 
     @model_validator(mode="after")
     def _robots_match_slots(self) -> Self:

@@ -21,10 +21,13 @@ from pydantic import BaseModel, ValidationError
 
 from phalanx.core.config import RobotParams, Scenario
 from phalanx.core.errors import ConfigError
+from phalanx.core.formation import scenario_formation
 from phalanx.core.mapfile import GridMap, load_map
 
 CONFIG_ROOT = Path(__file__).resolve().parents[2] / "configs"
 ROBOTS_DIR = CONFIG_ROOT / "robots"
+# A scenario of MAX_ROBOTS robots is about 100 kB of TOML; anything much bigger is not one.
+MAX_FILE_BYTES = 4 * 1024 * 1024
 
 M = TypeVar("M", bound=BaseModel)
 
@@ -71,19 +74,39 @@ def validate_file(model: type[M], path: Path) -> M:
 
     Raises ConfigError naming the file, the field path and a hint.
     """
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError as exc:
-        raise ConfigError(f"{path}: no such file") from exc
+    text = read_text(path)
     try:
         data = json.loads(text) if path.suffix == ".json" else tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{path}: not valid TOML: {exc}") from exc
-    except json.JSONDecodeError as exc:
+    except (json.JSONDecodeError, RecursionError) as exc:
         raise ConfigError(f"{path}: not valid JSON: {exc}") from exc
     if not isinstance(data, dict):
         raise ConfigError(f"{path}: expected a table at the top level")
     return validate_data(model, data, source=str(path))
+
+
+def read_text(path: Path, *, limit: int = MAX_FILE_BYTES) -> str:
+    """A configuration file's text, or ConfigError saying why it cannot be one."""
+    try:
+        with path.open("rb") as handle:
+            raw = handle.read(limit + 1)
+    except FileNotFoundError as exc:
+        raise ConfigError(f"{path}: no such file") from exc
+    except IsADirectoryError as exc:
+        raise ConfigError(f"{path}: is a directory, not a file") from exc
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot be read: {exc.strerror or exc}") from exc
+    if len(raw) > limit:
+        raise ConfigError(
+            f"{path}: larger than {limit // (1024 * 1024)} MiB: not a configuration file"
+        )
+    try:
+        return raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise ConfigError(
+            f"{path}: not a text file (byte {exc.start} is not UTF-8): give a TOML file"
+        ) from exc
 
 
 def validate_data(model: type[M], data: Mapping[str, Any], *, source: str) -> M:
@@ -104,23 +127,47 @@ def load_robot(name_or_path: str | Path) -> RobotParams:
 
 
 def load_scenario(path: str | Path) -> Scenario:
-    """Load a scenario file (TOML; JSON is accepted for generated scenarios)."""
-    return validate_file(Scenario, Path(path))
+    """Load a scenario file (TOML; JSON is accepted for generated scenarios); its
+    formation is resolved too, so a follow cycle is reported here, naming the file.
+    """
+    scenario = validate_file(Scenario, Path(path))
+    check_formation(scenario, source=str(path))
+    return scenario
 
 
-def apply_overrides(scenario: Scenario, assignments: list[str]) -> Scenario:
+def check_formation(scenario: Scenario, *, source: str) -> None:
+    """ConfigError naming `source` if the scenario's formation cannot be resolved."""
+    try:
+        scenario_formation(scenario)
+    except ConfigError as exc:
+        raise ConfigError(
+            f"{source}: {exc} (every slot must follow, through `follows`, the one slot "
+            "that follows nobody)"
+        ) from exc
+
+
+def apply_overrides(
+    scenario: Scenario, assignments: list[str], *, source: str | None = None
+) -> Scenario:
     """A copy of `scenario` with dotted `path=value` assignments (TOML values) applied.
 
     For example `controller.kind="ours"` or `noise.sonar_std_m=0.02`; bare words are taken
     as strings, so `controller.kind=ours` works too. The result is validated again.
+    Errors name `source` (the scenario's file) and the `--set` value at fault.
     """
+    where = source or scenario.name
     data = scenario.model_dump(mode="python")
     for assignment in assignments:
         path, sep, text = assignment.partition("=")
         if not sep or not path.strip():
-            raise ConfigError(f"override {assignment!r}: expected PATH=VALUE")
-        _set_path(data, path.strip().split("."), parse_value(text.strip()), assignment)
-    return validate_data(Scenario, data, source=f"{scenario.name} with overrides")
+            raise ConfigError(
+                f"{where}: --set {assignment!r}: expected PATH=VALUE, e.g. duration_s=60"
+            )
+        _set_path(data, path.strip().split("."), parse_value(text.strip()), assignment, where)
+    label = f"{where} with --set {' '.join(assignments)}"
+    result = validate_data(Scenario, data, source=label)
+    check_formation(result, source=label)
+    return result
 
 
 _BARE_KEY = re.compile(r"^[A-Za-z0-9_-]+$")
@@ -136,25 +183,31 @@ def parse_value(text: str) -> Any:
         return text
 
 
-def _set_path(data: dict[str, Any], keys: list[str], value: Any, assignment: str) -> None:
+def _set_path(
+    data: dict[str, Any], keys: list[str], value: Any, assignment: str, where: str
+) -> None:
     node: Any = data
-    for key in keys[:-1]:
-        node = _child(node, key, assignment)
+    for depth, key in enumerate(keys[:-1]):
+        node = _child(node, key, assignment, where, keys[:depth])
     last = keys[-1]
     if isinstance(node, list) and last.isdigit() and int(last) < len(node):
         node[int(last)] = value
     elif isinstance(node, dict):
         node[last] = value
     else:
-        raise ConfigError(f"override {assignment!r}: {'.'.join(keys[:-1])} is not a table")
+        raise ConfigError(f"{where}: --set {assignment!r}: {'.'.join(keys[:-1])} is not a table")
 
 
-def _child(node: Any, key: str, assignment: str) -> Any:
+def _child(node: Any, key: str, assignment: str, where: str, parents: list[str]) -> Any:
     if isinstance(node, dict) and key in node:
         return node[key]
     if isinstance(node, list | tuple) and key.isdigit() and int(key) < len(node):
         return node[int(key)]
-    raise ConfigError(f"override {assignment!r}: no field {key!r}")
+    at = ".".join(parents) or "the scenario"
+    names = [str(k) for k in node] if isinstance(node, dict) else []
+    hints = difflib.get_close_matches(key, names, n=1)
+    hint = f" (did you mean {hints[0]!r}?)" if hints else ""
+    raise ConfigError(f"{where}: --set {assignment!r}: {at} has no field {key!r}{hint}")
 
 
 def toml_value(value: object) -> str:

@@ -21,6 +21,10 @@ class KinematicLimits:
     accel_mps2: float
     decel_mps2: float
     rot_accel_radps2: float
+    # Braking to a stop that cannot wait (HOLD), m/s^2 and rad/s^2: the robot file's
+    # emergency limits (its comfortable ones when it gives none).
+    emergency_decel_mps2: float = 0.0
+    emergency_rot_decel_radps2: float = 0.0
 
     @classmethod
     def from_params(
@@ -40,6 +44,8 @@ class KinematicLimits:
             accel_mps2=robot.accel_mps2,
             decel_mps2=robot.decel_mps2,
             rot_accel_radps2=robot.rot_accel_radps2,
+            emergency_decel_mps2=robot.emergency_decel[0],
+            emergency_rot_decel_radps2=robot.emergency_decel[1],
         )
 
 

@@ -9,8 +9,21 @@ they are, with no validation on the hot path.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Final
 
 from phalanx.core.geometry import Pose2D, Twist2D
+
+# Epochs and sequence numbers travel as unsigned 32-bit integers. An epoch grows by one
+# per leadership change; at the top it stays (`next_epoch`): leadership then passes at
+# the same epoch, by the formation's order, rather than by wrapping round to 0, which
+# every robot would take for an old claim.
+EPOCH_MAX: Final = 2**32 - 1
+SEQ_MAX: Final = 2**32 - 1
+
+
+def next_epoch(epoch: int) -> int:
+    """The epoch a new leadership claim takes after `epoch` (saturating at EPOCH_MAX)."""
+    return min(epoch + 1, EPOCH_MAX)
 
 
 @dataclass(frozen=True, slots=True)

@@ -22,7 +22,7 @@ class State(StrEnum):
     ARRIVED = "ARRIVED"
     DEADLOCK_REVERSE = "DEADLOCK_REVERSE"
     DEADLOCK_TURN = "DEADLOCK_TURN"
-    RESHAPE = "RESHAPE"  # the group stands while its slots slide to another shape
+    RESHAPE = "RESHAPE"  # the group drives on slowly while its slots slide to another shape
     # navigation layer, every robot: reactive avoidance and safety
     AVOID = "AVOID"
     EMERGENCY_STOP = "EMERGENCY_STOP"

@@ -21,8 +21,11 @@ from typing import IO, Literal
 
 from phalanx.hosts.deployment import RestartPolicy
 from phalanx.hosts.protocol import ACTIVE_STATES, MAX_LOG_LINE, ChildState, ChildStatus, line_level
+from phalanx.runtime.exits import exit_reason
+from phalanx.runtime.signals import supervised_env
 
 LOG_LINES_PER_S = 200.0
+__all__ = ["LogLevel", "ManagedChild", "backoff_delay_s", "exit_reason"]
 
 LogLevel = Literal["info", "warning", "error"]
 LineSink = Callable[["ManagedChild", str, LogLevel], None]
@@ -46,6 +49,7 @@ class ManagedChild:
         self.process: subprocess.Popen[bytes] | None = None
         self.state: ChildState = "starting"
         self.restarts = 0
+        self.crashes = 0
         self.backoff_steps = 0
         self.exit_code: int | None = None
         self.last_error = ""
@@ -65,7 +69,7 @@ class ManagedChild:
 
     def start(self, *, workdir: Path) -> None:
         """Start (again), output piped to a reader thread."""
-        env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+        env = {**supervised_env(), "PYTHONUNBUFFERED": "1"}
         self.process = subprocess.Popen(  # noqa: S603 - argv built from the deployment file
             self.argv,
             stdin=subprocess.DEVNULL,
@@ -114,6 +118,7 @@ class ManagedChild:
             state=self.state,
             pid=pid,
             restarts=self.restarts,
+            crashes=self.crashes,
             exit_code=self.exit_code,
             last_error=self.last_error[-300:],
             log_dropped=self.log_dropped,
@@ -141,14 +146,6 @@ class ManagedChild:
             return
         self._tokens -= 1.0
         self.on_line(self, line, level)
-
-
-def exit_reason(code: int) -> str:
-    """`exit 2`, or `killed by SIGKILL` for a negative code."""
-    if code < 0:
-        with contextlib.suppress(ValueError):
-            return f"killed by {signal.Signals(-code).name}"
-    return f"exit {code}"
 
 
 def backoff_delay_s(policy: RestartPolicy, step: int) -> float:

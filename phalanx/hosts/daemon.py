@@ -35,6 +35,7 @@ from typing import Any, Literal
 from pydantic import ValidationError
 
 from phalanx.core.errors import PhalanxError, RequestRefused
+from phalanx.hosts.access import ca_path, security_of
 from phalanx.hosts.children import LogLevel, ManagedChild, backoff_delay_s, exit_reason
 from phalanx.hosts.deployment import LoadedDeployment
 from phalanx.hosts.protocol import (
@@ -45,8 +46,9 @@ from phalanx.hosts.protocol import (
     SpawnRequest,
     StopRequest,
 )
+from phalanx.hosts.request_auth import RequestVerifier
 from phalanx.hosts.request_checks import RequestChecks, validation_summary
-from phalanx.hosts.wiring import RunParameters, agent_argv, host_transport, world_argv
+from phalanx.hosts.wiring import RunParameters, agent_argv, secured_host_transport, world_argv
 from phalanx.runtime.local_fleet import GRACE_S
 from phalanx.runtime.signals import Stoppable
 from phalanx.wire.keys import alive_pattern, host_key, log_key
@@ -79,6 +81,12 @@ class HostDaemon:
         self.spec = loaded.spec
         self.options = options or DaemonOptions()
         self.checks = RequestChecks(loaded, name)
+        security = security_of(self.spec)
+        self.verifier = (
+            RequestVerifier(ca_path(loaded), security.operators, security.request_window_s)
+            if self.spec.secured
+            else None
+        )
         self.children: dict[str, ManagedChild] = {}
         self.run_id: str | None = None
         self.requests = 0
@@ -94,7 +102,9 @@ class HostDaemon:
 
     def run(self, stop: Stoppable) -> None:
         """Serve until `stop` is set; then stop every child and close the session."""
-        transport = host_transport(self.spec, self.name)
+        transport = secured_host_transport(self.loaded, self.name)
+        if self.spec.open_warning:
+            log.warning("%s", self.spec.open_warning)
         with open_session(transport) as session:
             self._session = session
             self._wire(session)
@@ -170,18 +180,29 @@ class HostDaemon:
     def _handle(self, topic: str, payload: bytes) -> None:
         if len(payload) > MAX_REQUEST_BYTES:
             raise RequestRefused(f"request of {len(payload)} bytes: at most {MAX_REQUEST_BYTES}")
-        if topic == "spawn":
-            self.spawn(SpawnRequest.model_validate_json(payload))
-        elif topic == "stop":
-            self.stop(StopRequest.model_validate_json(payload))
+        if topic not in ("spawn", "stop"):
+            return
+        operator = None
+        if self.verifier is not None:  # secured: every request signed by a listed operator
+            operator, payload = self.verifier.open(payload)
+        model: type[SpawnRequest | StopRequest] = SpawnRequest if topic == "spawn" else StopRequest
+        request = model.model_validate_json(payload)
+        if self.verifier is not None:
+            self.verifier.check_fresh(request.issued_unix)
+        if isinstance(request, SpawnRequest):
+            self.spawn(request, operator=operator)
+        else:
+            self.stop(request)
 
     # --- requests -----------------------------------------------------------------------
 
-    def spawn(self, request: SpawnRequest) -> None:
-        """Start the requested processes of this host (idempotent for a running one)."""
+    def spawn(self, request: SpawnRequest, *, operator: str | None = None) -> None:
+        """Start the requested processes of this host (idempotent for a running one);
+        `operator`: who signed the request (a secured fleet), for the overrides' check.
+        """
         self.checks.check_deployment(request.deployment, request.digest)
         robots = self.checks.requested_robots(request.robots)
-        overrides = self.checks.checked_overrides(request.overrides)
+        overrides = self.checks.checked_overrides(request.overrides, operator=operator)
         self.checks.check_epoch(request.epoch_unix)
         self._claim_run(request.run_id)
         world = request.world and self.spec.runs_world(self.name)
@@ -196,7 +217,7 @@ class HostDaemon:
 
     def stop(self, request: StopRequest) -> None:
         """Stop some or all of this host's processes (SIGTERM, then SIGKILL)."""
-        self.checks.check_deployment(request.deployment)
+        self.checks.check_deployment(request.deployment, request.digest)
         if request.run_id is not None and request.run_id != self.run_id:
             raise RequestRefused(
                 f"run {request.run_id!r} is not this host's (its run: {self.run_id!r})"
@@ -297,9 +318,12 @@ class HostDaemon:
             child.state = "finished"
             log.info("host %s: %s finished", self.name, child.name)
             return
+        child.crashes += 1
         child.join_output(0.5)  # its last words are the likely reason
         last = child.last_error or (child.lines[-1] if child.lines else "")
         child.last_error = f"{exit_reason(code)}: {last}" if last else exit_reason(code)
+        if child.kind == "world" and self.run_id is not None:
+            self._mark_results(f"world: {exit_reason(code)}")
         if child.kind == "agent" and child.backoff_steps < child.policy.max_restarts:
             delay_s = backoff_delay_s(child.policy, child.backoff_steps)
             child.backoff_steps += 1
@@ -314,6 +338,17 @@ class HostDaemon:
         else:
             child.state = "failed"
             log.error("host %s: %s failed (%s)", self.name, child.name, exit_reason(code))
+
+    def _mark_results(self, problem: str) -> None:
+        """The world died: its results folder says so, with what survived."""
+        from phalanx.analysis.results import mark_results
+
+        assert self.run_id is not None  # noqa: S101 - checked by the caller
+        folder = self._results_dir(self.run_id)
+        try:
+            mark_results(folder, problems=[problem])
+        except OSError as exc:
+            log.error("host %s: cannot mark %s incomplete: %s", self.name, folder, exc)
 
     def shutdown(self) -> None:
         """Stop every child: SIGTERM, SIGKILL after the grace period; bounded."""

@@ -79,6 +79,25 @@ class ZenohSettings(Model):
     router: RouterEntry | None = None
 
 
+class SecuritySettings(Model):
+    """How the fleet's links are secured (docs/SECURITY.md).
+
+    `mode = "mtls"`: every link is `tls/` with mutual authentication against the fleet's
+    CA, and each host's router applies the access-control list generated from this file;
+    `mode = "open"`: plain TCP, anyone who reaches a port can drive the robots (warned
+    about at every start). Without a `[security]` table a deployment is `mtls`, except one
+    whose hosts are all on loopback addresses (one machine), which is `open` quietly.
+    """
+
+    mode: Literal["mtls", "open"] = "mtls"
+    pki: str = "pki"  # folder of `ca.crt` and `<common name>.crt/.key`, relative to the file
+    ca: str | None = None  # the CA's certificate (default: <pki>/ca.crt)
+    operators: tuple[Name, ...] = ()  # who may start and stop the fleet (operator.NAME)
+    viewers: tuple[Name, ...] = ()  # who may read it (viewer.NAME)
+    may_override: tuple[Name, ...] = ()  # operators whose `--set` is accepted (allow_overrides)
+    request_window_s: float = Field(default=30.0, gt=0.0, le=600.0)  # a request's age, at most
+
+
 class HostEntry(Model):
     """A machine of the fleet: it runs `phalanx host DEPLOYMENT --name NAME`."""
 
@@ -86,6 +105,8 @@ class HostEntry(Model):
     address: str = Field(pattern=_ADDRESS)  # IPv4 address (or a name resolving to one)
     port: Port | None = None  # default: zenoh.port
     bind: str | None = None  # IPv4 address to listen on (default: address, if IPv4)
+    cert: str | None = None  # its certificate (default: <pki>/host.<name>.crt)
+    key: str | None = None  # its key (default: <pki>/host.<name>.key)
 
     @model_validator(mode="after")
     def _bind_is_ipv4(self) -> Self:
@@ -166,6 +187,7 @@ class Deployment(Model):
     world: WorldPlacement | None = None
     restart: RestartPolicy = RestartPolicy()
     telemetry: TelemetrySettings = TelemetrySettings()
+    security: SecuritySettings | None = None
 
     @model_validator(mode="after")
     def _references(self) -> Self:
@@ -186,7 +208,35 @@ class Deployment(Model):
                 f"world: host {self.world.host!r} is not in hosts"
                 + did_you_mean(self.world.host, names)
             )
+        if self.security is not None:
+            for name in self.security.may_override:
+                if name not in self.security.operators:
+                    raise ValueError(f"security.may_override: {name!r} is not in operators")
         return self
+
+    @property
+    def secured(self) -> bool:
+        """Whether links are mutual TLS with access control (see `SecuritySettings`)."""
+        if self.security is not None:
+            return self.security.mode == "mtls"
+        return not self.on_loopback
+
+    @property
+    def on_loopback(self) -> bool:
+        """Whether every host is on a loopback address (the fleet is on one machine)."""
+        return all(h.address.startswith("127.") or h.address == "localhost" for h in self.hosts)
+
+    @property
+    def open_warning(self) -> str | None:
+        """The warning an explicitly open deployment prints at every start, if it is one."""
+        if self.security is None or self.security.mode != "open":
+            return None
+        return (
+            f"WARNING: deployment {self.name!r} runs with security mode = 'open': no "
+            "encryption, no authentication, no access control. Anyone who can reach its "
+            "ports can read the fleet, drive its robots and start or stop it. Use "
+            "mode = 'mtls' (docs/SECURITY.md)"
+        )
 
     def host(self, name: str) -> HostEntry:
         """The host called `name` (ConfigError naming the closest one otherwise)."""
@@ -262,7 +312,7 @@ def load_deployment(name_or_path: str | Path) -> LoadedDeployment:
         raise ConfigError(f"{path}: scenario {spec.scenario!r}: no such file ({scenario_path})")
     scenario = load_scenario(scenario_path)
     if spec.overrides:
-        scenario = apply_overrides(scenario, list(spec.overrides))
+        scenario = apply_overrides(scenario, list(spec.overrides), source=f"{path}: overrides")
     digest = hashlib.sha256(path.read_bytes() + b"\0" + scenario_path.read_bytes()).hexdigest()
     loaded = LoadedDeployment(path, spec, scenario_path, scenario, digest)
     _check_against_scenario(loaded)

@@ -21,6 +21,7 @@ from typing import Any
 
 from pydantic import ValidationError
 
+from phalanx.core.config_files import load_robot
 from phalanx.core.errors import DeploymentError, TransportError
 from phalanx.core.lifecycle import Closing
 from phalanx.hosts.deployment import LoadedDeployment
@@ -32,12 +33,23 @@ from phalanx.hosts.protocol import (
     SpawnRequest,
     StopRequest,
 )
+from phalanx.hosts.request_auth import sign
 from phalanx.hosts.wiring import client_transport
-from phalanx.wire.keys import host_key, host_of, hosts_key, logs_key, robots_key, status_key
+from phalanx.wire.bounds import FleetBounds
+from phalanx.wire.keys import (
+    host_key,
+    host_of,
+    hosts_key,
+    logs_key,
+    robots_key,
+    status_key,
+    statuses_key,
+)
 from phalanx.wire.messages import RobotState
 from phalanx.wire.transport import FleetSession, TransportConfig, open_session
 
 RATE_WINDOW_S = 2.0
+MAX_LOG_QUEUE = 10_000  # log lines waiting for the launcher's next look
 ASK_TIMEOUT_S = 1.5
 
 
@@ -49,9 +61,10 @@ class FleetWatch:
         self.states: dict[str, RobotState] = {}
         self.first_seen: dict[str, float] = {}
         self._arrivals: dict[str, deque[float]] = {}
-        self.logs: queue.SimpleQueue[LogLine] = queue.SimpleQueue()
+        self.logs: queue.Queue[LogLine] = queue.Queue(maxsize=MAX_LOG_QUEUE)
         self.hosts_present: set[str] = set()
         self.malformed_logs = 0
+        self.dropped_logs = 0  # lines beyond MAX_LOG_QUEUE waiting (a flood)
 
     def on_state(self, _key: str, state: RobotState) -> None:
         """A robot's state (callback side)."""
@@ -65,9 +78,15 @@ class FleetWatch:
     def on_log(self, sample: Any) -> None:
         """A child's output line (callback side); malformed ones are counted."""
         try:
-            self.logs.put(LogLine.model_validate_json(sample.payload.to_bytes()))
+            line = LogLine.model_validate_json(sample.payload.to_bytes())
+            if line.host != host_of(str(sample.key_expr)):  # a line on another host's key
+                self.malformed_logs += 1
+                return
+            self.logs.put_nowait(line)
         except ValidationError:
             self.malformed_logs += 1
+        except queue.Full:
+            self.dropped_logs += 1
 
     def on_host(self, key: str, alive: bool) -> None:
         """A host daemon's token appeared or vanished (callback side)."""
@@ -101,6 +120,7 @@ class FleetClient(Closing):
 
     def __init__(self, loaded: LoadedDeployment, transport: TransportConfig) -> None:
         self.loaded, self.spec = loaded, loaded.spec
+        self.identity = transport.tls  # a secured fleet: requests are signed with it
         try:
             self.session: FleetSession = open_session(transport)
         except TransportError as exc:
@@ -118,7 +138,10 @@ class FleetClient(Closing):
 
     def _wire(self, fleet: str) -> None:
         self.session.watch_alive(hosts_key(fleet, "alive"), self.watch.on_host)
-        self.session.subscribe(robots_key(fleet, "state"), RobotState, self.watch.on_state)
+        bounds = FleetBounds.of(self.loaded.scenario, load_robot(self.loaded.scenario.robot))
+        self.session.subscribe(
+            robots_key(fleet, "state"), RobotState, self.watch.on_state, context=bounds
+        )
         self.session.hold(self.session.zenoh.declare_subscriber(logs_key(fleet), self.watch.on_log))
 
     @property
@@ -148,6 +171,18 @@ class FleetClient(Closing):
         """The world's own status (tick, missed deadlines), if it answers."""
         replies = self.session.query_status(status_key(self.spec.fleet, "world"), 0.5)
         return replies[0] if replies else None
+
+    def process_statuses(self, timeout_s: float = 0.5) -> dict[str, dict[str, Any]]:
+        """Every fleet process's own status (its counters, drops included), by robot id
+        ("world" for the world); a reply naming no process of the deployment is left out.
+        """
+        names = {r.id for r in self.spec.robots} | {"world"}
+        out = {}
+        for reply in self.session.query_status(statuses_key(self.spec.fleet), timeout_s):
+            name = reply.get("robot_id", "world" if "tick" in reply else None)
+            if isinstance(name, str) and name in names:
+                out[name] = reply
+        return out
 
     def wait_for_hosts(self, timeout_s: float, say: Callable[[str], None]) -> dict[str, HostStatus]:
         """Every host's status once all are present; DeploymentError naming the missing."""
@@ -220,8 +255,9 @@ class FleetClient(Closing):
             run_id=run_id,
             epoch_unix=epoch_unix,
             overrides=overrides,
+            issued_unix=time.time(),
         )
-        payload = request.model_dump_json().encode("utf-8")
+        payload = self._signed(request.model_dump_json().encode("utf-8"))
         busy = [h for h in self.host_names if self.spec.robots_on(h) or self.spec.runs_world(h)]
         replies = self.ask("spawn", dict.fromkeys(busy, payload), timeout_s=5.0)
         problems = [
@@ -235,10 +271,21 @@ class FleetClient(Closing):
 
     def stop(self, run_id: str | None = None) -> dict[str, HostReply | None]:
         """Ask every present host to stop its processes (of `run_id`, if given)."""
-        request = StopRequest(deployment=self.spec.name, run_id=run_id)
-        payload = request.model_dump_json().encode("utf-8")
+        request = StopRequest(
+            deployment=self.spec.name,
+            digest=self.loaded.digest,
+            run_id=run_id,
+            issued_unix=time.time(),
+        )
+        payload = self._signed(request.model_dump_json().encode("utf-8"))
         present = [h for h in self.host_names if h in self.watch.present()]
         return self.ask("stop", dict.fromkeys(present, payload))
+
+    def _signed(self, request: bytes) -> bytes:
+        """The request as sent: signed by this client's identity on a secured fleet."""
+        if not self.spec.secured or self.identity is None:
+            return request
+        return sign(request, self.identity)
 
     def wait_stopped(self, timeout_s: float) -> list[str]:
         """Wait (bounded) until no present host has an active child; the ones left."""

@@ -33,6 +33,7 @@ class Row:
     leader: str
     rate_hz: float | None
     last_error: str
+    dropped: int | None = None  # payloads the process dropped (malformed, ring, refused)
 
 
 class Output(Protocol):
@@ -55,9 +56,15 @@ def fleet_rows(
     *,
     world: dict[str, Any] | None = None,
     total_ticks: int | None = None,
+    processes: dict[str, dict[str, Any]] | None = None,
 ) -> list[Row]:
-    """The status table: one row per robot, and the world (`tick k/total_ticks`)."""
+    """The status table: one row per robot, and the world (`tick k/total_ticks`), with
+    what each process dropped (`processes`: their own status replies).
+    """
     now = time.monotonic()
+    processes = processes or {}
+    if world is not None:
+        processes = {"world": world, **processes}
     present = watch.present()
     rows = []
     for placement in loaded.spec.robots:
@@ -73,6 +80,7 @@ def fleet_rows(
                 leader=(state.leader_id or "-") if state else "-",
                 rate_hz=watch.rate_hz(placement.id, now),
                 last_error=child.last_error if child else "",
+                dropped=_dropped(processes.get(placement.id)),
             )
         )
     if loaded.spec.world is not None:
@@ -81,8 +89,14 @@ def fleet_rows(
         process = _process(child, host in present)
         error = child.last_error if child else ""
         progress = _world_state(world, total_ticks or scenario_ticks(loaded.scenario))
-        rows.append(Row("world", host, process, 0, progress, "-", None, error))
+        dropped = _dropped(processes.get("world"))
+        rows.append(Row("world", host, process, 0, progress, "-", None, error, dropped))
     return rows
+
+
+def _dropped(status: dict[str, Any] | None) -> int | None:
+    value = status.get("dropped") if status else None
+    return value if isinstance(value, int) else None
 
 
 def scenario_ticks(scenario: Scenario) -> int:
@@ -161,7 +175,9 @@ def render_table(rows: list[Row], *, title: str) -> Any:
     from rich.table import Table
 
     table = Table(title=title, expand=False)
-    for column in ("robot", "host", "process", "restarts", "state", "leader", "rate", "last error"):
+    columns = ("robot", "host", "process", "restarts", "state", "leader", "rate", "dropped",
+               "last error")  # fmt: skip
+    for column in columns:
         table.add_column(column, no_wrap=column != "last error", overflow="fold")
     for row in rows:
         rate = f"{row.rate_hz:.1f} Hz" if row.rate_hz is not None else "-"
@@ -173,6 +189,7 @@ def render_table(rows: list[Row], *, title: str) -> Any:
             row.state,
             row.leader,
             rate,
+            "-" if row.dropped is None else str(row.dropped),
             row.last_error[-80:],
         )
     return table

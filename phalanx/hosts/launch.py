@@ -45,6 +45,7 @@ class _Run:
     world_done_at: float | None = None
     statuses: dict[str, HostStatus | None] = field(default_factory=dict)
     results: list[str] = field(default_factory=list)
+    hosts_lost: set[str] = field(default_factory=set)  # hosts whose daemon is out of sight
 
 
 def launch(
@@ -79,7 +80,24 @@ def launch(
             _drain_logs(client.watch, output, run)
         for line in run.results:
             output.event(line)
-    return code
+        problems = [f"host {h}: its daemon went away" for h in sorted(run.hosts_lost)]
+        problems += deaths(run.statuses)
+        for problem in problems:
+            output.event(f"ended unexpectedly: {problem}")
+    return 1 if problems and code == 0 else code
+
+
+def deaths(statuses: dict[str, HostStatus | None]) -> list[str]:
+    """Every process of the run that died on its own (crashed, restarted or failed), with
+    why: a run with any is not a clean finish, whatever the world says.
+    """
+    out = []
+    for host, status in statuses.items():
+        for child in status.children if status is not None else ():
+            if child.crashes or child.state == "failed":
+                restarted = f", restarted {child.restarts}x" if child.restarts else ""
+                out.append(f"{child.name} on {host}: {child.last_error or child.state}{restarted}")
+    return out
 
 
 def _follow(
@@ -93,12 +111,19 @@ def _follow(
     timeout_s = options.timeout_s or _default_timeout_s(loaded)
     deadline = run.started + timeout_s
     robots = [r.id for r in loaded.spec.robots]
-    ticks = scenario_ticks(apply_overrides(loaded.scenario, list(options.overrides)))
+    overrides = list(options.overrides)
+    ticks = scenario_ticks(
+        apply_overrides(loaded.scenario, overrides, source=str(loaded.scenario_path))
+    )
     while not stop.wait(POLL_S):
         _drain_logs(client.watch, output, run)
+        _watch_hosts(client, run, output)
         run.statuses.update(client.statuses())
-        world = client.world_status()
-        rows = fleet_rows(loaded, run.statuses, client.watch, world=world, total_ticks=ticks)
+        processes = client.process_statuses(0.3)
+        rows = fleet_rows(
+            loaded, run.statuses, client.watch, world=processes.get("world"),
+            total_ticks=ticks, processes=processes,
+        )  # fmt: skip
         output.update(rows)
         if run.up_at is None and client.watch.seen_since(robots, run.spawned):
             run.up_at = time.monotonic()
@@ -113,6 +138,19 @@ def _follow(
             return 1
     output.event("interrupted")
     return 1
+
+
+def _watch_hosts(client: FleetClient, run: _Run, output: Output) -> None:
+    """Say when a host's daemon goes out of sight, and when it is back (a host still out
+    of sight at the end is an ending that was not asked for).
+    """
+    present = client.watch.present()
+    for host in sorted(set(client.host_names) - present - run.hosts_lost):
+        output.event(f"host {host} lost (its daemon's liveliness token is gone)")
+        run.hosts_lost.add(host)
+    for host in sorted(run.hosts_lost & present):
+        output.event(f"host {host} is back")
+        run.hosts_lost.discard(host)
 
 
 def _default_timeout_s(loaded: LoadedDeployment) -> float:

@@ -61,16 +61,22 @@ class SpawnRequest(Wire):
     world: bool = True  # start the world too, if it runs on this host
     epoch_unix: float | None = None  # step 0 of robots on real drivers (Unix time)
     overrides: tuple[Override, ...] = Field(default=(), max_length=32)
+    issued_unix: float | None = None  # when the launcher sent it (a secured fleet's window)
 
 
 class StopRequest(Wire):
-    """Stop processes on a host: all of them, or some robots (and/or the world)."""
+    """Stop processes on a host: all of them, or some robots (and/or the world). Like a
+    spawn, it carries the digest of the deployment's files: only a launcher holding
+    them (`phalanx launch`, `phalanx stop`) can end a fleet's processes.
+    """
 
     version: Literal[1] = PROTOCOL_VERSION
     deployment: Name
+    digest: Digest
     run_id: RunId | None = None  # only if this run is the host's current one
     robots: tuple[Name, ...] = Field(default=(), max_length=256)  # empty: all
     world: bool = True
+    issued_unix: float | None = None  # when the launcher sent it (a secured fleet's window)
 
 
 class ChildStatus(Wire):
@@ -81,6 +87,7 @@ class ChildStatus(Wire):
     state: ChildState
     pid: int | None = None
     restarts: int = 0
+    crashes: int = 0  # times it ended on its own with an error (finished runs exit 0)
     exit_code: int | None = None
     last_error: str = ""
     log_dropped: int = 0

@@ -8,6 +8,7 @@ within a day of the host's clock. Every check raises `RequestRefused` with the r
 
 from __future__ import annotations
 
+import re
 import time
 
 from pydantic import ValidationError
@@ -63,15 +64,31 @@ class RequestChecks:
                 raise RequestRefused(f"robot {rid!r} runs on host {other!r}, not on {self.host!r}")
         return requested or here
 
-    def checked_overrides(self, overrides: tuple[str, ...]) -> tuple[str, ...]:
-        """The overrides, if the deployment allows them and they give a valid scenario."""
+    def checked_overrides(
+        self, overrides: tuple[str, ...], *, operator: str | None = None
+    ) -> tuple[str, ...]:
+        """The overrides, if the deployment allows them, the requesting operator may give
+        them (a secured fleet: `[security] may_override`), none names a file, and they
+        give a valid scenario.
+        """
         if not overrides:
             return ()
         if not self.spec.allow_overrides:
             raise RequestRefused(
                 f"deployment {self.spec.name!r} does not allow overrides (allow_overrides = false)"
             )
-        apply_overrides(self.loaded.scenario, list(overrides))  # ConfigError if invalid
+        if self.spec.secured:
+            allowed = self.spec.security.may_override if self.spec.security else ()
+            if operator not in allowed:
+                raise RequestRefused(
+                    f"operator {operator!r} may not override the scenario "
+                    f"([security] may_override: {', '.join(allowed) or 'nobody'})"
+                )
+        for override in overrides:
+            _no_file(override)
+        apply_overrides(  # ConfigError if invalid
+            self.loaded.scenario, list(overrides), source=str(self.loaded.scenario_path)
+        )
         return overrides
 
     @staticmethod
@@ -79,3 +96,18 @@ class RequestChecks:
         """The run's epoch, if any, is within a day of this host's clock."""
         if epoch_unix is not None and abs(epoch_unix - time.time()) > MAX_EPOCH_OFFSET_S:
             raise RequestRefused(f"epoch {epoch_unix:.3f}: more than a day from this host's clock")
+
+
+_PATHLIKE = re.compile(r"[/\\~]|\.\.|\.(toml|json|yaml|yml|rrd|py)\b", re.IGNORECASE)
+
+
+def _no_file(override: str) -> None:
+    """Refuse an override whose value names a file: a daemon reads only the deployment's own
+    files (`robot=/etc/passwd.toml` would make it open any file its user can read).
+    """
+    value = override.partition("=")[2]
+    if _PATHLIKE.search(value):
+        raise RequestRefused(
+            f"override {override!r} names a file: a host reads only its deployment's own files "
+            "(put the file beside the scenario and name it there)"
+        )

@@ -15,6 +15,10 @@ command lines the host daemons run. Nothing here is configured by hand.
 - Agents and the world are Zenoh clients of their own host's daemon on 127.0.0.1.
 - A robot's driver settings reach its agent as `--driver-setting=KEY=VALUE` (VALUE in
   TOML), checked again there by the driver backend's settings model.
+- A secured deployment (`[security] mode = "mtls"`, see `Deployment.secured`) uses `tls/`
+  endpoints everywhere, loopback included: every process presents its own certificate
+  (`robot.<id>`, `world`, `host.<name>`, `operator.<name>`), and each daemon's router
+  applies the access-control list of `phalanx.hosts.access`.
 """
 
 from __future__ import annotations
@@ -27,34 +31,42 @@ from pathlib import Path
 
 from phalanx.core.config_files import toml_value
 from phalanx.core.errors import ConfigError
+from phalanx.hosts.access import host_acl, host_files, identity_files
 from phalanx.hosts.deployment import Deployment, LoadedDeployment, RobotPlacement, RouterEntry
+from phalanx.hosts.pki import common_name
+from phalanx.wire.security import TlsFiles
 from phalanx.wire.transport import TransportConfig
 
 # --- endpoints --------------------------------------------------------------------------
 
 
-def endpoint(address: str, port: int) -> str:
-    """`tcp/<address>:<port>`."""
-    return f"tcp/{address}:{port}"
+def endpoint(address: str, port: int, scheme: str = "tcp") -> str:
+    """`<scheme>/<address>:<port>` (`tcp`, or `tls` for a secured deployment)."""
+    return f"{scheme}/{address}:{port}"
+
+
+def scheme(spec: Deployment) -> str:
+    """`tls` for a secured deployment, else `tcp`."""
+    return "tls" if spec.secured else "tcp"
 
 
 def host_endpoint(spec: Deployment, name: str) -> str:
     """Where other machines reach host `name`'s daemon."""
-    return endpoint(spec.host(name).address, spec.port_of(name))
+    return endpoint(spec.host(name).address, spec.port_of(name), scheme(spec))
 
 
 def local_endpoint(spec: Deployment, name: str) -> str:
     """Where processes on host `name` reach its daemon: loopback."""
-    return endpoint("127.0.0.1", spec.port_of(name))
+    return endpoint("127.0.0.1", spec.port_of(name), scheme(spec))
 
 
 def host_listen(spec: Deployment, name: str) -> tuple[str, ...]:
     """The daemon's listen endpoints: its IPv4 address and loopback."""
-    host, port = spec.host(name), spec.port_of(name)
+    host, port, kind = spec.host(name), spec.port_of(name), scheme(spec)
     bind = host.bind_address() or "0.0.0.0"  # noqa: S104 - a name we cannot pin: every interface
     if bind == "0.0.0.0" or ipaddress.IPv4Address(bind).is_loopback:  # noqa: S104
-        return (endpoint(bind, port),)
-    return (endpoint(bind, port), endpoint("127.0.0.1", port))
+        return (endpoint(bind, port, kind),)
+    return (endpoint(bind, port, kind), endpoint("127.0.0.1", port, kind))
 
 
 def host_connect(spec: Deployment, name: str) -> tuple[str, ...]:
@@ -66,7 +78,7 @@ def host_connect(spec: Deployment, name: str) -> tuple[str, ...]:
     spec.host(name)  # raises the "no such host" error
     router = spec.zenoh.router
     if router is not None:
-        return (endpoint(router.address, router.port),)
+        return (endpoint(router.address, router.port, scheme(spec)),)
     if spec.zenoh.multicast:
         return ()
     before: list[str] = []
@@ -93,10 +105,46 @@ def _fabric(spec: Deployment, **values: object) -> TransportConfig:
 
 
 def host_transport(spec: Deployment, name: str) -> TransportConfig:
-    """The Zenoh configuration of host `name`'s daemon (a router)."""
+    """The Zenoh configuration of host `name`'s daemon (a router), without its files."""
     return _fabric(
         spec, mode="router", listen=host_listen(spec, name), connect=host_connect(spec, name)
     )
+
+
+def secured_host_transport(loaded: LoadedDeployment, name: str) -> TransportConfig:
+    """Host `name`'s daemon's configuration with, when secured, its TLS files and its
+    access-control list (ConfigError naming a missing file and how to issue it).
+    """
+    transport = host_transport(loaded.spec, name)
+    if not loaded.spec.secured:
+        return transport
+    update = {"tls": host_files(loaded, name), "acl": host_acl(loaded.spec, name)}
+    children = [common_name("robot", r) for r in loaded.spec.robots_on(name)]
+    for identity in children + (["world"] if loaded.spec.runs_world(name) else []):
+        identity_files(loaded, identity)  # every child's files are here, or say which is not
+    return transport.model_copy(update=update)
+
+
+def client_identity(loaded: LoadedDeployment, identity: str | None) -> TlsFiles | None:
+    """The TLS files a launcher, `status` or `stop` presents (None: not secured).
+
+    `identity` is a common name in the PKI folder or a path without suffix; by default
+    `$PHALANX_IDENTITY`, else the deployment's only operator.
+    """
+    if not loaded.spec.secured:
+        return None
+    import os
+
+    chosen = identity or os.environ.get("PHALANX_IDENTITY")
+    operators = loaded.spec.security.operators if loaded.spec.security else ()
+    if chosen is None and len(operators) == 1:
+        chosen = common_name("operator", operators[0])
+    if chosen is None:
+        raise ConfigError(
+            f"{loaded.path}: a secured deployment needs an identity: --identity "
+            "operator.NAME (or viewer.NAME), or PHALANX_IDENTITY"
+        )
+    return identity_files(loaded, chosen)
 
 
 def router_transport(spec: Deployment) -> TransportConfig:
@@ -104,6 +152,11 @@ def router_transport(spec: Deployment) -> TransportConfig:
     router = spec.zenoh.router
     if router is None:
         raise ConfigError(f"deployment {spec.name!r} has no [zenoh.router]")
+    if spec.secured:
+        raise ConfigError(
+            f"deployment {spec.name!r}: `phalanx router` does not run under security mode "
+            "'mtls' yet: join the hosts directly, or use mode = 'open' on a closed network"
+        )
     bind = router.bind or str(_router_bind(router))
     listen = [endpoint(bind, router.port)]
     if bind != "0.0.0.0" and not ipaddress.IPv4Address(bind).is_loopback:  # noqa: S104
@@ -119,7 +172,11 @@ def _router_bind(router: RouterEntry) -> str:
 
 
 def client_transport(
-    spec: Deployment, *, via: str | None = None, connect: tuple[str, ...] = ()
+    spec: Deployment,
+    *,
+    via: str | None = None,
+    connect: tuple[str, ...] = (),
+    tls: TlsFiles | None = None,
 ) -> TransportConfig:
     """How a launcher (or `status`, `stop`) joins: a client of one router.
 
@@ -131,10 +188,11 @@ def client_transport(
         if local is not None:
             connect = (local_endpoint(spec, local),)
         elif spec.zenoh.router is not None:
-            connect = (endpoint(spec.zenoh.router.address, spec.zenoh.router.port),)
+            router = spec.zenoh.router
+            connect = (endpoint(router.address, router.port, scheme(spec)),)
         else:
             connect = tuple(host_endpoint(spec, h.name) for h in spec.hosts)
-    return _fabric(spec, mode="client", connect=connect, open_timeout_s=5.0)
+    return _fabric(spec, mode="client", connect=connect, open_timeout_s=5.0, tls=tls)
 
 
 def is_local_address(address: str) -> bool:
@@ -180,10 +238,13 @@ def recording_id(fleet: str, run_id: str) -> str:
     return str(uuid.uuid5(uuid.NAMESPACE_URL, f"phalanx/{fleet}/{run_id}"))
 
 
-def _common(loaded: LoadedDeployment, host: str, run: RunParameters) -> list[str]:
+def _common(loaded: LoadedDeployment, host: str, run: RunParameters, identity: str) -> list[str]:
     spec = loaded.spec
     argv = ["--fleet", spec.fleet, "--clock", spec.clock, "--mode", "client"]
     argv += ["--connect", local_endpoint(spec, host)]
+    if spec.secured:
+        files = identity_files(loaded, identity, check=False)  # the daemon checked at start
+        argv += ["--tls-ca", files.ca, "--tls-cert", files.cert, "--tls-key", files.key]
     argv += [f"--set={o}" for o in (*spec.overrides, *run.overrides)]
     if spec.telemetry.url is not None:
         argv += ["--recording-id", recording_id(spec.fleet, run.run_id)]
@@ -197,7 +258,7 @@ def agent_argv(
     """The command line of a robot's agent, built from the deployment alone."""
     placement = loaded.spec.placement(robot_id)
     argv = [python, "-m", "phalanx", "agent", str(loaded.scenario_path), "--robot", robot_id]
-    argv += _common(loaded, placement.host, run)
+    argv += _common(loaded, placement.host, run, common_name("robot", robot_id))
     return argv + _driver_args(loaded, placement, run)
 
 
@@ -223,7 +284,7 @@ def world_argv(
     if world is None:
         raise ConfigError(f"deployment {spec.name!r} has no [world]")
     argv = [python, "-m", "phalanx", "world", str(loaded.scenario_path)]
-    argv += _common(loaded, world.host, run)
+    argv += _common(loaded, world.host, run, "world")
     argv += ["--speed", repr(world.speed), "--out", str(out)]
     argv.append("--recording" if world.recording else "--no-recording")
     if spec.clock == "realtime" and run.epoch_unix is not None:

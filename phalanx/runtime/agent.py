@@ -14,6 +14,8 @@ from __future__ import annotations
 
 import logging
 import time
+from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Literal
 
@@ -27,11 +29,13 @@ from phalanx.runtime.peers import FlagsThrottle, PeerInbox
 from phalanx.runtime.robot_io import RobotIO
 from phalanx.runtime.signals import Stoppable
 from phalanx.telemetry.stream import Telemetry, sonar_rays
+from phalanx.wire.bounds import MAX_TEXT, UINT32_MAX, FleetBounds
 from phalanx.wire.keys import alive_key, alive_pattern, leader_key, robot_key, status_key
 from phalanx.wire.messages import (
     AgentEvent,
     AgentReport,
     LeaderAnnouncement,
+    Message,
     RobotFlags,
     RobotState,
 )
@@ -42,6 +46,7 @@ ClockMode = Literal["lockstep", "realtime"]
 # Unchanged flags go out at least this often (and three times per leader timeout).
 FLAGS_HEARTBEAT_S = 0.2
 REPORT_FLUSH_S = 2.0  # how long the final report waits for telemetry to go out
+ANNOUNCEMENTS_KEPT = 100  # the newest leadership announcements heard (a record, not used)
 
 
 @dataclass
@@ -72,14 +77,18 @@ class AgentRuntime:
         self.scenario, self.robot, self.options = scenario, robot, options
         self.clock, self.io, self.telemetry = clock, io, telemetry
         self.formation: Formation = scenario_formation(scenario)
+        self.bounds = FleetBounds.of(scenario, robot)
         self.agent = Agent(robot_id, scenario=scenario, robot=robot, formation=self.formation)
         self.inbox = PeerInbox(
-            robot_id, self.formation, fleet=options.fleet, lockstep=self.lockstep
-        )
+            robot_id, self.formation, fleet=options.fleet, lockstep=self.lockstep,
+            bounds=self.bounds,
+        )  # fmt: skip
         self.flags_out = FlagsThrottle(min(FLAGS_HEARTBEAT_S, scenario.leader_timeout_s / 3))
         self.step_times_s: list[float] = []
         self.steps = 0
-        self.announcements: list[LeaderAnnouncement] = []
+        self.announcements: deque[LeaderAnnouncement] = deque(maxlen=ANNOUNCEMENTS_KEPT)
+        self.unsent = 0  # own messages that could not be encoded or sent (logged)
+        self.stale_steps = 0  # real-time steps too late to send (a frozen process)
         self.last: StepOutput | None = None
         self._paths: dict[str, tuple[str, ...]] = {}  # follow-tree path to each leader
         self._session: FleetSession | None = None
@@ -120,7 +129,7 @@ class AgentRuntime:
             finally:
                 self.io.halt()
             report = self._report()
-            session.publish(robot_key(fleet, self.robot_id, "report"), report, reliable_block=True)
+            self._send(robot_key(fleet, self.robot_id, "report"), lambda: report, block=True)
             time.sleep(0.05)  # let the last puts leave before the session closes
         return report
 
@@ -129,7 +138,9 @@ class AgentRuntime:
         session.declare_alive(alive_key(fleet, rid))
         self.io.attach(session)
         self.inbox.attach(session, self.watched)
-        session.subscribe(leader_key(fleet), LeaderAnnouncement, self._on_announcement)
+        session.subscribe(
+            leader_key(fleet), LeaderAnnouncement, self._on_announcement, context=self.bounds
+        )
         session.watch_alive(alive_pattern(fleet), self._on_alive)
         session.serve_status(status_key(fleet, rid), self._status)
 
@@ -150,7 +161,11 @@ class AgentRuntime:
             "epoch": state.epoch if state else 0,
             "late_peer_steps": self.inbox.late_steps,
             "flags_skipped": self.flags_out.skipped,
+            "unsent": self.unsent,
+            "stale_steps": self.stale_steps,
+            "dropped": self._session.stats.dropped if self._session else 0,
             "decode": stats,
+            **self.io.counters(),
         }
 
     def step(self, tick: Tick, observation: Observation) -> StepOutput:
@@ -164,6 +179,7 @@ class AgentRuntime:
                 formation=self.formation,
                 joining=True,
             )
+        began = time.monotonic()
         self.inbox.drain()
         delay_s = max(self.scenario.comm_delay_s, self.scenario.dt_s)
         peers, flags = self.inbox.for_step(
@@ -171,8 +187,11 @@ class AgentRuntime:
         )  # (the bounded wait for peers is not step time)
         started = time.perf_counter()
         out = self.agent.step(observation, peers, tick.t_s, None if self.lockstep else flags)
-        self.io.write(tick, out.command)  # first: the world (lockstep) waits on it
-        self._publish(out)
+        if self._stale(began, tick):
+            self.inbox.keep_own(out.state, out.flags)
+        else:
+            self.io.write(tick, out.command)  # first: the world (lockstep) waits on it
+            self._publish(out)
         if self.telemetry is not None:
             self._log_step(tick, observation, out, peers)
         self.last = out
@@ -182,33 +201,59 @@ class AgentRuntime:
             self.inbox.follow(self.watched)  # the leader may have changed: hear the new path
         return out
 
-    def _publish(self, out: StepOutput) -> None:
+    def _stale(self, began: float, tick: Tick) -> bool:
+        """Whether this real-time step took so long (the process was frozen, or starved)
+        that its command and state are stale: older than a peer would accept. Such a step
+        is not sent (a leader resumed after a freeze would claim the lead with old news);
+        the next step, on the newest frame, is.
+        """
+        limit_s = self.scenario.leader_timeout_s
+        took_s = time.monotonic() - began
+        if self.lockstep or (took_s <= limit_s and self.io.lag_s(tick) <= limit_s):
+            return False
+        self.stale_steps += 1
+        log.warning("%s: step %d is over %.1f s late: not sent", self.robot_id, tick.k, limit_s)
+        return True
+
+    def _send(self, key: str, build: Callable[[], Message], *, block: bool = False) -> None:
+        """Publish what `build` makes; a message that cannot be built or sent (a value
+        out of the wire's bounds) is logged and counted, never let end the process.
+        """
         assert self._session is not None  # noqa: S101 - only called inside run()
+        try:
+            self._session.publish(key, build(), reliable_block=block)
+        except Exception as exc:  # the command already went out; the state must not stop it
+            self.unsent += 1
+            if self.unsent <= 10 or self.unsent % 1000 == 0:
+                log.error("%s: could not send %s (%d so far): %s", self.robot_id, key,
+                          self.unsent, exc)  # fmt: skip
+
+    def _publish(self, out: StepOutput) -> None:
         fleet, rid = self.options.fleet, self.robot_id
-        self._session.publish(robot_key(fleet, rid, "state"), RobotState.of(out.state))
+        self._send(robot_key(fleet, rid, "state"), lambda: RobotState.of(out.state))
         flags = out.flags
         if self.flags_out.due(flags):
-            self._session.publish(robot_key(fleet, rid, "flags"), RobotFlags.of(flags))
+            self._send(robot_key(fleet, rid, "flags"), lambda: RobotFlags.of(flags))
         self.inbox.keep_own(out.state, flags)
-        if out.leadership is not None:
-            change = out.leadership
-            announcement = LeaderAnnouncement(
-                leader_id=change.leader_id,
-                epoch=change.epoch,
-                stamp_s=change.t_s,
-                previous_id=change.previous_id,
-                reason=change.reason,
-            )
-            self._session.publish(leader_key(fleet), announcement, reliable_block=True)
+        change = out.leadership
+        if change is not None:
+            self._send(
+                leader_key(fleet),
+                lambda: LeaderAnnouncement(
+                    leader_id=change.leader_id, epoch=change.epoch, stamp_s=change.t_s,
+                    previous_id=change.previous_id, reason=change.reason[:MAX_TEXT],
+                ),
+                block=True,
+            )  # fmt: skip
         for event in out.events:
-            message = AgentEvent(
-                robot_id=rid,
-                t_s=event.t_s,
-                source=event.source,
-                target=event.target,
-                reason=event.reason,
-            )
-            self._session.publish(robot_key(fleet, rid, "event"), message, reliable_block=True)
+            self._send(
+                robot_key(fleet, rid, "event"),
+                lambda event=event: AgentEvent(  # type: ignore[misc]
+                    robot_id=rid, t_s=event.t_s, source=event.source, target=event.target,
+                    reason=event.reason[:MAX_TEXT],
+                ),
+                block=True,
+            )  # fmt: skip
 
     def _log_step(
         self, tick: Tick, observation: Observation, out: StepOutput, peers: dict[str, PeerState]
@@ -258,7 +303,7 @@ class AgentRuntime:
             steps=self.steps,
             saturations=last.saturations if last else 0,
             accel_limited=last.accel_limited if last else 0,
-            dropped_messages=dropped,
+            dropped_messages=min(dropped, UINT32_MAX),
             late_peer_steps=self.inbox.late_steps,
             step_p50_us=1e6 * times[len(times) // 2],
             step_p99_us=1e6 * times[min(len(times) - 1, round(0.99 * (len(times) - 1)))],

@@ -4,7 +4,8 @@ The world runs a Zenoh router on a free loopback port and every agent connects t
 a client, so the world routes the agents' states to each other (multicast scouting
 stays off; nothing is configured by hand). A crashed agent is reported and, with
 `restart`, started again. Everything is stopped on the way out: SIGTERM first, SIGKILL
-after a grace period.
+after a grace period. The outcome says whether the run ended as asked (the world
+finished, no process died on its own) and, if not, which process ended how.
 """
 
 from __future__ import annotations
@@ -19,7 +20,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from phalanx.core.config import Scenario
-from phalanx.runtime.signals import Stoppable
+from phalanx.runtime.exits import EXIT_FAILED, EXIT_FINISHED, agent_exit_reason, exit_reason
+from phalanx.runtime.signals import Stoppable, supervised_env
 from phalanx.wire.transport import free_tcp_port, loopback_endpoint
 
 log = logging.getLogger("phalanx.up")
@@ -55,12 +57,16 @@ class Child:
     process: subprocess.Popen[bytes] | None = None
     restarts: int = 0
     reported: bool = False
-    exits: list[int] = field(default_factory=list)
+    exits: list[int] = field(default_factory=list)  # unexpected exit codes, in order
+    started_at: float = 0.0
 
     def start(self) -> None:
         """Start (again)."""
         self.reported = False
-        self.process = subprocess.Popen(self.argv)  # noqa: S603 - our own interpreter and CLI
+        self.started_at = time.monotonic()
+        self.process = subprocess.Popen(  # noqa: S603 - our own interpreter and CLI
+            self.argv, env=supervised_env()
+        )
 
     def poll(self) -> int | None:
         """Exit code if it has ended."""
@@ -184,27 +190,57 @@ def stop_all(children: list[Child]) -> None:
             proc.wait(5.0)
 
 
-def supervise(children: list[Child], options: UpOptions, stop: Stoppable) -> int:
-    """Run until the world ends; returns the world's exit code (or 1 on timeout/stop)."""
+@dataclass
+class Outcome:
+    """How a supervised run ended: `phalanx up`'s exit code, the world's own, and every
+    ending that was not asked for ("agent r2: killed by SIGKILL after 6.1 s"), in order.
+    """
+
+    code: int
+    world_code: int | None
+    problems: list[str] = field(default_factory=list)
+
+    @property
+    def complete(self) -> bool:
+        """Whether the run ended as asked: the world finished and nothing died."""
+        return self.code == EXIT_FINISHED
+
+
+def supervise(children: list[Child], options: UpOptions, stop: Stoppable) -> Outcome:
+    """Run until the world ends (or the timeout, or `stop`); the outcome."""
     for child in children:
         child.start()
     world, agents = children[0], children[1:]
-    deadline = time.monotonic() + options.timeout_s
+    started = time.monotonic()
+    deadline = started + options.timeout_s
+    problems: list[str] = []
+    world_code: int | None = None
     try:
         while not stop.is_set() and time.monotonic() < deadline:
-            code = world.poll()
-            if code is not None:
-                return code
+            world_code = world.poll()
+            if world_code is not None:
+                break
             for agent in agents:
-                _check_agent(agent, options)
+                _check_agent(agent, options, problems, started)
             time.sleep(0.1)
-        log.error("stopping the fleet: %s", "interrupted" if stop.is_set() else "timed out")
-        return 1
+        else:
+            why = "interrupted" if stop.is_set() else f"timed out after {options.timeout_s:g} s"
+            log.error("stopping the fleet: %s", why)
+            problems.append(why)
     finally:
         stop_all(children)
+    if world_code is not None and world_code != 0:
+        problems.insert(0, f"world: {exit_reason(world_code)} after {_since(world, started)}")
+    if problems:
+        log.error("the run did not end as asked: %s", "; ".join(problems))
+    return Outcome(EXIT_FAILED if problems else EXIT_FINISHED, world_code, problems)
 
 
-def _check_agent(agent: Child, options: UpOptions) -> None:
+def _since(child: Child, started: float) -> str:
+    return f"{time.monotonic() - started:.1f} s"
+
+
+def _check_agent(agent: Child, options: UpOptions, problems: list[str], started: float) -> None:
     code = agent.poll()
     if code is None or agent.reported:
         return
@@ -212,9 +248,12 @@ def _check_agent(agent: Child, options: UpOptions) -> None:
     if code == 0:
         return
     agent.exits.append(code)
-    log.error("agent %s exited with %d", agent.name, code)
+    problem = f"agent {agent.name}: {agent_exit_reason(code)} after {_since(agent, started)}"
+    log.error("%s", problem)
     if options.restart and agent.restarts < options.max_restarts:
         agent.restarts += 1
+        problem += f" (restarted, restart {agent.restarts})"
         time.sleep(min(2.0, 0.2 * 2**agent.restarts))
         log.warning("restarting agent %s (restart %d)", agent.name, agent.restarts)
         agent.start()
+    problems.append(problem)

@@ -16,11 +16,16 @@ from typing import TypeVar
 
 from phalanx.core.formation import Formation
 from phalanx.core.peers import PeerFlags, PeerState
-from phalanx.wire.keys import robot_key, robot_of, robots_key
+from phalanx.wire.bounds import FleetBounds
+from phalanx.wire.keys import robot_key, robots_key
 from phalanx.wire.messages import RobotFlags, RobotState
 from phalanx.wire.transport import FleetSession, History, Polled
 
 EPS_S = 1e-6
+# An epoch grows by one per leadership change: a claim this far above the highest heard
+# is no peer's (a fleet would need years of handovers), and is refused and counted
+# rather than adopted by every robot (the top of the range would then stick for good).
+EPOCH_WINDOW = 2**16
 # Flags (or states) held per robot between two steps before the oldest are dropped (one
 # arrives per robot and control period; the ring absorbs a late step).
 RING_PER_ROBOT = 8
@@ -82,15 +87,25 @@ class FlagsThrottle:
 class PeerInbox:
     """The states and flags an agent process has heard, by robot, and who is gone."""
 
-    def __init__(self, robot_id: str, formation: Formation, *, fleet: str, lockstep: bool) -> None:
+    def __init__(
+        self,
+        robot_id: str,
+        formation: Formation,
+        *,
+        fleet: str,
+        lockstep: bool,
+        bounds: FleetBounds | None = None,
+    ) -> None:
         self.robot_id = robot_id
         self.formation = formation
         self.fleet = fleet
         self.lockstep = lockstep
+        self.bounds = bounds  # what every state and flags are held against
         self.states = History(depth=16)
         self.flags = History(depth=4)  # one a period per robot; real time needs the newest
         self.dead: set[str] = set()
         self.late_steps = 0
+        self.max_epoch = 0  # the highest epoch heard (or held) so far
         self._session: FleetSession | None = None
         self._flag_ring: Polled[RobotFlags] | None = None
         self._state_rings: list[Polled[RobotState]] = []
@@ -102,11 +117,13 @@ class PeerInbox:
         """
         self._session = session
         if self.lockstep:
-            session.subscribe(robots_key(self.fleet, "state"), RobotState, self._on_state)
+            session.subscribe(
+                robots_key(self.fleet, "state"), RobotState, self._on_state, context=self.bounds
+            )
             return
         capacity = RING_PER_ROBOT * len(self.formation.robot_ids)
         self._flag_ring = session.subscribe_polled(
-            robots_key(self.fleet, "flags"), RobotFlags, capacity
+            robots_key(self.fleet, "flags"), RobotFlags, capacity, context=self.bounds
         )
         self.follow(watched)
 
@@ -118,7 +135,9 @@ class PeerInbox:
             if peer not in self._subscribed:
                 self._subscribed.add(peer)
                 key = robot_key(self.fleet, peer, "state")
-                ring = self._session.subscribe_polled(key, RobotState, RING_PER_ROBOT)
+                ring = self._session.subscribe_polled(
+                    key, RobotState, RING_PER_ROBOT, context=self.bounds
+                )
                 self._state_rings.append(ring)
 
     def drain(self) -> None:
@@ -128,13 +147,29 @@ class PeerInbox:
         for ring in self._state_rings:
             ring.drain(self._on_state)
 
-    def _on_state(self, key: str, state: RobotState) -> None:
-        if robot_of(key) == state.robot_id and state.robot_id not in self.dead:
+    # (A message on another robot's key never gets here: the session rejects it.)
+    def _on_state(self, _key: str, state: RobotState) -> None:
+        if self._heard(state):
             self.states.push(state.robot_id, state.peer())
 
-    def _on_flags(self, key: str, flags: RobotFlags) -> None:
-        if robot_of(key) == flags.robot_id and flags.robot_id not in self.dead:
+    def _on_flags(self, _key: str, flags: RobotFlags) -> None:
+        if self._heard(flags):
             self.flags.push(flags.robot_id, flags.peer())
+
+    def _heard(self, message: RobotState | RobotFlags) -> bool:
+        """Whether to take a peer's message: not our own, not a robot known gone, and an
+        epoch within EPOCH_WINDOW of the highest heard (else refused and counted).
+        """
+        if message.robot_id == self.robot_id or message.robot_id in self.dead:
+            return False
+        if message.epoch > self.max_epoch + EPOCH_WINDOW:
+            if self._session is not None:
+                name = type(message).__name__
+                why = f"epoch {message.epoch} jumps from {self.max_epoch}"
+                self._session.stats.count("rejected", name, f"{name} of {message.robot_id}: {why}")
+            return False
+        self.max_epoch = max(self.max_epoch, message.epoch)
+        return True
 
     def keep_own(self, state: PeerState, flags: PeerFlags) -> None:
         """The robot's own state and flags, as published: part of what the next step
@@ -142,6 +177,7 @@ class PeerInbox:
         """
         self.flags.push(self.robot_id, flags)
         self.states.push(self.robot_id, state)
+        self.max_epoch = max(self.max_epoch, state.epoch)
 
     def on_alive(self, robot: str, alive: bool) -> None:
         """A robot's process appeared or went (its liveliness token)."""

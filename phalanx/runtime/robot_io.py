@@ -13,7 +13,6 @@
 from __future__ import annotations
 
 import logging
-import queue
 import time
 from dataclasses import replace
 from typing import Protocol
@@ -25,8 +24,11 @@ from phalanx.core.geometry import Pose2D, Twist2D, dead_reckon
 from phalanx.core.robot import Odometry, RobotStatus
 from phalanx.drivers.safety import SafeDriver
 from phalanx.runtime.clock import Tick
+from phalanx.runtime.frames import Ending, FrameBox, FrameGate
 from phalanx.runtime.positioning import PositioningInbox, frame_fixes, frame_relative
 from phalanx.runtime.signals import Stoppable
+from phalanx.wire.bounds import FleetBounds
+from phalanx.wire.codec import DecodeStats
 from phalanx.wire.keys import robot_key
 from phalanx.wire.messages import SenseFrame, VelocityCommand
 from phalanx.wire.transport import FleetSession
@@ -58,6 +60,14 @@ class RobotIO(Protocol):
         """The run is over (or broke off): leave the robot at rest."""
         ...
 
+    def counters(self) -> dict[str, int]:
+        """What the robot's side counted (for the status queryable)."""
+        ...
+
+    def lag_s(self, tick: Tick) -> float:
+        """How far (s) the robot's side has moved on past `tick` already."""
+        ...
+
 
 def pose_now(odometry: Odometry, now_s: float) -> Pose2D:
     """The odometry pose carried forward along its twist from its stamp to `now_s`.
@@ -71,7 +81,9 @@ def pose_now(odometry: Odometry, now_s: float) -> Pose2D:
 
 
 class WorldLink:
-    """A simulated robot: sense frames from the world are its readings and its clock."""
+    """A simulated robot: sense frames from the world are its readings and its clock
+    (which frames count: `phalanx.runtime.frames.FrameGate`).
+    """
 
     def __init__(
         self,
@@ -80,47 +92,66 @@ class WorldLink:
         *,
         frame_timeout_s: float,
         robot_ids: tuple[str, ...] = (),
+        bounds: FleetBounds | None = None,
     ) -> None:
         self.fleet, self.robot_id = fleet, robot_id
         self.robot_ids = robot_ids  # the scenario's, in order: relative targets by index
         self.frame_timeout_s = frame_timeout_s
-        self.frames: queue.Queue[SenseFrame] = queue.Queue()
+        self.bounds = bounds
         self.world_lost = False  # ended because the world's frames stopped coming
+        self.stats = DecodeStats()  # the session's, once attached
+        self._box = FrameBox(self.stats)
+        self.gate = self._gate()
         self._frame: SenseFrame | None = None
         self._session: FleetSession | None = None
 
+    def _gate(self) -> FrameGate:
+        bounds = self.bounds
+        last_tick = bounds.ticks - 1 if bounds is not None else None
+        return FrameGate(self.stats, last_tick=last_tick, dt_s=bounds.dt_s if bounds else 0.1)
+
+    @property
+    def ending(self) -> Ending | None:
+        """How the world ended the run: at its end, or cut short (None: it did not)."""
+        return self.gate.ending
+
     def attach(self, session: FleetSession) -> None:
-        """Take the world's frames for this robot."""
+        """Take the world's frames for this robot (counted in the session's stats)."""
         self._session = session
+        self.stats = session.stats
+        self._box = FrameBox(self.stats)
+        self.gate = self._gate()
         session.subscribe(
             robot_key(self.fleet, self.robot_id, "sense"),
             SenseFrame,
-            lambda _k, f: self.frames.put(f),
+            lambda _k, f: self._box.put(f),
+            context=self.bounds,
         )
 
     def next_tick(self, stop: Stoppable) -> Tick | None:
-        """The next frame's tick; None on the world's final frame, `stop`, or when no
-        frame has come for `frame_timeout_s` (`world_lost`).
+        """The next frame's tick; None once the world ended the run (its final frame),
+        on `stop`, or when no frame has come for `frame_timeout_s` (`world_lost`).
         """
         last_frame = time.monotonic()
         while not stop.is_set():
-            try:
-                frame = self.frames.get(timeout=FRAME_POLL_S)
-            except queue.Empty:
-                if time.monotonic() - last_frame > self.frame_timeout_s:
-                    log.warning(
-                        "%s: no frame from the world for %.0f s, stopping (a host daemon "
-                        "restarts it to rejoin)",
-                        self.robot_id,
-                        self.frame_timeout_s,
-                    )
-                    self.world_lost = True
-                    return None
-                continue
-            if frame.final:
+            frames = self._box.take(FRAME_POLL_S)
+            if frames:
+                last_frame = time.monotonic()
+            frame = self.gate.offer(frames)
+            if frame is not None:
+                self._frame = frame
+                return Tick(frame.tick, frame.t_s)
+            if self.gate.ended():
                 return None
-            self._frame = frame
-            return Tick(frame.tick, frame.t_s)
+            if time.monotonic() - last_frame > self.frame_timeout_s:
+                log.warning(
+                    "%s: no frame from the world for %.0f s, stopping (a host daemon "
+                    "restarts it to rejoin)",
+                    self.robot_id,
+                    self.frame_timeout_s,
+                )
+                self.world_lost = True
+                return None
         return None
 
     def read(self, tick: Tick) -> Observation | None:
@@ -155,6 +186,17 @@ class WorldLink:
 
     def halt(self) -> None:
         """Nothing to do: the world stops a robot whose agent is gone."""
+
+    def lag_s(self, tick: Tick) -> float:
+        """How many ticks' time the world has sent past `tick` (frames waiting)."""
+        newest = self._box.newest_tick()
+        dt_s = self.bounds.dt_s if self.bounds is not None else 0.1
+        return 0.0 if newest is None else max(0, newest - tick.k) * dt_s
+
+    def counters(self) -> dict[str, int]:
+        """Frames acted on, and skipped as stale (the robot was late)."""
+        counts = self.gate.counts
+        return {"frames": counts.acted, "frames_skipped": counts.skipped}
 
 
 class DriverIO:
@@ -211,3 +253,11 @@ class DriverIO:
         self.driver.stop()
         if self.positioning is not None:
             self.positioning.close()
+
+    def lag_s(self, tick: Tick) -> float:
+        """None: the robot's own clock skips the ticks it is late for."""
+        return 0.0
+
+    def counters(self) -> dict[str, int]:
+        """Readings and commands the driver failed."""
+        return {"driver_errors": self.driver_errors}

@@ -5,9 +5,18 @@ Every process loop of phalanx (agent, world, host daemon, launcher) polls a `Sto
 
 from __future__ import annotations
 
+import ctypes
+import os
 import signal
+import sys
 import time
 from typing import Protocol
+
+# Set by a supervisor (`phalanx up`, a host daemon) in its children's environment: the
+# child stops (SIGTERM, handled like any) when that process dies, rather than run on as
+# an orphan nobody supervises.
+PARENT_ENV = "PHALANX_PARENT_PID"
+_PR_SET_PDEATHSIG = 1
 
 
 class Stoppable(Protocol):
@@ -59,3 +68,25 @@ def stop_on_signals() -> SignalStop:
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
     return stop
+
+
+def supervised_env() -> dict[str, str]:
+    """The environment for a supervised child: this process is its parent."""
+    return {**os.environ, PARENT_ENV: str(os.getpid())}
+
+
+def die_with_parent() -> None:
+    """If a supervisor started this process (`PARENT_ENV`), have the kernel send it
+    SIGTERM when that supervisor dies (Linux; elsewhere nothing), and stop at once if it
+    is already gone.
+    """
+    parent = os.environ.get(PARENT_ENV)
+    if not parent or not sys.platform.startswith("linux"):
+        return
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(_PR_SET_PDEATHSIG, signal.SIGTERM, 0, 0, 0)
+    except (OSError, AttributeError):
+        return
+    if str(os.getppid()) != parent:  # it died before the prctl took effect
+        os.kill(os.getpid(), signal.SIGTERM)

@@ -15,7 +15,7 @@ import threading
 import time
 from collections import defaultdict
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 
@@ -25,21 +25,16 @@ from phalanx.core.geometry import ZERO_TWIST, Twist2D
 from phalanx.core.limits import KinematicLimits
 from phalanx.core.runlog import RobotTrace, RunLog
 from phalanx.core.states import State, TransitionEvent
-from phalanx.runtime.positioning import (
-    fix_message,
-    flatten_fixes,
-    flatten_relative,
-    relative_message,
-)
 from phalanx.runtime.signals import Stoppable
+from phalanx.runtime.world_frames import Flat, publish_positioning, sense_frame
 from phalanx.simulator.world import World
 from phalanx.telemetry.stream import PAPER_ANGULAR_BOUND_PCT, PAPER_LINEAR_BOUND_PCT, Telemetry
+from phalanx.wire.bounds import FleetBounds
 from phalanx.wire.keys import (
     alive_key,
     alive_pattern,
     leader_key,
     robot_key,
-    robot_of,
     robots_key,
     status_key,
 )
@@ -48,14 +43,18 @@ from phalanx.wire.messages import (
     AgentReport,
     LeaderAnnouncement,
     RobotState,
-    SenseFrame,
     VelocityCommand,
 )
 from phalanx.wire.transport import FleetSession, TransportConfig, open_session
 
 log = logging.getLogger("phalanx.world")
-_Flat = tuple[tuple[float, ...], tuple[float, ...]]
 WORLD_ID = "world"
+# Transitions and leadership announcements kept for the run's log; more (a flood) are
+# dropped and counted.
+MAX_LOG_ENTRIES = 100_000
+# Commands and states are kept for ticks up to this far ahead of the world's (a late one
+# is fine; one for a tick this far off is no agent's, and would only take memory).
+AHEAD_S = 2.0
 
 
 @dataclass
@@ -86,6 +85,15 @@ class _Inbox:
     reports: dict[str, AgentReport] = field(default_factory=dict)
     alive: set[str] = field(default_factory=set)
     leaders: list[LeaderAnnouncement] = field(default_factory=list)
+    overflow: int = 0  # events and announcements beyond MAX_LOG_ENTRIES
+    lost: list[tuple[str, int]] = field(default_factory=list)  # (robot, tick) it went away
+
+    def keep(self, entries: list[Any], value: object) -> None:
+        """Append to the run's log, up to MAX_LOG_ENTRIES (caller holds `cond`)."""
+        if len(entries) < MAX_LOG_ENTRIES:
+            entries.append(value)
+        else:
+            self.overflow += 1
 
 
 class WorldProcess:
@@ -103,6 +111,7 @@ class WorldProcess:
         self.telemetry = telemetry
         self.world = World.for_scenario(scenario, robot)
         self.formation = scenario_formation(scenario)
+        self.bounds = FleetBounds.of(scenario, robot)
         self.ids = tuple(r.id for r in scenario.robots)
         self.steps = round(scenario.duration_s * scenario.control_rate_hz)
         self.t_s = np.arange(self.steps, dtype=np.float64) * scenario.dt_s
@@ -110,6 +119,8 @@ class WorldProcess:
         self.inbox = _Inbox()
         self.missed: dict[str, int] = dict.fromkeys(self.ids, 0)
         self.tick = 0
+        self.ticks_run = 0
+        self.stats: Any = None  # the session's DecodeStats, once open
         self.wall_time_s = 0.0
         self._sent_at: dict[int, float] = {}
         self.response_s: list[float] = []  # frame published -> command received, per command
@@ -143,28 +154,33 @@ class WorldProcess:
         return self._log()
 
     def _wire(self, session: FleetSession) -> None:
-        fleet, box = self.options.fleet, self.inbox
+        fleet, bounds = self.options.fleet, self.bounds
+        self.stats = session.stats
         session.declare_alive(alive_key(fleet, WORLD_ID))
-        session.subscribe(robots_key(fleet, "cmd"), VelocityCommand, self._on_command)
-        session.subscribe(robots_key(fleet, "state"), RobotState, self._on_state)
-        session.subscribe(
-            robots_key(fleet, "event"), AgentEvent, lambda _k, e: self._put(box.events.append, e)
+        subscriptions = (
+            (robots_key(fleet, "cmd"), VelocityCommand, self._on_command),
+            (robots_key(fleet, "state"), RobotState, self._on_state),
+            (robots_key(fleet, "event"), AgentEvent, self._on_event),
+            (robots_key(fleet, "report"), AgentReport, self._on_report),
+            (leader_key(fleet), LeaderAnnouncement, self._on_leader),
         )
-        session.subscribe(robots_key(fleet, "report"), AgentReport, self._on_report)
-        session.subscribe(
-            leader_key(fleet), LeaderAnnouncement, lambda _k, a: self._put(box.leaders.append, a)
-        )
+        for key, model, handler in subscriptions:
+            session.subscribe(key, model, handler, context=bounds)  # type: ignore[arg-type]
         session.watch_alive(alive_pattern(fleet), self._on_alive)
         session.serve_status(status_key(fleet, WORLD_ID), self._status)
 
-    def _put(self, action: object, value: object) -> None:
-        with self.inbox.cond:
-            action(value)  # type: ignore[operator]
-            self.inbox.cond.notify_all()
+    def _too_far_ahead(self, tick: int, name: str, robot_id: str) -> bool:
+        """Whether `tick` is beyond the window kept (then counted as refused)."""
+        if tick <= self.tick + max(2, round(AHEAD_S / self.scenario.dt_s)):
+            return False
+        if self.stats is not None:
+            self.stats.count("rejected", name, f"{name} of {robot_id} for tick {tick}")
+        return True
 
-    def _on_command(self, key: str, cmd: VelocityCommand) -> None:
-        if robot_of(key) != cmd.robot_id or cmd.robot_id not in self.traces:
-            return  # a command must come from the robot it names
+    # (The session has checked every message: a robot of this fleet, on its own key.)
+    def _on_command(self, _key: str, cmd: VelocityCommand) -> None:
+        if self._too_far_ahead(cmd.tick, "VelocityCommand", cmd.robot_id):
+            return
         received = time.monotonic()
         with self.inbox.cond:
             sent = self._sent_at.get(cmd.tick)
@@ -174,11 +190,19 @@ class WorldProcess:
             self.inbox.latest[cmd.robot_id] = cmd
             self.inbox.cond.notify_all()
 
-    def _on_state(self, key: str, state: RobotState) -> None:
-        if robot_of(key) == state.robot_id and state.robot_id in self.traces:
-            tick = round(state.stamp_s / self.scenario.dt_s)
+    def _on_state(self, _key: str, state: RobotState) -> None:
+        tick = round(state.stamp_s / self.scenario.dt_s)
+        if tick < self.steps and not self._too_far_ahead(tick, "RobotState", state.robot_id):
             with self.inbox.cond:
                 self.inbox.states[state.robot_id][tick] = state
+
+    def _on_event(self, _key: str, event: AgentEvent) -> None:
+        with self.inbox.cond:
+            self.inbox.keep(self.inbox.events, event)
+
+    def _on_leader(self, _key: str, announcement: LeaderAnnouncement) -> None:
+        with self.inbox.cond:
+            self.inbox.keep(self.inbox.leaders, announcement)
 
     def _on_report(self, _key: str, report: AgentReport) -> None:
         with self.inbox.cond:
@@ -187,16 +211,29 @@ class WorldProcess:
 
     def _on_alive(self, key: str, alive: bool) -> None:
         robot = key.rsplit("/", 1)[-1]
+        if robot not in self.traces:
+            return  # another process (a tool, the world itself) or no robot of this fleet
         with self.inbox.cond:
             (self.inbox.alive.add if alive else self.inbox.alive.discard)(robot)
             if not alive:  # a restarted process must not inherit its predecessor's command
                 self.inbox.latest.pop(robot, None)
+                if self.ticks_run:
+                    self.inbox.lost.append((robot, self.tick))
             self.inbox.cond.notify_all()
-        if not alive and robot in self.traces:
+        if not alive:
             log.warning("robot %s is gone (liveliness lost)", robot)
 
     def _status(self) -> dict[str, object]:
-        return {"tick": self.tick, "missed": self.missed, "alive": sorted(self.inbox.alive)}
+        stats = self.stats.as_dict() if self.stats is not None else {}
+        return {
+            "tick": self.tick,
+            "missed": self.missed,
+            "alive": sorted(self.inbox.alive),
+            "lost": [{"robot": r, "tick": k} for r, k in self.inbox.lost],
+            "log_overflow": self.inbox.overflow,
+            "dropped": stats.get("dropped", 0),
+            "decode": stats,
+        }
 
     def _await_agents(self, stop: Stoppable) -> None:
         deadline = time.monotonic() + self.options.startup_timeout_s
@@ -209,46 +246,14 @@ class WorldProcess:
                     return
         time.sleep(0.2)  # let the agents' subscriptions reach the world's publications
 
-    def _frame(
-        self, rid: str, k: int, final: bool = False, positioning: _Flat = ((), ())
-    ) -> SenseFrame:
-        odo, status = self.world.odometry(rid), self.world.status(rid)
-        return SenseFrame(
-            robot_id=rid,
-            tick=k,
-            t_s=float(k * self.scenario.dt_s),
-            dt_s=self.scenario.dt_s,
-            x_m=odo.pose.x_m,
-            y_m=odo.pose.y_m,
-            theta_rad=odo.pose.theta_rad,
-            v_mps=odo.twist.v_mps,
-            omega_radps=odo.twist.omega_radps,
-            sonar_ranges_m=status.sonar_ranges_m,
-            bumpers=status.bumpers,
-            final=final,
-            fixes=positioning[0],
-            relative=positioning[1],
-        )
-
-    def _positioning(self, session: FleetSession, rid: str) -> _Flat:
-        """The robot's simulated positioning measurements due now: for its sense frame
-        or, for a robot on a driver (a run with an epoch), published on its `fix` and
-        `relative` keys as a motion-capture system and its camera would.
-        """
+    def _positioning(self, session: FleetSession, rid: str) -> Flat:
         fixes, relative = self.world.positioning(rid)
-        epoch = self.options.epoch_s
-        if epoch is None:
-            return flatten_fixes(fixes), flatten_relative(relative, self.ids)
-        fleet = self.options.fleet
-        for fix in fixes:
-            session.publish(robot_key(fleet, rid, "fix"), fix_message(rid, fix, epoch_s=epoch))
-        for rel in relative:
-            message = relative_message(rid, rel, epoch_s=epoch)
-            session.publish(robot_key(fleet, rid, "relative"), message)
-        return (), ()
+        epoch, fleet = self.options.epoch_s, self.options.fleet
+        return publish_positioning(session, fleet, rid, fixes, relative, self.ids, epoch_s=epoch)
 
     def _tick(self, session: FleetSession, k: int) -> None:
         self.tick = k
+        self.ticks_run += 1
         with self.inbox.cond:
             self._sent_at[k] = time.monotonic()
             self._sent_at.pop(k - 50, None)
@@ -256,7 +261,13 @@ class WorldProcess:
         for rid in self.ids:
             session.publish(
                 robot_key(self.options.fleet, rid, "sense"),
-                self._frame(rid, k, positioning=self._positioning(session, rid)),
+                sense_frame(
+                    self.world,
+                    rid,
+                    k,
+                    self.scenario.dt_s,
+                    positioning=self._positioning(session, rid),
+                ),
                 reliable_block=True,
             )
         if self.options.clock == "lockstep":
@@ -325,7 +336,7 @@ class WorldProcess:
         for rid in self.ids:
             session.publish(
                 robot_key(self.options.fleet, rid, "sense"),
-                self._frame(rid, self.tick, final=True),
+                sense_frame(self.world, rid, self.tick, self.scenario.dt_s, final=True),
                 reliable_block=True,
             )
         deadline = time.monotonic() + self.options.report_timeout_s
@@ -340,7 +351,8 @@ class WorldProcess:
         reports = self.inbox.reports
         events: dict[str, list[TransitionEvent]] = {rid: [] for rid in self.ids}
         for e in sorted(self.inbox.events, key=lambda e: e.t_s):
-            events[e.robot_id].append(TransitionEvent(e.t_s, e.source, e.target, e.reason))
+            if e.robot_id in events:
+                events[e.robot_id].append(TransitionEvent(e.t_s, e.source, e.target, e.reason))
         return RunLog(
             scenario=self.scenario,
             robot=self.robot,
@@ -376,6 +388,25 @@ class WorldProcess:
             "overruns": self.overruns,
             "agents": {rid: r.model_dump() for rid, r in self.inbox.reports.items()},
             "leadership": [a.model_dump() for a in self.inbox.leaders],
+            "world_decode": self.stats.as_dict() if self.stats is not None else {},
+            "log_overflow": self.inbox.overflow,
+            **self._completeness(),
+        }
+
+    def _completeness(self) -> dict[str, object]:
+        """Whether the run is whole: every tick run, no robot gone, every report in."""
+        reasons = []
+        if self.ticks_run < self.steps:
+            reasons.append(f"the world ran {self.ticks_run} of {self.steps} ticks")
+        reasons += [f"robot {r} went away at tick {k}" for r, k in self.inbox.lost]
+        missing = sorted(set(self.ids) - set(self.inbox.reports))
+        if missing:
+            reasons.append(f"no report from {', '.join(missing)}")
+        return {
+            "ticks_run": self.ticks_run,
+            "lost": [{"robot": r, "tick": k} for r, k in self.inbox.lost],
+            "complete": not reasons,
+            "incomplete_reason": "; ".join(reasons),
         }
 
     def _fill_states(self) -> None:

@@ -9,7 +9,9 @@ docs/PERFORMANCE.md), which is noise against a 50 ms control period. JSON stays
 available for debugging (`PHALANX_WIRE=json`).
 
 Decoding never raises: a malformed payload, an unknown kind or version, or a value that
-fails validation is dropped and counted in `DecodeStats`.
+fails validation (against the receiver's `FleetBounds`, if it gives them) is dropped and
+counted in `DecodeStats`, which also counts what never reached the decoder (a full ring)
+and what a receiver refused after it (a message on another robot's key).
 """
 
 from __future__ import annotations
@@ -157,6 +159,8 @@ LAYOUTS: dict[type[Message], tuple[int, tuple[tuple[str, str], ...]]] = {
 }
 _SCALAR_KINDS = frozenset("dIb?")
 _COUNT = struct.Struct("<H")
+# No message phalanx sends comes near this (a SenseFrame of 64 sonars is under 1 kB).
+MAX_PAYLOAD_BYTES = 64 * 1024
 
 
 @dataclass(frozen=True)
@@ -222,7 +226,7 @@ def _unpack_variable(kind: str, payload: bytes, offset: int) -> tuple[Any, int]:
     return struct.unpack_from(f"<{count}{item}", payload, offset), offset + size
 
 
-def _decode_packed(model: type[M], payload: bytes) -> M:
+def _decode_packed(model: type[M], payload: bytes, context: Any = None) -> M:
     wire = _COMPILED[model]
     if len(payload) < 2 or payload[0] != wire.kind_id:
         raise ValueError(f"expected message kind {wire.kind_id}, got {payload[:1]!r}")
@@ -234,7 +238,7 @@ def _decode_packed(model: type[M], payload: bytes) -> M:
         values[name], offset = _unpack_variable(kind, payload, offset)
     if offset != len(payload):
         raise ValueError(f"{len(payload) - offset} trailing bytes")
-    return model.model_validate(values)
+    return model.model_validate(values, context=context)
 
 
 class _UnknownVersion(ValueError):
@@ -243,17 +247,32 @@ class _UnknownVersion(ValueError):
 
 @dataclass
 class DecodeStats:
-    """Decoding outcomes per message kind, and the last failure's reason."""
+    """Every payload a process was sent and did not act on, by message kind: malformed
+    (including values outside the receiver's bounds), of an unknown version, refused by
+    the receiver (`rejected`: on another robot's key), lost in a full ring before it was
+    decoded (`ring_dropped`), or valid but its handler failed (`handler_errors`: a bug,
+    counted so it never takes the process down); and the last failure's reason.
+    """
 
     ok: Counter[str] = field(default_factory=Counter)
     malformed: Counter[str] = field(default_factory=Counter)
     unknown_version: Counter[str] = field(default_factory=Counter)
+    rejected: Counter[str] = field(default_factory=Counter)
+    ring_dropped: Counter[str] = field(default_factory=Counter)
+    handler_errors: Counter[str] = field(default_factory=Counter)  # a bug: should stay 0
     last_error: str = ""
 
     @property
     def dropped(self) -> int:
         """Payloads dropped for any reason."""
-        return sum(self.malformed.values()) + sum(self.unknown_version.values())
+        counters = (
+            self.malformed,
+            self.unknown_version,
+            self.rejected,
+            self.ring_dropped,
+            self.handler_errors,
+        )
+        return sum(sum(c.values()) for c in counters)
 
     def as_dict(self) -> dict[str, Any]:
         """JSON-friendly counters (for status queries)."""
@@ -261,36 +280,64 @@ class DecodeStats:
             "ok": dict(self.ok),
             "malformed": dict(self.malformed),
             "unknown_version": dict(self.unknown_version),
+            "rejected": dict(self.rejected),
+            "ring_dropped": dict(self.ring_dropped),
+            "handler_errors": dict(self.handler_errors),
+            "dropped": self.dropped,
             "last_error": self.last_error,
         }
 
+    def count(self, reason: str, name: str, text: str) -> None:
+        """Count one payload of kind `name` dropped for `reason` (a counter's name)."""
+        counter: Counter[str] = getattr(self, reason)
+        counter[name] += 1
+        self.last_error = text
 
-def decode(model: type[M], payload: bytes, stats: DecodeStats | None = None) -> M | None:
-    """The message in `payload`, or None (counted in `stats`) if it is not a valid one."""
+
+def decode(
+    model: type[M], payload: bytes, stats: DecodeStats | None = None, context: Any = None
+) -> M | None:
+    """The message in `payload`, or None (counted in `stats`) if it is not a valid one;
+    `context` (a `FleetBounds`) holds it against what the receiver knows of its fleet.
+    """
     name = model.__name__
+    if len(payload) > MAX_PAYLOAD_BYTES:
+        _count(stats, "malformed", name, f"{name}: {len(payload)} bytes, over {MAX_PAYLOAD_BYTES}")
+        return None
     try:
         if payload[:1] == bytes((JSON_MARK,)):
-            message = model.model_validate_json(payload)
+            message = model.model_validate_json(payload, context=context)
         else:
-            message = _decode_packed(model, payload)
+            message = _decode_packed(model, payload, context)
     except _UnknownVersion as exc:
         _count(stats, "unknown_version", name, f"{name}: unknown version {exc}")
         return None
-    except (ValidationError, ValueError, struct.error, UnicodeDecodeError, KeyError) as exc:
-        reason = "unknown_version" if "version" in str(exc) else "malformed"
-        _count(stats, reason, name, f"{name}: {type(exc).__name__}: {str(exc)[:200]}")
+    except ValidationError as exc:
+        reason = "unknown_version" if _only_version(exc) else "malformed"
+        _count(stats, reason, name, f"{name}: {_summary(exc)}")
+        return None
+    except Exception as exc:  # a hostile payload may trip anything: never let it through
+        _count(stats, "malformed", name, f"{name}: {type(exc).__name__}: {str(exc)[:200]}")
         return None
     if stats is not None:
         stats.ok[name] += 1
     return message
 
 
+def _only_version(exc: ValidationError) -> bool:
+    return all(e["loc"][:1] == ("version",) for e in exc.errors())
+
+
+def _summary(exc: ValidationError) -> str:
+    first = exc.errors()[0]
+    where = ".".join(str(p) for p in first["loc"]) or "<message>"
+    more = f" (+{exc.error_count() - 1} more)" if exc.error_count() > 1 else ""
+    return f"{where}: {first['msg']}{more}"[:300]
+
+
 def _count(stats: DecodeStats | None, reason: str, name: str, text: str) -> None:
-    if stats is None:
-        return
-    counter: Counter[str] = getattr(stats, reason)
-    counter[name] += 1
-    stats.last_error = text
+    if stats is not None:
+        stats.count(reason, name, text)
 
 
 Decoder = Callable[[bytes], Message | None]

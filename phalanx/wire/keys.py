@@ -58,10 +58,15 @@ def status_key(fleet: str, process_id: str) -> str:
     return f"phalanx/{_name(fleet, 'fleet')}/status/{_name(process_id, 'process id')}"
 
 
+def statuses_key(fleet: str) -> str:
+    """Every process's status queryable: `phalanx/<fleet>/status/*`."""
+    return f"phalanx/{_name(fleet, 'fleet')}/status/*"
+
+
 def robot_of(key: str) -> str:
-    """The robot id in a `.../robot/<id>/...` key."""
+    """The robot id in a `phalanx/<fleet>/robot/<id>/...` key ("" for any other key)."""
     parts = key.split("/")
-    return parts[parts.index("robot") + 1] if "robot" in parts else ""
+    return parts[3] if len(parts) > 4 and parts[2] == "robot" else ""
 
 
 def leader_key(fleet: str) -> str:
@@ -90,6 +95,6 @@ def logs_key(fleet: str) -> str:
 
 
 def host_of(key: str) -> str:
-    """The host name in a `.../host/<name>/...` key."""
+    """The host name in a `phalanx/<fleet>/host/<name>/...` key ("" for any other key)."""
     parts = key.split("/")
-    return parts[parts.index("host") + 1] if "host" in parts else ""
+    return parts[3] if len(parts) > 3 and parts[2] == "host" else ""

@@ -7,16 +7,47 @@ Encoding and decoding (and the drop-and-count of malformed payloads) live in
 from __future__ import annotations
 
 import math
-from typing import Final, Literal
+from typing import Final, Literal, Self
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationInfo,
+    field_validator,
+    model_validator,
+)
 
 from phalanx.core.geometry import Pose2D, Twist2D
 from phalanx.core.peers import PeerFlags, PeerState
-from phalanx.core.shapes import SHAPE_NAMES
-
-# The shapes a group may be in (`phalanx.core.shapes`): an index beyond them is refused.
-MAX_SHAPE: Final = len(SHAPE_NAMES) - 1
+from phalanx.wire.bounds import (
+    MAX_BUMPERS,
+    MAX_EXTENT_M,
+    MAX_RANGE_M,
+    MAX_SONARS,
+    MAX_STAMP_S,
+    Coordinate,
+    Count,
+    Epoch,
+    Heading,
+    MaybeRobotId,
+    Micros,
+    Morph,
+    Period,
+    Range,
+    RobotId,
+    Seconds,
+    Seq,
+    ShapeIndex,
+    Speed,
+    Stamp,
+    StateName,
+    Text,
+    Tick,
+    UnixStamp,
+    YawRate,
+    _bounds,
+)
 
 WIRE_VERSION: Final = 1
 
@@ -46,36 +77,42 @@ class RobotState(Message):
     """
 
     version: Literal[1] = 1
-    robot_id: str
-    seq: int = Field(ge=0)
-    stamp_s: float
-    x_m: float
-    y_m: float
-    theta_rad: float
-    v_mps: float
-    omega_radps: float
-    fsm_state: str
+    robot_id: RobotId
+    seq: Seq
+    stamp_s: Stamp
+    x_m: Coordinate
+    y_m: Coordinate
+    theta_rad: Heading
+    v_mps: Speed
+    omega_radps: YawRate
+    fsm_state: StateName
     obstacle: bool = False
     direction: Literal[-1, 1] = 1
-    leader_id: str = ""
-    epoch: int = Field(default=0, ge=0)
-    formation_leader_id: str = ""
+    leader_id: MaybeRobotId = ""
+    epoch: Epoch = 0
+    formation_leader_id: MaybeRobotId = ""
     clear: bool = False
     formed: bool = True
-    blocked_s: float = Field(default=0.0, ge=0.0)
+    blocked_s: Seconds = 0.0
     dead_end: bool = False
-    waypoint: int = Field(default=0, ge=0)
-    deadlocks: int = Field(default=0, ge=0)
-    profile_s: float = Field(default=0.0, ge=0.0)
-    cov: tuple[float, ...] = ()
-    shape_source: int = Field(default=0, ge=0, le=MAX_SHAPE)
-    shape_target: int = Field(default=0, ge=0, le=MAX_SHAPE)
-    morph: float = Field(default=1.0, ge=0.0, le=1.0)
+    waypoint: Count = 0
+    deadlocks: Count = 0
+    profile_s: Seconds = 0.0
+    cov: tuple[float, ...] = Field(default=(), max_length=6)
+    shape_source: ShapeIndex = 0
+    shape_target: ShapeIndex = 0
+    morph: Morph = 1.0
 
     @field_validator("cov")
     @classmethod
     def _cov_is_a_pose_covariance(cls, cov: tuple[float, ...]) -> tuple[float, ...]:
         return check_pose_cov(cov)
+
+    @model_validator(mode="after")
+    def _tracks_another(self) -> Self:
+        if self.leader_id == self.robot_id:  # a leader tracks nobody: ""
+            raise ValueError(f"{self.robot_id} cannot track itself")
+        return self
 
     @property
     def pose(self) -> Pose2D:
@@ -120,24 +157,24 @@ class RobotFlags(Message):
     """
 
     version: Literal[1] = 1
-    robot_id: str
-    seq: int = Field(ge=0)
-    stamp_s: float
-    fsm_state: str
+    robot_id: RobotId
+    seq: Seq
+    stamp_s: Stamp
+    fsm_state: StateName
     obstacle: bool = False
     direction: Literal[-1, 1] = 1
-    epoch: int = Field(default=0, ge=0)
-    formation_leader_id: str = ""
+    epoch: Epoch = 0
+    formation_leader_id: MaybeRobotId = ""
     clear: bool = False
     formed: bool = True
-    blocked_s: float = Field(default=0.0, ge=0.0)
+    blocked_s: Seconds = 0.0
     dead_end: bool = False
-    waypoint: int = Field(default=0, ge=0)
-    deadlocks: int = Field(default=0, ge=0)
-    profile_s: float = Field(default=0.0, ge=0.0)
-    shape_source: int = Field(default=0, ge=0, le=MAX_SHAPE)
-    shape_target: int = Field(default=0, ge=0, le=MAX_SHAPE)
-    morph: float = Field(default=1.0, ge=0.0, le=1.0)
+    waypoint: Count = 0
+    deadlocks: Count = 0
+    profile_s: Seconds = 0.0
+    shape_source: ShapeIndex = 0
+    shape_target: ShapeIndex = 0
+    morph: Morph = 1.0
 
     @classmethod
     def of(cls, flags: PeerFlags) -> RobotFlags:
@@ -156,6 +193,20 @@ RELATIVE_FIELDS = (
     "std_bearing_rad", "std_heading_rad",
 )  # fmt: skip
 MAX_MEASUREMENTS = 1000  # per frame: 10 s of 100 Hz motion capture
+_TWO_PI = 2.0 * math.pi
+# Each field's (low, high) in a sense frame's flattened groups: stamps within the run,
+# poses within the world, standard deviations bounded as the messages' (the simulated
+# sensors' are never 0; an in-process run does not check them, so neither does a frame).
+FIX_LIMITS: Final = (
+    (0.0, MAX_STAMP_S), (-MAX_EXTENT_M, MAX_EXTENT_M), (-MAX_EXTENT_M, MAX_EXTENT_M),
+    (-_TWO_PI, _TWO_PI), (0.0, 10.0), (0.0, math.pi),
+)  # fmt: skip
+RELATIVE_LIMITS: Final = (
+    (0.0, MAX_STAMP_S), (0.0, 1000.0), (0.0, MAX_RANGE_M), (-_TWO_PI, _TWO_PI),
+    (-_TWO_PI, _TWO_PI), (0.0, 10.0), (0.0, math.pi), (0.0, math.pi),
+)  # fmt: skip
+_MAX_FIX_VALUES: Final = len(FIX_FIELDS) * MAX_MEASUREMENTS
+_MAX_RELATIVE_VALUES: Final = len(RELATIVE_FIELDS) * MAX_MEASUREMENTS
 # A pose variance beyond these means the robot has no idea where it is: (1 km)^2 and
 # (pi rad)^2; larger ones are not physics but a broken sender.
 MAX_POSITION_VAR_M2 = 1e6
@@ -174,20 +225,20 @@ class LeaderAnnouncement(Message):
     """
 
     version: Literal[1] = 1
-    leader_id: str
-    epoch: int = Field(ge=0)
-    stamp_s: float
-    previous_id: str = ""
-    reason: str = ""
+    leader_id: RobotId
+    epoch: Epoch
+    stamp_s: Stamp
+    previous_id: MaybeRobotId = ""
+    reason: Text = ""
 
 
 class ClockTick(Message):
     """A lockstep tick from the world on `phalanx/<fleet>/clock`."""
 
     version: Literal[1] = 1
-    tick: int = Field(ge=0)
-    t_s: float
-    dt_s: float = Field(gt=0.0)
+    tick: Tick
+    t_s: Stamp
+    dt_s: Period
     final: bool = False
 
 
@@ -195,11 +246,11 @@ class VelocityCommand(Message):
     """An agent's command for a simulated robot on `.../robot/<id>/cmd`."""
 
     version: Literal[1] = 1
-    robot_id: str
-    tick: int = Field(ge=0)
-    stamp_s: float
-    v_mps: float
-    omega_radps: float
+    robot_id: RobotId
+    tick: Tick
+    stamp_s: Stamp
+    v_mps: Speed
+    omega_radps: YawRate
 
 
 class SenseFrame(Message):
@@ -210,34 +261,45 @@ class SenseFrame(Message):
     """
 
     version: Literal[1] = 1
-    robot_id: str
-    tick: int = Field(ge=0)
-    t_s: float
-    dt_s: float = Field(gt=0.0)
-    x_m: float
-    y_m: float
-    theta_rad: float
-    v_mps: float
-    omega_radps: float
-    sonar_ranges_m: tuple[float, ...] = ()
-    bumpers: tuple[bool, ...] = ()
+    robot_id: RobotId
+    tick: Tick
+    t_s: Stamp
+    dt_s: Period
+    x_m: Coordinate
+    y_m: Coordinate
+    theta_rad: Heading
+    v_mps: Speed
+    omega_radps: YawRate
+    sonar_ranges_m: tuple[Range, ...] = Field(default=(), max_length=MAX_SONARS)
+    bumpers: tuple[bool, ...] = Field(default=(), max_length=MAX_BUMPERS)
     final: bool = False
     # Positioning measurements that reached the robot since its last frame (simulated
     # sensors, `phalanx.simulator.sensors`), flattened: `fixes` in groups of
     # FIX_FIELDS, `relative` in groups of RELATIVE_FIELDS (target: its index in the
     # scenario's robot list; heading 0 with std 0: not measured). Stamps in sim time.
-    fixes: tuple[float, ...] = ()
-    relative: tuple[float, ...] = ()
+    fixes: tuple[float, ...] = Field(default=(), max_length=_MAX_FIX_VALUES)
+    relative: tuple[float, ...] = Field(default=(), max_length=_MAX_RELATIVE_VALUES)
 
     @field_validator("fixes")
     @classmethod
     def _whole_fixes(cls, values: tuple[float, ...]) -> tuple[float, ...]:
-        return _groups_of(values, len(FIX_FIELDS), "fixes")
+        return _groups_of(values, FIX_LIMITS, "fixes")
 
     @field_validator("relative")
     @classmethod
     def _whole_relatives(cls, values: tuple[float, ...]) -> tuple[float, ...]:
-        return _groups_of(values, len(RELATIVE_FIELDS), "relative")
+        return _groups_of(values, RELATIVE_LIMITS, "relative")
+
+    @model_validator(mode="after")
+    def _on_the_clock(self, info: ValidationInfo) -> Self:
+        # A frame is tick k at k * dt: a frame whose time is not its tick's is not the
+        # world's (the run's clock would jump to wherever it says).
+        if abs(self.t_s - self.tick * self.dt_s) > 1e-6 * max(1.0, self.t_s):
+            raise ValueError(f"t_s {self.t_s} is not tick {self.tick} x dt_s {self.dt_s}")
+        bounds = _bounds(info)
+        if bounds is not None and abs(self.dt_s - bounds.dt_s) > 1e-9:
+            raise ValueError(f"dt_s {self.dt_s} is not the run's {bounds.dt_s}")
+        return self
 
 
 class PoseFixMessage(Message):
@@ -250,8 +312,8 @@ class PoseFixMessage(Message):
     """
 
     version: Literal[1] = 1
-    robot_id: str
-    stamp_s: float = Field(ge=0.0)
+    robot_id: RobotId
+    stamp_s: UnixStamp
     x_m: float = Field(ge=-1e4, le=1e4)
     y_m: float = Field(ge=-1e4, le=1e4)
     theta_rad: float = Field(ge=-2 * math.pi, le=2 * math.pi)
@@ -268,9 +330,9 @@ class RelativeFixMessage(Message):
     """
 
     version: Literal[1] = 1
-    robot_id: str
-    target_id: str
-    stamp_s: float = Field(ge=0.0)
+    robot_id: RobotId
+    target_id: RobotId
+    stamp_s: UnixStamp
     range_m: float = Field(ge=0.0, le=100.0)
     bearing_rad: float = Field(ge=-2 * math.pi, le=2 * math.pi)
     heading_rad: float = Field(default=0.0, ge=-2 * math.pi, le=2 * math.pi)
@@ -283,26 +345,26 @@ class AgentEvent(Message):
     """A behaviour-state transition, on `.../robot/<id>/event`."""
 
     version: Literal[1] = 1
-    robot_id: str
-    t_s: float
-    source: str
-    target: str
-    reason: str
+    robot_id: RobotId
+    t_s: Stamp
+    source: StateName
+    target: StateName
+    reason: Text
 
 
 class AgentReport(Message):
     """An agent's counters when a run ends, on `.../robot/<id>/report`."""
 
     version: Literal[1] = 1
-    robot_id: str
-    steps: int = Field(ge=0)
-    saturations: int = Field(ge=0)
-    accel_limited: int = Field(ge=0)
-    dropped_messages: int = Field(ge=0)
-    late_peer_steps: int = Field(ge=0)
-    step_p50_us: float = Field(default=0.0, ge=0.0)  # control step: core, publish, telemetry
-    step_p99_us: float = Field(default=0.0, ge=0.0)
-    telemetry_dropped: int = Field(default=0, ge=0)
+    robot_id: RobotId
+    steps: Count
+    saturations: Count
+    accel_limited: Count
+    dropped_messages: Count
+    late_peer_steps: Count
+    step_p50_us: Micros = 0.0  # control step: core, publish, telemetry
+    step_p99_us: Micros = 0.0
+    telemetry_dropped: Count = 0
 
 
 def check_pose_cov(cov: tuple[float, ...]) -> tuple[float, ...]:
@@ -326,10 +388,18 @@ def check_pose_cov(cov: tuple[float, ...]) -> tuple[float, ...]:
     return cov
 
 
-def _groups_of(values: tuple[float, ...], size: int, name: str) -> tuple[float, ...]:
+def _groups_of(
+    values: tuple[float, ...], limits: tuple[tuple[float, float], ...], name: str
+) -> tuple[float, ...]:
+    """Whole groups of `len(limits)` values, each within its field's (low, high)."""
+    size = len(limits)
     if len(values) % size or len(values) > size * MAX_MEASUREMENTS:
         raise ValueError(
             f"{name}: expected whole groups of {size} values, at most {MAX_MEASUREMENTS}, "
             f"got {len(values)} values"
         )
+    for i, value in enumerate(values):
+        low, high = limits[i % size]
+        if not low <= value <= high:
+            raise ValueError(f"{name}[{i}] = {value!r} is outside [{low:g}, {high:g}]")
     return values

@@ -2,13 +2,19 @@
 `phalanx.wire.keys`).
 
 Callbacks never call Zenoh nor block: they decode and hand values to thread-safe
-structures (Zenoh documents blocking in a callback as a deadlock risk).
+structures (Zenoh documents blocking in a callback as a deadlock risk). Whatever arrives
+is hostile until checked: every payload is decoded totally (against the receiver's
+`FleetBounds` when it gives them), a message on a robot's key must be that robot's, a
+handler that fails is counted, never let out into Zenoh's thread, and a ring that
+overflows counts what it lost: every payload is either acted on or counted in the
+session's `DecodeStats`.
 """
 
 from __future__ import annotations
 
 import contextlib
 import json
+import logging
 import socket
 import threading
 import time
@@ -21,8 +27,12 @@ from pydantic import BaseModel, ConfigDict, Field
 from phalanx.core.errors import TransportError
 from phalanx.core.lifecycle import Closing
 from phalanx.wire.codec import DecodeStats, decode, encode
+from phalanx.wire.keys import robot_of
 from phalanx.wire.messages import Message
+from phalanx.wire.security import AccessControl, TlsFiles, apply_security
 
+log = logging.getLogger("phalanx.transport")
+MAX_STATUS_BYTES = 1024 * 1024
 M = TypeVar("M", bound=Message)
 _open_sessions: set[int] = set()
 _registry_lock = threading.Lock()
@@ -47,6 +57,9 @@ class TransportConfig(BaseModel):
     # Multicast scouting in router mode: connect to routers found that way, one link per
     # pair (only the router with the greater Zenoh id connects).
     autoconnect_routers: bool = False
+    # `tls/` endpoints: this process's identity; a router's access-control list.
+    tls: TlsFiles | None = None
+    acl: AccessControl | None = None
 
 
 def zenoh_config(cfg: TransportConfig) -> Any:
@@ -73,6 +86,7 @@ def zenoh_config(cfg: TransportConfig) -> Any:
         conf.insert_json5("scouting/multicast/autoconnect", json.dumps(autoconnect))
         strategy = {"router": {"to_router": "greater-zid", "to_peer": "always"}}
         conf.insert_json5("scouting/multicast/autoconnect_strategy", json.dumps(strategy))
+    apply_security(conf, cfg.tls, cfg.acl)
     return conf
 
 
@@ -126,33 +140,78 @@ class History:
 
 
 class Polled(Generic[M]):
-    """A subscription whose messages wait in a ring until `drain` (see
-    `FleetSession.subscribe_polled`).
+    """A subscription whose payloads wait in a ring of `capacity` until `drain` (see
+    `FleetSession.subscribe_polled`). Zenoh's callback only appends the raw payload (no
+    decoding on its thread); when the ring is full the oldest payload is dropped and
+    counted (`DecodeStats.ring_dropped`).
     """
 
-    def __init__(self, subscriber: Any, model: type[M], stats: DecodeStats) -> None:
-        self._subscriber = subscriber
+    def __init__(
+        self, model: type[M], stats: DecodeStats, capacity: int, context: Any = None
+    ) -> None:
         self._model = model
         self._stats = stats
+        self._context = context
+        self._ring: deque[tuple[str, bytes]] = deque(maxlen=capacity)
+        self._lock = threading.Lock()
+
+    def put(self, sample: Any) -> None:
+        """Zenoh's side: keep the sample's key and payload (the oldest goes if full)."""
+        item = (str(sample.key_expr), sample.payload.to_bytes())
+        with self._lock:
+            if len(self._ring) == self._ring.maxlen:
+                self._stats.ring_dropped[self._model.__name__] += 1
+            self._ring.append(item)
 
     def drain(self, on_message: Callable[[str, M], None]) -> int:
-        """Call `on_message(key, value)` for every valid message waiting (malformed ones
-        counted); how many samples were taken.
+        """Call `on_message(key, value)` for every valid message waiting (the rest
+        counted); how many payloads were taken.
         """
-        taken = 0
-        while (sample := self._subscriber.try_recv()) is not None:
-            taken += 1
-            _deliver(sample, self._model, self._stats, on_message)
-        return taken
+        with self._lock:
+            items = list(self._ring)
+            self._ring.clear()
+        for key, payload in items:
+            deliver(key, payload, self._model, self._stats, on_message, self._context)
+        return len(items)
+
+
+def deliver(
+    key: str,
+    payload: bytes,
+    model: type[M],
+    stats: DecodeStats,
+    on_message: Callable[[str, M], None],
+    context: Any = None,
+) -> None:
+    """Decode `payload` (arrived on `key`) as `model` and hand it on, or count it: as
+    malformed, as rejected when it names a robot other than its key's, or when the
+    handler fails (a hostile value must never take the process down).
+    """
+    value = decode(model, payload, stats, context)
+    if value is None:
+        return
+    name = model.__name__
+    sender = getattr(value, "robot_id", None)
+    keyed = robot_of(key)
+    if sender is not None and keyed and sender != keyed:
+        stats.count("rejected", name, f"{name} of {sender!r} on {keyed!r}'s key")
+        return
+    try:
+        on_message(key, value)
+    except Exception as exc:  # counted and logged, never raised into Zenoh's thread
+        stats.count("handler_errors", name, f"{name}: handler failed: {type(exc).__name__}: {exc}")
+        log.warning("a %s on %s could not be handled: %s", name, key, exc)
 
 
 def _deliver(
-    sample: Any, model: type[M], stats: DecodeStats, on_message: Callable[[str, M], None]
+    sample: Any,
+    model: type[M],
+    stats: DecodeStats,
+    on_message: Callable[[str, M], None],
+    context: Any = None,
 ) -> None:
-    """Decode a Zenoh sample as `model` and hand it on, or count it as malformed."""
-    value = decode(model, sample.payload.to_bytes(), stats)
-    if value is not None:
-        on_message(str(sample.key_expr), value)
+    """Decode a Zenoh sample as `model` and hand it on (see `deliver`)."""
+    deliver(str(sample.key_expr), sample.payload.to_bytes(), model, stats, on_message, context)
 
 
 class FleetSession(Closing):
@@ -203,31 +262,37 @@ class FleetSession(Closing):
         return publisher
 
     def subscribe(
-        self, key_expr: str, model: type[M], on_message: Callable[[str, M], None]
+        self,
+        key_expr: str,
+        model: type[M],
+        on_message: Callable[[str, M], None],
+        *,
+        context: Any = None,
     ) -> None:
         """Call `on_message(key, value)` for every valid message; count the rest.
 
-        `on_message` runs on a Zenoh thread: it must be quick and must not call Zenoh.
+        `context` (a `FleetBounds`) holds every message against what this process knows
+        of its fleet. `on_message` runs on a Zenoh thread: it must be quick and must not
+        call Zenoh.
         """
         stats = self.stats
 
         def callback(sample: Any) -> None:
-            _deliver(sample, model, stats, on_message)
+            _deliver(sample, model, stats, on_message, context)
 
         self._keep.append(self._session.declare_subscriber(key_expr, callback))
 
-    def subscribe_polled(self, key_expr: str, model: type[M], capacity: int) -> Polled[M]:
-        """Hold arriving messages in a ring of `capacity` (the oldest dropped when full)
-        until the owner drains them on its own thread: no Zenoh thread wakes Python per
-        message, which is what a subscription every robot hears from every robot needs.
+    def subscribe_polled(
+        self, key_expr: str, model: type[M], capacity: int, *, context: Any = None
+    ) -> Polled[M]:
+        """Hold arriving payloads in a ring of `capacity` (the oldest dropped, and
+        counted, when full) until the owner drains and decodes them on its own thread:
+        Zenoh's thread only appends bytes (under a microsecond of Python per message),
+        which is what a subscription every robot hears from every robot needs.
         """
-        import zenoh
-
-        subscriber = self._session.declare_subscriber(
-            key_expr, zenoh.handlers.RingChannel(capacity)
-        )
-        self._keep.append(subscriber)
-        return Polled(subscriber, model, self.stats)
+        ring = Polled(model, self.stats, capacity, context)
+        self._keep.append(self._session.declare_subscriber(key_expr, ring.put))
+        return ring
 
     def declare_alive(self, key: str) -> None:
         """Hold a liveliness token on `key` while the session lives."""
@@ -252,11 +317,22 @@ class FleetSession(Closing):
         self._keep.append(self._session.declare_queryable(key, callback))
 
     def query_status(self, key: str, timeout_s: float = 2.0) -> list[dict[str, Any]]:
-        """Every status reply to `key` within `timeout_s`."""
+        """Every status reply to `key` within `timeout_s` (a reply that is not a JSON
+        object of reasonable size is skipped and counted in `stats`).
+        """
         replies = []
         for reply in self._session.get(key, timeout=timeout_s):
-            if reply.ok is not None:
-                replies.append(json.loads(reply.ok.payload.to_bytes()))
+            if reply.ok is None:
+                continue
+            raw = reply.ok.payload.to_bytes()
+            try:
+                value = json.loads(raw) if len(raw) <= MAX_STATUS_BYTES else None
+            except (ValueError, RecursionError):
+                value = None
+            if isinstance(value, dict):
+                replies.append(value)
+            else:
+                self.stats.count("malformed", "status", f"status reply on {reply.ok.key_expr}")
         return replies
 
     def hold(self, entity: Any) -> Any:
@@ -294,7 +370,8 @@ def _open_with_retry(cfg: TransportConfig) -> Any:
             return zenoh.open(zenoh_config(cfg))
         except Exception as exc:  # zenoh raises its own ZError
             if time.monotonic() + delay_s > deadline:
-                raise TransportError(f"cannot open a Zenoh session with {cfg}: {exc}") from exc
+                shown = cfg.model_dump(exclude={"acl"}, exclude_defaults=True)
+                raise TransportError(f"cannot open a Zenoh session with {shown}: {exc}") from exc
             time.sleep(delay_s)
             delay_s = min(1.0, delay_s * 2)
 

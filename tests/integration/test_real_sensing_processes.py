@@ -59,11 +59,15 @@ def test_up_on_real_sensing_reproduces_the_in_process_run(
 @pytest.mark.drivers
 @pytest.mark.slow
 def test_up_on_arcos_with_motion_capture_fixes(tmp_path: Path) -> None:
-    metrics = _up(tmp_path / "arcos", "--driver", "arcos", "--no-recording")
+    # 15 s more than the in-process comparison: on a loaded machine a late wall-clock
+    # step can put a follower in HOLD for a moment, and its settling time is not measured.
+    metrics = _up(tmp_path / "arcos", "--driver", "arcos", "--no-recording",
+                  "--set", "duration_s=60")  # fmt: skip
     assert metrics["deadlock_reverses"] == 1
     assert metrics["collisions"] == []
     for rid in ("r2", "r3"):
         backward = metrics["followers"][rid]["backward"]
+        assert backward["duration_s"] > 5.0, (rid, metrics["followers"][rid])
         for key, bound in BOUNDS.items():
             assert backward[key]["max"] < bound, (rid, key, backward[key])
     for rid, est in metrics["estimation"]["robots"].items():

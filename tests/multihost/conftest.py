@@ -38,14 +38,18 @@ def deployment_text(
     world_host: str = "world",
     extra: str = "",
     zenoh_extra: str = "",
+    security: str = 'mode = "open"',
 ) -> str:
-    """A deployment file for the paper wedge: hosts as (name, address, port)."""
+    """A deployment file for the paper wedge: hosts as (name, address, port). Open links
+    unless `security` says otherwise (test_security.py secures them)."""
     lines = [
         f'name = "{name}"',
         f'fleet = "{name}"',
         f'scenario = "{WEDGE}"',
         f'clock = "{clock}"',
         extra,
+        "[security]",
+        security,
         "[zenoh]",
         f"lease_ms = {lease_ms}",
         "retry_max_ms = 500",
@@ -183,4 +187,10 @@ class Kit:
 @pytest.fixture
 def kit() -> Kit:
     """Deployment files, daemons and observers for multi-host tests."""
+    return Kit()
+
+
+@pytest.fixture(scope="module")
+def module_kit() -> Kit:
+    """The same, for module-scoped fixtures (daemons shared by a module's tests)."""
     return Kit()

@@ -84,7 +84,8 @@ def test_bad_requests_are_refused_with_a_reason_and_counted(kit: Any, tmp_path: 
                 assert reply is not None, payload[:60]
                 assert not reply.ok, payload[:60]
                 assert reason in reply.error, (payload[:60], reply.error)
-            stop_reply = client.ask("stop", {"h2": b'{"deployment": "refuse", "run_id": "nope"}'})
+            stop = {"deployment": "refuse", "digest": loaded.digest, "run_id": "nope"}
+            stop_reply = client.ask("stop", {"h2": json.dumps(stop).encode()})
             assert stop_reply["h2"] is not None
             assert "not this host's" in stop_reply["h2"].error
             # r2 is already on the fabric (an orphan, or started elsewhere): never twice.

@@ -74,7 +74,11 @@ def test_a_lost_leader_stops_the_followers_then_the_best_robot_leads() -> None:
 
 @pytest.mark.slow
 def test_the_group_backs_out_of_the_dead_end_in_formation() -> None:
-    scenario = load_scenario(SCENARIOS / "nav_deadend_wedge3.toml")
+    # The paper's reverse, in the scenario's own shape (no reshaping into the dead end:
+    # the folded group's escape is checked below).
+    scenario = apply_overrides(
+        load_scenario(SCENARIOS / "nav_deadend_wedge3.toml"), ["navigation.reshape=false"]
+    )
     runner = BatchRunner(scenario)
 
     def turned(b: BatchRunner) -> bool:
@@ -97,10 +101,29 @@ def test_the_group_backs_out_of_the_dead_end_in_formation() -> None:
 
 
 @pytest.mark.slow
-def test_a_line_caught_turning_turns_back_before_it_backs_out() -> None:
-    # The collateral line is turning on the spot at the end of the U when the deadlock
-    # is declared: backing out along that heading would run it into the side wall.
-    scenario = load_scenario(SCENARIOS / "nav_deadend_collateral3.toml")
+def test_a_wedge_folded_into_the_dead_end_backs_out_folded_and_gets_there() -> None:
+    # The dead end looks passable for a column until its far wall is seen: the wedge
+    # folds, drives in, backs out as a column, goes round and unfolds on the way.
+    log = run_batch(load_scenario(SCENARIOS / "nav_deadend_wedge3.toml"))
+    leader = [(e.target, e.reason) for e in log.transitions["r1"]]
+    targets = [t for t, _ in leader]
+    assert State.RESHAPE in targets
+    first_reverse = targets.index(State.DEADLOCK_REVERSE)
+    assert State.RESHAPE in targets[:first_reverse]
+    assert targets[-1] == State.ARRIVED
+    assert not log.collisions
+    _, backward = phase_masks(log)
+    assert backward.sum() * log.scenario.dt_s > 20.0
+    for rid in ("r2", "r3"):  # settled in the column as it backs out (its transient:
+        assert np.median(error_series(log, rid).linear_pct[backward]) < 0.5  # RESULTS.md)
+
+
+@pytest.mark.slow
+def test_a_group_caught_turning_turns_back_before_it_backs_out() -> None:
+    # The wedge of five (kept in its shape) is turning on the spot at the end
+    # of the U when the deadlock is declared: backing out along that heading would run
+    # it into the side wall.
+    scenario = navigation_scenario("deadend", "wedge", 5, overrides={"navigation.reshape": False})
     runner = BatchRunner(scenario)
 
     def turned(b: BatchRunner) -> bool:
@@ -117,13 +140,13 @@ def test_a_line_caught_turning_turns_back_before_it_backs_out() -> None:
     ]
     assert backing, "the group never backed out"
     headings_deg = [math.degrees(leader.theta_rad[k]) for k in backing]
-    assert max(abs(h) for h in headings_deg) < 2.0  # straight back along the U's axis
+    assert max(abs(h) for h in headings_deg) < 3.0  # back along the U's axis, not 12 deg off it
     reverses = [e for e in log.transitions["r1"] if e.target == State.DEADLOCK_REVERSE]
     assert len(reverses) == 1
     done = next(e for e in log.transitions["r1"] if e.source == State.DEADLOCK_REVERSE)
     assert "safe distance" in done.reason
     _, backward = phase_masks(log)
-    for rid in ("r2", "r3"):
+    for rid in ("r2", "r3"):  # (the second row's errors: docs/RESULTS.md)
         series = error_series(log, rid)
         assert series.linear_pct[backward].max() < 0.5
         assert series.angular_pct[backward].max() < 0.3

@@ -8,26 +8,40 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
+from phalanx.core.states import State
+from phalanx.wire.bounds import MAX_SPEED_MPS, MAX_YAW_RATE_RADPS
 from phalanx.wire.codec import DecodeStats, decode, encode
-from phalanx.wire.messages import RobotState, SenseFrame, VelocityCommand
+from phalanx.wire.messages import MAX_EXTENT_M, MAX_STAMP_S, RobotState, SenseFrame, VelocityCommand
 
-finite = st.floats(min_value=-1e6, max_value=1e6, allow_nan=False)
-names = st.text(min_size=1, max_size=12)
-states = st.builds(
-    RobotState,
-    robot_id=names,
-    seq=st.integers(0, 2**32 - 1),
-    stamp_s=finite,
-    x_m=finite,
-    y_m=finite,
-    theta_rad=finite,
-    v_mps=finite,
-    omega_radps=finite,
-    fsm_state=names,
-    obstacle=st.booleans(),
-    direction=st.sampled_from([-1, 1]),
-    leader_id=st.text(max_size=12),
-    epoch=st.integers(0, 2**32 - 1),
+
+def _within(bound: float) -> st.SearchStrategy[float]:
+    return st.floats(min_value=-bound, max_value=bound, allow_nan=False)
+
+
+names = st.from_regex(r"\A[A-Za-z0-9_-]{1,12}\Z")
+# Every value the wire allows, to its bounds: all of them survive both forms. (A robot
+# never tracks itself: the wire refuses a state whose leader_id is its own id.)
+_FIELDS = {
+    "seq": st.integers(0, 2**32 - 1),
+    "stamp_s": st.floats(min_value=0.0, max_value=MAX_STAMP_S),
+    "x_m": _within(MAX_EXTENT_M),
+    "y_m": _within(MAX_EXTENT_M),
+    "theta_rad": _within(2 * math.pi),
+    "v_mps": _within(MAX_SPEED_MPS),
+    "omega_radps": _within(MAX_YAW_RATE_RADPS),
+    "fsm_state": st.sampled_from([str(s) for s in State]),
+    "obstacle": st.booleans(),
+    "direction": st.sampled_from([-1, 1]),
+    "epoch": st.integers(0, 2**32 - 1),
+}
+states = (
+    st.tuples(names, names | st.just(""))
+    .filter(lambda ids: ids[0] != ids[1])
+    .flatmap(
+        lambda ids: st.builds(
+            RobotState, robot_id=st.just(ids[0]), leader_id=st.just(ids[1]), **_FIELDS
+        )
+    )
 )
 FRAME = SenseFrame(
     robot_id="r1",

@@ -1,6 +1,7 @@
 from pathlib import Path
 
 import pytest
+from pydantic import ValidationError
 
 from phalanx.core.config import Scenario
 from phalanx.core.config_files import (
@@ -83,3 +84,31 @@ def test_overrides_apply_and_validate() -> None:
         apply_overrides(scenario, ["controller.kind=fancy"])
     with pytest.raises(ConfigError, match="no field"):
         apply_overrides(scenario, ["nothing.here=1"])
+
+
+def test_a_scenario_bounds_the_resources_it_may_ask_for() -> None:
+    from phalanx.core.config import MAX_ROBOTS, Scenario
+
+    base = load_scenario(SCENARIOS / "paper_wedge.toml").model_dump()
+    robots = [{"id": f"r{i}"} for i in range(MAX_ROBOTS + 1)]
+    slots = [{"robot": "r0", "x_m": 0.0, "y_m": 0.0}]
+    slots += [{"robot": f"r{i}", "follows": "r0", "l_m": 1.0 + i, "phi_deg": 180.0}
+              for i in range(1, MAX_ROBOTS + 1)]  # fmt: skip
+    with pytest.raises(ValidationError, match="at most 1000"):
+        Scenario.model_validate({**base, "robots": robots, "formation": {"slots": slots}})
+    with pytest.raises(ValidationError, match="robot-steps"):
+        Scenario.model_validate({**base, "duration_s": 86_400.0, "control_rate_hz": 100.0})
+    with pytest.raises(ValidationError, match="finite"):
+        Scenario.model_validate({**base, "seed": 1, "comm_delay_s": float("nan")})
+
+
+def test_emergency_braking_is_never_softer_than_the_comfortable_one() -> None:
+    from phalanx.core.config import RobotParams
+
+    p3dx = load_robot("p3dx").model_dump()
+    with pytest.raises(ValidationError, match="emergency_decel_mps2"):
+        RobotParams.model_validate({**p3dx, "emergency_decel_mps2": 0.1})
+    plain = RobotParams.model_validate(
+        {**p3dx, "emergency_decel_mps2": None, "emergency_rot_decel_degps2": None}
+    )
+    assert plain.emergency_decel == (plain.decel_mps2, plain.rot_accel_radps2)

@@ -61,8 +61,10 @@ host = "p3dx-2"
 """
 
 
-def _write(tmp_path: Path, body: str, *, head: str = "") -> Path:
+def _write(tmp_path: Path, body: str, *, head: str = "", security: str = "open") -> Path:
+    # The links' topology is the same in both modes; these tests read it over plain tcp/.
     text = f'name = "t"\nfleet = "t"\nscenario = "{WEDGE}"\n{head}\n{body}'
+    text += f'\n[security]\nmode = "{security}"\n'
     path = tmp_path / "deployment.toml"
     path.write_text(text)
     return path
@@ -90,7 +92,8 @@ def test_the_real_robot_example_drives_p3dx_robots_over_serial() -> None:
     assert argv[-2:] == ['--driver-setting=port="/dev/ttyUSB0"', "--driver-setting=baud=9600"]
     assert argv[argv.index("--watchdog") + 1] == "0.5"
     assert argv[argv.index("--epoch") + 1] == "1700000000.000"
-    assert argv[argv.index("--connect") + 1] == "tcp/127.0.0.1:7447"
+    assert argv[argv.index("--connect") + 1] == "tls/127.0.0.1:7447"  # secured by default
+    assert argv[argv.index("--tls-cert") + 1].endswith("/robot.r2.crt")
     assert argv[argv.index("--recording-id") + 1] == recording_id("lab", "run1")
 
 

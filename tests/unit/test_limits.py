@@ -51,3 +51,30 @@ def test_a_scenario_above_the_robots_rating_is_clamped_to_it_by_both_layers(
     assert sent.v_mps <= ROBOT.v_max_mps + 1e-12
     assert sent.omega_radps <= ROBOT.omega_max_radps + 1e-12
     assert safe.stats.clamped == 1
+
+
+def test_an_emergency_stop_brakes_at_the_robots_emergency_limits() -> None:
+    from phalanx.agents.control.limits import CommandLimiter
+    from phalanx.core.config_files import load_robot
+    from phalanx.core.geometry import ZERO_TWIST, Twist2D
+    from phalanx.core.limits import run_limits
+
+    robot = load_robot("p3dx")
+    limits = run_limits(robot)
+    assert limits.emergency_decel_mps2 == robot.emergency_decel_mps2 == 2.0
+    moving = Twist2D(0.3, 0.5)
+
+    def steps_to_zero(emergency: bool) -> int:
+        limiter = CommandLimiter(limits)
+        limiter.reset(moving)
+        for step in range(1, 100):
+            if limiter.apply(ZERO_TWIST, 0.1, emergency=emergency) == ZERO_TWIST:
+                return step
+        return 100
+
+    assert steps_to_zero(emergency=False) >= 10  # 0.3 m/s at the comfortable 0.3 m/s^2
+    assert steps_to_zero(emergency=True) == 2  # ... at 2 m/s^2 (and 300 deg/s^2)
+    # Emergency limits only ever brake: speeding up, or to a twist other than zero, is
+    # rate-limited as always.
+    limiter = CommandLimiter(limits)
+    assert limiter.apply(Twist2D(0.3, 0.0), 0.1, emergency=True).v_mps == 0.03

@@ -26,6 +26,14 @@ ConnectOpt = Annotated[
 ViaOpt = Annotated[
     str | None, typer.Option(help="Join through this host's daemon (default: this machine's).")
 ]
+IdentityOpt = Annotated[
+    str | None,
+    typer.Option(
+        help="A secured fleet: who you are, operator.NAME or viewer.NAME in the deployment's "
+        "PKI folder, or a path without .crt/.key (default: $PHALANX_IDENTITY, else the "
+        "deployment's only operator)."
+    ),
+]
 SetOpt = Annotated[
     list[str] | None,
     typer.Option("--set", help="Override a scenario field for this run, e.g. duration_s=60."),
@@ -33,11 +41,12 @@ SetOpt = Annotated[
 
 
 def _transport(
-    loaded: LoadedDeployment, via: str | None, connect: list[str] | None
+    loaded: LoadedDeployment, via: str | None, connect: list[str] | None, identity: str | None
 ) -> TransportConfig:
-    from phalanx.hosts.wiring import client_transport
+    from phalanx.hosts.wiring import client_identity, client_transport
 
-    return client_transport(loaded.spec, via=via, connect=tuple(connect or ()))
+    tls = client_identity(loaded, identity)
+    return client_transport(loaded.spec, via=via, connect=tuple(connect or ()), tls=tls)
 
 
 def _new_run_id() -> str:
@@ -68,6 +77,10 @@ def launch(
     ] = False,
     via: ViaOpt = None,
     connect: ConnectOpt = None,
+    identity: IdentityOpt = None,
+    print_acl: Annotated[
+        bool, typer.Option(help="Print every host's generated access-control list and exit.")
+    ] = False,
 ) -> None:
     """Start a deployment on its hosts, follow it live, stop it on Ctrl-C or at its end."""
     from phalanx.core.errors import DeploymentError
@@ -75,6 +88,11 @@ def launch(
     from phalanx.hosts.protocol import OVERRIDE_PATTERN, RUN_ID_PATTERN
 
     loaded = load_or_exit(deployment)
+    if print_acl:
+        _print_acl(loaded)
+        return
+    if loaded.spec.open_warning:
+        typer.secho(loaded.spec.open_warning, fg="red", bold=True, err=True)
     run = run_id or _new_run_id()
     _check_pattern(run, RUN_ID_PATTERN, "--run-id")
     for override in set_ or ():
@@ -92,13 +110,27 @@ def launch(
     stop = stop_on_signals()
     daemons = _start_local_daemons(loaded) if local else []
     try:
-        code = _run(loaded, options, _transport(loaded, via, connect), table, logs, stop)
+        transport = _transport(loaded, via, connect, identity)
+        code = _run(loaded, options, transport, table, logs, stop)
     except DeploymentError as exc:
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(2) from exc
     finally:
         _stop_local_daemons(daemons)
     raise typer.Exit(code)
+
+
+def _print_acl(loaded: LoadedDeployment) -> None:
+    from phalanx.hosts.access import describe_acls
+
+    if not loaded.spec.secured:
+        typer.echo(
+            f"# deployment {loaded.spec.name!r} is not secured (mode 'open'"
+            + (", implied: every host is on loopback" if loaded.spec.security is None else "")
+            + "): no access control; everyone may do everything"
+        )
+        return
+    typer.echo(describe_acls(loaded.spec))
 
 
 def _check_pattern(value: str, pattern: str, what: str) -> None:
@@ -114,7 +146,7 @@ def _check_overrides(loaded: LoadedDeployment, overrides: list[str]) -> None:
 
     if overrides:
         try:
-            apply_overrides(loaded.scenario, overrides)
+            apply_overrides(loaded.scenario, overrides, source=str(loaded.scenario_path))
         except ConfigError as exc:
             raise typer.BadParameter(str(exc)) from exc
 
@@ -166,6 +198,7 @@ def status(
     ] = 1.5,
     via: ViaOpt = None,
     connect: ConnectOpt = None,
+    identity: IdentityOpt = None,
 ) -> None:
     """Show a running fleet: every host's processes and every robot's state."""
     from phalanx.core.errors import DeploymentError
@@ -174,11 +207,14 @@ def status(
 
     loaded = load_or_exit(deployment)
     try:
-        with FleetClient(loaded, _transport(loaded, via, connect)) as client:
+        with FleetClient(loaded, _transport(loaded, via, connect, identity)) as client:
             time.sleep(listen_s)
             statuses = client.statuses()
             skews = client.clock_skews()
-            rows = fleet_rows(loaded, statuses, client.watch, world=client.world_status())
+            processes = client.process_statuses()
+            rows = fleet_rows(
+                loaded, statuses, client.watch, world=processes.get("world"), processes=processes
+            )
     except DeploymentError as exc:
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(2) from exc
@@ -209,6 +245,7 @@ def stop(
     connect: ConnectOpt = None,
     wait: Annotated[float, typer.Option(help="Seconds to wait for every process to end.")] = 15.0,
     host_wait: Annotated[float, typer.Option(help="Seconds to wait for the hosts.")] = 2.0,
+    identity: IdentityOpt = None,
 ) -> None:
     """Stop a running fleet on every host (SIGTERM, then SIGKILL after a grace period)."""
     from phalanx.core.errors import DeploymentError
@@ -216,7 +253,7 @@ def stop(
 
     loaded = load_or_exit(deployment)
     try:
-        with FleetClient(loaded, _transport(loaded, via, connect)) as client:
+        with FleetClient(loaded, _transport(loaded, via, connect, identity)) as client:
             deadline = time.monotonic() + host_wait
             while time.monotonic() < deadline and client.watch.present() != set(client.host_names):
                 time.sleep(0.1)

@@ -1,4 +1,6 @@
-"""`phalanx agent`, `phalanx world`, `phalanx up`: robots as processes over Zenoh."""
+"""`phalanx agent`, `phalanx world`: robots as processes over Zenoh (`phalanx up` starts
+them all on this machine: `phalanx.cli.commands.up`).
+"""
 
 from __future__ import annotations
 
@@ -19,9 +21,6 @@ if TYPE_CHECKING:
     from phalanx.wire.messages import AgentReport
     from phalanx.wire.transport import TransportConfig
 
-# `phalanx agent`'s exit code when the world's frames stopped coming (sim driver): not a
-# finished run, so a supervisor restarts it and it rejoins once the world is back.
-EXIT_WORLD_LOST = 3
 
 ScenarioArg = Annotated[
     Path, typer.Argument(help="Scenario TOML file.", exists=True, dir_okay=False)
@@ -35,6 +34,9 @@ ConnectOpt = Annotated[
     list[str] | None, typer.Option("--connect", help="Zenoh endpoint to connect to.")
 ]
 ModeOpt = Annotated[str, typer.Option(help="Zenoh mode: peer, client or router.")]
+TlsCaOpt = Annotated[str | None, typer.Option(help="tls/ endpoints: the fleet CA's certificate.")]
+TlsCertOpt = Annotated[str | None, typer.Option(help="tls/ endpoints: this process's certificate.")]
+TlsKeyOpt = Annotated[str | None, typer.Option(help="tls/ endpoints: this process's key.")]
 RecordingIdOpt = Annotated[
     str | None, typer.Option(help="Telemetry: the fleet run's Rerun recording id (shared).")
 ]
@@ -55,21 +57,37 @@ def _scenario(path: Path, overrides: list[str] | None) -> Scenario:
     from phalanx.core.config_files import apply_overrides, load_scenario
 
     config = load_scenario(path)
-    return apply_overrides(config, overrides) if overrides else config
+    return apply_overrides(config, overrides, source=str(path)) if overrides else config
 
 
-def _transport(mode: str, listen: list[str] | None, connect: list[str] | None) -> TransportConfig:
+def _transport(
+    mode: str,
+    listen: list[str] | None,
+    connect: list[str] | None,
+    tls: tuple[str | None, str | None, str | None] = (None, None, None),
+) -> TransportConfig:
+    from phalanx.wire.security import TlsFiles
     from phalanx.wire.transport import TransportConfig
 
     if mode not in ("peer", "client", "router"):
         raise typer.BadParameter(f"expected peer, client or router, got {mode!r}")
-    return TransportConfig(mode=mode, listen=tuple(listen or ()), connect=tuple(connect or ()))
+    files = None
+    if any(tls):
+        ca, cert, key = tls
+        if ca is None or cert is None or key is None:
+            raise typer.BadParameter("give --tls-ca, --tls-cert and --tls-key together")
+        files = TlsFiles(ca=ca, cert=cert, key=key)
+    return TransportConfig(
+        mode=mode, listen=tuple(listen or ()), connect=tuple(connect or ()), tls=files
+    )
 
 
 def _stop_on_signals() -> Stoppable:
-    from phalanx.runtime.signals import stop_on_signals
+    from phalanx.runtime.signals import die_with_parent, stop_on_signals
 
-    return stop_on_signals()
+    stop = stop_on_signals()
+    die_with_parent()  # a supervised process stops when its supervisor dies
+    return stop
 
 
 def _clock(value: str) -> Literal["lockstep", "realtime"]:
@@ -88,6 +106,9 @@ def agent(
     listen: ListenOpt = None,
     connect: ConnectOpt = None,
     mode: ModeOpt = "peer",
+    tls_ca: TlsCaOpt = None,
+    tls_cert: TlsCertOpt = None,
+    tls_key: TlsKeyOpt = None,
     set_: SetOpt = None,
     driver: Annotated[
         str,
@@ -152,7 +173,7 @@ def agent(
     config = _scenario(scenario, set_)
     if robot not in {r.id for r in config.robots}:
         raise typer.BadParameter(f"robot {robot!r} is not in {scenario}")
-    transport = _transport(mode, listen, connect)
+    transport = _transport(mode, listen, connect, (tls_ca, tls_cert, tls_key))
     params = load_robot(config.robot)
     shortcuts = {
         "--arcos-port": arcos_port,
@@ -164,7 +185,7 @@ def agent(
     backend = _backend(driver, params, shortcuts=shortcuts, settings=driver_setting)
     stop = _stop_on_signals()
     with _telemetry(recording_id, telemetry_file, telemetry_url, robot) as telemetry:
-        report, world_lost = _run_agent(
+        report, code = _run_agent(
             robot, config, params, transport, fleet, clock, stop, telemetry, backend,
             epoch, watchdog, frame_timeout, camera,
         )  # fmt: skip
@@ -172,9 +193,14 @@ def agent(
         f"{robot}: {report.steps} steps, {report.saturations} saturations, "
         f"{report.dropped_messages} dropped messages"
     )
-    if world_lost:  # not a finished run: a supervisor (phalanx host) restarts it to rejoin
-        typer.echo(f"{robot}: no frame from the world for {frame_timeout:g} s", err=True)
-        raise typer.Exit(EXIT_WORLD_LOST)
+    if code:  # not a finished run: a supervisor (phalanx host) restarts it to rejoin
+        from phalanx.runtime.exits import EXIT_WORLD_LOST, agent_exit_reason
+
+        why = agent_exit_reason(code)
+        if code == EXIT_WORLD_LOST:
+            why = f"no frame from the world for {frame_timeout:g} s"
+        typer.echo(f"{robot}: {why} (exit code {code}, not a finished run)", err=True)
+        raise typer.Exit(code)
 
 
 def _telemetry(
@@ -203,20 +229,30 @@ def _run_agent(
     watchdog: float,
     frame_timeout_s: float,
     camera: str | None = None,
-) -> tuple[AgentReport, bool]:
-    """Run the agent to its end: its report, and whether the world's frames stopped."""
+) -> tuple[AgentReport, int]:
+    """Run the agent to its end: its report, and its exit code (`phalanx.runtime.exits`)."""
     import time
 
     from phalanx.runtime.agent import AgentRuntime, RuntimeOptions
+    from phalanx.runtime.exits import EXIT_FINISHED, EXIT_RUN_CUT_SHORT, EXIT_WORLD_LOST
     from phalanx.runtime.robot_io import WorldLink
+    from phalanx.wire.bounds import FleetBounds
 
     tel = telemetry if telemetry.sink.kind != "off" else None
     if backend is None:  # a simulated robot: the world's frames are its ticks
         options = RuntimeOptions(fleet=fleet, transport=transport, clock=_clock(clock))
+        bounds = FleetBounds.of(config, params)
         ids = tuple(r.id for r in config.robots)
-        link = WorldLink(fleet, robot, frame_timeout_s=frame_timeout_s, robot_ids=ids)
+        link = WorldLink(
+            fleet, robot, frame_timeout_s=frame_timeout_s, robot_ids=ids, bounds=bounds
+        )
         runtime = AgentRuntime(robot, config, params, options, clock=link, io=link, telemetry=tel)
-        return runtime.run(stop), link.world_lost
+        report = runtime.run(stop)
+        if link.world_lost:
+            return report, EXIT_WORLD_LOST
+        if link.ending == "cut_short":
+            return report, EXIT_RUN_CUT_SHORT
+        return report, EXIT_FINISHED
     # A robot driver: the agent keeps its own clock; commands go through the safety layer.
     from phalanx.core.limits import safety_limits
     from phalanx.drivers.safety import SafeDriver
@@ -236,7 +272,7 @@ def _run_agent(
             inbox.camera = open_camera(camera, robot, config, epoch_s=ticks.epoch_s)
         io = DriverIO(safe, params, origin=config.start_pose(robot), positioning=inbox)
         runtime = AgentRuntime(robot, config, params, options, clock=ticks, io=io, telemetry=tel)
-        return runtime.run(stop), False
+        return runtime.run(stop), 0
 
 
 def _connect_with_retry(driver: SafeDriver, stop: Stoppable, timeout_s: float = 15.0) -> None:
@@ -337,6 +373,9 @@ def world(
     listen: ListenOpt = None,
     connect: ConnectOpt = None,
     mode: ModeOpt = "router",
+    tls_ca: TlsCaOpt = None,
+    tls_cert: TlsCertOpt = None,
+    tls_key: TlsKeyOpt = None,
     set_: SetOpt = None,
     out: Annotated[Path | None, typer.Option(help="Results folder.")] = None,
     recording: Annotated[bool, typer.Option(help="Write a Rerun .rrd.")] = True,
@@ -349,13 +388,13 @@ def world(
 ) -> None:
     """Run the simulated world for agents in other processes; write the results folder."""
     from phalanx.analysis.report import print_summary
-    from phalanx.analysis.results import write_results
+    from phalanx.analysis.results import mark_results, write_results
     from phalanx.core.config_files import load_robot
     from phalanx.runtime.world_process import WorldOptions, WorldProcess
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s world %(levelname)s %(message)s")
     config = _scenario(scenario, set_)
-    transport = _transport(mode, listen, connect)
+    transport = _transport(mode, listen, connect, (tls_ca, tls_cert, tls_key))
     options = WorldOptions(
         fleet=fleet, transport=transport, clock=_clock(clock), speed=speed, epoch_s=epoch
     )
@@ -365,76 +404,17 @@ def world(
         run_log = process.run(_stop_on_signals())
     folder = out or Path("results") / f"{config.name}-{config.controller.kind}-up"
     metrics = write_results(run_log, folder, recording=recording)
+    marked = mark_results(folder, problems=[])
     metrics_missed = {r: n for r, n in process.missed.items() if n}
     print_summary(metrics)
     if metrics_missed:
         typer.echo(f"missed tick deadlines: {metrics_missed}")
+    if not marked["complete"]:
+        typer.echo(f"incomplete run: {marked['incomplete_reason']}")
     typer.echo(f"results: {folder}")
 
 
-def up(
-    scenario: ScenarioArg,
-    fleet: FleetOpt = "default",
-    clock: ClockOpt = "lockstep",
-    speed: Annotated[float, typer.Option(min=0.01, help="Real-time speed factor.")] = 1.0,
-    out: Annotated[Path | None, typer.Option(help="Results folder.")] = None,
-    restart: Annotated[bool, typer.Option(help="Restart crashed agents (with back-off).")] = False,
-    timeout: Annotated[float, typer.Option(help="Give up after this many seconds.")] = 600.0,
-    recording: Annotated[bool, typer.Option(help="Write a Rerun .rrd.")] = True,
-    set_: SetOpt = None,
-    driver: Annotated[
-        str,
-        typer.Option(help="sim, or arcos: every robot an ARCOS emulator moved by the world."),
-    ] = "sim",
-    viewer: Annotated[
-        bool, typer.Option(help="Open the Rerun viewer and stream the run to it live.")
-    ] = False,
-    telemetry_url: Annotated[
-        str | None,
-        typer.Option(help="Stream live to a running viewer, e.g. from `phalanx view --web`."),
-    ] = None,
-) -> None:
-    """Start the world and one agent process per robot here; supervise; write results."""
-    from phalanx.runtime.local_fleet import (
-        UpOptions,
-        merge_recordings,
-        plan,
-        start_viewer,
-        supervise,
-        telemetry_dir,
-    )
-
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s up %(levelname)s %(message)s")
-    config = _scenario(scenario, set_)
-    out = out or Path("results") / f"{config.name}-{config.controller.kind}-up"
-    if viewer and telemetry_url is None:
-        telemetry_url = start_viewer()
-    options = UpOptions(
-        fleet=fleet,
-        clock=_clock(clock),
-        speed=speed,
-        out=out,
-        telemetry_url=telemetry_url,
-        restart=restart,
-        timeout_s=timeout,
-        recording=recording,
-        overrides=tuple(f"--set={o}" for o in set_ or ()),
-        driver=driver,
-    )
-    if driver not in ("sim", "arcos"):
-        raise typer.BadParameter(f"up runs sim or arcos robots, not {driver!r}")
-    if driver == "arcos" and options.clock == "lockstep":
-        typer.echo("arcos robots keep their own time: running with --clock realtime", err=True)
-        options.clock = "realtime"
-    code = supervise(plan(scenario, config, options), options, _stop_on_signals())
-    parts = sorted(telemetry_dir(out).glob("*.rrd")) if recording else []
-    if parts and merge_recordings(parts, out / "run.rrd"):
-        typer.echo(f"recording: {out / 'run.rrd'} ({len(parts)} processes merged)")
-    raise typer.Exit(code)
-
-
 def register(app: typer.Typer) -> None:
-    """Add `phalanx agent`, `phalanx world` and `phalanx up`."""
+    """Add `phalanx agent` and `phalanx world` (`phalanx up` is in `commands.up`)."""
     app.command("agent")(agent)
     app.command("world")(world)
-    app.command("up")(up)

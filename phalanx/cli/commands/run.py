@@ -42,7 +42,7 @@ def run(
     overrides = list(set_ or [])
     if controller is not None:
         overrides.append(f'controller.kind="{_controller(controller)}"')
-    config = apply_overrides(config, overrides) if overrides else config
+    config = apply_overrides(config, overrides, source=str(scenario)) if overrides else config
     folder = out or Path("results") / f"{config.name}-{config.controller.kind}"
     log = run_batch(config, progress=_progress_bar() if progress else None)
     metrics = write_results(log, folder, recording=recording, figures=figures)

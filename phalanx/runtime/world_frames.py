@@ -1,0 +1,77 @@
+"""What the world process sends each simulated robot at a tick: its sense frame (the
+robot's odometry and sensors from the world, its clock in lockstep) and the positioning
+measurements the simulated sensors made of it (in the frame, or on the robot's `fix` and
+`relative` keys when the robot is on a driver and keeps its own clock).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+from phalanx.core.fixes import PoseFix, RelativeFix
+from phalanx.runtime.positioning import (
+    fix_message,
+    flatten_fixes,
+    flatten_relative,
+    relative_message,
+)
+from phalanx.simulator.world import World
+from phalanx.wire.keys import robot_key
+from phalanx.wire.messages import SenseFrame
+from phalanx.wire.transport import FleetSession
+
+Flat = tuple[tuple[float, ...], tuple[float, ...]]  # a frame's fixes and relative groups
+
+
+def sense_frame(
+    world: World,
+    rid: str,
+    k: int,
+    dt_s: float,
+    *,
+    final: bool = False,
+    positioning: Flat = ((), ()),
+) -> SenseFrame:
+    """Robot `rid`'s frame for tick `k` (at k * dt_s s), from the world as it is now."""
+    odo, status = world.odometry(rid), world.status(rid)
+    return SenseFrame(
+        robot_id=rid,
+        tick=k,
+        t_s=float(k * dt_s),
+        dt_s=dt_s,
+        x_m=odo.pose.x_m,
+        y_m=odo.pose.y_m,
+        theta_rad=odo.pose.theta_rad,
+        v_mps=odo.twist.v_mps,
+        omega_radps=odo.twist.omega_radps,
+        sonar_ranges_m=status.sonar_ranges_m,
+        bumpers=status.bumpers,
+        final=final,
+        fixes=positioning[0],
+        relative=positioning[1],
+    )
+
+
+def publish_positioning(
+    session: FleetSession,
+    fleet: str,
+    rid: str,
+    fixes: Sequence[PoseFix],
+    relative: Sequence[RelativeFix],
+    ids: Sequence[str],
+    *,
+    epoch_s: float | None,
+) -> Flat:
+    """The robot's simulated positioning measurements due now: flattened for its sense
+    frame or, for a robot on a driver (a run with an epoch, Unix time), published on its
+    `fix` and `relative` keys as a motion-capture system and its camera would (then the
+    frame carries none).
+    """
+    if epoch_s is None:
+        return flatten_fixes(fixes), flatten_relative(relative, ids)
+    for fix in fixes:
+        session.publish(robot_key(fleet, rid, "fix"), fix_message(rid, fix, epoch_s=epoch_s))
+    for rel in relative:
+        message = relative_message(rid, rel, epoch_s=epoch_s)
+        session.publish(robot_key(fleet, rid, "relative"), message)
+    return (), ()

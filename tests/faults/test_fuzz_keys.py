@@ -1,0 +1,93 @@
+"""A fuzzer for every key a process subscribes to: first every field of its message at
+each boundary value of its type, one at a time; then random, truncated, bit-flipped,
+schema-shaped extreme and perturbed payloads (hypothesis strategies built from the wire
+models), into
+the real receiving code of the agent, the world, a host daemon and the launcher. After
+each payload the process goes on (the agent steps, the world ticks); every few, its
+commands are held to the run's limits and its log, metrics and status are written.
+
+CI runs a bounded sample of each (FUZZ_EXAMPLES per key); `bench/bench_fuzz.py` runs the
+10^5-per-key campaign recorded in docs/RELIABILITY.md.
+"""
+
+from __future__ import annotations
+
+import os
+import zlib
+from pathlib import Path
+from typing import Any
+
+import pytest
+from receivers import (
+    AgentUnderTest,
+    DaemonUnderTest,
+    DriverAgentUnderTest,
+    LauncherUnderTest,
+    WorldUnderTest,
+    campaign,
+    sweep,
+)
+
+FUZZ_EXAMPLES = int(os.environ.get("PHALANX_FUZZ_EXAMPLES", "150"))
+AGENT_KEYS = ("agent/flags", "agent/state", "agent/sense", "agent/leader")
+POSITIONING_KEYS = ("agent/fix", "agent/relative")
+WORLD_KEYS = ("world/cmd", "world/state", "world/event", "world/report", "world/leader")
+DAEMON_KEYS = ("daemon/spawn", "daemon/stop", "daemon/status")
+LAUNCHER_KEYS = ("launcher/state", "launcher/log", "launcher/reply")
+
+
+# In lockstep an agent hears every state (a callback) and no flags; in real time flags and
+# its path's states through rings.
+AGENT_CASES = [("realtime", k) for k in AGENT_KEYS] + [
+    ("lockstep", k) for k in AGENT_KEYS if k != "agent/flags"
+]
+
+
+@pytest.mark.parametrize(("clock", "key"), AGENT_CASES)
+def test_no_payload_crashes_an_agent_or_moves_it_beyond_its_limits(clock: str, key: str) -> None:
+    agent = AgentUnderTest(clock=clock)
+    swept = sweep(agent, key, check_every=25)
+    seed = zlib.crc32(f"{key}/{clock}".encode())
+    sent = campaign(agent, key, FUZZ_EXAMPLES, seed=seed, check_every=25)
+    assert sent == FUZZ_EXAMPLES
+    assert agent.steps >= swept + sent  # it stepped on every tick, whatever came between
+    assert agent.session.stats.dropped > 0  # and what it refused, it counted
+
+
+@pytest.mark.parametrize("key", POSITIONING_KEYS)
+def test_no_positioning_payload_crashes_an_agent_on_a_driver(key: str) -> None:
+    agent = DriverAgentUnderTest()
+    try:
+        swept = sweep(agent, key, check_every=25)
+        sent = campaign(agent, key, FUZZ_EXAMPLES, seed=zlib.crc32(key.encode()), check_every=25)
+        assert sent == FUZZ_EXAMPLES
+        assert agent.steps >= swept + sent
+        assert agent.session.stats.dropped > 0
+        assert agent.inbox.received > 0  # valid fixes reached the estimator
+    finally:
+        agent.close()
+
+
+@pytest.mark.parametrize("key", WORLD_KEYS)
+def test_no_payload_crashes_the_world_or_spoils_its_results(key: str) -> None:
+    world = WorldUnderTest()
+    assert sweep(world, key, check_every=100)
+    assert campaign(world, key, FUZZ_EXAMPLES, seed=zlib.crc32(key.encode()), check_every=50)
+    assert world.session.stats.dropped > 0
+
+
+@pytest.mark.parametrize("key", DAEMON_KEYS)
+def test_no_request_crashes_a_host_daemon_or_starts_anything(key: str, tmp_path: Path) -> None:
+    daemon = DaemonUnderTest(tmp_path)
+    swept = sweep(daemon, key)
+    assert campaign(daemon, key, FUZZ_EXAMPLES, seed=zlib.crc32(key.encode()))
+    assert daemon.daemon.requests == swept + FUZZ_EXAMPLES  # every request answered
+    if key == "daemon/spawn":  # and none could start anything (no payload holds the digest)
+        assert daemon.daemon.refused == swept + FUZZ_EXAMPLES
+
+
+@pytest.mark.parametrize("key", LAUNCHER_KEYS)
+def test_no_payload_crashes_the_launcher(key: str) -> None:
+    launcher: Any = LauncherUnderTest()
+    assert sweep(launcher, key)
+    assert campaign(launcher, key, FUZZ_EXAMPLES, seed=zlib.crc32(key.encode()))
