@@ -74,6 +74,7 @@ class Parts:
             robot_id, scenario, sonar=SonarGeometry.from_params(robot), shape=self.shape,
             limits=limits, planner=self.planner, progress=self.progress, plan=self.plan,
         )  # fmt: skip
+        self.senses.fold = self.keeper.fold
         self.reverse = DeadlockReverse(
             scenario, shape=self.shape, course=self.course, progress=self.progress
         )

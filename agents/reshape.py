@@ -83,10 +83,19 @@ class ShapeKeeper:
         that there is no way round).
         """
         self.squeezed_s = self.squeezed_s + dt_s if squeezed else 0.0
+        if self.squeezed_s >= SQUEEZE_S:
+            self.fold()
+
+    def fold(self) -> bool:
+        """Fold into the narrowest shape now, if that is another one than the shape in
+        effect (and wanted); whether a fold is coming.
+        """
         narrowest = max(s for s in range(len(SHAPE_NAMES)) if s == 0 or self.book.differs(s))
-        if self.enabled and self.squeezed_s >= SQUEEZE_S and self.key.target != narrowest:
-            self.wanted = narrowest
-            self._candidate, self._count = narrowest, CONFIRM
+        if not self.enabled or self.key.target == narrowest:
+            return False
+        self.wanted = narrowest
+        self._candidate, self._count = narrowest, CONFIRM
+        return True
 
     def fits(self, grid: OccupancyMap, pose: Pose2D, shape: int) -> bool:
         """Whether every slot of `shape`, and of the shape in effect, is clear of the

@@ -7,6 +7,7 @@ enough to lead; an obstacle is inside the braking distance.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 from phalanx.agents.behaviours.navigation import Plan, bearing_rad
@@ -95,6 +96,9 @@ class Senses:
         self.sonar, self.shape, self.limits = sonar, shape, limits
         self.planner, self.progress, self.plan = planner, progress, plan
         self.stall = StallWatch(self.nav.stall_s)
+        # Asked before a dead end is declared: fold the group into a narrower shape
+        # if it has one (True: a fold is coming, the way may open for it).
+        self.fold: Callable[[], bool] = lambda: False
         self.remask((shape.offsets,))
 
     def remask(self, shapes: tuple[dict[str, Vec2], ...]) -> None:
@@ -186,13 +190,14 @@ class Senses:
 
     def _boxed_in(self, pose: Pose2D, points: Points, state: str) -> bool:
         """A navigating leader whose route leads back the way it came, with no room for
-        the shape to turn round where it is: the dead end the deadlock reverse is for.
+        the shape to turn round where it is, and no narrower shape to fold into first
+        (whose route may go on): the dead end the deadlock reverse is for.
         """
         carrot = self.planner.carrot
         if state not in _NAVIGATING or carrot is None:
             return False
         behind = abs(bearing_rad(pose, carrot)) > BEHIND_RAD
-        return behind and not self.shape.sweep_clear(points)
+        return behind and not self.shape.sweep_clear(points) and not self.fold()
 
     def _imminent(self, raw: Points, nearest: float, odometry: Odometry, last: Twist2D) -> bool:
         """An obstacle (any, robots included) inside the braking distance + margin."""

@@ -30,7 +30,7 @@ SHAPES: tuple[Shape, ...] = ("wedge", "inline", "collateral")
 COURSES: tuple[Course, ...] = ("corridor", "deadend", "field", "narrow")
 # The narrow passage's gap (m): narrower than a wedge or a line of 3 (1.9 and 2.5 m across
 # with the robots), wider than a column (0.5 m).
-NARROW_GAP_M = 1.2
+NARROW_GAP_M = 1.6
 SPACING_M = 1.0
 _PLACEMENT_TRIES = 50
 
