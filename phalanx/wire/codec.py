@@ -35,6 +35,7 @@ from phalanx.wire.messages import (
     RelativeFixMessage,
     RobotFlags,
     RobotState,
+    ScanMessage,
     SenseFrame,
     VelocityCommand,
 )
@@ -154,6 +155,18 @@ LAYOUTS: dict[type[Message], tuple[int, tuple[tuple[str, str], ...]]] = {
             ("std_range_m", "d"),
             ("std_bearing_rad", "d"),
             ("std_heading_rad", "d"),
+        ),
+    ),
+    ScanMessage: (
+        11,
+        (
+            ("robot_id", "s"),
+            ("stamp_s", "d"),
+            ("x_m", "d"),
+            ("y_m", "d"),
+            ("theta_rad", "d"),
+            ("ranges_m", "D"),
+            ("echo", "B"),
         ),
     ),
 }

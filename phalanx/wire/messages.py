@@ -19,7 +19,7 @@ from pydantic import (
 )
 
 from phalanx.core.geometry import Pose2D, Twist2D
-from phalanx.core.peers import PeerFlags, PeerState
+from phalanx.core.peers import PeerFlags, PeerState, Scan
 from phalanx.wire.bounds import (
     MAX_BUMPERS,
     MAX_EXTENT_M,
@@ -339,6 +339,44 @@ class RelativeFixMessage(Message):
     std_range_m: float = Field(gt=0.0, le=10.0)
     std_bearing_rad: float = Field(gt=0.0, le=math.pi)
     std_heading_rad: float = Field(default=0.0, ge=0.0, le=math.pi)
+
+
+class ScanMessage(Message):
+    """One sonar reading of robot `robot_id` for the fleet's shared map, on
+    `.../robot/<id>/scan`: where it was taken (world frame, m and rad, at `stamp_s` on the
+    fleet clock), one range per transducer (m) and which are echoes of obstacles (the
+    formation's own robots masked out by the sender).
+    """
+
+    version: Literal[1] = 1
+    robot_id: RobotId
+    stamp_s: Stamp
+    x_m: Coordinate
+    y_m: Coordinate
+    theta_rad: Heading
+    ranges_m: tuple[Range, ...] = Field(max_length=MAX_SONARS)
+    echo: tuple[bool, ...] = Field(max_length=MAX_SONARS)
+
+    @model_validator(mode="after")
+    def _an_echo_flag_per_range(self) -> Self:
+        if len(self.echo) != len(self.ranges_m):
+            raise ValueError(f"{len(self.echo)} echo flags for {len(self.ranges_m)} ranges")
+        return self
+
+    @classmethod
+    def of(cls, scan: Scan) -> ScanMessage:
+        """The wire message of a robot's scan (validated)."""
+        return cls(
+            robot_id=scan.robot_id, stamp_s=scan.stamp_s, x_m=scan.x_m, y_m=scan.y_m,
+            theta_rad=scan.theta_rad, ranges_m=scan.ranges_m, echo=scan.echo,
+        )  # fmt: skip
+
+    def scan(self) -> Scan:
+        """The scan as the agent brain reads it."""
+        return Scan(
+            self.robot_id, self.stamp_s, self.x_m, self.y_m, self.theta_rad, self.ranges_m,
+            self.echo,
+        )  # fmt: skip
 
 
 class AgentEvent(Message):
