@@ -208,3 +208,22 @@ def test_breadcrumbs_know_the_way_they_came_in() -> None:
     for _ in range(40):  # turning on the spot drops nothing
         crumbs.drop(Vec2(1.5 * math.cos(heading), 1.5 * math.sin(heading)))
     assert crumbs.heading_in_rad(1.0) == pytest.approx(heading)
+
+
+@pytest.mark.slow
+def test_a_line_folds_on_the_move_to_pass_a_gap_narrower_than_itself() -> None:
+    log = run_batch(load_scenario(SCENARIOS / "nav_narrow_collateral3.toml"))
+    nav = navigation_metrics(log)
+    assert nav["goal_reached"]
+    assert not log.collisions
+    leader = log.traces["r1"]
+    reshaping = [k for k, s in enumerate(leader.states) if s == State.RESHAPE]
+    assert nav["reshapes"] >= 2  # folded before the gap, unfolded after it
+    speeds = [leader.cmd_v_mps[k] for k in reshaping]
+    assert max(speeds) > 0.05  # the group kept going while its slots slid
+    # ... no faster than 0.1 m/s once the limiter has braked to it (1 s into a reshape)
+    settled = [v for k, v in zip(reshaping, speeds, strict=True) if k - 10 in reshaping]
+    assert max(settled) <= 0.1 + 1e-9
+    shapes = {s[1] for s in leader.shapes}
+    assert shapes >= {0, 2}  # the scenario's shape and the column
+    assert leader.shapes[-1][1:] == (0, 1.0)  # back in the scenario's shape at the end
