@@ -235,7 +235,7 @@ class Agent:
         heard, self._heard = self._heard, None
         if heard is not None and heard[0] == t_s:
             _, view, localised = heard
-            return view, replace(observation, odometry=localised.odometry)
+            return view, observation.with_odometry(localised.odometry)
         view = self._listen(peers, flags, t_s)
         return view, self._localise(observation, view, peers, t_s)
 

@@ -9,10 +9,12 @@ from dataclasses import dataclass
 from phalanx.agents.leadership import LeadershipChange, LiveFlags
 from phalanx.agents.perception import MaskedEchoes, SonarEchoes
 from phalanx.core.fixes import PoseFix, RelativeFix
+from phalanx.core.frozen import quick_init
 from phalanx.core.peers import PeerState, Scan
 from phalanx.core.robot import Odometry, RobotStatus
 
 
+@quick_init
 @dataclass(frozen=True, slots=True)
 class Observation:
     """What a robot senses this step (from its driver, or the simulated world): odometry,
@@ -34,7 +36,22 @@ class Observation:
     relative: tuple[RelativeFix, ...] = ()
     scans: tuple[Scan, ...] = ()  # the fleet's sonar scans for the shared map (last step's)
 
+    def with_odometry(self, odometry: Odometry) -> Observation:
+        """The observation with `odometry` (itself when that is already its own)."""
+        if odometry is self.odometry:
+            return self
+        return Observation(
+            odometry, self.status, self.sonar, self.masked, self.fixes, self.relative, self.scans
+        )
 
+    def with_masked(self, masked: MaskedEchoes) -> Observation:
+        """The observation with `masked` (`dataclasses.replace`, without its cost)."""
+        return Observation(
+            self.odometry, self.status, self.sonar, masked, self.fixes, self.relative, self.scans
+        )
+
+
+@quick_init
 @dataclass(frozen=True, slots=True)
 class FleetView:
     """A robot's view of its fleet this step: the flags heard lately (`live`), the

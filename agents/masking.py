@@ -31,6 +31,7 @@ from phalanx.agents.perception import (
     SonarEchoes,
     SonarGeometry,
 )
+from phalanx.core.frozen import quick_init
 from phalanx.core.geometry import Pose2D, Vec2
 from phalanx.core.rigid_body import predict_leader
 from phalanx.core.states import OUT_OF_FORMATION
@@ -40,6 +41,8 @@ from phalanx.core.states import OUT_OF_FORMATION
 TRACKED_MASK_M = 0.1
 EXPECTED_MASK_M = 0.15
 _AHEAD_BEHIND_RAD = np.array([0.0, np.pi])
+_AHEAD_BEHIND_COS = np.cos(_AHEAD_BEHIND_RAD)[:, None]
+_AHEAD_BEHIND_SIN = np.sin(_AHEAD_BEHIND_RAD)[:, None]
 
 
 @dataclass(frozen=True)
@@ -63,6 +66,7 @@ class FixedDiscs:
         return cls(cx, cy, radius_m, sonar.nearest_dirs(cx, cy), cut)
 
 
+@quick_init
 @dataclass(frozen=True, slots=True)
 class MaskInputs:
     """What one robot's masking needs of its step: its view of the fleet (whom it
@@ -239,7 +243,7 @@ def _slots_met(sonar: SonarGeometry, r: FloatArray, slots: SlotMasks, rows: Bool
     owner = slots.owner[idx]
     dirs = (slots.cos[idx], slots.sin[idx])
     hit = sonar.arcs_meet_at(r[owner], slots.cx[idx], slots.cy[idx], slots.slot_radius_m, dirs)
-    starts = np.flatnonzero(np.r_[True, owner[1:] != owner[:-1]])
+    starts = np.flatnonzero(np.concatenate(([True], owner[1:] != owner[:-1])))
     met[owner[starts]] = np.logical_or.reduceat(hit, starts, axis=0)
     return met
 
@@ -255,10 +259,13 @@ def _tracked_met(
         lead = heard.view.lead
         if lead is not None:
             predicted = predict_leader(lead.pose, lead.twist, max(0.0, heard.t_s - lead.stamp_s))
-            centre = heard.pose.to_body(predicted.position)
+            # `heard.pose.to_body(predicted.position)` in floats, operation for operation
+            pose = heard.pose
+            dx, dy = predicted.x_m - pose.x_m, predicted.y_m - pose.y_m
+            c, s = math.cos(-pose.theta_rad), math.sin(-pose.theta_rad)
             rows.append(i)
-            cx.append(centre.x_m)
-            cy.append(centre.y_m)
+            cx.append(c * dx - s * dy)
+            cy.append(s * dx + c * dy)
     met = np.zeros(r.shape, dtype=bool)
     if rows:
         ccx, ccy = np.array(cx).reshape(-1, 1), np.array(cy).reshape(-1, 1)
@@ -273,8 +280,7 @@ def _clearances(
     """Per robot, `clearance_along` ahead and behind (before the floor at zero) of the
     ray points `keep` marks: (robots, 2).
     """
-    c = np.cos(_AHEAD_BEHIND_RAD)[:, None]
-    s = np.sin(_AHEAD_BEHIND_RAD)[:, None]
+    c, s = _AHEAD_BEHIND_COS, _AHEAD_BEHIND_SIN
     px, py = x[:, None, :], y[:, None, :]
     f = px * c + py * s
     lat2 = np.square(py * c - px * s)

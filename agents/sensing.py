@@ -29,6 +29,7 @@ from phalanx.agents.perception import (
 from phalanx.agents.route import RoutePlanner
 from phalanx.agents.shape import Points, Shape
 from phalanx.core.config import Scenario
+from phalanx.core.frozen import quick_init
 from phalanx.core.geometry import Pose2D, Twist2D, Vec2
 from phalanx.core.limits import KinematicLimits
 from phalanx.core.robot import Odometry
@@ -49,6 +50,7 @@ INTENT_M = 0.05
 _NAVIGATING = (State.NAVIGATE, State.WANDER)
 
 
+@quick_init
 @dataclass(frozen=True, slots=True)
 class Sensing:
     """A step's reading of the sonar ring and bumpers (body frame, m)."""
@@ -63,6 +65,7 @@ class Sensing:
     dead_end: bool = False
 
 
+@quick_init
 @dataclass(frozen=True, slots=True)
 class Stance:
     """Where this robot stands before the step decides: its behaviour state and its

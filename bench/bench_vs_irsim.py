@@ -9,7 +9,8 @@ whole agent stack per robot (leadership, sensing with the formation's own robots
 out, behaviour state machine, controller, limiter), and the world's integration in 4
 sub-steps with contacts. Each side runs in its own fresh process; the loop is timed
 inside it, the whole process (interpreter start, imports, building, the loop) from
-outside. Each cell is the median of `--repeats` runs; every time is also given in
+outside (phalanx's sources byte-compiled first, as an installed package's are). Each
+cell is the median of `--repeats` runs; every time is also given in
 units of the calibration workload timed in the same run (`bench/calibration.py`).
 
     .venv/bin/python bench/bench_vs_irsim.py [--robots 3 10 50 200 1000] [--repeats 3]
@@ -18,12 +19,14 @@ units of the calibration workload timed in the same run (`bench/calibration.py`)
 from __future__ import annotations
 
 import argparse
+import compileall
 import json
 import statistics
 import subprocess
 import sys
 import tempfile
 import time
+from pathlib import Path
 
 from calibration import Calibration, load
 
@@ -91,6 +94,18 @@ print(json.dumps({"setup_s": t1 - t0, "loop_s": t2 - t1, "steps": steps}))
 """.replace("RADIUS", repr(RADIUS_M))
 
 
+def compile_sources() -> None:
+    """Byte-compile phalanx's sources, as installing a package does (IR-SIM's, installed
+    from a wheel, are): every fresh process then reads bytecode instead of compiling
+    the sources again, also where PYTHONDONTWRITEBYTECODE is set.
+    """
+    import phalanx
+
+    root = Path(phalanx.__file__).resolve().parent
+    for folder in (root, *(root / part for part in ("agents", "drivers", "simulator"))):
+        compileall.compile_dir(folder.resolve(), quiet=1)  # (it skips the symlinks)
+
+
 def run(code: str, args: list[object]) -> tuple[float, dict[str, float]]:
     """(whole process wall s, what the child printed) of one fresh process."""
     started = time.perf_counter()
@@ -115,6 +130,7 @@ def main() -> None:
     except ImportError:
         print("IR-SIM is not installed: pip install -e '.[bench]'")
         return
+    compile_sources()
     cal = Calibration.measure()
     print(
         "robots  steps  | loop s: irsim  phalanx  (cal)  | robot-steps/s: irsim  phalanx  "

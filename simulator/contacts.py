@@ -20,6 +20,8 @@ from phalanx.simulator.pairs import any_pair_within
 FloatArray = npt.NDArray[np.float64]
 _GRID_CELL_M = 1.0
 CONTACT_RELEASE_M = 0.05
+# `none_within`'s margin: distances of a few km carry rounding of about 1e-12 m.
+_NONE_WITHIN_MARGIN_M = 1e-6
 
 
 @dataclass(frozen=True)
@@ -91,6 +93,23 @@ class Contacts:
             loose = self.touching(x, y, radius + CONTACT_RELEASE_M)
             self.under_way &= {(self.ids[i], o) for i, o in loose}
         self.under_way |= {(self.ids[i], o) for i, o in touching}
+
+    def none_within(self, x: FloatArray, y: FloatArray, radius: float, travel_m: float) -> bool:
+        """Whether no contact can begin or end while every robot (a disc of `radius` at
+        x, y) moves at most `travel_m`: none under way, no polygons (those are checked
+        sub-step by sub-step), and every robot further than `travel_m` (plus a margin far
+        wider than rounding) from touching a circle, and twice that from another robot.
+        The world then skips the contact checks of that step's sub-steps.
+        """
+        if self.under_way or self.edges.ax.size:
+            return False
+        gap_m = travel_m + _NONE_WITHIN_MARGIN_M
+        c = self.circles
+        if len(c):
+            d = np.hypot(x[:, None] - c[:, 0], y[:, None] - c[:, 1])
+            if bool((d < c[:, 2] + (radius + gap_m)).any()):
+                return False
+        return not any_pair_within(x, y, 2.0 * (radius + gap_m))
 
     def touching(self, x: FloatArray, y: FloatArray, radius: float) -> list[tuple[int, str]]:
         """(robot index, other) for every contact of discs of `radius` at x, y."""

@@ -86,10 +86,12 @@ def _towards_scalar(current: float, wanted: float, up: float, down: float) -> fl
 
 
 def limits_and_arcs_scalar(
-    state: tuple[FloatArray, ...], robot: RobotParams, dt_s: float
+    state: tuple[FloatArray, ...], robot: RobotParams, dt_s: float, *, substeps: int = 1
 ) -> tuple[FloatArray, ...]:
     """`apply_robot_limits` then `integrate_arcs` over `(x, y, th, v, w, v_cmd, w_cmd)`
-    in plain floats, robot by robot: `(v, w, x, y, th)` after `dt_s`.
+    in plain floats, robot by robot, `substeps` times in a row (sub-steps of `dt_s` each,
+    nothing in between: no contact can happen, see `Contacts.none_within`): `(v, w, x,
+    y, th)` after them.
     """
     half_track, eps = 0.5 * robot.track_width_m, 1e-12
     up, down, rot = robot.accel_mps2 * dt_s, robot.decel_mps2 * dt_s, robot.rot_accel_radps2 * dt_s
@@ -101,19 +103,29 @@ def limits_and_arcs_scalar(
             robot.omega_max_radps / max(abs(wc), eps),
             robot.wheel_v_max_mps / max(abs(vc) + half_track * abs(wc), eps),
         )
-        v = _towards_scalar(v, vc * scale, up, down)
-        w = _towards_scalar(w, wc * scale, rot, rot)
-        th_new = th + w * dt_s
-        if abs(w) < _SMALL_OMEGA_RADPS:
-            mid = th + 0.5 * w * dt_s
-            x, y = x + v * dt_s * math.cos(mid), y + v * dt_s * math.sin(mid)
-        else:
-            radius = v / w
-            x = x + radius * (math.sin(th_new) - math.sin(th))
-            y = y - radius * (math.cos(th_new) - math.cos(th))
+        v_want, w_want = vc * scale, wc * scale
+        for _ in range(substeps):
+            v = _towards_scalar(v, v_want, up, down)
+            w = _towards_scalar(w, w_want, rot, rot)
+            x, y, th = _arc_scalar(x, y, th, v, w, dt_s)
         vs.append(v)
         ws.append(w)
         xs.append(x)
         ys.append(y)
-        ths.append((th_new + math.pi) % _TWO_PI - math.pi)
+        ths.append(th)
     return tuple(np.array(column, dtype=np.float64) for column in (vs, ws, xs, ys, ths))
+
+
+def _arc_scalar(
+    x: float, y: float, th: float, v: float, w: float, dt_s: float
+) -> tuple[float, float, float]:
+    """`integrate_arcs` of one robot in floats, operation for operation."""
+    th_new = th + w * dt_s
+    if abs(w) < _SMALL_OMEGA_RADPS:
+        mid = th + 0.5 * w * dt_s
+        x, y = x + v * dt_s * math.cos(mid), y + v * dt_s * math.sin(mid)
+    else:
+        radius = v / w
+        x = x + radius * (math.sin(th_new) - math.sin(th))
+        y = y - radius * (math.cos(th_new) - math.cos(th))
+    return x, y, (th_new + math.pi) % _TWO_PI - math.pi

@@ -49,6 +49,20 @@ class SonarRing:
         order = np.argsort(wrapped, kind="stable")
         return order, wrapped[order]
 
+    @cached_property
+    def extended_angles(self) -> FloatArray:
+        """`sorted_angles`' angles, then again a turn below and a turn above."""
+        ordered = self.sorted_angles[1]
+        return np.concatenate([ordered - 2.0 * math.pi, ordered, ordered + 2.0 * math.pi])
+
+    @cached_property
+    def fans_in_order(self) -> bool:
+        """Whether the rays are every transducer's fan in turn, all fans alike."""
+        fan = self.angle_rad.size // self.units
+        return fan * self.units == self.angle_rad.size and np.array_equal(
+            self.unit_of_ray, np.repeat(np.arange(self.units), fan)
+        )
+
     @classmethod
     def from_params(cls, sonar: SonarParams) -> SonarRing:
         """Fan `rays_per_beam` rays evenly across each transducer's beam width."""
@@ -85,14 +99,9 @@ def ray_circle_hits(
     """Distance along each ray (unit direction) to the nearest circle, inf if none."""
     if cx.size == 0:
         return np.full(ox.shape, np.inf)
-    fx, fy = ox[:, None] - cx[None, :], oy[:, None] - cy[None, :]
-    b = fx * dx[:, None] + fy * dy[:, None]
-    c = fx * fx + fy * fy - r[None, :] ** 2
-    disc = b * b - c
-    root = np.sqrt(np.maximum(disc, 0.0))
-    t_near, t_far = -b - root, -b + root
-    t = np.where(t_near >= 0.0, t_near, np.where(t_far >= 0.0, 0.0, np.inf))
-    t = np.where(disc >= 0.0, t, np.inf)
+    t = circle_hits_at(
+        ox[:, None], oy[:, None], dx[:, None], dy[:, None], cx[None, :], cy[None, :], r[None, :]
+    )  # every ray against every circle
     return np.asarray(np.min(t, axis=1), dtype=np.float64)
 
 
@@ -140,8 +149,9 @@ def circle_hits_at(
     cy: FloatArray,
     r: FloatArray,
 ) -> FloatArray:
-    """Distance along ray e (origin, unit direction) to circle e, inf if it misses: the
-    arithmetic of `ray_circle_hits`, element by element.
+    """Distance along ray e (origin, unit direction) to circle e, inf if it misses,
+    element by element (arrays that broadcast together: `ray_circle_hits` gives it every
+    ray against every circle).
     """
     fx, fy = ox - cx, oy - cy
     b = fx * dx + fy * dy
@@ -165,7 +175,7 @@ def rays_towards(
     rounding never leaves out a ray that hits: the rays left out would all miss.
     """
     rays = ring.angle_rad.size
-    order, ordered = ring.sorted_angles
+    order = ring.sorted_angles[0]
     m = ring.mount_m
     inside = distance - m <= radius + _CONE_MARGIN_M
     safe = np.where(inside, 1.0, distance)
@@ -174,7 +184,7 @@ def rays_towards(
         + np.arcsin(np.minimum(1.0, radius / np.maximum(safe - m, 1e-9)))
         + _CONE_MARGIN_RAD
     )
-    extended = np.concatenate([ordered - 2.0 * math.pi, ordered, ordered + 2.0 * math.pi])
+    extended = ring.extended_angles
     rel = np.mod(rel_bearing + math.pi, 2.0 * math.pi) - math.pi
     whole = inside | (half >= math.pi)
     lo = np.where(whole, rays, np.searchsorted(extended, rel - half, "left"))
@@ -188,9 +198,7 @@ def rays_towards(
 def per_unit(ring: SonarRing, hits: FloatArray) -> FloatArray:
     """(robots, rays) -> (robots, transducers): the nearest hit of each fan."""
     fan = hits.shape[1] // ring.units
-    if fan * ring.units == hits.shape[1] and np.array_equal(
-        ring.unit_of_ray, np.repeat(np.arange(ring.units), fan)
-    ):
+    if ring.fans_in_order:
         return np.asarray(hits.reshape(hits.shape[0], ring.units, fan).min(axis=2))
     out = np.full((hits.shape[0], ring.units), np.inf)
     for k in range(ring.units):

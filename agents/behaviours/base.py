@@ -14,10 +14,12 @@ from dataclasses import dataclass
 
 from phalanx.agents.inputs import FleetView
 from phalanx.agents.sensing import Sensing
+from phalanx.core.frozen import quick_init
 from phalanx.core.geometry import ZERO_TWIST, Pose2D, Twist2D
 from phalanx.core.robot import Odometry
 
 
+@quick_init
 @dataclass(frozen=True, slots=True)
 class Moment:
     """One step as a behaviour sees it: fleet time (s), the behaviour state the machine

@@ -8,8 +8,10 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 from phalanx.agents.behaviours.navigation import Plan
+from phalanx.core.frozen import quick_init
 
 
+@quick_init
 @dataclass(frozen=True)
 class StackContext:
     """What the guards read: built once per step, before the machine updates, and never

@@ -10,9 +10,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Protocol
 
+from phalanx.core.frozen import quick_init
 from phalanx.core.geometry import Pose2D, Twist2D, Vec2
 
 
+@quick_init
 @dataclass(frozen=True, slots=True)
 class FollowerInput:
     """One control step's inputs for a follower (SI units, world frame)."""

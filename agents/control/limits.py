@@ -18,7 +18,10 @@ _EPS = 1e-12
 
 def saturation_scale(command: Twist2D, limits: KinematicLimits) -> float:
     """The factor in (0, 1] that brings `command` inside every velocity bound."""
-    v, w = command.v_mps, command.omega_radps
+    return _scale(command.v_mps, command.omega_radps, limits)
+
+
+def _scale(v: float, w: float, limits: KinematicLimits) -> float:
     half_track_w = 0.5 * limits.track_width_m * abs(w)
     ratios = (
         limits.v_max_mps / max(abs(v), _EPS),
@@ -48,19 +51,26 @@ def accelerate(
     reversing along its arc stays on it while it slows down and backs up. `emergency`
     brakes to a stop at the robot's emergency limits instead of the comfortable ones.
     """
-    dv = wanted.v_mps - current.v_mps
-    dw = wanted.omega_radps - current.omega_radps
+    v, w = _accelerate(current, wanted.v_mps, wanted.omega_radps, limits, dt_s, emergency)
+    return Twist2D(v, w)
+
+
+def _accelerate(
+    current: Twist2D, v: float, w: float, limits: KinematicLimits, dt_s: float, emergency: bool
+) -> tuple[float, float]:
+    dv = v - current.v_mps
+    dw = w - current.omega_radps
     decel, rot = limits.decel_mps2, limits.rot_accel_radps2
-    if emergency and wanted == ZERO_TWIST:
+    if emergency and v == 0.0 and w == 0.0:  # (a stop: `wanted == ZERO_TWIST`)
         decel = max(decel, limits.emergency_decel_mps2)
         rot = max(rot, limits.emergency_rot_decel_radps2)
-    max_dv = _allowed_change(current.v_mps, wanted.v_mps, limits.accel_mps2, decel)
+    max_dv = _allowed_change(current.v_mps, v, limits.accel_mps2, decel)
     fraction = min(
         1.0,
         max_dv * dt_s / max(abs(dv), _EPS),
         rot * dt_s / max(abs(dw), _EPS),
     )
-    return Twist2D(current.v_mps + fraction * dv, current.omega_radps + fraction * dw)
+    return current.v_mps + fraction * dv, current.omega_radps + fraction * dw
 
 
 class CommandLimiter:
@@ -84,15 +94,16 @@ class CommandLimiter:
         v, w = command.v_mps, command.omega_radps
         if not (math.isfinite(v) and math.isfinite(w)):
             v, w = 0.0, 0.0  # never forward a NaN to a motor: brake within the limits
-        scale = saturation_scale(Twist2D(v, w), self.limits)
+        scale = _scale(v, w, self.limits)
         if scale < 1.0:
             self.saturations += 1
             v, w = v * scale, w * scale
-        limited = accelerate(self._last, Twist2D(v, w), self.limits, dt_s, emergency=emergency)
-        if limited != Twist2D(v, w):
+        # (in floats: `accelerate`, and whether it changed the command)
+        lv, lw = _accelerate(self._last, v, w, self.limits, dt_s, emergency)
+        if lv != v or lw != w:
             self.accel_limited += 1
-        self._last = limited
-        return limited
+        self._last = Twist2D(lv, lw)
+        return self._last
 
     def reset(self, current: Twist2D = ZERO_TWIST) -> None:
         """Start again from `current`, counters kept."""

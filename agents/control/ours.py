@@ -19,14 +19,10 @@ from __future__ import annotations
 import math
 
 from phalanx.agents.control.common import FollowerInput
-from phalanx.core.geometry import Twist2D, Vec2
+from phalanx.core.geometry import Twist2D
 from phalanx.core.rigid_body import predict_leader, rigid_body_target
 
 SIGN_HYSTERESIS_MPS = 0.01
-
-
-def _unit(theta_rad: float) -> Vec2:
-    return Vec2(math.cos(theta_rad), math.sin(theta_rad))
 
 
 class OursController:
@@ -53,16 +49,18 @@ class OursController:
         leader = predict_leader(inp.leader, inp.leader_twist, age_s)
         target, ff = rigid_body_target(leader, inp.leader_twist, inp.slot)
         d = self._point_sign(ff.v_mps, inp.direction) * self.control_point_m
-        t_f, t_t = _unit(inp.follower.theta_rad), _unit(target.theta_rad)
-        p = Vec2(inp.follower.x_m + d * t_f.x_m, inp.follower.y_m + d * t_f.y_m)
-        p_star = Vec2(target.x_m + d * t_t.x_m, target.y_m + d * t_t.y_m)
+        # (plain floats: this runs for every follower every step)
+        tf_x, tf_y = math.cos(inp.follower.theta_rad), math.sin(inp.follower.theta_rad)
+        tt_x, tt_y = math.cos(target.theta_rad), math.sin(target.theta_rad)
+        p_x, p_y = inp.follower.x_m + d * tf_x, inp.follower.y_m + d * tf_y
+        p_star_x, p_star_y = target.x_m + d * tt_x, target.y_m + d * tt_y
         # p*' = v* t(theta*) + d w* n(theta*), n = t rotated +90 deg
-        w_x = ff.v_mps * t_t.x_m - d * ff.omega_radps * t_t.y_m
-        w_y = ff.v_mps * t_t.y_m + d * ff.omega_radps * t_t.x_m
-        w_x += self.gain_per_s * (p_star.x_m - p.x_m)
-        w_y += self.gain_per_s * (p_star.y_m - p.y_m)
-        v = w_x * t_f.x_m + w_y * t_f.y_m
-        omega = (-w_x * t_f.y_m + w_y * t_f.x_m) / d
+        w_x = ff.v_mps * tt_x - d * ff.omega_radps * tt_y
+        w_y = ff.v_mps * tt_y + d * ff.omega_radps * tt_x
+        w_x += self.gain_per_s * (p_star_x - p_x)
+        w_y += self.gain_per_s * (p_star_y - p_y)
+        v = w_x * tf_x + w_y * tf_y
+        omega = (-w_x * tf_y + w_y * tf_x) / d
         return Twist2D(v, omega)
 
     def reset(self) -> None:

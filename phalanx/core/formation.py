@@ -66,21 +66,34 @@ class Formation:
         """The robots on the follow tree's path from `start` to `goal`, `goal` included and
         `start` not. Re-rooting the tree at `goal` makes the first of them `start`'s parent.
         """
-        previous: dict[str, str] = {}
-        frontier, seen = deque([start]), {start}
-        while frontier and goal not in seen:
+        towards = self._towards.get(goal, {})
+        if not towards and goal in self.parents:  # (one pass per goal for every robot)
+            towards = self._towards[goal] = self._steps_towards(goal)
+        if start not in towards:
+            raise ValueError(f"{goal!r} is not connected to {start!r} in the follow tree")
+        path, here = [], start
+        while here != goal:
+            here = towards[here]
+            path.append(here)
+        return tuple(path)
+
+    @cached_property
+    def _towards(self) -> dict[str, dict[str, str]]:
+        """Per goal asked for so far, `_steps_towards` it."""
+        return {}
+
+    def _steps_towards(self, goal: str) -> dict[str, str]:
+        """Every robot connected to `goal` (itself included) and its neighbour one step
+        closer to it on the follow tree (`goal`'s own: itself).
+        """
+        towards, frontier = {goal: goal}, deque([goal])
+        while frontier:
             here = frontier.popleft()
             for nxt in self.neighbours(here):
-                if nxt not in seen:
-                    seen.add(nxt)
-                    previous[nxt] = here
+                if nxt not in towards:
+                    towards[nxt] = here
                     frontier.append(nxt)
-        if goal not in seen:
-            raise ValueError(f"{goal!r} is not connected to {start!r} in the follow tree")
-        path = [goal]
-        while path[-1] != start:
-            path.append(previous[path[-1]])
-        return tuple(reversed(path[:-1]))
+        return towards
 
     def reroot(self, leader: str) -> dict[str, str | None]:
         """The follow tree re-rooted at `leader`: every robot's parent on its path there."""

@@ -9,6 +9,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+from phalanx.core.frozen import quick_init
+
 TWO_PI = 2.0 * math.pi
 _SMALL_OMEGA_RADPS = 1e-9
 
@@ -18,6 +20,7 @@ def wrap_angle(angle_rad: float) -> float:
     return (angle_rad + math.pi) % TWO_PI - math.pi
 
 
+@quick_init
 @dataclass(frozen=True, slots=True)
 class Vec2:
     """A point or vector in a plane, metres."""
@@ -41,6 +44,7 @@ class Vec2:
         return Vec2(c * self.x_m - s * self.y_m, s * self.x_m + c * self.y_m)
 
 
+@quick_init
 @dataclass(frozen=True, slots=True)
 class Pose2D:
     """A robot pose in the world frame: position (m) and heading (rad)."""
@@ -73,6 +77,7 @@ class Pose2D:
         return Pose2D(p.x_m, p.y_m, wrap_angle(other.theta_rad - self.theta_rad))
 
 
+@quick_init
 @dataclass(frozen=True, slots=True)
 class Twist2D:
     """A unicycle velocity: forward speed (m/s) and yaw rate (rad/s, counter-clockwise)."""

@@ -11,6 +11,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Final
 
+from phalanx.core.frozen import quick_init
 from phalanx.core.geometry import Pose2D, Twist2D
 
 # Epochs and sequence numbers travel as unsigned 32-bit integers. An epoch grows by one
@@ -26,6 +27,7 @@ def next_epoch(epoch: int) -> int:
     return min(epoch + 1, EPOCH_MAX)
 
 
+@quick_init
 @dataclass(frozen=True, slots=True)
 class PeerFlags:
     """A robot's behaviour flags: enough for every robot to take the leadership and
@@ -62,6 +64,7 @@ class PeerFlags:
     morph: float = 1.0
 
 
+@quick_init
 @dataclass(frozen=True, slots=True)
 class PeerState:
     """A robot's state: pose in the shared world frame (m, rad) at `stamp_s` on the fleet

@@ -54,10 +54,14 @@ def heading_offset(u: Vec2) -> float:
     (the leader stopping to reverse), so the target heading never jumps; at the paper's
     speeds it differs from 1 by less than 1e-12.
     """
-    if u.x_m == 0.0:
+    return _beta(u.x_m, u.y_m)
+
+
+def _beta(u_x: float, u_y: float) -> float:
+    if u_x == 0.0:
         return 0.0
-    fade = 1.0 - math.exp(-((u.x_m / BETA_FADE_MPS) ** 2))
-    return math.atan(u.y_m / u.x_m) * fade
+    fade = 1.0 - math.exp(-((u_x / BETA_FADE_MPS) ** 2))
+    return math.atan(u_y / u_x) * fade
 
 
 def rigid_body_target(leader: Pose2D, twist: Twist2D, slot: Vec2) -> tuple[Pose2D, Twist2D]:
@@ -67,12 +71,16 @@ def rigid_body_target(leader: Pose2D, twist: Twist2D, slot: Vec2) -> tuple[Pose2
     robot can move with the slot point. Twist: the signed slot speed along that heading
     and the leader's yaw rate (beta is constant for a constant leader twist).
     """
-    position = leader.to_world(slot)
-    u = slot_velocity(twist, slot)
-    beta = heading_offset(u)
-    speed = u.x_m * math.cos(beta) + u.y_m * math.sin(beta)
+    # `leader.to_world(slot)` and `slot_velocity(twist, slot)` in plain floats (a step
+    # of every follower runs this), operation for operation
+    c, s = math.cos(leader.theta_rad), math.sin(leader.theta_rad)
+    x_m = leader.x_m + (c * slot.x_m - s * slot.y_m)
+    y_m = leader.y_m + (s * slot.x_m + c * slot.y_m)
+    u_x, u_y = twist.v_mps - twist.omega_radps * slot.y_m, twist.omega_radps * slot.x_m
+    beta = _beta(u_x, u_y)
+    speed = u_x * math.cos(beta) + u_y * math.sin(beta)
     heading = wrap_angle(leader.theta_rad + beta)
-    return Pose2D(position.x_m, position.y_m, heading), Twist2D(speed, twist.omega_radps)
+    return Pose2D(x_m, y_m, heading), Twist2D(speed, twist.omega_radps)
 
 
 @dataclass(frozen=True)

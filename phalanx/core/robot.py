@@ -4,11 +4,13 @@ simulated world, every driver backend and the agent's observation use these type
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
+from phalanx.core.frozen import quick_init
 from phalanx.core.geometry import Pose2D, Twist2D
 
 
+@quick_init
 @dataclass(frozen=True, slots=True)
 class Odometry:
     """Dead-reckoned pose (odometry frame) and measured twist, at `stamp_s` (monotonic)."""
@@ -18,6 +20,7 @@ class Odometry:
     stamp_s: float
 
 
+@quick_init
 @dataclass(frozen=True, slots=True)
 class RobotStatus:
     """Everything a driver reads from a robot besides odometry."""
@@ -28,4 +31,4 @@ class RobotStatus:
     motors_enabled: bool = False
     estopped: bool = False
     stalled: bool = False
-    faults: tuple[str, ...] = field(default_factory=tuple)
+    faults: tuple[str, ...] = ()

@@ -15,7 +15,7 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -183,16 +183,7 @@ class Fleet:
 
     def stop(self) -> None:
         """SIGTERM every process (SIGCONT first: one may be frozen), SIGKILL after 10 s."""
-        for proc in self.procs.values():
-            if proc.poll() is None:
-                os.kill(proc.pid, signal.SIGCONT)
-                proc.send_signal(signal.SIGTERM)
-        for proc in self.procs.values():
-            try:
-                proc.wait(10)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait(5)
+        _terminate(self.procs.values(), grace_s=10.0)
 
     # --- the observer's session ---------------------------------------------------------
 
@@ -325,16 +316,7 @@ class Hosts:
 
     def stop(self) -> None:
         """SIGTERM every daemon and the router (SIGCONT first), SIGKILL after 20 s."""
-        for proc in self.procs.values():
-            if proc.poll() is None:
-                os.kill(proc.pid, signal.SIGCONT)
-                proc.send_signal(signal.SIGTERM)
-        for proc in self.procs.values():
-            try:
-                proc.wait(20)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait(5)
+        _terminate(self.procs.values(), grace_s=20.0)
 
 
 @contextmanager
@@ -349,3 +331,20 @@ def running_hosts(workdir: Path, deployment: Path, *, router: bool) -> Iterator[
         yield hosts
     finally:
         hosts.stop()
+
+
+def _terminate(procs: Iterable[subprocess.Popen[bytes]], *, grace_s: float) -> None:
+    """SIGTERM every live process (SIGCONT first: one may be frozen); SIGKILL any still
+    running after `grace_s`.
+    """
+    running = list(procs)
+    for proc in running:
+        if proc.poll() is None:
+            os.kill(proc.pid, signal.SIGCONT)
+            proc.send_signal(signal.SIGTERM)
+    for proc in running:
+        try:
+            proc.wait(grace_s)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait(5)

@@ -124,6 +124,16 @@ def _held_to_limits(commands: list[tuple[float, float]], limits: Any) -> None:
         assert abs(w) <= limits.omega_max_radps + 1e-9, w
 
 
+def _agent_checked(commands: list[tuple[float, float]], limits: Any, session: Any) -> None:
+    """An agent under test so far: its commands held to the run's limits (then
+    forgotten), its status serialisable, no handler error.
+    """
+    _held_to_limits(commands, limits)
+    commands.clear()
+    json.dumps(session.status())
+    assert not session.stats.handler_errors, session.stats.last_error
+
+
 class _Stop:
     """Never set: wait for the next frame."""
 
@@ -279,10 +289,7 @@ class AgentUnderTest:
 
     def check(self) -> None:
         """The commands stayed finite and within the run's limits; status serialises."""
-        _held_to_limits(self.commands, self.limits)
-        self.commands.clear()
-        json.dumps(self.session.status())
-        assert not self.session.stats.handler_errors, self.session.stats.last_error
+        _agent_checked(self.commands, self.limits, self.session)
         assert not self.runtime.unsent, "an own message could not be sent"
 
 
@@ -374,10 +381,7 @@ class DriverAgentUnderTest:
 
     def check(self) -> None:
         """Commands finite and within the run's limits; status serialises."""
-        _held_to_limits(self.commands, self.limits)
-        self.commands.clear()
-        json.dumps(self.session.status())
-        assert not self.session.stats.handler_errors, self.session.stats.last_error
+        _agent_checked(self.commands, self.limits, self.session)
 
     def close(self) -> None:
         """Stop the simulated robot's thread."""

@@ -3,9 +3,11 @@ import math
 import pytest
 
 from phalanx.core.config import FormationConfig, SlotConfig
+from phalanx.core.config_files import CONFIG_ROOT, load_scenario
 from phalanx.core.errors import ConfigError
-from phalanx.core.formation import resolve_formation
+from phalanx.core.formation import Formation, resolve_formation, scenario_formation
 from phalanx.core.geometry import Pose2D
+from phalanx.core.scenarios import grid_scenario
 
 
 def _wedge() -> FormationConfig:
@@ -65,3 +67,23 @@ def test_cycle_is_a_config_error() -> None:
     )
     with pytest.raises(ConfigError, match="cycle"):
         resolve_formation(config)
+
+
+def _ancestors(formation: Formation, robot: str) -> list[str]:
+    chain = [robot]
+    while (parent := formation.parents[chain[-1]]) is not None:
+        chain.append(parent)
+    return chain
+
+
+def test_tree_paths_go_up_to_the_common_ancestor_and_down() -> None:
+    base = load_scenario(CONFIG_ROOT / "scenarios" / "paper_wedge.toml")
+    formation = scenario_formation(grid_scenario(base, 40))  # a multi-leader tree
+    for start in formation.parents:
+        for goal in formation.parents:
+            up, down = _ancestors(formation, start), _ancestors(formation, goal)
+            common = next(r for r in up if r in down)
+            expected = up[1 : up.index(common) + 1] + down[: down.index(common)][::-1]
+            assert formation.tree_path(start, goal) == tuple(expected)
+    with pytest.raises(ValueError, match="not connected"):
+        formation.tree_path("r1", "nobody")
