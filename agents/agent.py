@@ -34,6 +34,7 @@ from phalanx.agents.behaviours.base import Behaviour, Moment
 from phalanx.agents.behaviours.context import StackContext
 from phalanx.agents.behaviours.stack import behaviour_machine
 from phalanx.agents.control.limits import CommandLimiter
+from phalanx.agents.control.spacing import Spacing
 from phalanx.agents.estimation.estimator import PoseEstimator
 from phalanx.agents.estimation.landmarks import Landmarks
 from phalanx.agents.fsm import StateMachine
@@ -57,6 +58,9 @@ __all__ = ["Agent", "Observation", "StepOutput"]
 FORMED_RAD = math.radians(15.0)
 # A robot stopped for a low battery goes on once it is this far above the mark.
 BATTERY_HYSTERESIS_V = 0.3
+# Two robots' bodies count as too close at this much less than a body's width apart (the
+# room the pose estimates' errors and a step's delay need).
+SPACING_MARGIN_M = 0.1
 
 
 @dataclass(frozen=True, slots=True)
@@ -102,6 +106,12 @@ class Agent:
         self.dt_s = scenario.dt_s
         self.limits = run_limits(robot, scenario.limits)
         self.limiter = CommandLimiter(self.limits)
+        self.spacing = Spacing(
+            robot_id,
+            contact_m=2.0 * robot.radius_m + SPACING_MARGIN_M,
+            decel_mps2=self.limits.emergency_decel_mps2,
+            latency_s=2.0 * self.dt_s,
+        )
         self.leadership = Leadership(
             robot_id, formation, scenario.leadership, timeout_s=scenario.leader_timeout_s
         )
@@ -188,7 +198,10 @@ class Agent:
             moment = Moment(t_s, event.target, moment.odometry, sensing, view, ctx.others_busy)
             self._enter(event, moment)
         active = self._active
-        command = self.limiter.apply(active.command(moment), self.dt_s, emergency=active.emergency)
+        wanted = self.spacing.apply(active.command(moment), observation.odometry.pose, peers)
+        command = self.limiter.apply(
+            wanted, self.dt_s, emergency=active.emergency, brake_hard=self.spacing.cut
+        )
         self._update_formed(observation.odometry.pose, view, t_s)
         self._last_odometry = observation.odometry
         return self._output(observation.odometry, command, sensing, view, event, t_s)
