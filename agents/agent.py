@@ -366,10 +366,11 @@ class Agent:
             deadlock=bool(reason),
             deadlock_reason=reason,
             someone_stopped=bool(stopped - self._stopped_before),
-            retries_left=progress.deadlocks < deadlock_cfg.max_retries,
+            retries_left=parts.retries_left(odometry.pose, deadlocked=bool(reason)),
             stuck_reason=(
                 f"{reason}; {progress.deadlocks} deadlock reverses already at waypoint "
                 f"{progress.waypoint} (deadlock.max_retries = {deadlock_cfg.max_retries})"
+                f"{'' if parts.planner.map is None else ' and no way to it on the map'}"
             ),
             reversed_m=parts.reverse.reversed_m,
             safe_distance_m=deadlock_cfg.safe_distance_m,

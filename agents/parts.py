@@ -158,6 +158,22 @@ class Parts:
             goal = self.course.escape or Vec2(*waypoints[self.progress.waypoint])
             self.keeper.decide(self.planner.map, pose, goal, t_s)
 
+    def retries_left(self, pose: Pose2D, *, deadlocked: bool) -> bool:
+        """Whether a deadlock may be met with another reverse, turn and retry: while
+        `deadlock.max_retries` are not used up at this waypoint, and after that while
+        the map still shows a way to it one robot wide (the group can fold into a
+        column); STUCK is for when the map proves there is none.
+        """
+        if self.progress.deadlocks < self.scenario.deadlock.max_retries:
+            return True
+        waypoints = self.scenario.navigation.waypoints
+        if not deadlocked or self.plan != "goto" or self.progress.waypoint >= len(waypoints):
+            return False
+        goal = Vec2(*waypoints[self.progress.waypoint])
+        return self.planner.map is not None and self.planner.way_exists(
+            pose, goal, footprint_m=self.shape.radius_m
+        )
+
     def advance_waypoints(self, pose: Pose2D) -> None:
         """The leader's waypoint bookkeeping: a reached waypoint resets the retries (and
         the escape point a dead end left, once reached or passed by).

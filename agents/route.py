@@ -101,6 +101,19 @@ class RoutePlanner:
             self.carrot = None if planned is None else planned[0]
         return self.carrot or goal
 
+    def way_exists(self, pose: Pose2D, goal: Vec2, *, footprint_m: float) -> bool:
+        """Whether the map leaves a way to `goal` for a body `footprint_m` in radius (any
+        way, however long; there is one while there is no map).
+        """
+        grid = self.map
+        if grid is None:
+            return True
+        planned = grid.plan(
+            pose.position, goal, keep_off_m=self.keep_off_m, ahead_m=ROUTE_AHEAD_M,
+            footprint_m=footprint_m,
+        )  # fmt: skip
+        return planned is not None
+
     def forget_carrot(self) -> None:
         """Plan afresh next time (the robot stopped following the route)."""
         self.carrot = None

@@ -118,6 +118,13 @@ class Senses:
             for r, p in offsets.items()
             if r != self.robot_id and p.norm() < audible_m
         ]
+        # A robot behind another in a column is not clear to lead, whatever its sonar
+        # sees past the one ahead (masked out of it).
+        self.robot_ahead = any(
+            0.0 < p.x_m < self.nav.clear_range_m + shape.radius_m
+            and abs(p.y_m) < shape.half_width_m + shape.radius_m
+            for _, p in slots
+        )
         discs = FixedDiscs.of(sonar, [p for _, p in slots], shape.radius_m + EXPECTED_MASK_M)
         self.slot_masks = SlotMasks.of(
             [r for r, _ in slots], discs, tracked_radius_m=shape.radius_m,
@@ -159,6 +166,7 @@ class Senses:
             blocked={1: blocked_ahead or bumper, -1: behind_m < self.near_m or bumper},
             path_clear=stance.direction > 0
             and ahead_m >= self.nav.clear_range_m
+            and not self.robot_ahead
             and self._route_ahead(pose, view, t_s),
             imminent=self.nav.reactive
             and (bumper or self._imminent(raw, reading.nearest_m, odometry, stance.last_command)),
