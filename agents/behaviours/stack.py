@@ -76,7 +76,8 @@ PRIORITIES: dict[int, Priority] = {
     P_HOLD: Priority("formation", "follower",
         "the formation leader or the tracked robot is gone or its state is stale"),
     P_GIVE_UP: Priority("navigation", "leader",
-        "deadlock again with no retries left at this waypoint: stop for good"),
+        "deadlock again, no retries left at this waypoint and no way to it on the map: "
+        "stop for good"),
     P_DEADLOCK: Priority("navigation", "leader",
         "deadlock: every robot blocked, or the leader blocked and nobody clear to lead"),
     P_RESHAPE: Priority("navigation", "leader",

@@ -253,7 +253,8 @@ NOTES = [
     "middle of a 3 deg/s turn, and the leader retraces the arc it came along "
     '(`deadlock.reverse_mode = "retrace"`). The paper\'s ICR relation drops the '
     "along-track slot term, which only matters while the formation turns; the paper's "
-    "switching strategy breaks the shape there (and collides in the inline formation), "
+    "switching strategy breaks the shape there (in the inline formation the chain backs "
+    "into itself, and the spacing filter holds the robots short of contact), "
     "ours keeps the same bounds.",
     "- **+ noise** rows: odometry noise (2 % of v, 0.01 rad/s of omega) and sonar noise "
     "(2 cm). Each robot knows its pose only from its own dead reckoning, so the robots' "

@@ -179,6 +179,7 @@ def test_a_boxed_in_group_stops_for_good_and_says_why() -> None:
     assert nav["stuck"]
     assert "deadlock" in nav["stuck_reason"]
     assert "max_retries = 1" in nav["stuck_reason"]
+    assert "no way to it on the map" in nav["stuck_reason"]
     assert nav["deadlock_reverses"] == 1
     assert not log.collisions
     for rid, tr in log.traces.items():
