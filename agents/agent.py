@@ -34,6 +34,7 @@ from phalanx.agents.behaviours.base import Behaviour, Moment
 from phalanx.agents.behaviours.context import StackContext
 from phalanx.agents.behaviours.stack import behaviour_machine
 from phalanx.agents.control.limits import CommandLimiter
+from phalanx.agents.control.spacing import Spacing
 from phalanx.agents.estimation.estimator import PoseEstimator
 from phalanx.agents.estimation.landmarks import Landmarks
 from phalanx.agents.fsm import StateMachine
@@ -46,7 +47,8 @@ from phalanx.core.config import RobotParams, Scenario
 from phalanx.core.formation import Formation
 from phalanx.core.geometry import Pose2D, Twist2D, wrap_angle
 from phalanx.core.limits import run_limits
-from phalanx.core.peers import PeerFlags, PeerState
+from phalanx.core.mapfile import GridMap
+from phalanx.core.peers import PeerFlags, PeerState, Scan
 from phalanx.core.robot import Odometry, RobotStatus
 from phalanx.core.states import OUT_OF_FORMATION, State, TransitionEvent
 
@@ -56,6 +58,9 @@ __all__ = ["Agent", "Observation", "StepOutput"]
 FORMED_RAD = math.radians(15.0)
 # A robot stopped for a low battery goes on once it is this far above the mark.
 BATTERY_HYSTERESIS_V = 0.3
+# Two robots' bodies count as too close at this much less than a body's width apart (the
+# room the pose estimates' errors and a step's delay need).
+SPACING_MARGIN_M = 0.1
 
 
 @dataclass(frozen=True, slots=True)
@@ -74,6 +79,7 @@ class StepOutput:
     leadership: LeadershipChange | None = None
     saturations: int = 0
     accel_limited: int = 0
+    scan: Scan | None = None  # this step's sonar reading, for the fleet's shared map
 
     @property
     def flags(self) -> PeerFlags:
@@ -92,6 +98,7 @@ class Agent:
         robot: RobotParams,
         formation: Formation,
         joining: bool = False,
+        prior_map: GridMap | None = None,
     ) -> None:
         self.robot_id = robot_id
         self.scenario = scenario
@@ -99,10 +106,16 @@ class Agent:
         self.dt_s = scenario.dt_s
         self.limits = run_limits(robot, scenario.limits)
         self.limiter = CommandLimiter(self.limits)
+        self.spacing = Spacing(
+            robot_id,
+            contact_m=2.0 * robot.radius_m + SPACING_MARGIN_M,
+            decel_mps2=self.limits.emergency_decel_mps2,
+            latency_s=2.0 * self.dt_s,
+        )
         self.leadership = Leadership(
             robot_id, formation, scenario.leadership, timeout_s=scenario.leader_timeout_s
         )
-        self.parts = Parts(robot_id, scenario, robot, formation, self.limits)
+        self.parts = Parts(robot_id, scenario, robot, formation, self.limits, prior_map)
         self.fsm: StateMachine[StackContext] = behaviour_machine(self._initial_state(joining))
         self.parent_id = formation.leader_of(robot_id)
         self.formed = not joining
@@ -177,7 +190,7 @@ class Agent:
         sensing = self.parts.senses.read(
             observation, view, stance, t_s=t_s, assume_formed=assume_formed
         )
-        self._estimate(observation.odometry, sensing, view)
+        self._estimate(observation.odometry, sensing, view, t_s)
         ctx = self._context(observation, sensing, view, stance, t_s)
         moment = Moment(t_s, self.fsm.state, observation.odometry, sensing, view, ctx.others_busy)
         event = self.fsm.update(ctx, t_s)
@@ -185,7 +198,10 @@ class Agent:
             moment = Moment(t_s, event.target, moment.odometry, sensing, view, ctx.others_busy)
             self._enter(event, moment)
         active = self._active
-        command = self.limiter.apply(active.command(moment), self.dt_s, emergency=active.emergency)
+        wanted = self.spacing.apply(active.command(moment), observation.odometry.pose, peers)
+        command = self.limiter.apply(
+            wanted, self.dt_s, emergency=active.emergency, brake_hard=self.spacing.cut
+        )
         self._update_formed(observation.odometry.pose, view, t_s)
         self._last_odometry = observation.odometry
         return self._output(observation.odometry, command, sensing, view, event, t_s)
@@ -250,6 +266,8 @@ class Agent:
         head = live.get(lsh.leader_id)
         if not lsh.is_leader and head is not None:
             self.parts.progress.copy_from(head)
+            self.parts.keeper.copy_from(head)
+        self.parts.apply_shape()
         self.parent_id = lsh.tracked(live)
         lead = peers.get(self.parent_id) if self.parent_id else None
         if lead is not None and t_s - lead.stamp_s > self.scenario.leader_timeout_s:
@@ -280,7 +298,7 @@ class Agent:
             observation, odometry=Odometry(estimate.pose, odometry.twist, odometry.stamp_s)
         )
 
-    def _estimate(self, odometry: Odometry, sensing: Sensing, view: FleetView) -> None:
+    def _estimate(self, odometry: Odometry, sensing: Sensing, view: FleetView, t_s: float) -> None:
         """Move the memories on: the leader's waypoints, how long each way has been
         blocked, who stopped for an obstacle, the path crossed, the active behaviour's
         progress (ground backed over, angle turned).
@@ -288,6 +306,8 @@ class Agent:
         parts = self.parts
         if view.is_leader:
             parts.advance_waypoints(odometry.pose)
+            if self.fsm.state == State.NAVIGATE:
+                parts.weigh_shapes(odometry.pose, t_s)
         parts.blocked.update(sensing.blocked, self.dt_s)
         stopped = view.live.stopped - {self.robot_id}
         if self.fsm.state != State.DEADLOCK_REVERSE:
@@ -346,15 +366,18 @@ class Agent:
             deadlock=bool(reason),
             deadlock_reason=reason,
             someone_stopped=bool(stopped - self._stopped_before),
-            retries_left=progress.deadlocks < deadlock_cfg.max_retries,
+            retries_left=parts.retries_left(odometry.pose, deadlocked=bool(reason)),
             stuck_reason=(
                 f"{reason}; {progress.deadlocks} deadlock reverses already at waypoint "
                 f"{progress.waypoint} (deadlock.max_retries = {deadlock_cfg.max_retries})"
+                f"{'' if parts.planner.map is None else ' and no way to it on the map'}"
             ),
             reversed_m=parts.reverse.reversed_m,
             safe_distance_m=deadlock_cfg.safe_distance_m,
             path_used_up=parts.reverse.path_used_up,
             turned=parts.turn.turned,
+            reshape_wanted=parts.keeper.reshape_wanted,
+            reshaped=parts.reshape.reshaped,
             confirm_s=self.scenario.navigation.confirm_s,
             threshold_mps=self.scenario.controller.reverse_threshold_mps,
             others_busy=len(live.busy) > (self.robot_id in live.busy),
@@ -440,6 +463,9 @@ class Agent:
             deadlocks=progress.deadlocks,
             profile_s=progress.profile_s,
             cov=self._cov,
+            shape_source=self.parts.keeper.key.source,
+            shape_target=self.parts.keeper.key.target,
+            morph=self.parts.keeper.key.morph,
         )
         return StepOutput(
             command,
@@ -448,4 +474,5 @@ class Agent:
             view.took,
             self.limiter.saturations,
             self.limiter.accel_limited,
+            self.parts.planner.scan,
         )

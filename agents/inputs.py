@@ -10,7 +10,7 @@ from phalanx.agents.leadership import LeadershipChange, LiveFlags
 from phalanx.agents.perception import MaskedEchoes, SonarEchoes
 from phalanx.core.fixes import PoseFix, RelativeFix
 from phalanx.core.frozen import quick_init
-from phalanx.core.peers import PeerState
+from phalanx.core.peers import PeerState, Scan
 from phalanx.core.robot import Odometry, RobotStatus
 
 
@@ -19,7 +19,8 @@ from phalanx.core.robot import Odometry, RobotStatus
 class Observation:
     """What a robot senses this step (from its driver, or the simulated world): odometry,
     its status, and the positioning measurements that arrived since the last step (pose
-    fixes, relative measurements of other robots), each stamped when it was taken.
+    fixes, relative measurements of other robots), each stamped when it was taken, and
+    the sonar scans the fleet shared since the last step (`phalanx.agents.fleetmap`).
 
     `sonar`: the sonar ranges of `status` already read as geometry, and `masked`: that
     reading with the formation's robots masked out for this robot's step (the batch
@@ -33,19 +34,20 @@ class Observation:
     masked: MaskedEchoes | None = None
     fixes: tuple[PoseFix, ...] = ()
     relative: tuple[RelativeFix, ...] = ()
+    scans: tuple[Scan, ...] = ()  # the fleet's sonar scans for the shared map (last step's)
 
     def with_odometry(self, odometry: Odometry) -> Observation:
         """The observation with `odometry` (itself when that is already its own)."""
         if odometry is self.odometry:
             return self
         return Observation(
-            odometry, self.status, self.sonar, self.masked, self.fixes, self.relative
+            odometry, self.status, self.sonar, self.masked, self.fixes, self.relative, self.scans
         )
 
     def with_masked(self, masked: MaskedEchoes) -> Observation:
         """The observation with `masked` (`dataclasses.replace`, without its cost)."""
         return Observation(
-            self.odometry, self.status, self.sonar, masked, self.fixes, self.relative
+            self.odometry, self.status, self.sonar, masked, self.fixes, self.relative, self.scans
         )
 
 

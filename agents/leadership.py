@@ -68,6 +68,12 @@ class FlagsView(Protocol):
     def deadlocks(self) -> int: ...  # noqa: D102
     @property
     def profile_s(self) -> float: ...  # noqa: D102
+    @property
+    def shape_source(self) -> int: ...  # noqa: D102
+    @property
+    def shape_target(self) -> int: ...  # noqa: D102
+    @property
+    def morph(self) -> float: ...  # noqa: D102
 
 
 Flags = Mapping[str, FlagsView]

@@ -24,6 +24,8 @@ import numpy.typing as npt
 
 from phalanx.agents.perception import ARC_SPREAD_M, BoolArray, SonarGeometry
 from phalanx.core.geometry import Pose2D, Vec2
+from phalanx.core.mapfile import FREE, UNKNOWN, GridMap
+from phalanx.core.mapfile import OCCUPIED as OCCUPIED_CELL
 
 FloatArray = npt.NDArray[np.float64]
 CELL_M = 0.5
@@ -34,7 +36,6 @@ OCCUPIED = 2
 FREE_REACH_M = 3.0  # a max-range reading clears its ray this far (specular misses exist)
 MAP_RANGE_M = 3.0  # echoes further than this are not marked (too vague a place)
 PLAN_MARGIN_M = 10.0
-MAX_PATH_CELLS = 400
 MAX_PATH_CELLS = 400
 NEAR_COST = 4.0  # a cell near an obstacle costs this many free ones
 UNREACHABLE = 1e9
@@ -52,6 +53,7 @@ class OccupancyMap:
         self.x0_m = origin.x_m - half_size_m
         self.y0_m = origin.y_m - half_size_m
         self.evidence = np.zeros((self.cells, self.cells), dtype=np.int8)
+        self.seen = np.zeros((self.cells, self.cells), dtype=bool)  # ever sensed (or known)
 
     def index(self, x_m: FloatArray, y_m: FloatArray) -> tuple[npt.NDArray[np.intp], ...]:
         """(row, column) of world points, and whether each lies on the grid."""
@@ -114,6 +116,27 @@ class OccupancyMap:
         cells = np.unique(row * self.cells + col)
         flat = self.evidence.reshape(-1)
         flat[cells] = np.clip(flat[cells].astype(np.int16) + amount, 0, MAX_EVIDENCE)
+        self.seen.reshape(-1)[cells] = True
+
+    def load_prior(self, prior: GridMap) -> None:
+        """Start from a known map: a cell holding any of its occupied cells is occupied
+        (at full evidence, which sonar can still wear down), one holding only free cells
+        is known free.
+        """
+        for which, evidence in ((FREE, 0), (OCCUPIED_CELL, MAX_EVIDENCE)):
+            row, col, inside = self.index(*prior.centres(which))
+            keep = inside.astype(bool)
+            self.evidence[row[keep], col[keep]] = evidence
+            self.seen[row[keep], col[keep]] = True
+
+    def to_grid(self) -> GridMap:
+        """The map as an occupancy grid (`phalanx.core.mapfile`): occupied, seen free,
+        or never sensed.
+        """
+        cells = np.full(self.evidence.shape, UNKNOWN, dtype=np.int8)
+        cells[self.seen] = FREE
+        cells[self.occupied()] = OCCUPIED_CELL
+        return GridMap(cells, self.cell_m, (self.x0_m, self.y0_m, 0.0))
 
     def occupied(self) -> npt.NDArray[np.bool_]:
         """Cells believed to hold an obstacle."""
@@ -127,19 +150,44 @@ class OccupancyMap:
         furthest point of the route (the goal itself if it is) in plain sight over free
         cells, at least `ahead_m` along it; None if there is no route.
         """
+        planned = self.plan(start, goal, keep_off_m=keep_off_m, ahead_m=ahead_m)
+        return None if planned is None else planned[0]
+
+    def plan(
+        self,
+        start: Vec2,
+        goal: Vec2,
+        *,
+        keep_off_m: float,
+        ahead_m: float,
+        footprint_m: float = 0.0,
+    ) -> tuple[Vec2, float] | None:
+        """`route` for a footprint: cells nearer than `footprint_m` to an obstacle are
+        closed (a shape that wide cannot pass there; the cells round `start` stay open,
+        the robot is where it is). Where to head for, and the route's length (m, each
+        cell weighted by its cost); None if there is no route.
+        """
         window = self._window(start, goal)
         occupied = self.occupied()[window]
-        blocked = occupied.copy()
+        blocked = _grow(occupied, _cells_within(footprint_m, self.cell_m))
         near = _grow(occupied, math.ceil(keep_off_m / self.cell_m - 0.5))
         cost = np.where(near, NEAR_COST, 1.0)
         (r0, c0), (rg, cg) = self._cell(start, window), self._cell(goal, window)
         if not _on(blocked, rg, cg) or not _on(blocked, r0, c0):
             return None
+        if footprint_m > 0.0 and blocked[rg, cg]:
+            return None
         blocked[rg, cg] = False
+        reach = _cells_within(footprint_m, self.cell_m)
+        if reach:
+            rows, cols = np.ogrid[: blocked.shape[0], : blocked.shape[1]]
+            round_start = (rows - r0) ** 2 + (cols - c0) ** 2 <= reach * reach
+            blocked &= ~round_start | occupied  # where it stands it may move off from
         blocked[r0, c0] = False  # the robot's own cell: it is where it is
         dist = _wavefront(blocked, cost, rg, cg)
         if dist[r0, c0] >= UNREACHABLE:
             return None
+        length_m = float(dist[r0, c0]) * self.cell_m
         offset = (window[0].start, window[1].start)
         path = [(r0, c0)]
         while path[-1] != (rg, cg) and len(path) < MAX_PATH_CELLS:
@@ -148,8 +196,23 @@ class OccupancyMap:
         minimum = min(len(points) - 1, max(0, round(ahead_m / self.cell_m) - 1))
         for point in reversed(points[minimum:]):
             if self._in_sight(start, point, blocked, offset):
-                return point
-        return points[minimum]
+                return point, length_m
+        return points[minimum], length_m
+
+    def clear_within(self, point: Vec2, radius_m: float) -> bool:
+        """Whether no cell within `radius_m` of `point` is believed occupied."""
+        reach = math.ceil(radius_m / self.cell_m) + 1
+        row, col, _ = self.index(np.array([point.x_m]), np.array([point.y_m]))
+        r0, c0 = int(row[0]), int(col[0])
+        rows = slice(max(0, r0 - reach), max(0, r0 + reach + 1))
+        cols = slice(max(0, c0 - reach), max(0, c0 + reach + 1))
+        hit_r, hit_c = np.nonzero(self.occupied()[rows, cols])
+        if hit_r.size == 0:
+            return True
+        x = self.x0_m + (hit_c + cols.start + 0.5) * self.cell_m
+        y = self.y0_m + (hit_r + rows.start + 0.5) * self.cell_m
+        near = np.hypot(x - point.x_m, y - point.y_m) - self.cell_m / 2
+        return bool((near >= radius_m).all())
 
     def _in_sight(
         self, a: Vec2, b: Vec2, blocked: npt.NDArray[np.bool_], offset: tuple[int, int]
@@ -177,6 +240,11 @@ class OccupancyMap:
     def _cell(self, p: Vec2, window: tuple[slice, slice]) -> tuple[int, int]:
         row, col, _ = self.index(np.array([p.x_m]), np.array([p.y_m]))
         return int(row[0]) - window[0].start, int(col[0]) - window[1].start
+
+
+def _cells_within(distance_m: float, cell_m: float) -> int:
+    """How many cells a disc of `distance_m` round a cell's centre reaches past it."""
+    return max(0, math.ceil(distance_m / cell_m - 0.5)) if distance_m > 0.0 else 0
 
 
 def _on(grid: npt.NDArray[np.bool_], row: int, col: int) -> bool:

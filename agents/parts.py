@@ -19,20 +19,23 @@ from phalanx.agents.behaviours.leader import (
     DeadlockTurn,
     GoToGoal,
     Scripted,
-    Steered,
     Wander,
 )
 from phalanx.agents.behaviours.navigation import Breadcrumbs, Plan, plan_of
 from phalanx.agents.control import make_controller
+from phalanx.agents.fleetmap import FleetMap
 from phalanx.agents.memory import BlockedTimers, Course, Progress, StartUp, Steering
 from phalanx.agents.perception import SonarGeometry
+from phalanx.agents.reshape import Reshape, ShapeKeeper
 from phalanx.agents.route import RoutePlanner
 from phalanx.agents.sensing import Senses
 from phalanx.agents.shape import Shape
 from phalanx.core.config import RobotParams, Scenario
 from phalanx.core.formation import Formation
-from phalanx.core.geometry import Pose2D
+from phalanx.core.geometry import Pose2D, Vec2
 from phalanx.core.limits import KinematicLimits
+from phalanx.core.mapfile import GridMap
+from phalanx.core.shapes import NOMINAL_KEY, ShapeBook, ShapeKey
 from phalanx.core.states import State
 
 
@@ -46,6 +49,7 @@ class Parts:
         robot: RobotParams,
         formation: Formation,
         limits: KinematicLimits,
+        prior: GridMap | None = None,
     ) -> None:
         self.scenario = scenario
         self.plan: Plan = plan_of(scenario)
@@ -59,11 +63,18 @@ class Parts:
         self.steering = Steering()
         self.course = Course(Breadcrumbs(2.0 * scenario.deadlock.safe_distance_m))
         self.startup = StartUp()
-        self.planner = RoutePlanner(keep_off_m=self.shape.half_span_m)
+        self.planner = RoutePlanner(keep_off_m=self.shape.half_span_m, robot_id=robot_id)
+        if self.plan != "scripted" and nav.reactive:
+            self.planner.share(fleet_map(scenario, robot, formation, prior))
+        self.keeper = ShapeKeeper(
+            ShapeBook(formation), robot.radius_m, enabled=nav.reshape and self.plan == "goto"
+        )
+        self._applied: ShapeKey = NOMINAL_KEY
         self.senses = Senses(
             robot_id, scenario, sonar=SonarGeometry.from_params(robot), shape=self.shape,
             limits=limits, planner=self.planner, progress=self.progress, plan=self.plan,
         )  # fmt: skip
+        self.senses.fold = self.keeper.fold
         self.reverse = DeadlockReverse(
             scenario, shape=self.shape, course=self.course, progress=self.progress
         )
@@ -72,6 +83,7 @@ class Parts:
             course=self.course, blocked=self.blocked,
         )  # fmt: skip
         self.avoid = Avoid(scenario, shape=self.shape, limits=limits, steering=self.steering)
+        self.reshape = Reshape(self.keeper, self.shape, dt_s=scenario.dt_s)
         seed = scenario.seed + formation.robot_ids.index(robot_id)
         self.behaviours = self._table(robot_id, limits, seed)
 
@@ -91,7 +103,7 @@ class Parts:
         elif self.plan == "wander":
             navigate = wander
         else:
-            navigate = self._go_to_goal(limits)
+            navigate = self.reshape.drive = self._go_to_goal(limits)
         track = Track(
             robot_id, scenario, shape=self.shape, limits=limits,
             controller=make_controller(scenario.controller),
@@ -105,15 +117,62 @@ class Parts:
             State.FORMATION_TRACK: track,
             State.FORMATION_REVERSE: track,
             State.AVOID: self.avoid,
+            State.RESHAPE: self.reshape,
             State.HOLD: StandStill(emergency=True),
         }
         return {state: table.get(state, still) for state in State}
 
-    def _go_to_goal(self, limits: KinematicLimits) -> Steered:
-        return GoToGoal(
+    def _go_to_goal(self, limits: KinematicLimits) -> GoToGoal:
+        go = GoToGoal(
             self.scenario, shape=self.shape, limits=limits, steering=self.steering,
             course=self.course, planner=self.planner, progress=self.progress,
         )  # fmt: skip
+        go.keeper = self.keeper
+        return go
+
+    def apply_shape(self) -> None:
+        """Take the shape in effect (`keeper.key`) wherever it is used: the slots this
+        robot tracks and steers the group by, where the sonar expects the others (both
+        shapes' slots while between two), the route's keep-off distance.
+        """
+        key = self.keeper.key
+        if key == self._applied:
+            return
+        book, previous = self.keeper.book, self._applied
+        self._applied = key
+        self.shape.adopt(book.formation(key))
+        if (key.source, key.target, key.settled) != (
+            previous.source,
+            previous.target,
+            previous.settled,
+        ):
+            ends = {key.target} if key.settled else {key.source, key.target}
+            here = book.shapes
+            self.senses.remask(tuple(_offsets(here[s], self.shape.robot_id) for s in sorted(ends)))
+        self.planner.keep_off_m = self.shape.half_span_m
+
+    def weigh_shapes(self, pose: Pose2D, t_s: float) -> None:
+        """The navigating leader weighs the shapes for the way to its next waypoint."""
+        waypoints = self.scenario.navigation.waypoints
+        if self.keeper.enabled and self.progress.waypoint < len(waypoints):
+            goal = self.course.escape or Vec2(*waypoints[self.progress.waypoint])
+            self.keeper.decide(self.planner.map, pose, goal, t_s)
+
+    def retries_left(self, pose: Pose2D, *, deadlocked: bool) -> bool:
+        """Whether a deadlock may be met with another reverse, turn and retry: while
+        `deadlock.max_retries` are not used up at this waypoint, and after that while
+        the map still shows a way to it one robot wide (the group can fold into a
+        column); STUCK is for when the map proves there is none.
+        """
+        if self.progress.deadlocks < self.scenario.deadlock.max_retries:
+            return True
+        waypoints = self.scenario.navigation.waypoints
+        if not deadlocked or self.plan != "goto" or self.progress.waypoint >= len(waypoints):
+            return False
+        goal = Vec2(*waypoints[self.progress.waypoint])
+        return self.planner.map is not None and self.planner.way_exists(
+            pose, goal, footprint_m=self.shape.radius_m
+        )
 
     def advance_waypoints(self, pose: Pose2D) -> None:
         """The leader's waypoint bookkeeping: a reached waypoint resets the retries (and
@@ -136,3 +195,23 @@ class Parts:
 
 def _to(pose: Pose2D, point: tuple[float, float]) -> float:
     return math.hypot(point[0] - pose.x_m, point[1] - pose.y_m)
+
+
+def _offsets(slots: dict[str, Vec2], robot_id: str) -> dict[str, Vec2]:
+    here = slots[robot_id]
+    return {r: p - here for r, p in slots.items()}
+
+
+def fleet_map(
+    scenario: Scenario, robot: RobotParams, formation: Formation, prior: GridMap | None
+) -> FleetMap:
+    """The fleet's shared map of a navigating scenario: centred where the formation's
+    first robot starts (every robot of the fleet alike), from `prior` if given.
+    """
+    start = scenario.robots[0].start
+    return FleetMap(
+        Vec2(start.x_m, start.y_m),
+        sonar=SonarGeometry.from_params(robot),
+        order=formation.robot_ids,
+        prior=prior,
+    )

@@ -7,6 +7,7 @@ enough to lead; an obstacle is inside the braking distance.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 from phalanx.agents.behaviours.navigation import Plan, bearing_rad
@@ -98,17 +99,37 @@ class Senses:
         self.sonar, self.shape, self.limits = sonar, shape, limits
         self.planner, self.progress, self.plan = planner, progress, plan
         self.stall = StallWatch(self.nav.stall_s)
-        # The robots near enough in the shape for the sonar to hear (only these are masked).
-        audible_m = sonar.mount_m + sonar.max_range_m + shape.radius_m + EXPECTED_MASK_M
-        self._maskable = shape.slots_within(audible_m + 1.0)
-        # ... with where their echoes would come from worked out once (the shape is rigid)
-        slot_ids = [r for r in self._maskable if r != robot_id]
-        discs = FixedDiscs.of(
-            sonar, [self._maskable[r] for r in slot_ids], shape.radius_m + EXPECTED_MASK_M
+        # Asked before a dead end is declared: fold the group into a narrower shape
+        # if it has one (True: a fold is coming, the way may open for it).
+        self.fold: Callable[[], bool] = lambda: False
+        self.remask((shape.offsets,))
+
+    def remask(self, shapes: tuple[dict[str, Vec2], ...]) -> None:
+        """Where the formation's robots are expected (every slot they have in `shapes`,
+        offsets from this robot's slot): the robots near enough for the sonar to hear
+        are masked, with where their echoes would come from worked out once (the shape
+        is rigid between two changes).
+        """
+        shape, sonar = self.shape, self.sonar
+        audible_m = sonar.mount_m + sonar.max_range_m + shape.radius_m + EXPECTED_MASK_M + 1.0
+        slots = [
+            (r, p)
+            for offsets in shapes
+            for r, p in offsets.items()
+            if r != self.robot_id and p.norm() < audible_m
+        ]
+        # A robot behind another in a column is not clear to lead, whatever its sonar
+        # sees past the one ahead (masked out of it).
+        self.robot_ahead = any(
+            0.0 < p.x_m < self.nav.clear_range_m + shape.radius_m
+            and abs(p.y_m) < shape.half_width_m + shape.radius_m
+            for _, p in slots
         )
+        discs = FixedDiscs.of(sonar, [p for _, p in slots], shape.radius_m + EXPECTED_MASK_M)
         self.slot_masks = SlotMasks.of(
-            slot_ids, discs, tracked_radius_m=shape.radius_m, half_width_m=shape.half_width_m
-        )
+            [r for r, _ in slots], discs, tracked_radius_m=shape.radius_m,
+            half_width_m=shape.half_width_m,
+        )  # fmt: skip
 
     def read(
         self,
@@ -132,7 +153,8 @@ class Senses:
             mask = mask_readings(self.sonar, [reading], [inputs], self.slot_masks)[0]
         raw, masked, ahead_m, behind_m = reading.raw, mask.points, mask.ahead_m, mask.behind_m
         if self.plan != "scripted" and self.nav.reactive:
-            self.planner.see(pose, self.sonar, reading.ranges_m, mask.echo)
+            self.planner.add(observation.scans)
+            self.planner.see(pose, self.sonar, reading.ranges_m, mask.echo, t_s)
         bumper = any(status.bumpers)
         dead_end = self._boxed_in(pose, masked, stance.state)
         # (short-circuit kept: the stall watch only runs with room ahead)
@@ -144,6 +166,7 @@ class Senses:
             blocked={1: blocked_ahead or bumper, -1: behind_m < self.near_m or bumper},
             path_clear=stance.direction > 0
             and ahead_m >= self.nav.clear_range_m
+            and not self.robot_ahead
             and self._route_ahead(pose, view, t_s),
             imminent=self.nav.reactive
             and (bumper or self._imminent(raw, reading.nearest_m, odometry, stance.last_command)),
@@ -178,13 +201,14 @@ class Senses:
 
     def _boxed_in(self, pose: Pose2D, points: Points, state: str) -> bool:
         """A navigating leader whose route leads back the way it came, with no room for
-        the shape to turn round where it is: the dead end the deadlock reverse is for.
+        the shape to turn round where it is, and no narrower shape to fold into first
+        (whose route may go on): the dead end the deadlock reverse is for.
         """
         carrot = self.planner.carrot
         if state not in _NAVIGATING or carrot is None:
             return False
         behind = abs(bearing_rad(pose, carrot)) > BEHIND_RAD
-        return behind and not self.shape.sweep_clear(points)
+        return behind and not self.shape.sweep_clear(points) and not self.fold()
 
     def _imminent(self, raw: Points, nearest: float, odometry: Odometry, last: Twist2D) -> bool:
         """An obstacle (any, robots included) inside the braking distance + margin."""

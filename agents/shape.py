@@ -76,12 +76,18 @@ class Shape:
         dt_s: float,
     ) -> None:
         self.robot_id = robot_id
-        self.formation = formation
         self.radius_m = radius_m
         self.nav = nav
         self.limits = limits
         self.dt_s = dt_s
-        here = formation.positions[robot_id]
+        self.adopt(formation)
+
+    def adopt(self, formation: Formation) -> None:
+        """Take `formation`'s slots (the group changed its shape; the same robots)."""
+        self.formation = formation
+        for cached in ("offsets", "follower_slots"):
+            self.__dict__.pop(cached, None)
+        here = formation.positions[self.robot_id]
         # Every slot less this one's, as arrays (a fleet of n builds n of these: O(n) each
         # in numpy, the same numbers as subtracting the Vec2s)
         self._ids, xs, ys = _slot_arrays(formation)
@@ -89,8 +95,8 @@ class Shape:
         # How far the shape reaches from this robot (what turning on the spot sweeps).
         self.reach_m = _furthest_m(self._dx, self._dy)
         # Half the shape's width across its heading, plus a robot radius.
-        self.half_span_m = (float(ys.max()) - float(ys.min())) / 2 + radius_m
-        self.half_width_m = radius_m + nav.body_margin_m
+        self.half_span_m = (float(ys.max()) - float(ys.min())) / 2 + self.radius_m
+        self.half_width_m = self.radius_m + self.nav.body_margin_m
 
     @cached_property
     def offsets(self) -> dict[str, Vec2]:

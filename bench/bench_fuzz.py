@@ -34,6 +34,7 @@ KEYS = [
     ("realtime", "agent/state"),
     ("realtime", "agent/sense"),
     ("realtime", "agent/leader"),
+    ("navigating", "agent/scan"),
     ("driver", "agent/fix"),
     ("driver", "agent/relative"),
     ("lockstep", "agent/state"),
@@ -75,6 +76,8 @@ def run_key(clock: str | None, key: str, per_key: int, seed: int) -> dict[str, A
         receiver: Any
         if clock == "driver":
             receiver = DriverAgentUnderTest()
+        elif clock == "navigating":
+            receiver = AgentUnderTest(navigating=True)
         elif kind == "agent":
             receiver = AgentUnderTest(clock=clock or "realtime")
         elif kind == "world":

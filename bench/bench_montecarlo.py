@@ -28,30 +28,15 @@ from calibration import Calibration
 
 from phalanx.analysis.metrics import error_series, is_follower, navigation_metrics, phase_masks
 from phalanx.analysis.report import SECTION_BEGIN, SECTION_END, with_section
+from phalanx.analysis.sweep import run_until_done
 from phalanx.core.config_files import CONFIG_ROOT, load_scenario
 from phalanx.core.runlog import RunLog
 from phalanx.core.scenarios import SHAPES, navigation_scenario
 from phalanx.runtime.batch import BatchRunner
 
 REPO = Path(__file__).resolve().parent.parent
-SETTLE_AFTER_END_S = 10.0
 CORE_BOUNDS = {"linear_pct": 0.5, "angular_pct": 0.3, "orientation_deg": 0.5}
 CALM_KEYS = ("linear_pct", "angular_pct", "orientation_deg", "linear_m", "angular_deg")
-
-
-def run_until_done(runner: BatchRunner) -> RunLog:
-    """Run until ARRIVED or STUCK, then `SETTLE_AFTER_END_S` more (or the scenario's end)."""
-    finished: dict[str, int] = {}
-    extra = round(SETTLE_AFTER_END_S / runner.scenario.dt_s)
-
-    def done(b: BatchRunner) -> bool:
-        if "k" not in finished and any(
-            a.state_name in ("ARRIVED", "STUCK") for a in b.agents.values()
-        ):
-            finished["k"] = b.done
-        return "k" in finished and b.done - finished["k"] >= extra
-
-    return runner.run(until=done)
 
 
 def field_run(job: tuple[str, int, int]) -> dict[str, Any]:

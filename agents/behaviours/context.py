@@ -49,6 +49,9 @@ class StackContext:
     safe_distance_m: float = 1.5
     path_used_up: bool = False  # backed along all of the recorded path
     turned: bool = False
+    # the shape (a leader): another one wanted; a reshape done
+    reshape_wanted: bool = False
+    reshaped: bool = False
     # tunables the guards need
     confirm_s: float = 0.2
     threshold_mps: float = 0.02

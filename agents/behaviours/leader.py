@@ -7,9 +7,12 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
+
 from phalanx.agents.behaviours.base import Behaviour, Moment
 from phalanx.agents.behaviours.navigation import (
     REORIENT_RAD,
+    Clearances,
     ScriptedProfile,
     WanderHeading,
     bearing_rad,
@@ -20,10 +23,11 @@ from phalanx.agents.behaviours.navigation import (
     steer,
 )
 from phalanx.agents.memory import BlockedTimers, Course, Progress, Steering
-from phalanx.agents.perception import open_side
+from phalanx.agents.perception import HEADINGS_RAD, open_side
+from phalanx.agents.reshape import ShapeKeeper
 from phalanx.agents.route import RoutePlanner
 from phalanx.agents.shape import Shape
-from phalanx.core.config import LeaderProfile, Scenario
+from phalanx.core.config import LeaderProfile, NavigationConfig, Scenario
 from phalanx.core.geometry import ZERO_TWIST, Twist2D, Vec2, wrap_angle
 from phalanx.core.limits import KinematicLimits
 from phalanx.core.robot import Odometry
@@ -78,6 +82,8 @@ class Steered(Behaviour):
         self.nav = scenario.navigation
         self.scripted = scenario.leader_profile is not None
         self.shape, self.limits, self.steering, self.course = shape, limits, steering, course
+        self.keeper: ShapeKeeper | None = None  # (a leader that may change the shape)
+        self.dt_s = scenario.dt_s
 
     def desired(self, moment: Moment) -> tuple[float, float]:
         """The heading wanted (body frame, rad) and the distance to go (m)."""
@@ -115,6 +121,8 @@ class Steered(Behaviour):
         whole_shape = moment.view.is_leader and not self.scripted
         clearances = self.shape.clearances(points, moment.view.live, whole_shape=whole_shape)
         room_to_turn = self.shape.sweep_clear(points)
+        if self.keeper is not None:
+            self.keeper.squeeze(_squeezed(clearances, desired, dist_m, self.nav), self.dt_s)
         twist, chosen = steer(
             desired + centring_rad(clearances),
             clearances,
@@ -135,6 +143,13 @@ class Steered(Behaviour):
         return twist
 
 
+def _squeezed(clear: Clearances, desired_rad: float, dist_m: float, nav: NavigationConfig) -> bool:
+    """The way towards `desired_rad` is free for the leader alone but not for the shape."""
+    i = int(np.argmin(np.abs(np.mod(HEADINGS_RAD - desired_rad + math.pi, 2 * math.pi) - math.pi)))
+    need = min(nav.lookahead_m, dist_m)
+    return bool(clear.wide[i] < need <= clear.narrow[i])
+
+
 class GoToGoal(Steered):
     """NAVIGATE with waypoints: along the route to the next one (or first to the escape
     point a dead end left), round obstacles.
@@ -153,6 +168,11 @@ class GoToGoal(Steered):
     ) -> None:
         super().__init__(scenario, shape=shape, limits=limits, steering=steering, course=course)
         self.planner, self.progress = planner, progress
+
+    @property
+    def has_goal(self) -> bool:
+        """Whether there is a waypoint (or an escape point) left to go to."""
+        return self.course.escape is not None or self.progress.waypoint < len(self.nav.waypoints)
 
     def desired(self, moment: Moment) -> tuple[float, float]:
         """Towards the route's next point."""

@@ -20,6 +20,7 @@ P_ROLE = 80
 P_HOLD = 70
 P_GIVE_UP = 65
 P_DEADLOCK = 60
+P_RESHAPE = 50
 P_AVOID = 40
 P_DIRECTION = 30
 P_ARRIVE = 20
@@ -221,6 +222,7 @@ def _should_avoid(c: StackContext) -> bool:
         and not c.reversing
         and not c.leader_blocked
         and c.leader_state not in DEADLOCK_STATES
+        and c.leader_state != State.RESHAPE
     )
 
 
@@ -263,6 +265,14 @@ def _navigation_transitions() -> list[Transition[StackContext]]:
     return [
         *give_up,
         *reverse,
+        Transition(
+            State.NAVIGATE,
+            State.RESHAPE,
+            lambda c: c.is_leader and c.plan == "goto" and c.reshape_wanted and not c.arrived,
+            "the way ahead needs another shape: slide every slot to it on the move",
+            P_RESHAPE,
+        ),
+        *_leader_targets((State.RESHAPE,), lambda c: c.reshaped, "reshaped", P_RESUME),
         Transition(
             State.NAVIGATE,
             State.ARRIVED,

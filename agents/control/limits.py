@@ -56,7 +56,13 @@ def accelerate(
 
 
 def _accelerate(
-    current: Twist2D, v: float, w: float, limits: KinematicLimits, dt_s: float, emergency: bool
+    current: Twist2D,
+    v: float,
+    w: float,
+    limits: KinematicLimits,
+    dt_s: float,
+    emergency: bool,
+    brake_hard: bool = False,
 ) -> tuple[float, float]:
     dv = v - current.v_mps
     dw = w - current.omega_radps
@@ -64,6 +70,8 @@ def _accelerate(
     if emergency and v == 0.0 and w == 0.0:  # (a stop: `wanted == ZERO_TWIST`)
         decel = max(decel, limits.emergency_decel_mps2)
         rot = max(rot, limits.emergency_rot_decel_radps2)
+    elif brake_hard:  # (slowing down at the emergency limit, turning as wanted)
+        decel = max(decel, limits.emergency_decel_mps2)
     max_dv = _allowed_change(current.v_mps, v, limits.accel_mps2, decel)
     fraction = min(
         1.0,
@@ -87,9 +95,12 @@ class CommandLimiter:
         """The last command applied (what the robot is executing now)."""
         return self._last
 
-    def apply(self, command: Twist2D, dt_s: float, *, emergency: bool = False) -> Twist2D:
+    def apply(
+        self, command: Twist2D, dt_s: float, *, emergency: bool = False, brake_hard: bool = False
+    ) -> Twist2D:
         """The command the robot may execute this step (`emergency`: a stop that cannot
-        wait, braked at the robot's emergency limits).
+        wait, braked at the robot's emergency limits; `brake_hard`: a slowdown that cannot
+        wait, braked at the emergency deceleration while the turn goes on as wanted).
         """
         v, w = command.v_mps, command.omega_radps
         if not (math.isfinite(v) and math.isfinite(w)):
@@ -99,7 +110,7 @@ class CommandLimiter:
             self.saturations += 1
             v, w = v * scale, w * scale
         # (in floats: `accelerate`, and whether it changed the command)
-        lv, lw = _accelerate(self._last, v, w, self.limits, dt_s, emergency)
+        lv, lw = _accelerate(self._last, v, w, self.limits, dt_s, emergency, brake_hard)
         if lv != v or lw != w:
             self.accel_limited += 1
         self._last = Twist2D(lv, lw)

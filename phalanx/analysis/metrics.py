@@ -27,7 +27,8 @@ import numpy.typing as npt
 
 from phalanx.core.geometry import Twist2D, wrap_angle
 from phalanx.core.rigid_body import rigid_body_target
-from phalanx.core.runlog import RunLog
+from phalanx.core.runlog import RobotTrace, RunLog
+from phalanx.core.shapes import ShapeBook, ShapeKey
 from phalanx.core.states import ROBOT_STATES
 
 FloatArray = npt.NDArray[np.float64]
@@ -125,7 +126,7 @@ def is_follower(log: RunLog, robot: str) -> bool:
 
 def _series_against(log: RunLog, follower: str, leader: str, mask: BoolArray) -> ErrorSeries:
     lt, ft = log.traces[leader], log.traces[follower]
-    l_d, phi_d = log.formation.polar_of(follower, leader)
+    l_d, phi_d = _desired_polar(log, follower, leader)
     dx, dy = ft.x_m - lt.x_m, ft.y_m - lt.y_m
     c, s = np.cos(lt.theta_rad), np.sin(lt.theta_rad)
     bx, by = c * dx + s * dy, -s * dx + c * dy
@@ -137,22 +138,61 @@ def _series_against(log: RunLog, follower: str, leader: str, mask: BoolArray) ->
         l_m=l_m,
         phi_rad=phi,
         linear_pct=100.0 * np.abs(l_m - l_d) / l_d,
-        angular_pct=100.0 * dphi / phi_d,
+        angular_pct=_percent_of(dphi, phi_d),
         orientation_deg=np.degrees(orient),
         linear_m=np.abs(l_m - l_d),
         angular_deg=np.degrees(dphi),
     )
 
 
+def _percent_of(error: FloatArray, desired: FloatArray | float) -> FloatArray:
+    """`error` in percent of `desired`; NaN where nothing is desired (a slot dead ahead,
+    bearing 0, between two shapes).
+    """
+    desired_arr = np.broadcast_to(np.asarray(desired, dtype=np.float64), error.shape)
+    out = np.full(error.shape, np.nan)
+    np.divide(100.0 * error, desired_arr, out=out, where=desired_arr != 0.0)
+    return out
+
+
 def _orientation_error_rad(log: RunLog, leader: str, follower: str, mask: BoolArray) -> FloatArray:
     lt, ft = log.traces[leader], log.traces[follower]
     slot = log.formation.slot_of(follower, leader)
+    keys = _shape_keys(log, follower)
+    book = ShapeBook(log.formation) if keys else None
     out = np.full(len(log.t_s), np.nan)
     for k in np.flatnonzero(mask).tolist():
         twist = Twist2D(float(lt.cmd_v_mps[k]), float(lt.cmd_omega_radps[k]))
+        if book is not None:
+            slot = book.formation(keys[k]).slot_of(follower, leader)
         target, _ = rigid_body_target(lt.pose(k), twist, slot)
         out[k] = wrap_angle(float(ft.theta_rad[k]) - target.theta_rad)
     return out
+
+
+def _shape_keys(log: RunLog, robot: str) -> list[ShapeKey]:
+    """The shape `robot` was in at every step, or [] if always the scenario's."""
+    shapes = log.traces[robot].shapes
+    if len(shapes) != len(log.t_s) or all(s == (0, 0, 1.0) for s in shapes):
+        return []
+    return [ShapeKey(*s) for s in shapes]
+
+
+def _desired_polar(
+    log: RunLog, follower: str, leader: str
+) -> tuple[float | FloatArray, float | FloatArray]:
+    """(l_d, phi_d) of `follower` against `leader`: the scenario's shape's, or per step
+    the shape the follower was in (a group that changed its shape on the way).
+    """
+    keys = _shape_keys(log, follower)
+    if not keys:
+        return log.formation.polar_of(follower, leader)
+    book = ShapeBook(log.formation)
+    polar = {k: book.formation(k).polar_of(follower, leader) for k in set(keys)}
+    return (
+        np.array([polar[k][0] for k in keys]),
+        np.array([polar[k][1] for k in keys]),
+    )
 
 
 def phase_masks(log: RunLog) -> tuple[BoolArray, BoolArray]:
@@ -223,11 +263,13 @@ EPISODE_STATES = frozenset(
 TURNING_ON_THE_SPOT_MPS = 0.005
 
 
-def episode_mask(log: RunLog) -> BoolArray:
+def episode_mask(log: RunLog, *, reshaping: bool = True) -> BoolArray:
     """Steps inside an obstacle-avoidance (or stop, or turn-away) episode of any robot:
     from leaving its slot until it is back in it (`formed`), or the leader turning the
-    shape on the spot to get round something; each episode extended by `settle_s`; and
-    the first `initial_settle_s`.
+    shape on the spot to get round something; with `reshaping`, also while the group
+    slides from one shape to another (a planned change, not an avoidance: its own share
+    in `navigation_metrics`); each episode extended by `settle_s`; and the first
+    `initial_settle_s`.
     """
     t = log.t_s
     busy = np.zeros(len(t), dtype=bool)
@@ -235,6 +277,8 @@ def episode_mask(log: RunLog) -> BoolArray:
         busy |= np.array([s in EPISODE_STATES for s in tr.states], dtype=bool)
         if len(tr.formed) == len(t):
             busy |= ~np.array(tr.formed, dtype=bool)
+        if reshaping:
+            busy |= reshaping_mask(log, tr)
     for k, rid in enumerate(leader_series(log)):
         tr = log.traces[rid]
         spinning = (
@@ -247,6 +291,16 @@ def episode_mask(log: RunLog) -> BoolArray:
     for end in ends:
         out[end : end + settle_steps] = True
     return out | (t < log.scenario.initial_settle_s)
+
+
+def reshaping_mask(log: RunLog, trace: RobotTrace) -> BoolArray:
+    """Steps a robot was between two shapes (or in the leader's RESHAPE)."""
+    n = len(log.t_s)
+    sliding = np.zeros(n, dtype=bool)
+    if len(trace.shapes) == n:
+        sliding |= np.array([s[2] < 1.0 for s in trace.shapes], dtype=bool)
+    reshaping: BoolArray = np.array([s == "RESHAPE" for s in trace.states], dtype=bool)
+    return sliding | reshaping
 
 
 def navigation_metrics(log: RunLog) -> dict[str, Any]:
@@ -262,7 +316,10 @@ def navigation_metrics(log: RunLog) -> dict[str, Any]:
     calm = ~episode_mask(log)
     followers = [r for r in log.formation.robot_ids if is_follower(log, r)]
     errors = _calm_errors(log, followers, calm)
-    busy_share = 1.0 - float(calm.mean()) if calm.size else math.nan
+    busy_share = float(episode_mask(log, reshaping=False).mean()) if calm.size else math.nan
+    sliding = np.zeros(len(log.t_s), dtype=bool)
+    for tr in log.traces.values():
+        sliding |= reshaping_mask(log, tr)
     epochs = [max(tr.epochs, default=0) for tr in log.traces.values()]
     return {
         "goal_reached": bool(arrived),
@@ -274,8 +331,21 @@ def navigation_metrics(log: RunLog) -> dict[str, Any]:
         "stuck": bool(stuck),
         "stuck_reason": stuck[0][1] if stuck else "",
         "episode_share": busy_share,
+        "reshaping_share": float(sliding.mean()) if sliding.size else math.nan,
         "calm": errors,
+        "reshapes": sum(1 for e in transitions if e.target == "RESHAPE"),
+        "scenario_shape_share": _scenario_shape_share(log),
     }
+
+
+def _scenario_shape_share(log: RunLog) -> float:
+    """The share of steps the group (its leader's view) was in the scenario's shape."""
+    leaders = leader_series(log)
+    shapes = {rid: tr.shapes for rid, tr in log.traces.items()}
+    n = len(leaders)
+    if not n or any(len(s) != n for s in shapes.values()):
+        return 1.0
+    return sum(shapes[rid][k] == (0, 0, 1.0) for k, rid in enumerate(leaders)) / n
 
 
 def _calm_errors(log: RunLog, followers: list[str], calm: BoolArray) -> dict[str, Any]:

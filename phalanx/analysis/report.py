@@ -253,7 +253,8 @@ NOTES = [
     "middle of a 3 deg/s turn, and the leader retraces the arc it came along "
     '(`deadlock.reverse_mode = "retrace"`). The paper\'s ICR relation drops the '
     "along-track slot term, which only matters while the formation turns; the paper's "
-    "switching strategy breaks the shape there (and collides in the inline formation), "
+    "switching strategy breaks the shape there (in the inline formation the chain backs "
+    "into itself, and the spacing filter holds the robots short of contact), "
     "ours keeps the same bounds.",
     "- **+ noise** rows: odometry noise (2 % of v, 0.01 rad/s of omega) and sonar noise "
     "(2 cm). Each robot knows its pose only from its own dead reckoning, so the robots' "
@@ -302,7 +303,13 @@ SECTION_BEGIN = "<!-- navigation benchmark: written by bench/bench_montecarlo.py
 SECTION_END = "<!-- end of navigation benchmark -->"
 LOCALISATION_BEGIN = "<!-- localisation benchmark: written by bench/bench_localisation.py -->"
 LOCALISATION_END = "<!-- end of localisation benchmark -->"
-KEPT_SECTIONS = ((SECTION_BEGIN, SECTION_END), (LOCALISATION_BEGIN, LOCALISATION_END))
+SWEEP_BEGIN = "<!-- sweep: written by phalanx sweep -->"
+SWEEP_END = "<!-- end of sweep -->"
+KEPT_SECTIONS = (
+    (SECTION_BEGIN, SECTION_END),
+    (SWEEP_BEGIN, SWEEP_END),
+    (LOCALISATION_BEGIN, LOCALISATION_END),
+)
 
 
 def section_of(text: str, *, begin: str = SECTION_BEGIN, end: str = SECTION_END) -> str:

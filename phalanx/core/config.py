@@ -224,9 +224,11 @@ class DeadlockConfig(Model):
     `safe_distance_m` in formation (or until an obstacle behind stops it), then turns:
     towards its route if its map has one, else by `turn_away_deg` (times the deadlocks
     so far at this waypoint) towards the more open side and drives `escape_distance_m`
-    that way. It reverses at most `max_retries` times at one waypoint; the next deadlock
-    there stops every robot in STUCK. A scripted leader (the paper's runs) resumes its
-    script without turning.
+    that way. It reverses at most `max_retries` times at one waypoint; after that, a
+    leader with a map goes on retrying while the map still shows a way to the waypoint
+    one robot wide (the group can fold into a column), and the next deadlock once it
+    shows none stops every robot in STUCK (without a map: the next deadlock). A scripted
+    leader (the paper's runs) resumes its script without turning.
 
     `path` backs along the path the leader actually drove (recorded from its odometry):
     the rigid formation then sweeps back through the very ground it came over, known to
@@ -260,9 +262,16 @@ class NavigationConfig(Model):
     leadership still work): for studies whose obstacles are scripted sensor events, such
     as the paper's (its signal builder), where the controllers alone are measured.
     Never on a real robot.
+
+    `reshape`: a navigating leader may change the formation's shape (shrink it, fold it
+    into a column) where the scenario's shape does not fit, and back
+    (`phalanx.agents.reshape`). `prior_map`: a map_server YAML file (`phalanx.core.mapfile`)
+    the fleet's map starts from (a path, or a name under `configs/maps/`).
     """
 
     reactive: bool = True
+    reshape: bool = True
+    prior_map: str = Field(default="", max_length=4096)
     waypoints: tuple[tuple[float, float], ...] = Field(default=(), max_length=MAX_ITEMS)
     goal_tolerance_m: PositiveFloat = 0.5
     cruise_mps: PositiveFloat = 0.2

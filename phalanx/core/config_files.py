@@ -22,6 +22,7 @@ from pydantic import BaseModel, ValidationError
 from phalanx.core.config import RobotParams, Scenario
 from phalanx.core.errors import ConfigError
 from phalanx.core.formation import scenario_formation
+from phalanx.core.mapfile import GridMap, load_map
 
 CONFIG_ROOT = Path(__file__).resolve().parents[2] / "configs"
 ROBOTS_DIR = CONFIG_ROOT / "robots"
@@ -241,3 +242,16 @@ def _escape(char: str) -> str:
 
 def _toml_key(key: str) -> str:
     return key if _BARE_KEY.match(key) else toml_value(key)
+
+
+def prior_map(scenario: Scenario) -> GridMap | None:
+    """The prior map a scenario's fleet starts from (`navigation.prior_map`: a path, or a
+    name under `configs/maps/`), None without one.
+    """
+    name = scenario.navigation.prior_map
+    if not name:
+        return None
+    path = Path(name)
+    if not path.exists() and not path.is_absolute():
+        path = CONFIG_ROOT / "maps" / name
+    return load_map(path)

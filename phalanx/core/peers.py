@@ -39,7 +39,9 @@ class PeerFlags:
     `formed`: it is in its slot (a robot that is not may not be tracked);
     `formation_leader_id`/`epoch`: who it thinks leads, under which epoch; `waypoint`,
     `deadlocks`, `profile_s`: the group's progress (next waypoint, deadlocks at it,
-    scripted profile clock in s).
+    scripted profile clock in s); `shape_source`, `shape_target`, `morph`: the shape the
+    group is in, or moving between (`phalanx.core.shapes.ShapeKey`: 0 the scenario's,
+    1 shrunk, 2 column; `morph` of the way from the first to the second, 1 = there).
     """
 
     robot_id: str
@@ -57,6 +59,9 @@ class PeerFlags:
     waypoint: int = 0
     deadlocks: int = 0
     profile_s: float = 0.0
+    shape_source: int = 0
+    shape_target: int = 0
+    morph: float = 1.0
 
 
 @quick_init
@@ -95,6 +100,9 @@ class PeerState:
     deadlocks: int = 0
     profile_s: float = 0.0
     cov: tuple[float, ...] = ()
+    shape_source: int = 0
+    shape_target: int = 0
+    morph: float = 1.0
 
     @property
     def pose(self) -> Pose2D:
@@ -124,4 +132,29 @@ class PeerState:
             waypoint=self.waypoint,
             deadlocks=self.deadlocks,
             profile_s=self.profile_s,
+            shape_source=self.shape_source,
+            shape_target=self.shape_target,
+            morph=self.morph,
         )
+
+
+@dataclass(frozen=True, slots=True)
+class Scan:
+    """One sonar reading a robot adds to the fleet's shared map: where it was taken
+    (pose in the world frame, m and rad, at `stamp_s` on the fleet clock), the ranges
+    (m, one per transducer) and which of them are echoes of obstacles (`echo`: the
+    formation's own robots already masked out).
+    """
+
+    robot_id: str
+    stamp_s: float
+    x_m: float
+    y_m: float
+    theta_rad: float
+    ranges_m: tuple[float, ...]
+    echo: tuple[bool, ...]
+
+    @property
+    def pose(self) -> Pose2D:
+        """Where the reading was taken."""
+        return Pose2D(self.x_m, self.y_m, self.theta_rad)

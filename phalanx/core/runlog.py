@@ -50,6 +50,8 @@ class RobotTrace:
     # where it published none), one row per step.
     estimate: FloatArray = field(default_factory=lambda: np.zeros((0, 3)))
     cov: FloatArray = field(default_factory=lambda: np.zeros((0, 6)))
+    # The shape it was in (`phalanx.core.shapes.ShapeKey`: from, to, morph), per step.
+    shapes: list[tuple[int, int, float]] = field(default_factory=list)
 
     @classmethod
     def empty(cls, n: int) -> RobotTrace:
@@ -77,6 +79,7 @@ class RobotTrace:
             self.formed[:n],
             self.estimate[:n],
             self.cov[:n],
+            self.shapes[:n],
         )
 
     def pose(self, k: int) -> Pose2D:

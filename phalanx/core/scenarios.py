@@ -1,7 +1,7 @@
 """Scenarios built in code: grid formations for scaling, and the navigation scenarios
-(corridors, dead ends, seeded obstacle fields) for 3 or 5 robots in wedge, inline and
-collateral shapes, as the files in `configs/scenarios/nav_*.toml` and the Monte-Carlo
-benchmark use them.
+(corridors, dead ends, seeded obstacle fields, a narrow passage) for 3 or 5 robots in
+wedge, inline and collateral shapes, as the files in `configs/scenarios/nav_*.toml` and
+the Monte-Carlo benchmark use them.
 """
 
 from __future__ import annotations
@@ -25,9 +25,12 @@ from phalanx.core.config import (
 from phalanx.core.config_files import toml_value, validate_data
 
 Shape = Literal["wedge", "inline", "collateral"]
-Course = Literal["corridor", "deadend", "field"]
+Course = Literal["corridor", "deadend", "field", "narrow"]
 SHAPES: tuple[Shape, ...] = ("wedge", "inline", "collateral")
-COURSES: tuple[Course, ...] = ("corridor", "deadend", "field")
+COURSES: tuple[Course, ...] = ("corridor", "deadend", "field", "narrow")
+# The narrow passage's gap (m): narrower than a wedge or a line of 3 (1.9 and 2.5 m across
+# with the robots), wider than a column (0.5 m).
+NARROW_GAP_M = 1.6
 SPACING_M = 1.0
 _PLACEMENT_TRIES = 50
 
@@ -205,6 +208,20 @@ def _field(span_m: float, seed: int, count: int) -> tuple[WorldConfig, tuple[flo
     return WorldConfig(polygons=walls, field=field), (24.0, 0.0)
 
 
+def _narrow(span_m: float) -> tuple[WorldConfig, tuple[float, float]]:
+    """A wall across an arena 12 m wide with one gap `NARROW_GAP_M` wide, 8 m ahead, the
+    goal 10 m beyond: a shape wider than the gap passes only folded into a column.
+    """
+    half, gap = max(6.0, span_m / 2 + 3.0), NARROW_GAP_M / 2
+    walls = (
+        _box(-4.0, half, 24.0, half + 0.3),
+        _box(-4.0, -half - 0.3, 24.0, -half),
+        _box(8.0, gap, 8.3, half),
+        _box(8.0, -half, 8.3, -gap),
+    )
+    return WorldConfig(polygons=walls), (18.0, 0.0)
+
+
 def navigation_scenario(
     course: Course,
     shape: Shape,
@@ -223,6 +240,8 @@ def navigation_scenario(
         world, goal = _corridor(span)
     elif course == "deadend":
         world, goal = _deadend(span)
+    elif course == "narrow":
+        world, goal = _narrow(span)
     else:
         world, goal = _field(span, seed, obstacles)
     positions = _slot_positions(formation)
@@ -264,6 +283,7 @@ _THROUGH = {
     "corridor": "along a corridor",
     "deadend": "past a dead end",
     "field": "through an obstacle field",
+    "narrow": "through a gap narrower than the shape",
 }
 
 

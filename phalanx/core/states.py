@@ -22,6 +22,7 @@ class State(StrEnum):
     ARRIVED = "ARRIVED"
     DEADLOCK_REVERSE = "DEADLOCK_REVERSE"
     DEADLOCK_TURN = "DEADLOCK_TURN"
+    RESHAPE = "RESHAPE"  # the group drives on slowly while its slots slide to another shape
     # navigation layer, every robot: reactive avoidance and safety
     AVOID = "AVOID"
     EMERGENCY_STOP = "EMERGENCY_STOP"
@@ -50,7 +51,14 @@ class TransitionEvent:
 
 
 LEADER_STATES = frozenset(
-    {State.NAVIGATE, State.WANDER, State.ARRIVED, State.DEADLOCK_REVERSE, State.DEADLOCK_TURN}
+    {
+        State.NAVIGATE,
+        State.WANDER,
+        State.ARRIVED,
+        State.DEADLOCK_REVERSE,
+        State.DEADLOCK_TURN,
+        State.RESHAPE,
+    }
 )
 FOLLOWER_STATES = frozenset(
     {State.FORMATION_TRACK, State.FORMATION_REVERSE, State.AVOID, State.HOLD}

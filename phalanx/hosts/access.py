@@ -4,7 +4,7 @@ list every host's router applies, all derived from the deployment file.
 Default deny. At host H's router, by certificate common name:
 
 - `robot.<id>` (only the robots H runs): publish on its own robot's `state`, `flags`,
-  `cmd`, `event`, `report` and on `leader`; hold its own liveliness token; serve its
+  `cmd`, `event`, `report`, `scan` and on `leader`; hold its own liveliness token; serve its
   own status;
 - `world` (only if H runs it): publish sense frames, pose fixes and relative
   sightings (the ground truth a simulated robot sees); hold `alive/world`; serve its
@@ -30,7 +30,7 @@ from phalanx.hosts.deployment import Deployment, LoadedDeployment, SecuritySetti
 from phalanx.hosts.pki import common_name
 from phalanx.wire.security import READS, AccessControl, AclPolicy, AclRule, TlsFiles
 
-ROBOT_TOPICS = ("state", "flags", "cmd", "event", "report")
+ROBOT_TOPICS = ("state", "flags", "cmd", "event", "report", "scan")
 WORLD_TOPICS = ("sense", "fix", "relative")
 EVERYTHING = (
     "put", "delete", "reply", "query", "liveliness_token", "declare_subscriber",

@@ -12,6 +12,7 @@ epoch.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 from collections import deque
@@ -25,7 +26,7 @@ from phalanx.core.formation import Formation, scenario_formation
 from phalanx.core.peers import PeerState
 from phalanx.core.rigid_body import live_errors
 from phalanx.runtime.clock import Clock, Tick
-from phalanx.runtime.peers import FlagsThrottle, PeerInbox
+from phalanx.runtime.peers import FlagsThrottle, PeerInbox, ScanInbox
 from phalanx.runtime.robot_io import RobotIO
 from phalanx.runtime.signals import Stoppable
 from phalanx.telemetry.stream import Telemetry, sonar_rays
@@ -38,6 +39,7 @@ from phalanx.wire.messages import (
     Message,
     RobotFlags,
     RobotState,
+    ScanMessage,
 )
 from phalanx.wire.transport import FleetSession, TransportConfig, open_session
 
@@ -83,6 +85,8 @@ class AgentRuntime:
             robot_id, self.formation, fleet=options.fleet, lockstep=self.lockstep,
             bounds=self.bounds,
         )  # fmt: skip
+        self.scans = ScanInbox(robot_id, self.formation, fleet=options.fleet)
+        self._scan_sent_s = -1.0
         self.flags_out = FlagsThrottle(min(FLAGS_HEARTBEAT_S, scenario.leader_timeout_s / 3))
         self.step_times_s: list[float] = []
         self.steps = 0
@@ -138,6 +142,7 @@ class AgentRuntime:
         session.declare_alive(alive_key(fleet, rid))
         self.io.attach(session)
         self.inbox.attach(session, self.watched)
+        self.scans.attach(session, self.bounds)
         session.subscribe(
             leader_key(fleet), LeaderAnnouncement, self._on_announcement, context=self.bounds
         )
@@ -160,6 +165,7 @@ class AgentRuntime:
             "leader": state.formation_leader_id if state else self.formation.root,
             "epoch": state.epoch if state else 0,
             "late_peer_steps": self.inbox.late_steps,
+            "scans_heard": self.scans.heard,
             "flags_skipped": self.flags_out.skipped,
             "unsent": self.unsent,
             "stale_steps": self.stale_steps,
@@ -185,6 +191,9 @@ class AgentRuntime:
         peers, flags = self.inbox.for_step(
             tick.t_s, delay_s=delay_s, watched=self.watched, wait_s=self.options.peer_wait_s
         )  # (the bounded wait for peers is not step time)
+        heard = self.scans.take()
+        if heard:
+            observation = dataclasses.replace(observation, scans=observation.scans + heard)
         started = time.perf_counter()
         out = self.agent.step(observation, peers, tick.t_s, None if self.lockstep else flags)
         if self._stale(began, tick):
@@ -235,6 +244,10 @@ class AgentRuntime:
         if self.flags_out.due(flags):
             self._send(robot_key(fleet, rid, "flags"), lambda: RobotFlags.of(flags))
         self.inbox.keep_own(out.state, flags)
+        scan = out.scan
+        if scan is not None and scan.stamp_s > self._scan_sent_s:  # each reading once
+            self._scan_sent_s = scan.stamp_s
+            self._send(robot_key(fleet, rid, "scan"), lambda: ScanMessage.of(scan))
         change = out.leadership
         if change is not None:
             self._send(

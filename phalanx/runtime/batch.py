@@ -26,10 +26,10 @@ from phalanx.agents.agent import Agent, Observation, StepOutput
 from phalanx.agents.masking import SlotMasks, mask_readings
 from phalanx.agents.perception import SonarGeometry
 from phalanx.core.config import RobotParams, Scenario
-from phalanx.core.config_files import load_robot
+from phalanx.core.config_files import load_robot, prior_map
 from phalanx.core.formation import Formation, scenario_formation
 from phalanx.core.geometry import Twist2D
-from phalanx.core.peers import PeerState
+from phalanx.core.peers import PeerState, Scan
 from phalanx.core.runlog import RobotTrace, RunLog
 from phalanx.core.states import TransitionEvent
 from phalanx.simulator.world import World
@@ -40,11 +40,22 @@ StopCondition = Callable[["BatchRunner"], bool]
 
 
 def build_agents(scenario: Scenario, robot: RobotParams, formation: Formation) -> dict[str, Agent]:
-    """One agent per robot."""
-    return {
-        entry.id: Agent(entry.id, scenario=scenario, robot=robot, formation=formation)
+    """One agent per robot; in a navigating scenario all of them plan over one fleet map
+    (each robot's scans are added to it once: the same map each would build from the
+    scans shared over Zenoh).
+    """
+    prior = prior_map(scenario)
+    agents = {
+        entry.id: Agent(
+            entry.id, scenario=scenario, robot=robot, formation=formation, prior_map=prior
+        )
         for entry in scenario.robots
     }
+    shared = next(iter(agents.values())).parts.planner.fleet
+    if shared is not None:
+        for agent in agents.values():
+            agent.parts.planner.share(shared)
+    return agents
 
 
 class BatchRunner:
@@ -61,7 +72,9 @@ class BatchRunner:
         self.delay_ticks = max(1, round(scenario.comm_delay_s * scenario.control_rate_hz))
         self.t_s = np.arange(self.steps, dtype=np.float64) * scenario.dt_s
         self.sonar = SonarGeometry.from_params(self.robot)
-        self._slot_masks = SlotMasks.concat([agent.slot_masks for agent in self.agents.values()])
+        self._masks_of: tuple[SlotMasks, ...] = ()
+        self._slot_masks = self._fleet_masks()
+        self._scans: tuple[Scan, ...] = ()  # every robot's last step's, for the fleet map
         # x, y, theta, v, omega, commanded v and omega: (column, robot, step)
         self._columns = np.zeros((7, len(self.agents), self.steps))
         self._direction = np.ones((len(self.agents), self.steps), dtype=np.int8)
@@ -92,6 +105,18 @@ class BatchRunner:
             gc.unfreeze()
         return self._log(time.perf_counter() - started)
 
+    def _fleet_masks(self) -> SlotMasks:
+        """Every robot's slot masks stacked (again only when a robot's changed: its
+        group changed shape).
+        """
+        masks = tuple(agent.slot_masks for agent in self.agents.values())
+        if len(masks) != len(self._masks_of) or any(
+            a is not b for a, b in zip(masks, self._masks_of, strict=True)
+        ):
+            self._masks_of = masks
+            self._slot_masks = SlotMasks.concat(masks)
+        return self._slot_masks
+
     def _trace(self, i: int) -> RobotTrace:
         """Robot i's trace: its arrays are rows of the run's columns."""
         c, n = self._columns, self.steps
@@ -116,6 +141,7 @@ class BatchRunner:
             out = agent.step(obs, peers, t_s)
             commands[rid], states[rid] = out.command, out.state
             outs.append(out)
+        self._scans = tuple(out.scan for out in outs if out.scan is not None)
         self._record(k, outs)
         self._published.append(states)
         world.step(commands, self.scenario.dt_s)
@@ -132,12 +158,19 @@ class BatchRunner:
         odometry = self.world.odometries()
         agents = self.agents
         observed = [
-            Observation(odometry[i], statuses[i], readings[i], None, *self.world.positioning(rid))
+            Observation(
+                odometry[i],
+                statuses[i],
+                readings[i],
+                None,
+                *self.world.positioning(rid),
+                scans=self._scans,
+            )
             for i, rid in enumerate(agents)
         ]
         pairs = zip(agents.values(), observed, strict=True)
         heard = [agent.hear(obs, peers, t_s) for agent, obs in pairs]
-        masked = mask_readings(self.sonar, readings, heard, self._slot_masks)
+        masked = mask_readings(self.sonar, readings, heard, self._fleet_masks())
         return [
             (rid, agent, obs.with_masked(masked[i]))
             for i, ((rid, agent), obs) in enumerate(zip(agents.items(), observed, strict=True))
@@ -156,6 +189,7 @@ class BatchRunner:
             tr.leaders.append(state.formation_leader_id)
             tr.epochs.append(state.epoch)
             tr.formed.append(state.formed)
+            tr.shapes.append((state.shape_source, state.shape_target, state.morph))
             if state.cov:
                 tr.cov[k] = state.cov
             if out.events:

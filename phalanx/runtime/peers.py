@@ -6,6 +6,9 @@ those on its follow-tree path to the current leader. In lockstep (one machine,
 deterministic runs) every state is taken instead, so the robot tracked after a
 leadership change has a state from the very same tick, and a step first waits (bounded)
 for the states the batch runner would hand it (published `comm_delay_s` earlier).
+
+A navigating robot's sonar scans go to every robot too (`ScanInbox`): each adds the
+fleet's scans to its copy of the shared map (`phalanx.agents.fleetmap`).
 """
 
 from __future__ import annotations
@@ -15,10 +18,10 @@ from collections.abc import Iterable
 from typing import TypeVar
 
 from phalanx.core.formation import Formation
-from phalanx.core.peers import PeerFlags, PeerState
+from phalanx.core.peers import PeerFlags, PeerState, Scan
 from phalanx.wire.bounds import FleetBounds
 from phalanx.wire.keys import robot_key, robots_key
-from phalanx.wire.messages import RobotFlags, RobotState
+from phalanx.wire.messages import RobotFlags, RobotState, ScanMessage
 from phalanx.wire.transport import FleetSession, History, Polled
 
 EPS_S = 1e-6
@@ -216,3 +219,34 @@ class PeerInbox:
                 self.late_steps += 1
         chosen = {p: pick_state(self.states.values(p), not_after) for p in self.alive()}
         return {p: s for p, s in chosen.items() if s is not None}, {}
+
+
+class ScanInbox:
+    """The fleet's sonar scans heard since the last step (drained from a ring once a
+    step; the robot's own never taken: it adds its own as it reads them).
+    """
+
+    def __init__(self, robot_id: str, formation: Formation, *, fleet: str) -> None:
+        self.robot_id, self.formation, self.fleet = robot_id, formation, fleet
+        self.heard = 0  # scans taken from the other robots
+        self._ring: Polled[ScanMessage] | None = None
+        self._waiting: list[Scan] = []
+
+    def attach(self, session: FleetSession, bounds: FleetBounds | None) -> None:
+        """Subscribe to every robot's scans."""
+        capacity = RING_PER_ROBOT * len(self.formation.robot_ids)
+        self._ring = session.subscribe_polled(
+            robots_key(self.fleet, "scan"), ScanMessage, capacity, context=bounds
+        )
+
+    def take(self) -> tuple[Scan, ...]:
+        """The scans heard since the last call, oldest first."""
+        if self._ring is not None:
+            self._ring.drain(self._on_scan)
+        taken, self._waiting = tuple(self._waiting), []
+        self.heard += len(taken)
+        return taken
+
+    def _on_scan(self, _key: str, message: ScanMessage) -> None:
+        if message.robot_id != self.robot_id:
+            self._waiting.append(message.scan())

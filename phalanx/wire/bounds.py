@@ -17,6 +17,7 @@ from pydantic import AfterValidator, Field, ValidationInfo
 
 from phalanx.core.config import MAX_CONTROL_RATE_HZ, MAX_DURATION_S, RobotParams, Scenario
 from phalanx.core.peers import EPOCH_MAX, SEQ_MAX
+from phalanx.core.shapes import SHAPE_NAMES
 from phalanx.core.states import State
 
 # A new field takes the type of its kind and is checked the same way.
@@ -138,3 +139,6 @@ StateName = Annotated[str, Field(max_length=32), AfterValidator(_state_name)]
 Text = Annotated[str, Field(max_length=MAX_TEXT)]
 Micros = Annotated[float, Field(ge=0.0, le=1e9)]
 UnixStamp = Annotated[float, Field(ge=0.0, le=float(UINT32_MAX))]  # s since 1970, to 2106
+# The shapes a group may be in (`phalanx.core.shapes`): an index beyond them is refused.
+ShapeIndex = Annotated[int, Field(ge=0, le=len(SHAPE_NAMES) - 1)]
+Morph = Annotated[float, Field(ge=0.0, le=1.0)]  # how far a slide between shapes has come

@@ -35,6 +35,7 @@ from phalanx.wire.messages import (
     RelativeFixMessage,
     RobotFlags,
     RobotState,
+    ScanMessage,
     SenseFrame,
     VelocityCommand,
 )
@@ -70,6 +71,9 @@ _STATE_FIELDS: tuple[tuple[str, str], ...] = (
     ("deadlocks", "I"),
     ("profile_s", "d"),
     ("cov", "D"),  # empty (2 bytes) unless the robot runs its pose estimator
+    ("shape_source", "b"),  # the shape the group is in or moving between, and how far
+    ("shape_target", "b"),
+    ("morph", "d"),
 )
 LAYOUTS: dict[type[Message], tuple[int, tuple[tuple[str, str], ...]]] = {
     RobotState: (1, _STATE_FIELDS),
@@ -151,6 +155,18 @@ LAYOUTS: dict[type[Message], tuple[int, tuple[tuple[str, str], ...]]] = {
             ("std_range_m", "d"),
             ("std_bearing_rad", "d"),
             ("std_heading_rad", "d"),
+        ),
+    ),
+    ScanMessage: (
+        11,
+        (
+            ("robot_id", "s"),
+            ("stamp_s", "d"),
+            ("x_m", "d"),
+            ("y_m", "d"),
+            ("theta_rad", "d"),
+            ("ranges_m", "D"),
+            ("echo", "B"),
         ),
     ),
 }

@@ -8,6 +8,7 @@ robot/<id>/sense    SenseFrame from the world (sim driver)
 robot/<id>/cmd      VelocityCommand to the world (sim driver)
 robot/<id>/event    AgentEvent (behaviour transitions)
 robot/<id>/report   AgentReport at the end of a run
+robot/<id>/scan     ScanMessage: a navigating robot's sonar reading, for the fleet's map
 robot/<id>/fix      PoseFixMessage: an absolute pose fix (`phalanx mocap`, or the world
                     simulating motion capture for robots on drivers)
 robot/<id>/relative RelativeFixMessage: another robot seen by this one's camera (the world

@@ -19,7 +19,7 @@ from pydantic import (
 )
 
 from phalanx.core.geometry import Pose2D, Twist2D
-from phalanx.core.peers import PeerFlags, PeerState
+from phalanx.core.peers import PeerFlags, PeerState, Scan
 from phalanx.wire.bounds import (
     MAX_BUMPERS,
     MAX_EXTENT_M,
@@ -32,11 +32,13 @@ from phalanx.wire.bounds import (
     Heading,
     MaybeRobotId,
     Micros,
+    Morph,
     Period,
     Range,
     RobotId,
     Seconds,
     Seq,
+    ShapeIndex,
     Speed,
     Stamp,
     StateName,
@@ -97,6 +99,9 @@ class RobotState(Message):
     deadlocks: Count = 0
     profile_s: Seconds = 0.0
     cov: tuple[float, ...] = Field(default=(), max_length=6)
+    shape_source: ShapeIndex = 0
+    shape_target: ShapeIndex = 0
+    morph: Morph = 1.0
 
     @field_validator("cov")
     @classmethod
@@ -146,7 +151,9 @@ class RobotFlags(Message):
     `clear`: its path ahead is free far enough to lead; `formed`: it is in its slot (a
     robot that is not may not be tracked); `formation_leader_id`/`epoch`: who it thinks
     leads, and under which epoch; `waypoint`, `deadlocks`, `profile_s`: the group's
-    progress (next waypoint, deadlocks at it, scripted profile clock in s).
+    progress (next waypoint, deadlocks at it, scripted profile clock in s);
+    `shape_source`, `shape_target`, `morph`: the shape the group is in or moving between
+    (0 the scenario's, 1 shrunk, 2 column; `morph` of the way, 1 = there).
     """
 
     version: Literal[1] = 1
@@ -165,6 +172,9 @@ class RobotFlags(Message):
     waypoint: Count = 0
     deadlocks: Count = 0
     profile_s: Seconds = 0.0
+    shape_source: ShapeIndex = 0
+    shape_target: ShapeIndex = 0
+    morph: Morph = 1.0
 
     @classmethod
     def of(cls, flags: PeerFlags) -> RobotFlags:
@@ -329,6 +339,44 @@ class RelativeFixMessage(Message):
     std_range_m: float = Field(gt=0.0, le=10.0)
     std_bearing_rad: float = Field(gt=0.0, le=math.pi)
     std_heading_rad: float = Field(default=0.0, ge=0.0, le=math.pi)
+
+
+class ScanMessage(Message):
+    """One sonar reading of robot `robot_id` for the fleet's shared map, on
+    `.../robot/<id>/scan`: where it was taken (world frame, m and rad, at `stamp_s` on the
+    fleet clock), one range per transducer (m) and which are echoes of obstacles (the
+    formation's own robots masked out by the sender).
+    """
+
+    version: Literal[1] = 1
+    robot_id: RobotId
+    stamp_s: Stamp
+    x_m: Coordinate
+    y_m: Coordinate
+    theta_rad: Heading
+    ranges_m: tuple[Range, ...] = Field(max_length=MAX_SONARS)
+    echo: tuple[bool, ...] = Field(max_length=MAX_SONARS)
+
+    @model_validator(mode="after")
+    def _an_echo_flag_per_range(self) -> Self:
+        if len(self.echo) != len(self.ranges_m):
+            raise ValueError(f"{len(self.echo)} echo flags for {len(self.ranges_m)} ranges")
+        return self
+
+    @classmethod
+    def of(cls, scan: Scan) -> ScanMessage:
+        """The wire message of a robot's scan (validated)."""
+        return cls(
+            robot_id=scan.robot_id, stamp_s=scan.stamp_s, x_m=scan.x_m, y_m=scan.y_m,
+            theta_rad=scan.theta_rad, ranges_m=scan.ranges_m, echo=scan.echo,
+        )  # fmt: skip
+
+    def scan(self) -> Scan:
+        """The scan as the agent brain reads it."""
+        return Scan(
+            self.robot_id, self.stamp_s, self.x_m, self.y_m, self.theta_rad, self.ranges_m,
+            self.echo,
+        )  # fmt: skip
 
 
 class AgentEvent(Message):

@@ -30,12 +30,14 @@ from phalanx.wire.messages import (
     Message,
     RobotFlags,
     RobotState,
+    ScanMessage,
     SenseFrame,
     VelocityCommand,
 )
 from phalanx.wire.transport import Polled, deliver
 
 WEDGE = CONFIG_ROOT / "scenarios" / "paper_wedge.toml"
+NAV_WEDGE = CONFIG_ROOT / "scenarios" / "nav_corridor_wedge3.toml"  # a fleet that maps
 REAL = CONFIG_ROOT / "scenarios" / "real_wedge.toml"
 FLEET = "fuzz"
 
@@ -149,14 +151,16 @@ class AgentUnderTest:
     """Robot r2's agent process (realtime: flags and path states through rings; or
     lockstep: every state through a callback), stepping on frames this harness sends."""
 
-    def __init__(self, *, clock: str = "realtime") -> None:
+    def __init__(self, *, clock: str = "realtime", navigating: bool = False) -> None:
         from phalanx.runtime.agent import AgentRuntime, RuntimeOptions
         from phalanx.runtime.robot_io import WorldLink
         from phalanx.wire.bounds import FleetBounds
         from phalanx.wire.transport import TransportConfig
 
         # A day: longer than any campaign's steps (the frames of a run's end are refused).
-        self.scenario = apply_overrides(load_scenario(WEDGE), ["duration_s=86400"])
+        # Navigating: every robot's scans feed its copy of the fleet's map.
+        path = NAV_WEDGE if navigating else WEDGE
+        self.scenario = apply_overrides(load_scenario(path), ["duration_s=86400"])
         self.robot = load_robot(self.scenario.robot)
         self.limits = run_limits(self.robot, self.scenario.limits)
         bounds = FleetBounds.of(self.scenario, self.robot)
@@ -188,7 +192,17 @@ class AgentUnderTest:
             "agent/state": (RobotState, robot_key(FLEET, "r1", "state"), self._valid_state),
             "agent/sense": (SenseFrame, robot_key(FLEET, "r2", "sense"), self._valid_frame),
             "agent/leader": (LeaderAnnouncement, leader_key(FLEET), self._valid_leader),
+            "agent/scan": (ScanMessage, robot_key(FLEET, "r1", "scan"), self._valid_scan),
         }
+
+    def _valid_scan(self) -> list[Message]:
+        t = self.t_s
+        return [
+            ScanMessage(
+                robot_id="r1", stamp_s=t, x_m=0.15 * t, y_m=0.0, theta_rad=0.0,
+                ranges_m=(2.0,) * 8 + (5.0,) * 8, echo=(True,) * 8 + (False,) * 8,
+            )
+        ]  # fmt: skip
 
     def _peer_state(self, rid: str, t_s: float) -> RobotState:
         x = 0.15 * t_s if rid == "r1" else 0.15 * t_s - 0.7

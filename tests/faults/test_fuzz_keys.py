@@ -54,6 +54,20 @@ def test_no_payload_crashes_an_agent_or_moves_it_beyond_its_limits(clock: str, k
     assert agent.session.stats.dropped > 0  # and what it refused, it counted
 
 
+def test_no_scan_crashes_a_navigating_agent_or_reaches_its_map_unchecked() -> None:
+    agent = AgentUnderTest(navigating=True)
+    swept = sweep(agent, "agent/scan", check_every=25)
+    sent = campaign(agent, "agent/scan", FUZZ_EXAMPLES, seed=zlib.crc32(b"agent/scan"),
+                    check_every=25)  # fmt: skip
+    assert sent == FUZZ_EXAMPLES
+    assert agent.steps >= swept + sent
+    assert agent.session.stats.dropped > 0
+    assert agent.runtime.scans.heard > 0  # valid scans got through
+    grid = agent.runtime.agent.parts.planner.fleet
+    assert grid is not None
+    assert grid.scans_added > agent.steps  # into the map, with its own
+
+
 @pytest.mark.parametrize("key", POSITIONING_KEYS)
 def test_no_positioning_payload_crashes_an_agent_on_a_driver(key: str) -> None:
     agent = DriverAgentUnderTest()

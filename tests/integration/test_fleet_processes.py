@@ -110,8 +110,8 @@ def _spawn_fleet(
     duration_s: float,
     procs: list[subprocess.Popen[bytes]],
     out: Path,
+    scenario: Path = WEDGE,
 ) -> None:
-    scenario = WEDGE
     common = ["--fleet", fleet, "--clock", clock, "--set", f"duration_s={duration_s}"]
     procs.append(
         subprocess.Popen(
@@ -277,6 +277,26 @@ def test_malformed_payloads_on_every_key_are_counted_and_ignored(
         assert sum(decode["malformed"].values()) + sum(decode["unknown_version"].values()) >= len(
             garbage
         )
+
+
+def test_every_robots_sonar_scans_reach_every_other_robots_map(
+    tmp_path: Path, processes: list[subprocess.Popen[bytes]]
+) -> None:
+    endpoint = loopback_endpoint(free_tcp_port())
+    nav = CONFIG_ROOT / "scenarios" / "nav_corridor_wedge3.toml"
+    _spawn_fleet("maps", endpoint, "realtime", 15.0, processes, tmp_path / "out", nav)
+    heard: dict[str, int] = {}
+    with open_session(TransportConfig(mode="client", connect=(endpoint,))) as session:
+
+        def everyone_heard_the_others() -> bool:
+            for status in session.query_status("phalanx/maps/status/*", 1.0):
+                if "scans_heard" in status:
+                    heard[str(status["robot_id"])] = int(status["scans_heard"])
+            return len(heard) == 3 and min(heard.values()) >= 20
+
+        assert _wait(everyone_heard_the_others, 40.0), heard
+    processes[0].wait(60)
+    assert processes[0].returncode == 0
 
 
 def test_an_agent_whose_world_is_gone_exits_with_its_own_code(

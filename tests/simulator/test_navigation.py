@@ -74,7 +74,11 @@ def test_a_lost_leader_stops_the_followers_then_the_best_robot_leads() -> None:
 
 @pytest.mark.slow
 def test_the_group_backs_out_of_the_dead_end_in_formation() -> None:
-    scenario = load_scenario(SCENARIOS / "nav_deadend_wedge3.toml")
+    # The paper's reverse, in the scenario's own shape (no reshaping into the dead end:
+    # the folded group's escape is checked below).
+    scenario = apply_overrides(
+        load_scenario(SCENARIOS / "nav_deadend_wedge3.toml"), ["navigation.reshape=false"]
+    )
     runner = BatchRunner(scenario)
 
     def turned(b: BatchRunner) -> bool:
@@ -97,10 +101,29 @@ def test_the_group_backs_out_of_the_dead_end_in_formation() -> None:
 
 
 @pytest.mark.slow
-def test_a_line_caught_turning_turns_back_before_it_backs_out() -> None:
-    # The collateral line is turning on the spot at the end of the U when the deadlock
-    # is declared: backing out along that heading would run it into the side wall.
-    scenario = load_scenario(SCENARIOS / "nav_deadend_collateral3.toml")
+def test_a_wedge_folded_into_the_dead_end_backs_out_folded_and_gets_there() -> None:
+    # The dead end looks passable for a column until its far wall is seen: the wedge
+    # folds, drives in, backs out as a column, goes round and unfolds on the way.
+    log = run_batch(load_scenario(SCENARIOS / "nav_deadend_wedge3.toml"))
+    leader = [(e.target, e.reason) for e in log.transitions["r1"]]
+    targets = [t for t, _ in leader]
+    assert State.RESHAPE in targets
+    first_reverse = targets.index(State.DEADLOCK_REVERSE)
+    assert State.RESHAPE in targets[:first_reverse]
+    assert targets[-1] == State.ARRIVED
+    assert not log.collisions
+    _, backward = phase_masks(log)
+    assert backward.sum() * log.scenario.dt_s > 20.0
+    for rid in ("r2", "r3"):  # settled in the column as it backs out (its transient:
+        assert np.median(error_series(log, rid).linear_pct[backward]) < 0.5  # RESULTS.md)
+
+
+@pytest.mark.slow
+def test_a_group_caught_turning_turns_back_before_it_backs_out() -> None:
+    # The wedge of five (kept in its shape) is turning on the spot at the end
+    # of the U when the deadlock is declared: backing out along that heading would run
+    # it into the side wall.
+    scenario = navigation_scenario("deadend", "wedge", 5, overrides={"navigation.reshape": False})
     runner = BatchRunner(scenario)
 
     def turned(b: BatchRunner) -> bool:
@@ -117,13 +140,13 @@ def test_a_line_caught_turning_turns_back_before_it_backs_out() -> None:
     ]
     assert backing, "the group never backed out"
     headings_deg = [math.degrees(leader.theta_rad[k]) for k in backing]
-    assert max(abs(h) for h in headings_deg) < 2.0  # straight back along the U's axis
+    assert max(abs(h) for h in headings_deg) < 3.0  # back along the U's axis, not 12 deg off it
     reverses = [e for e in log.transitions["r1"] if e.target == State.DEADLOCK_REVERSE]
     assert len(reverses) == 1
     done = next(e for e in log.transitions["r1"] if e.source == State.DEADLOCK_REVERSE)
     assert "safe distance" in done.reason
     _, backward = phase_masks(log)
-    for rid in ("r2", "r3"):
+    for rid in ("r2", "r3"):  # (the second row's errors: docs/RESULTS.md)
         series = error_series(log, rid)
         assert series.linear_pct[backward].max() < 0.5
         assert series.angular_pct[backward].max() < 0.3
@@ -156,6 +179,7 @@ def test_a_boxed_in_group_stops_for_good_and_says_why() -> None:
     assert nav["stuck"]
     assert "deadlock" in nav["stuck_reason"]
     assert "max_retries = 1" in nav["stuck_reason"]
+    assert "no way to it on the map" in nav["stuck_reason"]
     assert nav["deadlock_reverses"] == 1
     assert not log.collisions
     for rid, tr in log.traces.items():
@@ -185,3 +209,22 @@ def test_breadcrumbs_know_the_way_they_came_in() -> None:
     for _ in range(40):  # turning on the spot drops nothing
         crumbs.drop(Vec2(1.5 * math.cos(heading), 1.5 * math.sin(heading)))
     assert crumbs.heading_in_rad(1.0) == pytest.approx(heading)
+
+
+@pytest.mark.slow
+def test_a_line_folds_on_the_move_to_pass_a_gap_narrower_than_itself() -> None:
+    log = run_batch(load_scenario(SCENARIOS / "nav_narrow_collateral3.toml"))
+    nav = navigation_metrics(log)
+    assert nav["goal_reached"]
+    assert not log.collisions
+    leader = log.traces["r1"]
+    reshaping = [k for k, s in enumerate(leader.states) if s == State.RESHAPE]
+    assert nav["reshapes"] >= 2  # folded before the gap, unfolded after it
+    speeds = [leader.cmd_v_mps[k] for k in reshaping]
+    assert max(speeds) > 0.05  # the group kept going while its slots slid
+    # ... no faster than 0.1 m/s once the limiter has braked to it (1 s into a reshape)
+    settled = [v for k, v in zip(reshaping, speeds, strict=True) if k - 10 in reshaping]
+    assert max(settled) <= 0.1 + 1e-9
+    shapes = {s[1] for s in leader.shapes}
+    assert shapes >= {0, 2}  # the scenario's shape and the column
+    assert leader.shapes[-1][1:] == (0, 1.0)  # back in the scenario's shape at the end

@@ -134,7 +134,8 @@ CASES: list[tuple[str, str, str, StackContext]] = [
     *_took(S.AVOID),
     *_took(S.HOLD),
     *[(s, S.FORMATION_TRACK, "handed the lead on", FOLLOWER)
-      for s in (S.NAVIGATE, S.WANDER, S.ARRIVED, S.DEADLOCK_REVERSE, S.DEADLOCK_TURN)],
+      for s in (S.NAVIGATE, S.WANDER, S.ARRIVED, S.DEADLOCK_REVERSE, S.DEADLOCK_TURN,
+                S.RESHAPE)],
     *[(S.JOIN, t, "joined the fleet", replace(FOLLOWER, **kw)) for t, kw in LEADS.items()],
     (S.JOIN, S.FORMATION_TRACK, "joined the fleet", FOLLOWER),
     # formation layer
@@ -164,6 +165,9 @@ CASES: list[tuple[str, str, str, StackContext]] = [
      replace(LEADER, path_used_up=True)),
     *_plan(S.DEADLOCK_TURN, "turned away", turned=True),
     *_plan(S.DEADLOCK_TURN, "a robot stopped for an obstacle", someone_stopped=True),
+    (S.NAVIGATE, S.RESHAPE, "the way ahead needs another shape",
+     replace(LEADER, plan="goto", reshape_wanted=True)),
+    *_plan(S.RESHAPE, "reshaped", reshaped=True),
 ]  # fmt: skip
 
 

@@ -1,0 +1,218 @@
+"""Changing the formation's shape when the way demands it (formation reconfiguration):
+the leader plans its route for the shape's footprint over the fleet's map and, when
+the scenario's shape only gets through by a long way round (or not at all) while a
+narrower one passes, it folds the group on the move (`RESHAPE`): separations across
+the heading shrunk, or every robot into a column behind it. Once the wider shape fits
+where the group is and its route is as good, it unfolds again; the shape the
+scenario asks for is the one it goes back to.
+
+The transition is planned (`phalanx.core.shapes`): each robot's slot slides on a
+straight line in the formation frame to its new one, all at the same fraction of the way
+(CAPT: no robot crosses another's path), while the leader drives on slowly along its
+route (the followers' slots slide under them as they go; where the way ahead does not fit
+the shape as it is at that moment, the leader's steering stops it). The shape in
+effect (`ShapeKey`) goes out in the leader's flags; followers take it from there, so
+every robot computes the same slots.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Protocol
+
+from phalanx.agents.behaviours.base import Behaviour, Moment
+from phalanx.agents.leadership import FlagsView
+from phalanx.agents.mapping import OccupancyMap
+from phalanx.agents.route import DETOUR_M, DETOUR_SHARE, ROUTE_AHEAD_M
+from phalanx.agents.shape import Shape
+from phalanx.core.geometry import ZERO_TWIST, Pose2D, Twist2D, Vec2
+from phalanx.core.shapes import SCENARIO_SHAPE, SHAPE_NAMES, ShapeBook, ShapeKey
+
+# Slots slide at this speed (m/s) in the formation frame during a reshape, and it
+# takes at least this long; the followers then have this long to settle in the new shape.
+# Meanwhile the leader drives on no faster than `RESHAPE_CRUISE_MPS`.
+RESHAPE_MPS = 0.12
+RESHAPE_MIN_S = 3.0
+SETTLE_S = 2.0
+RESHAPE_CRUISE_MPS = 0.1
+# A footprint keeps this much more than the shape's half-span off obstacles (m).
+FOOTPRINT_MARGIN_M = 0.15
+# How often the leader weighs the shapes (s), how many times running a change must be
+# wanted, and how long after a reshape before the next.
+DECIDE_S = 1.0
+CONFIRM = 2
+DWELL_S = 5.0
+# The sonar showing the way too narrow for the shape this long folds the group.
+SQUEEZE_S = 1.0
+
+
+@dataclass
+class ShapeKeeper:
+    """The shape in effect (the leader's to change, the followers' to copy), and the
+    leader's choice of the next one.
+    """
+
+    book: ShapeBook
+    radius_m: float
+    enabled: bool = True
+    key: ShapeKey = field(default_factory=ShapeKey)
+    wanted: int = SCENARIO_SHAPE
+    _candidate: int = SCENARIO_SHAPE
+    _count: int = 0
+    _decided_s: float = -math.inf
+    _settled_s: float = -math.inf
+    squeezed_s: float = 0.0  # how long the sonar has shown the way too narrow for the shape
+
+    def copy_from(self, leader: FlagsView) -> None:
+        """Take the leader's shape as it published it."""
+        self.key = ShapeKey(leader.shape_source, leader.shape_target, leader.morph)
+
+    def footprint_m(self, shape: int) -> float:
+        """How far a route for `shape` keeps off obstacles (m)."""
+        return self.book.half_span_m(shape, self.radius_m) + FOOTPRINT_MARGIN_M
+
+    @property
+    def reshape_wanted(self) -> bool:
+        """The leader wants another shape than the one it is in (or is between two)."""
+        return self.enabled and (self.wanted != self.key.target or not self.key.settled)
+
+    def squeeze(self, squeezed: bool, dt_s: float) -> None:
+        """The leader's sonar this step: the way ahead free for itself but not for the
+        whole shape. Held `SQUEEZE_S`, the group folds at once (the map may not show yet
+        that there is no way round).
+        """
+        self.squeezed_s = self.squeezed_s + dt_s if squeezed else 0.0
+        if self.squeezed_s >= SQUEEZE_S:
+            self.fold()
+
+    def fold(self) -> bool:
+        """Fold into the narrowest shape now, if that is another one than the shape in
+        effect (and wanted); whether a fold is coming.
+        """
+        narrowest = max(s for s in range(len(SHAPE_NAMES)) if s == 0 or self.book.differs(s))
+        if not self.enabled or self.key.target == narrowest:
+            return False
+        self.wanted = narrowest
+        self._candidate, self._count = narrowest, CONFIRM
+        return True
+
+    def fits(self, grid: OccupancyMap, pose: Pose2D, shape: int) -> bool:
+        """Whether every slot of `shape`, and of the shape in effect, is clear of the
+        map's obstacles with the leader at `pose` (room to change between them here).
+        """
+        clearance = self.radius_m + FOOTPRINT_MARGIN_M
+        slots = [*self.book.shapes[shape].values(), *self.book.shapes[self.key.target].values()]
+        return all(grid.clear_within(pose.to_world(p), clearance) for p in slots)
+
+    def decide(self, grid: OccupancyMap | None, pose: Pose2D, goal: Vec2, t_s: float) -> None:
+        """Weigh the shapes (every `DECIDE_S`): the widest whose route is about as good as
+        the best; a change is wanted once it has come out `CONFIRM` times running, not
+        within `DWELL_S` of the last reshape, and a wider shape only if it fits here.
+        """
+        if not self.enabled or grid is None or t_s - self._decided_s < DECIDE_S:
+            return
+        self._decided_s = t_s
+        best = self._best(grid, pose.position, goal)
+        if best is None or t_s - self._settled_s < DWELL_S:
+            self._count = 0
+            return
+        wider = self.footprint_m(best) > self.footprint_m(self.key.target)
+        if wider and (self.squeezed_s > 0.0 or not self.fits(grid, pose, best)):
+            best = self.key.target
+        self._count = self._count + 1 if best == self._candidate else 1
+        self._candidate = best
+        if self._count >= CONFIRM:
+            self.wanted = best
+
+    def _best(self, grid: OccupancyMap, start: Vec2, goal: Vec2) -> int | None:
+        shapes = [s for s in range(len(SHAPE_NAMES)) if s == 0 or self.book.differs(s)]
+        lengths: dict[int, float] = {}
+        for shape in shapes:
+            planned = grid.plan(
+                start, goal, keep_off_m=0.0, ahead_m=ROUTE_AHEAD_M,
+                footprint_m=self.footprint_m(shape),
+            )  # fmt: skip
+            if planned is not None:
+                lengths[shape] = planned[1]
+        if not lengths:
+            return None
+        shortest = min(lengths.values())
+        return next(
+            s for s in shapes if lengths.get(s, math.inf) <= shortest * DETOUR_SHARE + DETOUR_M
+        )
+
+    def settled_at(self, t_s: float) -> None:
+        """A reshape is over (the dwell time runs from here)."""
+        self._settled_s = t_s
+        self._count = 0
+
+
+class Drive(Protocol):
+    """What a reshaping leader drives on with: its navigation behaviour."""
+
+    @property
+    def has_goal(self) -> bool: ...  # noqa: D102
+
+    def command(self, moment: Moment) -> Twist2D: ...  # noqa: D102
+
+
+class Reshape(Behaviour):
+    """RESHAPE (the leader): drive on slowly (`drive`, the navigation behaviour, capped at
+    `RESHAPE_CRUISE_MPS`; standing still without one) while every slot slides to the new
+    shape's.
+    """
+
+    def __init__(
+        self, keeper: ShapeKeeper, shape: Shape, *, dt_s: float, drive: Drive | None = None
+    ) -> None:
+        self.keeper, self.shape, self.dt_s, self.drive = keeper, shape, dt_s, drive
+        self.duration_s = RESHAPE_MIN_S
+        self.done_s: float | None = None
+
+    @property
+    def reshaped(self) -> bool:
+        """The new shape is reached and the followers had time to settle in it."""
+        return self.done_s is not None and self._since_done >= SETTLE_S
+
+    def enter(self, moment: Moment) -> None:
+        """Start sliding from the shape in effect to the one wanted (or carry on a slide
+        that was interrupted).
+        """
+        keeper = self.keeper
+        if keeper.key.settled:
+            keeper.key = ShapeKey(keeper.key.target, keeper.wanted, 0.0)
+        book = keeper.book
+        a, b = book.shapes[keeper.key.source], book.shapes[keeper.key.target]
+        longest = max((a[r] - b[r]).norm() for r in a)
+        self.duration_s = max(RESHAPE_MIN_S, longest / RESHAPE_MPS)
+        self.done_s = None
+        self._since_done = 0.0
+
+    def command(self, moment: Moment) -> Twist2D:
+        """The shape's slide moves on a step; the leader drives on, slowly."""
+        keeper = self.keeper
+        if not keeper.key.settled:
+            morph = min(1.0, keeper.key.morph + self.dt_s / self.duration_s)
+            keeper.key = ShapeKey(keeper.key.source, keeper.key.target, morph)
+        elif self.done_s is None:
+            self.done_s = moment.t_s
+        else:
+            self._since_done += self.dt_s
+        if self.drive is None or not self.drive.has_goal:
+            return ZERO_TWIST
+        return _capped(self.drive.command(moment), RESHAPE_CRUISE_MPS)
+
+    def leave(self, moment: Moment) -> None:
+        """Done (or interrupted): the next change waits its dwell time."""
+        if self.keeper.key.settled:
+            self.keeper.settled_at(moment.t_s)
+            self.keeper.wanted = self.keeper.key.target
+
+
+def _capped(twist: Twist2D, v_max_mps: float) -> Twist2D:
+    """`twist` slowed to at most `v_max_mps`, on the same curve."""
+    if abs(twist.v_mps) <= v_max_mps:
+        return twist
+    share = v_max_mps / abs(twist.v_mps)
+    return Twist2D(twist.v_mps * share, twist.omega_radps * share)

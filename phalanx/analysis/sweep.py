@@ -1,0 +1,339 @@
+"""`phalanx sweep`: many navigation runs (a scenario family x seeds x controllers x
+formations x group sizes) on Dask's distributed scheduler, on this machine's worker
+processes by default or on a cluster given its scheduler's address.
+
+Why Dask (distributed) rather than Ray: a sweep is a bag of independent, CPU-bound,
+pure-Python runs of a few seconds each, which is exactly a `Client.map` over worker
+processes; Dask's scheduler and workers are plain Python packages (no separate
+object-store or raylet daemons), a `LocalCluster` of two worker processes starts in a
+second or two on a two-core machine (what CI has), and a cluster is one
+`dask scheduler` plus any number of `dask worker ADDRESS` processes on machines that
+have phalanx installed. Ray would bring a larger runtime per node for no feature a
+sweep uses.
+
+Every finished run is appended to a JSON-lines file as soon as it comes back, so a
+sweep that is stopped and started again runs only what is missing (resumable); the
+rows are gathered into one table per (family, formation, robots, controller).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from phalanx.agents.mapping import MAX_EVIDENCE, OccupancyMap
+from phalanx.analysis.metrics import navigation_metrics
+from phalanx.analysis.report import SWEEP_BEGIN, SWEEP_END
+from phalanx.core.config import Scenario
+from phalanx.core.geometry import Vec2
+from phalanx.core.runlog import RunLog
+from phalanx.core.scenarios import Course, Shape, navigation_scenario, resolve_world
+from phalanx.runtime.batch import BatchRunner
+
+SETTLE_AFTER_END_S = 10.0
+CALM_KEYS = ("linear_pct", "angular_pct", "orientation_deg", "linear_m", "angular_deg")
+
+
+@dataclass(frozen=True, slots=True)
+class Job:
+    """One run of a sweep: `navigation_scenario(course, shape, robots, seed=seed)` with
+    `controller`, and any dotted `overrides` of the scenario (as `--set` takes them).
+    """
+
+    course: str
+    shape: str
+    robots: int
+    seed: int
+    controller: str = "ours"
+    overrides: tuple[tuple[str, Any], ...] = ()
+
+    @property
+    def key(self) -> str:
+        """A name unique within a sweep (what a resumed sweep skips by)."""
+        extra = ",".join(f"{k}={v}" for k, v in self.overrides)
+        return f"{self.course}/{self.shape}{self.robots}/{self.controller}/s{self.seed}/{extra}"
+
+    def scenario(self) -> Scenario:
+        """The run's scenario."""
+        overrides = {"controller.kind": self.controller, **dict(self.overrides)}
+        return navigation_scenario(
+            _course(self.course), _shape(self.shape), self.robots, seed=self.seed,
+            overrides=overrides,
+        )  # fmt: skip
+
+
+def _course(name: str) -> Course:
+    if name not in ("corridor", "deadend", "field", "narrow"):
+        raise ValueError(f"unknown scenario family {name!r}")
+    return name  # type: ignore[return-value]
+
+
+def _shape(name: str) -> Shape:
+    if name not in ("wedge", "inline", "collateral"):
+        raise ValueError(f"unknown formation {name!r}")
+    return name  # type: ignore[return-value]
+
+
+def jobs(
+    courses: Iterable[str],
+    shapes: Iterable[str],
+    robots: Iterable[int],
+    seeds: Iterable[int],
+    controllers: Iterable[str] = ("ours",),
+    overrides: Sequence[tuple[str, Any]] = (),
+) -> list[Job]:
+    """Every combination, in a fixed order."""
+    return [
+        Job(c, s, n, seed, k, tuple(overrides))
+        for c in courses
+        for s in shapes
+        for n in robots
+        for k in controllers
+        for seed in seeds
+    ]
+
+
+def run_until_done(runner: BatchRunner) -> RunLog:
+    """Run until a robot is ARRIVED or STUCK, then `SETTLE_AFTER_END_S` more (or to the
+    scenario's end).
+    """
+    finished: dict[str, int] = {}
+    extra = round(SETTLE_AFTER_END_S / runner.scenario.dt_s)
+
+    def done(b: BatchRunner) -> bool:
+        if "k" not in finished and any(
+            a.state_name in ("ARRIVED", "STUCK") for a in b.agents.values()
+        ):
+            finished["k"] = b.done
+        return "k" in finished and b.done - finished["k"] >= extra
+
+    return runner.run(until=done)
+
+
+def run_job(job: Job) -> dict[str, Any]:
+    """One run (on whichever worker gets it): its navigation metrics and wall time."""
+    started = time.perf_counter()
+    log = run_until_done(BatchRunner(job.scenario()))
+    nav = navigation_metrics(log)
+    wall_s = time.perf_counter() - started
+    return {"job": asdict(job), "key": job.key, "wall_s": wall_s, "route_s": route_s(log), **nav}
+
+
+def route_s(log: RunLog) -> float:
+    """How long the shortest route from the leader's start to the last waypoint round
+    the world's obstacles (grown by a robot's radius, on the map's 0.5 m grid) takes at
+    cruise speed (s); the straight line's if there is none.
+    """
+    scenario = log.scenario
+    start, goal = log.traces[log.formation.root].pose(0).position, scenario.navigation.waypoints
+    if not goal:
+        return math.nan
+    end = Vec2(*goal[-1])
+    grid = OccupancyMap(start)
+    centres = (np.arange(grid.cells) + 0.5) * grid.cell_m
+    x, y = np.meshgrid(grid.x0_m + centres, grid.y0_m + centres)  # (row = y, col = x)
+    blocked = np.zeros(x.shape, dtype=bool)
+    reach = log.robot.radius_m + grid.cell_m / 2
+    world = resolve_world(scenario.world)
+    for c in world.circles:
+        blocked |= np.hypot(x - c.x_m, y - c.y_m) < c.radius_m + reach
+    for p in world.polygons:  # (their bounding boxes: the courses' walls are boxes)
+        xs, ys = [v[0] for v in p.vertices_m], [v[1] for v in p.vertices_m]
+        blocked |= (
+            (x > min(xs) - reach)
+            & (x < max(xs) + reach)
+            & (y > min(ys) - reach)
+            & (y < max(ys) + reach)
+        )
+    grid.evidence[blocked] = MAX_EVIDENCE
+    planned = grid.plan(start, end, keep_off_m=0.0, ahead_m=0.0)
+    length_m = planned[1] if planned is not None else (end - start).norm()
+    return length_m / scenario.navigation.cruise_mps
+
+
+# --- the engine -------------------------------------------------------------------------
+
+
+def done_rows(path: Path) -> dict[str, dict[str, Any]]:
+    """The rows a results file already holds, by job key (a torn last line is dropped)."""
+    rows: dict[str, dict[str, Any]] = {}
+    if not path.exists():
+        return rows
+    for line in path.read_text(encoding="utf-8").splitlines():
+        try:
+            row = json.loads(line)
+        except json.JSONDecodeError:
+            continue
+        if isinstance(row, dict) and isinstance(row.get("key"), str):
+            rows[row["key"]] = row
+    return rows
+
+
+def run_sweep(
+    todo: Sequence[Job],
+    results: Path,
+    *,
+    address: str | None = None,
+    workers: int = 2,
+    progress: Callable[[int, int], None] | None = None,
+) -> list[dict[str, Any]]:
+    """Run the jobs not in `results` yet (a JSON-lines file, appended to as runs finish)
+    on a local cluster of `workers` processes, or on the cluster at `address`; every
+    job's row, in the order of `todo`.
+    """
+    from dask.distributed import Client, LocalCluster, as_completed
+
+    have = done_rows(results)
+    pending = [j for j in todo if j.key not in have]
+    total, finished = len(todo), len(todo) - len(pending)
+    if progress is not None:
+        progress(finished, total)
+    results.parent.mkdir(parents=True, exist_ok=True)
+    if pending:
+        cluster = None
+        if address is None:
+            cluster = LocalCluster(  # type: ignore[no-untyped-call]
+                n_workers=workers, threads_per_worker=1, processes=True,
+                dashboard_address=None,
+            )  # fmt: skip
+        try:
+            client = Client(address or cluster)  # type: ignore[no-untyped-call]
+            with client, results.open("a", encoding="utf-8") as out:
+                futures = client.map(run_job, pending, pure=False)
+                for future in as_completed(futures):  # type: ignore[no-untyped-call]
+                    row = future.result()
+                    out.write(json.dumps(row, allow_nan=True) + "\n")
+                    out.flush()
+                    have[row["key"]] = row
+                    finished += 1
+                    if progress is not None:
+                        progress(finished, total)
+        finally:
+            if cluster is not None:
+                cluster.close()
+    return [have[j.key] for j in todo]
+
+
+# --- the table --------------------------------------------------------------------------
+
+
+def summarise(rows: Sequence[dict[str, Any]]) -> dict[str, Any]:
+    """Aggregate runs of one group (goal, collisions, times, calm errors, episodes)."""
+    n = len(rows)
+    reached = [r for r in rows if r["goal_reached"]]
+    times = np.array([r["time_to_goal_s"] for r in reached], dtype=float)
+    ratio = np.array([r["time_to_goal_s"] / r["route_s"] for r in reached if r.get("route_s")])
+    calm: dict[str, dict[str, float]] = {}
+    samples = sum(r["calm"]["samples"] for r in rows)
+    for key in CALM_KEYS:
+        weighted = [
+            r["calm"][key]["mean"] * r["calm"]["samples"]
+            for r in rows
+            if r["calm"]["samples"] and math.isfinite(r["calm"][key]["mean"])
+        ]
+        maxima = [r["calm"][key]["max"] for r in rows if math.isfinite(r["calm"][key]["max"])]
+        calm[key] = {
+            "mean": sum(weighted) / samples if samples else math.nan,
+            "max": max(maxima, default=math.nan),
+        }
+    return {
+        "runs": n,
+        "reached": len(reached),
+        "stuck": sum(bool(r["stuck"]) for r in rows),
+        "obstacle_collisions": sum(r["collisions_obstacle"] for r in rows),
+        "robot_collisions": sum(r["collisions_robot"] for r in rows),
+        "deadlock_reverses": sum(r["deadlock_reverses"] for r in rows),
+        "runs_with_reverse": sum(1 for r in rows if r["deadlock_reverses"]),
+        "reshapes": sum(r.get("reshapes", 0) for r in rows),
+        "leadership_changes": sum(r["leadership_changes"] for r in rows),
+        "episode_share": float(np.mean([r["episode_share"] for r in rows])) if rows else math.nan,
+        "reshaping_share": float(np.mean([r.get("reshaping_share", 0.0) for r in rows]))
+        if rows
+        else math.nan,
+        "scenario_shape_share": float(np.mean([r.get("scenario_shape_share", 1.0) for r in rows]))
+        if rows
+        else math.nan,
+        "time_mean_s": float(times.mean()) if times.size else math.nan,
+        "time_median_s": float(np.median(times)) if times.size else math.nan,
+        "time_max_s": float(times.max()) if times.size else math.nan,
+        "time_ratio_median": float(np.median(ratio)) if ratio.size else math.nan,
+        "calm": calm,
+        "wall_s": sum(r["wall_s"] for r in rows),
+    }
+
+
+def group_key(row: dict[str, Any]) -> tuple[str, str, int, str]:
+    """(family, formation, robots, controller) of a row."""
+    job = row["job"]
+    return (job["course"], job["shape"], job["robots"], job["controller"])
+
+
+def summaries(rows: Sequence[dict[str, Any]]) -> dict[tuple[str, str, int, str], dict[str, Any]]:
+    """`summarise` per (family, formation, robots, controller), in the rows' order."""
+    groups: dict[tuple[str, str, int, str], list[dict[str, Any]]] = {}
+    for row in rows:
+        groups.setdefault(group_key(row), []).append(row)
+    return {key: summarise(group) for key, group in groups.items()}
+
+
+def _fmt(value: float, digits: int = 3) -> str:
+    return "n/a" if not math.isfinite(value) else f"{value:.{digits}g}"
+
+
+def table(groups: dict[tuple[str, str, int, str], dict[str, Any]]) -> list[str]:
+    """Markdown: one row per group."""
+    rows = [
+        "| family | formation | robots | controller | runs | goal reached | stuck "
+        "| collisions robot-obstacle / robot-robot | deadlock reverses (runs) | reshapes "
+        "| time to goal median / max | median time / route at cruise | calm linear % "
+        "mean / max | calm orientation deg mean / max | time in avoidance episodes "
+        "| time reshaping | time in the scenario's shape |",
+        "|---|---|---:|---|---:|---:|---:|---|---|---:|---|---:|---|---|---:|---:|---:|",
+    ]
+    for (course, shape, robots, controller), s in groups.items():
+        c = s["calm"]
+        rows.append(
+            f"| {course} | {shape} | {robots} | {controller} | {s['runs']} "
+            f"| {100 * s['reached'] / max(1, s['runs']):.0f} % | {s['stuck']} "
+            f"| {s['obstacle_collisions']} / {s['robot_collisions']} "
+            f"| {s['deadlock_reverses']} ({s['runs_with_reverse']}) | {s['reshapes']} "
+            f"| {_fmt(s['time_median_s'])} / {_fmt(s['time_max_s'])} s "
+            f"| {_fmt(s['time_ratio_median'])} "
+            f"| {_fmt(c['linear_pct']['mean'])} / {_fmt(c['linear_pct']['max'])} "
+            f"| {_fmt(c['orientation_deg']['mean'])} / {_fmt(c['orientation_deg']['max'])} "
+            f"| {100 * s['episode_share']:.0f} % | {100 * s['reshaping_share']:.0f} % "
+            f"| {100 * s['scenario_shape_share']:.0f} % |"
+        )
+    return rows
+
+
+def section(command: str, groups: dict[tuple[str, str, int, str], dict[str, Any]]) -> str:
+    """The sweep's part of docs/RESULTS.md."""
+    return "\n".join(
+        [
+            SWEEP_BEGIN,
+            "## Navigation sweep (`phalanx sweep`)",
+            "",
+            f"Reproduce with `{command}`. Each run as in the Monte-Carlo table above "
+            "(until the goal or STUCK, plus 10 s); *median time / route at cruise*: time to "
+            "the goal over the time the shortest route the map gives at the start (on the "
+            "world's obstacles) takes at cruise speed; *time in avoidance episodes*: the share of "
+            "steps some robot was off its slot on purpose, stopped for an obstacle or turning "
+            "the shape on the spot (plus `settle_s` after each), the calm errors being taken "
+            "outside these and outside reshaping; *time reshaping*: the share of steps the "
+            "group slid between two shapes; *time in the scenario's shape*: the "
+            "share of steps the group was in the shape the scenario asks for (not shrunk, "
+            "folded or between two).",
+            "",
+            *table(groups),
+            "",
+            SWEEP_END,
+        ]
+    )

@@ -1,0 +1,104 @@
+"""`phalanx sweep`: navigation runs (family x seeds x controllers x formations x robots)
+on Dask, locally or on a cluster; resumable; one table, and docs/RESULTS.md's section.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+
+def sweep(
+    family: Annotated[
+        list[str] | None,
+        typer.Option(help="Scenario family: field, narrow, deadend, corridor (default field)."),
+    ] = None,
+    shape: Annotated[list[str] | None, typer.Option(help="Formations (default all three).")] = None,
+    robots: Annotated[list[int] | None, typer.Option(help="Group sizes (default 3).")] = None,
+    controller: Annotated[
+        list[str] | None, typer.Option(help="Follower controllers (default ours).")
+    ] = None,
+    seeds: Annotated[int, typer.Option(min=1, max=100000, help="Seeds 0..N-1.")] = 100,
+    first_seed: Annotated[int, typer.Option(min=0, help="First seed.")] = 0,
+    workers: Annotated[int, typer.Option(min=1, max=256, help="Local worker processes.")] = 2,
+    address: Annotated[
+        str | None,
+        typer.Option(help="A Dask scheduler (tcp://host:8786) instead of local workers."),
+    ] = None,
+    out: Annotated[
+        Path, typer.Option(help="Results file (JSON lines; finished runs are not re-run).")
+    ] = Path("results/sweep/runs.jsonl"),
+    write: Annotated[bool, typer.Option(help="Rewrite docs/RESULTS.md's sweep section.")] = False,
+    docs: Annotated[Path, typer.Option(help="Where RESULTS.md is.")] = Path("docs"),
+    set_: Annotated[
+        list[str] | None,
+        typer.Option("--set", help="PATH=VALUE: override a field of every run's scenario."),
+    ] = None,
+) -> None:
+    """Run the sweep, print the table (and write it into docs/RESULTS.md with --write)."""
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeElapsedColumn
+
+    from phalanx.analysis import sweep as sw
+    from phalanx.analysis.report import SWEEP_BEGIN, SWEEP_END, with_section
+
+    family = family or ["field"]
+    shape = shape or ["wedge", "inline", "collateral"]
+    robots = robots or [3]
+    controller = controller or ["ours"]
+    try:
+        overrides = [_assignment(a) for a in set_ or []]
+        todo = sw.jobs(
+            family, shape, robots, range(first_seed, first_seed + seeds), controller, overrides
+        )
+        todo[0].scenario() if todo else None
+    except ValueError as exc:
+        raise typer.BadParameter(str(exc)) from exc
+    columns = (BarColumn(), MofNCompleteColumn(), TimeElapsedColumn())
+    with Progress("sweep", *columns) as bar:
+        task = bar.add_task("runs", total=len(todo))
+
+        def show(done: int, total: int) -> None:
+            bar.update(task, completed=done, total=total)
+
+        rows = sw.run_sweep(todo, out, address=address, workers=workers, progress=show)
+    groups = sw.summaries(rows)
+    typer.echo("\n".join(sw.table(groups)))
+    typer.echo(f"{len(rows)} runs, {sum(r['wall_s'] for r in rows):.0f} s of run time; {out}")
+    if write:
+        command = (
+            f"phalanx sweep --seeds {seeds} "
+            + " ".join(f"--family {f}" for f in family)
+            + " "
+            + " ".join(f"--shape {s}" for s in shape)
+            + " "
+            + " ".join(f"--robots {n}" for n in robots)
+            + " --workers 2 --write"
+        )
+        path = docs / "RESULTS.md"
+        text = path.read_text(encoding="utf-8") if path.exists() else ""
+        section = sw.section(command, groups)
+        path.write_text(
+            with_section(text, section, begin=SWEEP_BEGIN, end=SWEEP_END), encoding="utf-8"
+        )
+        typer.echo(f"wrote {path}")
+
+
+def _assignment(text: str) -> tuple[str, object]:
+    """`PATH=VALUE` (a TOML value; a bare word is a string)."""
+    import tomllib
+
+    path, sep, value = text.partition("=")
+    if not sep or not path.strip():
+        raise ValueError(f"--set expects PATH=VALUE, got {text!r}")
+    try:
+        parsed: object = tomllib.loads(f"v = {value}")["v"]
+    except tomllib.TOMLDecodeError:
+        parsed = value
+    return path.strip(), parsed
+
+
+def register(app: typer.Typer) -> None:
+    """Add `phalanx sweep`."""
+    app.command("sweep")(sweep)

@@ -1,0 +1,54 @@
+"""`phalanx sweep` on a local Dask cluster of two worker processes: the same numbers as
+the runs made in this process, finished runs never run again, one table."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from phalanx.analysis.sweep import done_rows, jobs, run_job, summaries, table
+
+pytestmark = [pytest.mark.integration, pytest.mark.slow, pytest.mark.timeout(240)]
+
+SHORT = (("duration_s", 12.0),)
+
+
+def _sweep(out: Path, seeds: int) -> str:
+    # (in a process of its own: Dask's local cluster leaves a multiprocessing helper
+    # running in the process that made it, until that process ends)
+    done = subprocess.run(
+        [str(Path(sys.executable).parent / "phalanx"), "sweep", "--seeds", str(seeds), "--shape",
+         "inline", "--workers", "2", "--out", str(out), "--set", "duration_s=12.0"],
+        capture_output=True, text=True, timeout=200, check=True,
+    )  # fmt: skip
+    return done.stdout
+
+
+def test_a_sweep_on_two_local_workers_is_resumable_and_matches_in_process(tmp_path: Path) -> None:
+    out = tmp_path / "runs.jsonl"
+    _sweep(out, 1)
+    first = out.read_text(encoding="utf-8").splitlines()
+    printed = _sweep(out, 2)  # seed 0 is not run again
+    lines = out.read_text(encoding="utf-8").splitlines()
+    assert len(lines) == 2
+    assert lines[0] == first[0]
+    assert "| field | inline | 3 | ours | 2 |" in printed
+    rows = done_rows(out)
+    todo = jobs(["field"], ["inline"], [3], [0, 1], overrides=SHORT)
+    assert set(rows) == {j.key for j in todo}
+    local = run_job(todo[1])
+    for key in ("goal_reached", "collisions_obstacle", "episode_share", "calm", "route_s"):
+        assert json.loads(json.dumps(local[key])) == rows[todo[1].key][key]
+    _sweep(out, 2)
+    assert out.read_text(encoding="utf-8").splitlines() == lines
+    assert "| field | inline | 3 | ours | 2 |" in "\n".join(table(summaries(list(rows.values()))))
+
+
+def test_a_torn_last_line_is_run_again(tmp_path: Path) -> None:
+    out = tmp_path / "runs.jsonl"
+    out.write_text('{"key": "a", "x": 1}\n{"key": "b", "x"', encoding="utf-8")
+    assert list(done_rows(out)) == ["a"]
