@@ -29,6 +29,7 @@ from calibration import Calibration
 from phalanx.analysis.metrics import error_series, is_follower, navigation_metrics, phase_masks
 from phalanx.analysis.report import SECTION_BEGIN, SECTION_END, with_section
 from phalanx.analysis.sweep import run_until_done
+from phalanx.analysis.sweep import summarise as sweep_summary
 from phalanx.core.config_files import CONFIG_ROOT, load_scenario
 from phalanx.core.runlog import RunLog
 from phalanx.core.scenarios import SHAPES, navigation_scenario
@@ -36,7 +37,6 @@ from phalanx.runtime.batch import BatchRunner
 
 REPO = Path(__file__).resolve().parent.parent
 CORE_BOUNDS = {"linear_pct": 0.5, "angular_pct": 0.3, "orientation_deg": 0.5}
-CALM_KEYS = ("linear_pct", "angular_pct", "orientation_deg", "linear_m", "angular_deg")
 
 
 def field_run(job: tuple[str, int, int]) -> dict[str, Any]:
@@ -50,39 +50,14 @@ def field_run(job: tuple[str, int, int]) -> dict[str, Any]:
 
 
 def summarise(rows: list[dict[str, Any]]) -> dict[str, Any]:
-    """Aggregate the runs of one shape."""
-    n = len(rows)
-    reached = [r for r in rows if r["goal_reached"]]
-    times = np.array([r["time_to_goal_s"] for r in reached], dtype=float)
-    calm: dict[str, dict[str, float]] = {}
-    samples = sum(r["calm"]["samples"] for r in rows)
-    for key in CALM_KEYS:
-        weighted = [r["calm"][key]["mean"] * r["calm"]["samples"] for r in rows
-                    if r["calm"]["samples"] and math.isfinite(r["calm"][key]["mean"])]  # fmt: skip
-        maxima = [r["calm"][key]["max"] for r in rows if math.isfinite(r["calm"][key]["max"])]
-        calm[key] = {
-            "mean": sum(weighted) / samples if samples else math.nan,
-            "max": max(maxima, default=math.nan),
-        }
-    return {
-        "runs": n,
-        "reached": len(reached),
-        "stuck": sum(r["stuck"] for r in rows),
-        "obstacle_collisions": sum(r["collisions_obstacle"] for r in rows),
-        "robot_collisions": sum(r["collisions_robot"] for r in rows),
-        "runs_with_collision": sum(
-            1 for r in rows if r["collisions_obstacle"] or r["collisions_robot"]
-        ),
-        "deadlock_reverses": sum(r["deadlock_reverses"] for r in rows),
-        "runs_with_reverse": sum(1 for r in rows if r["deadlock_reverses"]),
-        "leadership_changes": sum(r["leadership_changes"] for r in rows),
-        "episode_share": float(np.mean([r["episode_share"] for r in rows])),
-        "time_mean_s": float(times.mean()) if times.size else math.nan,
-        "time_median_s": float(np.median(times)) if times.size else math.nan,
-        "time_max_s": float(times.max()) if times.size else math.nan,
-        "calm": calm,
-        "wall_s": sum(r["wall_s"] for r in rows),
-    }
+    """Aggregate the runs of one shape: `phalanx sweep`'s summary (the same numbers), and
+    the runs with a collision of any kind, which only this table shows.
+    """
+    summary = sweep_summary(rows)
+    summary["runs_with_collision"] = sum(
+        1 for r in rows if r["collisions_obstacle"] or r["collisions_robot"]
+    )
+    return summary
 
 
 def deadend_run(shape: str) -> tuple[RunLog, dict[str, Any]]:
