@@ -198,7 +198,9 @@ class Agent:
             moment = Moment(t_s, event.target, moment.odometry, sensing, view, ctx.others_busy)
             self._enter(event, moment)
         active = self._active
-        wanted = self.spacing.apply(active.command(moment), observation.odometry.pose, peers)
+        wanted = self.spacing.apply(
+            active.command(moment), observation.odometry.pose, peers, observation.near
+        )
         command = self.limiter.apply(
             wanted, self.dt_s, emergency=active.emergency, brake_hard=self.spacing.cut
         )

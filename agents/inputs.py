@@ -25,7 +25,9 @@ class Observation:
     `sonar`: the sonar ranges of `status` already read as geometry, and `masked`: that
     reading with the formation's robots masked out for this robot's step (the batch
     runner does both for every robot in one pass, `phalanx.agents.masking`); when None,
-    the agent works them out itself.
+    the agent works them out itself. `near`: the robots near enough to this one to matter
+    for keeping apart (a large fleet's batch runner sorts them out for all robots at
+    once); when None, every robot heard is checked.
     """
 
     odometry: Odometry
@@ -35,19 +37,34 @@ class Observation:
     fixes: tuple[PoseFix, ...] = ()
     relative: tuple[RelativeFix, ...] = ()
     scans: tuple[Scan, ...] = ()  # the fleet's sonar scans for the shared map (last step's)
+    near: frozenset[str] | None = None
 
     def with_odometry(self, odometry: Odometry) -> Observation:
         """The observation with `odometry` (itself when that is already its own)."""
         if odometry is self.odometry:
             return self
         return Observation(
-            odometry, self.status, self.sonar, self.masked, self.fixes, self.relative, self.scans
+            odometry,
+            self.status,
+            self.sonar,
+            self.masked,
+            self.fixes,
+            self.relative,
+            self.scans,
+            self.near,
         )
 
     def with_masked(self, masked: MaskedEchoes) -> Observation:
         """The observation with `masked` (`dataclasses.replace`, without its cost)."""
         return Observation(
-            self.odometry, self.status, self.sonar, masked, self.fixes, self.relative, self.scans
+            self.odometry,
+            self.status,
+            self.sonar,
+            masked,
+            self.fixes,
+            self.relative,
+            self.scans,
+            self.near,
         )
 
 

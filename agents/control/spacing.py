@@ -17,7 +17,9 @@ turning on the spot closes on nobody, and turning away is how it gets out.
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Collection, Mapping
+
+import numpy as np
 
 from phalanx.core.geometry import Pose2D, Twist2D
 from phalanx.core.peers import PeerState
@@ -41,18 +43,21 @@ def keep_apart(
     contact_m: float,
     decel_mps2: float,
     latency_s: float,
+    near: Collection[str] | None = None,
 ) -> Twist2D:
     """`command` with its speed scaled down (never reversed) so that this robot closes on
-    no other robot in `peers` faster than it could brake within its share of the gap.
-    `contact_m`: the centre distance (m) at which two robots count as too close.
+    no other robot in `peers` (only those in `near`, if given) faster than it could brake
+    within its share of the gap. `contact_m`: the centre distance (m) at which two robots
+    count as too close.
     """
     v = command.v_mps
     if v == 0.0:
         return command
     heading_x, heading_y = math.cos(pose.theta_rad), math.sin(pose.theta_rad)
     limit = abs(v)
-    for rid, other in peers.items():
-        if rid == own_id:
+    for rid in peers if near is None else near:
+        other = peers.get(rid)
+        if other is None or rid == own_id:
             continue
         dx, dy = other.x_m - pose.x_m, other.y_m - pose.y_m
         d = math.hypot(dx, dy)
@@ -78,9 +83,15 @@ class Spacing:
         self.cuts = 0  # commands slowed down to keep apart
         self.cut = False  # whether the last command was
 
-    def apply(self, command: Twist2D, pose: Pose2D, peers: Mapping[str, PeerState]) -> Twist2D:
+    def apply(
+        self,
+        command: Twist2D,
+        pose: Pose2D,
+        peers: Mapping[str, PeerState],
+        near: Collection[str] | None = None,
+    ) -> Twist2D:
         """`command`, slowed down where it would close on another robot too fast (the
-        limiter must then brake at `decel_mps2`: see `cut`).
+        limiter must then brake at `decel_mps2`: see `cut`); `near`: see `keep_apart`.
         """
         kept = keep_apart(
             command,
@@ -90,7 +101,30 @@ class Spacing:
             contact_m=self.contact_m,
             decel_mps2=self.decel_mps2,
             latency_s=self.latency_s,
+            near=near,
         )
         self.cut = kept is not command
         self.cuts += self.cut
         return kept
+
+
+def near_radius_m(
+    contact_m: float, *, v_max_mps: float, decel_mps2: float, latency_s: float, horizon_s: float
+) -> float:
+    """How far apart (m, centre to centre) two robots may be now and still need keeping
+    apart within `horizon_s`: contact, both driving at each other at `v_max_mps` meanwhile,
+    and both braking distances.
+    """
+    braking = v_max_mps * latency_s + v_max_mps * v_max_mps / (2.0 * decel_mps2)
+    return contact_m + 2.0 * v_max_mps * horizon_s + 2.0 * braking
+
+
+def near_sets(
+    positions: Mapping[str, tuple[float, float]], *, radius_m: float
+) -> dict[str, frozenset[str]]:
+    """For every robot, the others within `radius_m` of it (all pairs at once)."""
+    ids = list(positions)
+    xy = np.array([positions[r] for r in ids], dtype=np.float64).reshape(-1, 2)
+    d2 = (xy[:, None, 0] - xy[None, :, 0]) ** 2 + (xy[:, None, 1] - xy[None, :, 1]) ** 2
+    close = d2 < radius_m * radius_m
+    return {rid: frozenset(ids[j] for j in np.flatnonzero(close[i])) for i, rid in enumerate(ids)}

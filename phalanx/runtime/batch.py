@@ -23,6 +23,7 @@ import numpy as np
 import numpy.typing as npt
 
 from phalanx.agents.agent import Agent, Observation, StepOutput
+from phalanx.agents.control.spacing import near_radius_m, near_sets
 from phalanx.agents.masking import SlotMasks, mask_readings
 from phalanx.agents.perception import SonarGeometry
 from phalanx.core.config import RobotParams, Scenario
@@ -58,6 +59,13 @@ def build_agents(scenario: Scenario, robot: RobotParams, formation: Formation) -
     return agents
 
 
+# A fleet this large has every robot keep apart only from those near it, sorted out for
+# all at once every `NEAR_REFRESH_S` (checking every other robot each step would cost
+# each robot-step a pass over the whole fleet).
+NEAR_FLEET = 16
+NEAR_REFRESH_S = 1.0
+
+
 class BatchRunner:
     """Runs a scenario to the end in this process."""
 
@@ -75,6 +83,8 @@ class BatchRunner:
         self._masks_of: tuple[SlotMasks, ...] = ()
         self._slot_masks = self._fleet_masks()
         self._scans: tuple[Scan, ...] = ()  # every robot's last step's, for the fleet map
+        self._near: dict[str, frozenset[str]] = {}
+        self._near_s = -np.inf
         # x, y, theta, v, omega, commanded v and omega: (column, robot, step)
         self._columns = np.zeros((7, len(self.agents), self.steps))
         self._direction = np.ones((len(self.agents), self.steps), dtype=np.int8)
@@ -117,6 +127,25 @@ class BatchRunner:
             self._slot_masks = SlotMasks.concat(masks)
         return self._slot_masks
 
+    def _near_robots(self, peers: dict[str, PeerState], t_s: float) -> dict[str, frozenset[str]]:
+        """Whom each robot of a large fleet keeps apart from (every robot, in a small
+        one: an empty mapping), from where they said they were.
+        """
+        if len(self.agents) <= NEAR_FLEET or len(peers) < len(self.agents):
+            return {}
+        if t_s - self._near_s >= NEAR_REFRESH_S - 1e-9:
+            spacing = next(iter(self.agents.values())).spacing
+            radius = near_radius_m(
+                spacing.contact_m,
+                v_max_mps=self.robot.v_max_mps,
+                decel_mps2=spacing.decel_mps2,
+                latency_s=spacing.latency_s,
+                horizon_s=NEAR_REFRESH_S,
+            )
+            self._near_s = t_s
+            self._near = near_sets({r: (p.x_m, p.y_m) for r, p in peers.items()}, radius_m=radius)
+        return self._near
+
     def _trace(self, i: int) -> RobotTrace:
         """Robot i's trace: its arrays are rows of the run's columns."""
         c, n = self._columns, self.steps
@@ -157,6 +186,7 @@ class BatchRunner:
         readings = self.sonar.read_all(ranges).readings
         odometry = self.world.odometries()
         agents = self.agents
+        near = self._near_robots(peers, t_s)
         observed = [
             Observation(
                 odometry[i],
@@ -165,6 +195,7 @@ class BatchRunner:
                 None,
                 *self.world.positioning(rid),
                 scans=self._scans,
+                near=near.get(rid),
             )
             for i, rid in enumerate(agents)
         ]

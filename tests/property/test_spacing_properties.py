@@ -12,7 +12,12 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from phalanx.agents.control.limits import CommandLimiter
-from phalanx.agents.control.spacing import Spacing, closing_speed_cap_mps, keep_apart
+from phalanx.agents.control.spacing import (
+    Spacing,
+    closing_speed_cap_mps,
+    keep_apart,
+    near_sets,
+)
 from phalanx.agents.perception import braking_gap_m
 from phalanx.core.config_files import load_robot
 from phalanx.core.geometry import Pose2D, Twist2D, integrate_unicycle
@@ -96,3 +101,19 @@ def test_moving_away_or_turning_is_never_slowed() -> None:
     )
     assert 0.0 <= towards.v_mps < 0.05
     assert towards.omega_radps == 0.5
+
+
+@given(
+    st.lists(st.tuples(st.floats(-20.0, 20.0), st.floats(-20.0, 20.0)), min_size=1, max_size=40),
+    st.floats(0.5, 5.0),
+)
+def test_near_sets_hold_exactly_the_robots_within_the_radius(
+    points: list[tuple[float, float]], radius_m: float
+) -> None:
+    positions = {f"r{i}": p for i, p in enumerate(points)}
+    near = near_sets(positions, radius_m=radius_m)
+    for a, (xa, ya) in positions.items():
+        for b, (xb, yb) in positions.items():
+            d = math.hypot(xa - xb, ya - yb)
+            if abs(d - radius_m) > 1e-9:
+                assert (b in near[a]) == (d < radius_m), (a, b, d)
