@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import logging
 import math
+import struct
 import threading
 import time
 from dataclasses import dataclass, field
@@ -44,6 +45,10 @@ NMT_OPERATIONAL = 5
 IMPLAUSIBLE_FACTOR = 2.0
 MAX_FAULTS = 16  # reasons kept; more (an EMCY flood) are counted in `faults_dropped`
 SDO_ATTEMPTS = 3
+# An SDO transfer met by a garbled answer: no answer, or one too short to read (canopen's
+# SDO client unpacks the response's command byte without checking that there is one, and
+# raises `struct.error` on an empty frame with the server's COB-ID).
+GARBLED_SDO: tuple[type[Exception], ...] = (canopen.SdoCommunicationError, struct.error)
 
 
 class CanopenSettings(BaseModel):
@@ -277,7 +282,7 @@ class CanopenDriver(Closing):
                 self._enable_once(wheel)
                 return
             except DriverUnavailable as exc:
-                if not isinstance(exc.__cause__, canopen.SdoCommunicationError):
+                if not isinstance(exc.__cause__, GARBLED_SDO):
                     raise
                 if attempt == SDO_ATTEMPTS - 1:
                     raise
@@ -315,11 +320,7 @@ class CanopenDriver(Closing):
             while node.nmt.wait_for_heartbeat(s.connect_timeout_s) != "OPERATIONAL":
                 if time.monotonic() > deadline:
                     raise DriverTimeout(f"{wheel.name} drive did not become OPERATIONAL")
-        except (
-            canopen.SdoAbortedError,
-            canopen.SdoCommunicationError,
-            canopen.nmt.NmtError,
-        ) as exc:
+        except (canopen.SdoAbortedError, canopen.nmt.NmtError, *GARBLED_SDO) as exc:
             raise DriverUnavailable(f"{wheel.name} drive (node {node.id}): {exc}") from exc
         wheel.last_beat_s = time.monotonic()
 
