@@ -102,7 +102,13 @@ class Senses:
         # Asked before a dead end is declared: fold the group into a narrower shape
         # if it has one (True: a fold is coming, the way may open for it).
         self.fold: Callable[[], bool] = lambda: False
-        self.remask((shape.offsets,))
+        # (the scenario's shape: only the slots within hearing, not every robot's)
+        self.remask((shape.slots_within(self._audible_m()),))
+
+    def _audible_m(self) -> float:
+        """How far from this robot's slot another's may be for its sonar to hear it."""
+        sonar, shape = self.sonar, self.shape
+        return sonar.mount_m + sonar.max_range_m + shape.radius_m + EXPECTED_MASK_M + 1.0
 
     def remask(self, shapes: tuple[dict[str, Vec2], ...]) -> None:
         """Where the formation's robots are expected (every slot they have in `shapes`,
@@ -110,8 +116,7 @@ class Senses:
         are masked, with where their echoes would come from worked out once (the shape
         is rigid between two changes).
         """
-        shape, sonar = self.shape, self.sonar
-        audible_m = sonar.mount_m + sonar.max_range_m + shape.radius_m + EXPECTED_MASK_M + 1.0
+        shape, sonar, audible_m = self.shape, self.sonar, self._audible_m()
         slots = [
             (r, p)
             for offsets in shapes

@@ -72,9 +72,16 @@ class ShapeBook:
 
     def __init__(self, formation: Formation) -> None:
         self.scenario_formation = formation
-        root = formation.positions[formation.root]
-        self.nominal = {r: p - root for r, p in formation.positions.items()}
         self._cache: dict[ShapeKey, Formation] = {}
+
+    @cached_property
+    def nominal(self) -> dict[str, Vec2]:
+        """The scenario's shape (worked out when first asked: a fleet that never changes
+        its shape never needs it, and each of its n robots would pay O(n) for it).
+        """
+        formation = self.scenario_formation
+        root = formation.positions[formation.root]
+        return {r: p - root for r, p in formation.positions.items()}
 
     @cached_property
     def shapes(self) -> tuple[dict[str, Vec2], ...]:
