@@ -170,9 +170,7 @@ class Parts:
         if not deadlocked or self.plan != "goto" or self.progress.waypoint >= len(waypoints):
             return False
         goal = Vec2(*waypoints[self.progress.waypoint])
-        return self.planner.map is not None and self.planner.way_exists(
-            pose, goal, footprint_m=self.shape.radius_m
-        )
+        return self.planner.way_exists(pose, goal, footprint_m=self.shape.radius_m)
 
     def advance_waypoints(self, pose: Pose2D) -> None:
         """The leader's waypoint bookkeeping: a reached waypoint resets the retries (and

@@ -88,31 +88,30 @@ class RoutePlanner:
             return goal
         if t_s - self._planned_s >= REPLAN_S or self.carrot is None:
             self._planned_s = t_s
-            planned = grid.plan(
-                pose.position, goal, keep_off_m=self.keep_off_m, ahead_m=ROUTE_AHEAD_M
-            )
+            planned = self._plan(grid, pose, goal)
             if planned is not None and self.footprint_m > 0.0:
-                fits = grid.plan(
-                    pose.position, goal, keep_off_m=self.keep_off_m, ahead_m=ROUTE_AHEAD_M,
-                    footprint_m=self.footprint_m,
-                )  # fmt: skip
+                fits = self._plan(grid, pose, goal, footprint_m=self.footprint_m)
                 if fits is not None and fits[1] <= planned[1] * DETOUR_SHARE + DETOUR_M:
                     planned = fits
             self.carrot = None if planned is None else planned[0]
         return self.carrot or goal
 
     def way_exists(self, pose: Pose2D, goal: Vec2, *, footprint_m: float) -> bool:
-        """Whether the map leaves a way to `goal` for a body `footprint_m` in radius (any
-        way, however long; there is one while there is no map).
+        """Whether the map shows a way to `goal` for a body `footprint_m` in radius (any
+        way, however long; without a map it shows none).
         """
         grid = self.map
-        if grid is None:
-            return True
-        planned = grid.plan(
+        return (
+            grid is not None and self._plan(grid, pose, goal, footprint_m=footprint_m) is not None
+        )
+
+    def _plan(
+        self, grid: OccupancyMap, pose: Pose2D, goal: Vec2, *, footprint_m: float = 0.0
+    ) -> tuple[Vec2, float] | None:
+        return grid.plan(
             pose.position, goal, keep_off_m=self.keep_off_m, ahead_m=ROUTE_AHEAD_M,
             footprint_m=footprint_m,
         )  # fmt: skip
-        return planned is not None
 
     def forget_carrot(self) -> None:
         """Plan afresh next time (the robot stopped following the route)."""

@@ -21,6 +21,7 @@ from collections.abc import Collection, Mapping
 
 import numpy as np
 
+from phalanx.agents.perception import braking_gap_m
 from phalanx.core.geometry import Pose2D, Twist2D
 from phalanx.core.peers import PeerState
 
@@ -115,7 +116,7 @@ def near_radius_m(
     apart within `horizon_s`: contact, both driving at each other at `v_max_mps` meanwhile,
     and both braking distances.
     """
-    braking = v_max_mps * latency_s + v_max_mps * v_max_mps / (2.0 * decel_mps2)
+    braking = braking_gap_m(v_max_mps, decel_mps2=decel_mps2, latency_s=latency_s)
     return contact_m + 2.0 * v_max_mps * horizon_s + 2.0 * braking
 
 
