@@ -42,8 +42,8 @@ StopCondition = Callable[["BatchRunner"], bool]
 
 def build_agents(scenario: Scenario, robot: RobotParams, formation: Formation) -> dict[str, Agent]:
     """One agent per robot; in a navigating scenario all of them plan over one fleet map
-    (each robot's scans are added to it once: the same map each would build from the
-    scans shared over Zenoh).
+    (the runner adds each step's scans to it once: the same map each would build from
+    the scans shared over Zenoh).
     """
     prior = prior_map(scenario)
     agents = {
@@ -83,6 +83,7 @@ class BatchRunner:
         self._masks_of: tuple[SlotMasks, ...] = ()
         self._slot_masks = self._fleet_masks()
         self._scans: tuple[Scan, ...] = ()  # every robot's last step's, for the fleet map
+        self._fleet_map = next(iter(self.agents.values())).parts.planner.fleet
         self._near: dict[str, frozenset[str]] = {}
         self._near_s = -np.inf
         # x, y, theta, v, omega, commanded v and omega: (column, robot, step)
@@ -187,6 +188,9 @@ class BatchRunner:
         odometry = self.world.odometries()
         agents = self.agents
         near = self._near_robots(peers, t_s)
+        if self._fleet_map is not None:
+            # (once for all: each agent adds only its own reading, already in here)
+            self._fleet_map.add(self._scans)
         observed = [
             Observation(
                 odometry[i],
@@ -194,7 +198,6 @@ class BatchRunner:
                 readings[i],
                 None,
                 *self.world.positioning(rid),
-                scans=self._scans,
                 near=near.get(rid),
             )
             for i, rid in enumerate(agents)
