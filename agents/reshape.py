@@ -31,8 +31,9 @@ from phalanx.core.shapes import SCENARIO_SHAPE, SHAPE_NAMES, ShapeBook, ShapeKey
 
 # Slots slide at this speed (m/s) in the formation frame during a reshape, and it
 # takes at least this long; the followers then have this long to settle in the new shape.
-# Meanwhile the leader drives on no faster than `RESHAPE_CRUISE_MPS`.
-RESHAPE_MPS = 0.12
+# Meanwhile the leader drives on no faster than `RESHAPE_CRUISE_MPS` (slide and drive
+# together stay within the followers' share of a P3DX's 0.3 m/s).
+RESHAPE_MPS = 0.17
 RESHAPE_MIN_S = 3.0
 SETTLE_S = 2.0
 RESHAPE_CRUISE_MPS = 0.1
@@ -45,6 +46,8 @@ CONFIRM = 2
 DWELL_S = 5.0
 # The sonar showing the way too narrow for the shape this long folds the group.
 SQUEEZE_S = 1.0
+# A wider shape is taken only where it fits with the leader here and this far on (m).
+UNFOLD_AHEAD_M = (0.0, 1.0, 2.0)
 
 
 @dataclass
@@ -82,7 +85,8 @@ class ShapeKeeper:
         whole shape. Held `SQUEEZE_S`, the group folds at once (the map may not show yet
         that there is no way round).
         """
-        self.squeezed_s = self.squeezed_s + dt_s if squeezed else 0.0
+        # (between two shapes a follower still on its way is no squeeze: not counted)
+        self.squeezed_s = self.squeezed_s + dt_s if squeezed and self.key.settled else 0.0
         if self.squeezed_s >= SQUEEZE_S:
             self.fold()
 
@@ -99,11 +103,16 @@ class ShapeKeeper:
 
     def fits(self, grid: OccupancyMap, pose: Pose2D, shape: int) -> bool:
         """Whether every slot of `shape`, and of the shape in effect, is clear of the
-        map's obstacles with the leader at `pose` (room to change between them here).
+        map's obstacles with the leader at `pose` and along the next `UNFOLD_AHEAD_M`
+        straight on (room to change between them while driving on).
         """
         clearance = self.radius_m + FOOTPRINT_MARGIN_M
         slots = [*self.book.shapes[shape].values(), *self.book.shapes[self.key.target].values()]
-        return all(grid.clear_within(pose.to_world(p), clearance) for p in slots)
+        return all(
+            grid.clear_within(pose.to_world(Vec2(p.x_m + ahead_m, p.y_m)), clearance)
+            for ahead_m in UNFOLD_AHEAD_M
+            for p in slots
+        )
 
     def decide(self, grid: OccupancyMap | None, pose: Pose2D, goal: Vec2, t_s: float) -> None:
         """Weigh the shapes (every `DECIDE_S`): the widest whose route is about as good as
@@ -112,6 +121,8 @@ class ShapeKeeper:
         """
         if not self.enabled or grid is None or t_s - self._decided_s < DECIDE_S:
             return
+        if not self.key.settled:
+            return  # (a slide under way is turned back only by the sonar's fold)
         self._decided_s = t_s
         best = self._best(grid, pose.position, goal)
         if best is None or t_s - self._settled_s < DWELL_S:
@@ -190,8 +201,13 @@ class Reshape(Behaviour):
         self._since_done = 0.0
 
     def command(self, moment: Moment) -> Twist2D:
-        """The shape's slide moves on a step; the leader drives on, slowly."""
+        """The shape's slide moves on a step (back the way it came if the shape it left
+        is wanted again: a fold called for half-way through an unfold); the leader
+        drives on, slowly.
+        """
         keeper = self.keeper
+        if not keeper.key.settled and keeper.wanted == keeper.key.source:
+            keeper.key = ShapeKey(keeper.key.target, keeper.key.source, 1.0 - keeper.key.morph)
         if not keeper.key.settled:
             morph = min(1.0, keeper.key.morph + self.dt_s / self.duration_s)
             keeper.key = ShapeKey(keeper.key.source, keeper.key.target, morph)

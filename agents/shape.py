@@ -30,6 +30,9 @@ from phalanx.core.states import OUT_OF_FORMATION
 Points = tuple[FloatArray, FloatArray]
 # Room beyond the swept disc a turn on the spot needs (m).
 SWEEP_MARGIN_M = 0.35
+# A navigating leader turns about a point at least this much beyond the shape's furthest
+# slot across its heading (m): no slot of the shape is then swung backwards.
+TURN_CENTRE_MARGIN_M = 0.75
 # Left and right, for the formation's room to either side.
 SIDEWAYS_RAD = np.array([math.pi / 2, -math.pi / 2])
 
@@ -97,6 +100,8 @@ class Shape:
         # Half the shape's width across its heading, plus a robot radius.
         self.half_span_m = (float(ys.max()) - float(ys.min())) / 2 + self.radius_m
         self.half_width_m = self.radius_m + self.nav.body_margin_m
+        # How far the shape reaches across this robot's heading (either side).
+        self.across_m = float(np.abs(self._dy).max()) if self._dy.size else 0.0
 
     @cached_property
     def offsets(self) -> dict[str, Vec2]:
@@ -126,6 +131,13 @@ class Shape:
         return turn_rate_radps(
             self.follower_slots, self.limits.v_max_mps, self.limits.omega_max_radps
         )
+
+    def turn_radius_m(self) -> float:
+        """The tightest arc this robot may lead the shape along (m): the configured
+        `min_turn_radius_m`, or less for a shape narrow across its heading (a column
+        follows its leader round a tight bend; a wide line abreast cannot).
+        """
+        return min(self.nav.min_turn_radius_m, self.across_m + self.radius_m + TURN_CENTRE_MARGIN_M)
 
     def stop_gap_m(self) -> float:
         """The gap a robot at cruise speed needs to stop in, margin included (m)."""

@@ -132,7 +132,7 @@ class Steered(Behaviour):
             need_m=min(self.nav.lookahead_m, dist_m + self.shape.radius_m),
             omega_max_radps=self.shape.turn_rate_radps(),
             previous_rad=previous,
-            min_radius_m=self.nav.min_turn_radius_m,
+            min_radius_m=self.shape.turn_radius_m(),
             reach_rad=math.pi if room_to_turn else REORIENT_RAD,
         )
         self.steering.chosen_rad = pose.theta_rad + chosen

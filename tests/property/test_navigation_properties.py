@@ -16,10 +16,12 @@ from phalanx.agents.perception import (
     choose_heading,
     corridor_clearance,
 )
-from phalanx.core.config import FormationConfig, LeadershipConfig, SlotConfig
+from phalanx.agents.shape import TURN_CENTRE_MARGIN_M, Shape
+from phalanx.core.config import FormationConfig, LeadershipConfig, NavigationConfig, SlotConfig
 from phalanx.core.config_files import load_robot
 from phalanx.core.formation import Formation, resolve_formation
 from phalanx.core.geometry import Vec2
+from phalanx.core.limits import KinematicLimits
 from phalanx.wire.messages import RobotFlags
 
 SONAR = SonarGeometry.from_params(load_robot("p3dx"))
@@ -192,3 +194,31 @@ def test_echoes_of_known_robots_match_the_disc_by_disc_test(
     for centre, radius_m in known:
         expected &= ~SONAR.arcs_meet(r, [(centre, radius_m)])[0]
     assert np.array_equal(SONAR.echoes(r, known), expected)
+
+
+@settings(max_examples=80, deadline=None)
+@given(formation=trees(), speed_mps=st.floats(0.01, 0.3), left=st.booleans())
+def test_a_narrow_shape_turns_tighter_but_swings_no_slot_backwards(
+    formation: Formation, speed_mps: float, left: bool
+) -> None:
+    """A leader may turn tighter than `min_turn_radius_m` only where the shape is narrow
+    enough across its heading that every slot of the rigid shape still moves forwards
+    (either way round); a shape as wide as that keeps the configured radius.
+    """
+    robot = load_robot("p3dx")
+    nav = NavigationConfig()
+    leader = formation.robot_ids[0]
+    shape = Shape(
+        leader, formation, radius_m=robot.radius_m, nav=nav,
+        limits=KinematicLimits.from_params(robot), dt_s=0.1,
+    )  # fmt: skip
+    radius_m = shape.turn_radius_m()
+    assert 0.0 < radius_m <= nav.min_turn_radius_m
+    across_m = max(abs(s.y_m) for s in shape.follower_slots)
+    if radius_m < nav.min_turn_radius_m:
+        omega = (1.0 if left else -1.0) * speed_mps / radius_m
+        for slot in shape.follower_slots:
+            # a rigid body's point at (x, y) moves forwards at v - omega y
+            assert speed_mps - omega * slot.y_m > 0.0
+    else:
+        assert across_m + robot.radius_m >= nav.min_turn_radius_m - TURN_CENTRE_MARGIN_M - 1e-9

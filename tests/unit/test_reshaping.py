@@ -1,0 +1,97 @@
+"""The leader's choice of shape and the slide between shapes (agents/reshape.py)."""
+
+from __future__ import annotations
+
+import math
+from types import SimpleNamespace
+from typing import cast
+
+import numpy as np
+import pytest
+
+from phalanx.agents.behaviours.base import Moment
+from phalanx.agents.mapping import OCCUPIED, OccupancyMap
+from phalanx.agents.reshape import SQUEEZE_S, Reshape, ShapeKeeper
+from phalanx.agents.shape import Shape
+from phalanx.core.config import NavigationConfig
+from phalanx.core.config_files import load_robot
+from phalanx.core.formation import resolve_formation
+from phalanx.core.geometry import Pose2D, Vec2
+from phalanx.core.limits import KinematicLimits
+from phalanx.core.scenarios import formation_shape
+from phalanx.core.shapes import COLUMN, SCENARIO_SHAPE, ShapeBook, ShapeKey
+
+ROBOT = load_robot("p3dx")
+FORMATION = resolve_formation(formation_shape("collateral", 3))
+
+
+def keeper() -> ShapeKeeper:
+    return ShapeKeeper(ShapeBook(FORMATION), ROBOT.radius_m)
+
+
+def moment(t_s: float) -> Moment:
+    """A step's time: all a reshape without a drive reads."""
+    return cast(Moment, SimpleNamespace(t_s=t_s))
+
+
+def reshape_for(k: ShapeKeeper) -> Reshape:
+    limits = KinematicLimits.from_params(ROBOT)
+    shape = Shape("r1", FORMATION, radius_m=ROBOT.radius_m, nav=NavigationConfig(),
+                  limits=limits, dt_s=0.1)  # fmt: skip
+    return Reshape(k, shape, dt_s=0.1)
+
+
+def test_a_fold_wanted_half_way_through_an_unfold_slides_back_from_where_the_slots_are() -> None:
+    k = keeper()
+    k.key, k.wanted = ShapeKey(COLUMN, COLUMN, 1.0), SCENARIO_SHAPE  # folded; unfold wanted
+    behaviour = reshape_for(k)
+    behaviour.enter(moment(0.0))
+    for step in range(20):
+        behaviour.command(moment(0.1 * step))
+    halfway = k.key
+    assert (halfway.source, halfway.target) == (COLUMN, SCENARIO_SHAPE)
+    assert 0.0 < halfway.morph < 1.0
+    before = k.book.positions(halfway)
+    assert k.fold()  # the sonar: the way ahead is too narrow for the shape after all
+    behaviour.command(moment(2.0))
+    turned = k.key
+    assert (turned.source, turned.target) == (SCENARIO_SHAPE, COLUMN)
+    step_back = ShapeKey(turned.source, turned.target, turned.morph - 0.1 / behaviour.duration_s)
+    after = k.book.positions(step_back)
+    for rid, p in before.items():  # no jump: the slide goes on from where it was
+        assert (after[rid] - p).norm() < 1e-9
+    for step in range(400):
+        behaviour.command(moment(2.1 + 0.1 * step))
+    assert k.key == ShapeKey(SCENARIO_SHAPE, COLUMN, 1.0)
+
+
+def test_the_shapes_are_not_weighed_again_and_a_squeeze_is_not_counted_mid_slide() -> None:
+    k = keeper()
+    grid = OccupancyMap(Vec2(0.0, 0.0))
+    k.key, k.wanted = ShapeKey(SCENARIO_SHAPE, COLUMN, 0.5), COLUMN
+    for step in range(50):
+        k.decide(grid, Pose2D(0.0, 0.0, 0.0), Vec2(20.0, 0.0), 10.0 + step)
+        k.squeeze(True, 0.1)
+    assert k.wanted == COLUMN
+    assert k.squeezed_s == 0.0
+    k.key = ShapeKey(SCENARIO_SHAPE, SCENARIO_SHAPE, 1.0)
+    k.wanted = SCENARIO_SHAPE
+    for _ in range(round(SQUEEZE_S / 0.1) + 1):
+        k.squeeze(True, 0.1)
+    assert k.wanted == COLUMN  # settled, the same squeeze folds the group
+
+
+@pytest.mark.parametrize("ahead_m", [0.0, 1.0, 2.0])
+def test_a_wider_shape_fits_only_with_room_for_it_here_and_on_ahead(ahead_m: float) -> None:
+    k = keeper()
+    k.key = ShapeKey(COLUMN, COLUMN, 1.0)
+    grid = OccupancyMap(Vec2(0.0, 0.0))
+    pose = Pose2D(0.0, 0.0, math.radians(30.0))
+    assert k.fits(grid, pose, SCENARIO_SHAPE)
+    # an obstacle where a slot of the line abreast will be, `ahead_m` on
+    left = k.book.shapes[SCENARIO_SHAPE]["r2"]
+    spot = pose.to_world(Vec2(left.x_m + ahead_m, left.y_m))
+    row, col, _ = grid.index(np.array([spot.x_m]), np.array([spot.y_m]))
+    grid.evidence[row, col] = OCCUPIED
+    assert not k.fits(grid, pose, SCENARIO_SHAPE)
+    assert k.fits(grid, pose, COLUMN)  # the column it is in passes there
