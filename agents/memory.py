@@ -8,10 +8,14 @@ the behaviours that need one are given it when they are made.
 from __future__ import annotations
 
 import math
+from collections import deque
 from dataclasses import dataclass, field
+
+import numpy as np
 
 from phalanx.agents.behaviours.navigation import Breadcrumbs
 from phalanx.agents.leadership import FlagsView
+from phalanx.agents.perception import FloatArray
 from phalanx.core.geometry import ZERO_TWIST, Pose2D, Twist2D, Vec2
 
 # A navigating leader that has not got this far from where it was in `stall_s` is stuck.
@@ -83,6 +87,40 @@ class Course:
     crumbs: Breadcrumbs
     last_forward: Twist2D = ZERO_TWIST
     escape: Vec2 | None = None
+
+
+class RecentEchoes:
+    """The obstacle points a navigator's sonar showed over the last `keep_s` (world
+    frame), to steer by. A ring of beams loses and finds an obstacle between two beams
+    as the robot yaws; steering by one step's echoes alone then swings from side to side,
+    and the shape behind swings with it.
+    """
+
+    def __init__(self, keep_s: float) -> None:
+        self.keep_s = keep_s
+        self._steps: deque[tuple[float, FloatArray, FloatArray]] = deque()
+
+    def clear(self) -> None:
+        """Forget them all (the robot stopped steering by them)."""
+        self._steps.clear()
+
+    def with_recent(
+        self, pose: Pose2D, points: tuple[FloatArray, FloatArray], t_s: float
+    ) -> tuple[FloatArray, FloatArray]:
+        """Remember this step's `points` (body frame, at `pose`); this step's and the
+        last `keep_s`'s, in the body frame.
+        """
+        c, s = math.cos(pose.theta_rad), math.sin(pose.theta_rad)
+        x, y = points
+        steps = self._steps
+        steps.append((t_s, pose.x_m + c * x - s * y, pose.y_m + s * x + c * y))
+        while steps[0][0] < t_s - self.keep_s - 1e-9:
+            steps.popleft()
+        if len(steps) == 1:
+            return points
+        dx = np.concatenate([p[1] for p in steps]) - pose.x_m
+        dy = np.concatenate([p[2] for p in steps]) - pose.y_m
+        return c * dx + s * dy, c * dy - s * dx
 
 
 class StallWatch:

@@ -22,7 +22,7 @@ from phalanx.agents.behaviours.navigation import (
     rigid_limit,
     steer,
 )
-from phalanx.agents.memory import BlockedTimers, Course, Progress, Steering
+from phalanx.agents.memory import BlockedTimers, Course, Progress, RecentEchoes, Steering
 from phalanx.agents.perception import HEADINGS_RAD, open_side
 from phalanx.agents.reshape import ShapeKeeper
 from phalanx.agents.route import RoutePlanner
@@ -43,6 +43,11 @@ CAME_IN_OVER_M = 2.0
 REALIGNED_RAD = math.radians(1.0)
 REALIGN_MAX_S = 20.0
 REALIGN_MAX_RAD = math.radians(45.0)
+# An obstacle nearer ahead than this share of the lookahead lets the leader bend its
+# course as tight as the shape allows.
+TIGHT_AHEAD_SHARE = 0.5
+# The navigator steers by the echoes of the last this long (s).
+RECENT_ECHOES_S = 1.0
 
 
 class Scripted(Behaviour):
@@ -84,6 +89,7 @@ class Steered(Behaviour):
         self.shape, self.limits, self.steering, self.course = shape, limits, steering, course
         self.keeper: ShapeKeeper | None = None  # (a leader that may change the shape)
         self.dt_s = scenario.dt_s
+        self.recent = RecentEchoes(RECENT_ECHOES_S)
 
     def desired(self, moment: Moment) -> tuple[float, float]:
         """The heading wanted (body frame, rad) and the distance to go (m)."""
@@ -119,7 +125,8 @@ class Steered(Behaviour):
         chosen_rad = self.steering.chosen_rad
         previous = None if chosen_rad is None else wrap_angle(chosen_rad - pose.theta_rad)
         whole_shape = moment.view.is_leader and not self.scripted
-        clearances = self.shape.clearances(points, moment.view.live, whole_shape=whole_shape)
+        recent = self.recent.with_recent(pose, points, moment.t_s)
+        clearances = self.shape.clearances(recent, moment.view.live, whole_shape=whole_shape)
         room_to_turn = self.shape.sweep_clear(points)
         if self.keeper is not None:
             self.keeper.squeeze(_squeezed(clearances, desired, dist_m, self.nav), self.dt_s)
@@ -132,7 +139,7 @@ class Steered(Behaviour):
             need_m=min(self.nav.lookahead_m, dist_m + self.shape.radius_m),
             omega_max_radps=self.shape.turn_rate_radps(),
             previous_rad=previous,
-            min_radius_m=self.shape.turn_radius_m(),
+            min_radius_m=self._turn_radius_m(clearances),
             reach_rad=math.pi if room_to_turn else REORIENT_RAD,
         )
         self.steering.chosen_rad = pose.theta_rad + chosen
@@ -141,6 +148,15 @@ class Steered(Behaviour):
         twist = rigid_limit(twist, self.shape.follower_slots, self.limits.v_max_mps)
         self.course.last_forward = twist
         return twist
+
+    def _turn_radius_m(self, clear: Clearances) -> float:
+        """The tightest arc to lead along: `min_turn_radius_m` (the followers keep their
+        slots best on gentle bends), or as tight as the shape allows with an obstacle
+        close ahead (where a gentle bend would not get round it).
+        """
+        if clear.ahead_m() < TIGHT_AHEAD_SHARE * self.nav.lookahead_m:
+            return self.shape.turn_radius_m()
+        return self.nav.min_turn_radius_m
 
 
 def _squeezed(clear: Clearances, desired_rad: float, dist_m: float, nav: NavigationConfig) -> bool:
