@@ -33,6 +33,8 @@ SWEEP_MARGIN_M = 0.35
 # A navigating leader turns about a point at least this much beyond the shape's furthest
 # slot across its heading (m): no slot of the shape is then swung backwards.
 TURN_CENTRE_MARGIN_M = 0.75
+# ... and on an arc no tighter than this share of the shape's reach from it.
+TAIL_SHARE = 0.5
 # Left and right, for the formation's room to either side.
 SIDEWAYS_RAD = np.array([math.pi / 2, -math.pi / 2])
 
@@ -134,10 +136,12 @@ class Shape:
 
     def turn_radius_m(self) -> float:
         """The tightest arc this robot may lead the shape along (m): the configured
-        `min_turn_radius_m`, or less for a shape narrow across its heading (a column
-        follows its leader round a tight bend; a wide line abreast cannot).
+        `min_turn_radius_m`, or less for a short shape narrow across its heading (a
+        short column follows its leader round a tight bend; a wide line abreast cannot,
+        and a long column's tail would sweep wide of the leader's path).
         """
-        return min(self.nav.min_turn_radius_m, self.across_m + self.radius_m + TURN_CENTRE_MARGIN_M)
+        across = self.across_m + self.radius_m + TURN_CENTRE_MARGIN_M
+        return min(self.nav.min_turn_radius_m, max(across, TAIL_SHARE * self.reach_m))
 
     def stop_gap_m(self) -> float:
         """The gap a robot at cruise speed needs to stop in, margin included (m)."""
