@@ -296,18 +296,22 @@ def keep_sections(text: str, old: str) -> str:
 
 
 # docs/RESULTS.md holds generated parts: the paper matrix (`phalanx report`) and, between
-# their markers, the navigation benchmark (`bench/bench_montecarlo.py`) and the formation
-# on real sensing (`bench/bench_localisation.py`). Each tool rewrites its own part and
-# keeps the others.
+# their markers, the navigation benchmark (`bench/bench_montecarlo.py`), the sweep
+# (`phalanx sweep --write`) and the formation on real sensing (`bench/bench_localisation.py`).
+# Each tool rewrites its own part and keeps the others, and the sweep's notes.
 SECTION_BEGIN = "<!-- navigation benchmark: written by bench/bench_montecarlo.py -->"
 SECTION_END = "<!-- end of navigation benchmark -->"
 LOCALISATION_BEGIN = "<!-- localisation benchmark: written by bench/bench_localisation.py -->"
 LOCALISATION_END = "<!-- end of localisation benchmark -->"
 SWEEP_BEGIN = "<!-- sweep: written by phalanx sweep -->"
 SWEEP_END = "<!-- end of sweep -->"
+# What a sweep's figures mean against the goals, written by hand: no tool rewrites it.
+NOTES_BEGIN = "<!-- sweep notes: written by hand -->"
+NOTES_END = "<!-- end of sweep notes -->"
 KEPT_SECTIONS = (
     (SECTION_BEGIN, SECTION_END),
     (SWEEP_BEGIN, SWEEP_END),
+    (NOTES_BEGIN, NOTES_END),
     (LOCALISATION_BEGIN, LOCALISATION_END),
 )
 

@@ -6,8 +6,12 @@ from __future__ import annotations
 from phalanx.analysis.report import (
     LOCALISATION_BEGIN,
     LOCALISATION_END,
+    NOTES_BEGIN,
+    NOTES_END,
     SECTION_BEGIN,
     SECTION_END,
+    SWEEP_BEGIN,
+    SWEEP_END,
     keep_sections,
     with_section,
 )
@@ -36,3 +40,16 @@ def test_each_benchmark_rewrites_only_its_own_section() -> None:
     nav2 = NAV.replace("nav table", "nav table v2")
     assert "nav table v2" in with_section(again, nav2)
     assert "sensing table v2" in with_section(again, nav2)
+
+
+def test_the_sweep_notes_outlive_the_report_and_a_new_sweep() -> None:
+    sweep = f"{SWEEP_BEGIN}\n## Sweep\nsweep table\n{SWEEP_END}"
+    notes = f"{NOTES_BEGIN}\nwhat the table means\n{NOTES_END}"
+    old = f"# Results\nold matrix\n\n{NAV}\n\n{sweep}\n\n{notes}\n\n{LOC}\n"
+    new = keep_sections("# Results\nnew matrix\n", old)
+    assert new.index(sweep) < new.index(notes) < new.index(LOC)
+    rewritten = with_section(
+        new, sweep.replace("sweep table", "sweep table v2"), begin=SWEEP_BEGIN, end=SWEEP_END
+    )
+    assert "sweep table v2" in rewritten
+    assert notes in rewritten
