@@ -100,10 +100,6 @@ class RecentEchoes:
         self.keep_s = keep_s
         self._steps: deque[tuple[float, FloatArray, FloatArray]] = deque()
 
-    def clear(self) -> None:
-        """Forget them all (the robot stopped steering by them)."""
-        self._steps.clear()
-
     def with_recent(
         self, pose: Pose2D, points: tuple[FloatArray, FloatArray], t_s: float
     ) -> tuple[FloatArray, FloatArray]:

@@ -117,7 +117,8 @@ class ShapeKeeper:
     def decide(self, grid: OccupancyMap | None, pose: Pose2D, goal: Vec2, t_s: float) -> None:
         """Weigh the shapes (every `DECIDE_S`): the widest whose route is about as good as
         the best; a change is wanted once it has come out `CONFIRM` times running, not
-        within `DWELL_S` of the last reshape, and a wider shape only if it fits here.
+        within `DWELL_S` of the last reshape, and a wider shape only if it fits here and
+        on ahead (`fits`).
         """
         if not self.enabled or grid is None or t_s - self._decided_s < DECIDE_S:
             return
