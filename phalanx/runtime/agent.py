@@ -200,7 +200,12 @@ class AgentRuntime:
             self.inbox.keep_own(out.state, out.flags)
         else:
             self.io.write(tick, out.command)  # first: the world (lockstep) waits on it
-            self._publish(out)
+            # Asked again: a process frozen while its command went out must not resume
+            # by publishing the state it had before (a peer would take it as news).
+            if self._stale(began, tick):
+                self.inbox.keep_own(out.state, out.flags)
+            else:
+                self._publish(out)
         if self.telemetry is not None:
             self._log_step(tick, observation, out, peers)
         self.last = out
