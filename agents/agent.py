@@ -274,10 +274,15 @@ class Agent:
         lead = peers.get(self.parent_id) if self.parent_id else None
         if lead is not None and t_s - lead.stamp_s > self.scenario.leader_timeout_s:
             lead = None
+        head = None
+        if lead is not None and lsh.leader_id != self.parent_id:
+            head = peers.get(lsh.leader_id)
+            if head is not None and t_s - head.stamp_s > self.scenario.leader_timeout_s:
+                head = None
         if change is not None:
             self.role_reason = f"{change.reason} (epoch {change.epoch}, leader {change.leader_id})"
         took = change if lsh.is_leader and not was_leader else None
-        return FleetView(live, took, lsh.is_leader, lsh.leader_id, self.parent_id, lead)
+        return FleetView(live, took, lsh.is_leader, lsh.leader_id, self.parent_id, lead, head)
 
     def _localise(
         self, observation: Observation, view: FleetView, peers: Mapping[str, PeerState], t_s: float
@@ -418,7 +423,7 @@ class Agent:
     # --- after the command ------------------------------------------------------------
 
     def _update_formed(self, pose: Pose2D, view: FleetView, t_s: float) -> None:
-        state, lead = self.fsm.state, view.lead
+        state, lead = self.fsm.state, view.anchor
         if view.is_leader and state not in OUT_OF_FORMATION:
             self.formed = True
         elif state in OUT_OF_FORMATION:

@@ -82,3 +82,13 @@ class FleetView:
     leader_id: str
     tracked_id: str | None
     lead: PeerState | None
+    head: PeerState | None = None
+
+    @property
+    def anchor(self) -> PeerState | None:
+        """The state this robot's slot is laid out from: the formation leader's, when
+        it is fresh (a slot relative to the whole shape's head does not swing with the
+        robots between, whose own corrections would otherwise add up down a chain), or
+        the tracked robot's.
+        """
+        return self.head if self.head is not None else self.lead

@@ -237,8 +237,8 @@ def way_clear(sensing: Sensing, shape: Shape, view: FleetView, pose: Pose2D, t_s
     on it, the way its slot moves).
     """
     backwards = False
-    if view.lead is not None and not view.is_leader:
-        target, ff = shape.slot_target(view.lead, t_s)
+    if view.anchor is not None and not view.is_leader:
+        target, ff = shape.slot_target(view.anchor, t_s)
         offset = target.position - pose.position
         along = offset.x_m * math.cos(pose.theta_rad) + offset.y_m * math.sin(pose.theta_rad)
         backwards = along < -INTENT_M or (abs(along) <= INTENT_M and ff.v_mps < 0.0)

@@ -53,7 +53,7 @@ class Track(Behaviour):
 
     def command(self, moment: Moment) -> Twist2D:
         """The controller's twist, or a turn on the spot onto the slot's heading."""
-        lead = moment.view.lead
+        lead = moment.view.anchor
         if lead is None:
             return ZERO_TWIST
         still = abs(lead.v_mps) < STILL_MPS and abs(lead.omega_radps) < STILL_RADPS
@@ -115,7 +115,7 @@ class Avoid(Behaviour):
 
     def command(self, moment: Moment) -> Twist2D:
         """Steer round what blocks the way to the slot."""
-        lead = moment.view.lead
+        lead = moment.view.anchor
         if lead is None:
             return ZERO_TWIST
         pose, sensing = moment.pose, moment.sensing

@@ -18,6 +18,10 @@ pytestmark = pytest.mark.drivers
 ROBOT = load_robot("p3dx")
 
 
+def _moving(twist: Twist2D) -> bool:
+    return abs(twist.v_mps) > 1e-6 or abs(twist.omega_radps) > 1e-6
+
+
 def _drift_after_a_drive(errors: OdometryErrors | None) -> tuple[float, float]:
     """(odometry's position error m, distance driven m) after 2 s of an arc."""
     options = EmulatorOptions(odometry_errors=errors, seed=3)
@@ -28,7 +32,12 @@ def _drift_after_a_drive(errors: OdometryErrors | None) -> tuple[float, float]:
                 driver.set_velocity(Twist2D(0.5, 0.4))
                 time.sleep(0.1)
             driver.stop()
-            time.sleep(0.6)  # stopped, and a SIP or two since
+            # At rest (0.5 m/s at 0.3 m/s^2 takes 1.7 s; longer on a loaded machine),
+            # then a SIP or two since: the odometry read is not carried forward.
+            deadline = time.monotonic() + 10.0
+            while time.monotonic() < deadline and _moving(emulator.body.state().twist):
+                time.sleep(0.05)
+            time.sleep(0.3)
             truth = emulator.body.state()
             odo = driver.read_odometry().pose
     error = math.hypot(odo.x_m - truth.pose.x_m, odo.y_m - truth.pose.y_m)
