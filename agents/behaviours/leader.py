@@ -48,6 +48,10 @@ REALIGN_MAX_RAD = math.radians(45.0)
 TIGHT_AHEAD_SHARE = 0.5
 # The navigator steers by the echoes of the last this long (s).
 RECENT_ECHOES_S = 1.0
+# While a robot of the group is off its slot, no slot may need more than this share of
+# what it may otherwise (`rigid_limit`): on a bend, a robot trailing an outer slot that
+# needs nearly the speed limit would have no speed left to catch up with.
+CATCH_UP_SHARE = 0.8
 
 
 class Scripted(Behaviour):
@@ -145,7 +149,9 @@ class Steered(Behaviour):
         self.steering.chosen_rad = pose.theta_rad + chosen
         if twist.v_mps == 0.0 and twist.omega_radps != 0.0 and room_to_turn:
             self.steering.turn_to_rad = self.steering.chosen_rad
-        twist = rigid_limit(twist, self.shape.follower_slots, self.limits.v_max_mps)
+        lagging = any(not f.formed for f in moment.view.live.values())
+        v_max = self.limits.v_max_mps * (CATCH_UP_SHARE if lagging else 1.0)
+        twist = rigid_limit(twist, self.shape.follower_slots, v_max)
         self.course.last_forward = twist
         return twist
 

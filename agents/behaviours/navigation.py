@@ -42,6 +42,8 @@ REORIENT_RAD = math.radians(45.0)
 CENTRING_RANGE_M = 1.5
 CENTRING_GAIN_PER_M = 0.5
 CENTRING_MAX_RAD = math.radians(15.0)
+# Half the spacing of the candidate headings (`HEADINGS_RAD`).
+HALF_STEP_RAD = float(HEADINGS_RAD[1] - HEADINGS_RAD[0]) / 2
 # The deadlock reverse never retraces a tighter arc than this (a crawl's curvature is noise).
 RETRACE_MIN_RADIUS_M = 2.0
 
@@ -215,8 +217,19 @@ def steer(
     if min_radius_m > 0.0:
         # A rigid shape turning about a point inside itself twists its followers round.
         omega_max = min(omega_max, v / min_radius_m)
-    omega = max(-omega_max, min(omega_max, nav.heading_gain_per_s * heading))
+    omega = max(-omega_max, min(omega_max, nav.heading_gain_per_s * _aim_rad(heading, desired_rad)))
     return Twist2D(v, omega), heading
+
+
+def _aim_rad(heading_rad: float, desired_rad: float) -> float:
+    """What to turn towards: `desired_rad` itself when it lies within half a candidate's
+    step of the chosen heading (the way there is the one found free), else the chosen
+    heading. Candidates 7.5 deg apart would otherwise have a leader on a nearly straight
+    course switch between straight on and a full-rate bend, and a shape's far slots
+    (whose direction moves by about `x dw / v`) swing from side to side with it.
+    """
+    off = wrap_angle(desired_rad - heading_rad)
+    return heading_rad + off if abs(off) <= HALF_STEP_RAD else heading_rad
 
 
 def rigid_limit(twist: Twist2D, slots: Sequence[Vec2], v_max_mps: float) -> Twist2D:

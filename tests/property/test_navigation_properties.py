@@ -8,6 +8,7 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from phalanx.agents.behaviours.navigation import Clearances, steer
 from phalanx.agents.leadership import Leadership, LiveFlags, newer
 from phalanx.agents.perception import (
     HEADINGS_RAD,
@@ -224,3 +225,25 @@ def test_a_narrow_shape_turns_tighter_but_swings_no_slot_backwards(
         wide = across_m + robot.radius_m + TURN_CENTRE_MARGIN_M >= nav.min_turn_radius_m - 1e-9
         long = TAIL_SHARE * shape.reach_m >= nav.min_turn_radius_m - 1e-9
         assert wide or long
+
+
+@settings(max_examples=80, deadline=None)
+@given(st.floats(-0.35, 0.35), st.floats(-0.35, 0.35), st.floats(0.0, 4.0))
+def test_on_an_open_floor_the_yaw_rate_follows_the_heading_wanted_smoothly(
+    first: float, second: float, min_radius_m: float
+) -> None:
+    """No jump between straight on and a full-rate bend as the heading wanted crosses
+    from one candidate heading's share to the next: the yaw rate moves by at most the
+    heading gain times the change of the heading wanted.
+    """
+    nav = NavigationConfig()
+    free = np.full(HEADINGS_RAD.shape, 10.0)
+
+    def omega(desired: float) -> float:
+        twist, _ = steer(
+            desired, Clearances(free, free), nav=nav, speed_mps=0.2, stop_gap_m=0.5,
+            need_m=3.0, omega_max_radps=0.7, min_radius_m=min_radius_m,
+        )  # fmt: skip
+        return twist.omega_radps
+
+    assert abs(omega(first) - omega(second)) <= nav.heading_gain_per_s * abs(first - second) + 1e-9
