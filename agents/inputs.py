@@ -73,7 +73,8 @@ class Observation:
 class FleetView:
     """A robot's view of its fleet this step: the flags heard lately (`live`), the
     change by which it took the lead this step (if it did), who leads, whom it tracks
-    (None while it leads) and that robot's state, if fresh.
+    (None while it leads) and that robot's state, if fresh; and the leader's state
+    (`head`), if fresh and the leader is not the robot tracked.
     """
 
     live: LiveFlags
