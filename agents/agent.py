@@ -265,20 +265,17 @@ class Agent:
         others = len(live) - (self.robot_id in live)
         if others or self.parts.startup.waited_s(t_s) >= self.scenario.leadership.join_timeout_s:
             self.joined = True
-        head = live.get(lsh.leader_id)
-        if not lsh.is_leader and head is not None:
-            self.parts.progress.copy_from(head)
-            self.parts.keeper.copy_from(head)
+        leader_flags = live.get(lsh.leader_id)
+        if not lsh.is_leader and leader_flags is not None:
+            self.parts.progress.copy_from(leader_flags)
+            self.parts.keeper.copy_from(leader_flags)
         self.parts.apply_shape()
         self.parent_id = lsh.tracked(live)
-        lead = peers.get(self.parent_id) if self.parent_id else None
-        if lead is not None and t_s - lead.stamp_s > self.scenario.leader_timeout_s:
-            lead = None
+        timeout_s = self.scenario.leader_timeout_s
+        lead = _fresh(peers, self.parent_id, t_s, timeout_s)
         head = None
         if lead is not None and lsh.leader_id != self.parent_id:
-            head = peers.get(lsh.leader_id)
-            if head is not None and t_s - head.stamp_s > self.scenario.leader_timeout_s:
-                head = None
+            head = _fresh(peers, lsh.leader_id, t_s, timeout_s)
         if change is not None:
             self.role_reason = f"{change.reason} (epoch {change.epoch}, leader {change.leader_id})"
         took = change if lsh.is_leader and not was_leader else None
@@ -483,3 +480,13 @@ class Agent:
             self.limiter.accel_limited,
             self.parts.planner.scan,
         )
+
+
+def _fresh(
+    peers: Mapping[str, PeerState], rid: str | None, t_s: float, timeout_s: float
+) -> PeerState | None:
+    """`rid`'s state, unless it is older than `timeout_s` at `t_s` (or there is none)."""
+    state = peers.get(rid) if rid else None
+    if state is None or t_s - state.stamp_s > timeout_s:
+        return None
+    return state
