@@ -9,9 +9,12 @@ both read from CLOCK_MONOTONIC, one clock for every process on this machine.
 
 Two topologies: every process a Zenoh client of one router (as `phalanx up` runs), and
 peers connected directly (each listens on its own loopback port and connects to the
-others). Scouting is off in both.
+others). Scouting is off in both. Two transports: Zenoh's default, and its low-latency
+one (a put written to the link from the calling thread), which `phalanx up` runs its
+processes on (`--lowlatency`).
 
     .venv/bin/python bench/bench_zenoh_latency.py [--robots 3 10 30] [--seconds 10]
+        [--topology router peer] [--transport default lowlatency]
 """
 
 from __future__ import annotations
@@ -108,21 +111,27 @@ def robot(cfg: TransportConfig, rid: str, n: int, seconds: float, ready: Any, ou
     out.put(latencies)
 
 
-def _configs(n: int, topology: str) -> tuple[TransportConfig | None, list[TransportConfig]]:
+def _configs(
+    n: int, topology: str, lowlatency: bool
+) -> tuple[TransportConfig | None, list[TransportConfig]]:
     if topology == "router":
         endpoint = loopback_endpoint(free_tcp_port())
-        client = TransportConfig(mode="client", connect=(endpoint,))
-        return TransportConfig(mode="router", listen=(endpoint,)), [client] * n
+        client = TransportConfig(mode="client", connect=(endpoint,), lowlatency=lowlatency)
+        router = TransportConfig(mode="router", listen=(endpoint,), lowlatency=lowlatency)
+        return router, [client] * n
     eps = [loopback_endpoint(free_tcp_port()) for _ in range(n)]
     # Peer i connects to every earlier peer: a full mesh with one link per pair.
     return None, [
-        TransportConfig(mode="peer", listen=(eps[i],), connect=tuple(eps[:i])) for i in range(n)
+        TransportConfig(
+            mode="peer", listen=(eps[i],), connect=tuple(eps[:i]), lowlatency=lowlatency
+        )
+        for i in range(n)
     ]
 
 
-def measure(n: int, seconds: float, topology: str) -> list[float]:
+def measure(n: int, seconds: float, topology: str, lowlatency: bool = False) -> list[float]:
     """Latencies (s) of every follower command in an `n`-robot fleet."""
-    router_cfg, cfgs = _configs(n, topology)
+    router_cfg, cfgs = _configs(n, topology, lowlatency)
     ctx = mp.get_context("spawn")
     ready = ctx.Barrier(n)
     out = ctx.Queue()
@@ -150,21 +159,29 @@ def main() -> None:
     parser.add_argument(
         "--topology", nargs="+", default=["router", "peer"], choices=["router", "peer"]
     )
+    parser.add_argument(
+        "--transport", nargs="+", default=["default"], choices=["default", "lowlatency"]
+    )
     args = parser.parse_args()
     cal = Calibration.measure()
     print(f"leader state -> follower command over Zenoh, {RATE_HZ:.0f} Hz per robot, loopback")
-    print("topology  robots  samples  p50_ms  p90_ms  p99_ms  max_ms  p99_mcal  load")
-    for topology in args.topology:
-        for n in args.robots:
-            lat = sorted(measure(n, args.seconds, topology))
-            q = statistics.quantiles(lat, n=100)
-            print(
-                f"{topology:8s}  {n:6d}  {len(lat):7d}  {1e3 * q[49]:6.3f}  "
-                f"{1e3 * q[89]:6.3f}  {1e3 * q[98]:6.3f}  {1e3 * lat[-1]:6.3f}  "
-                f"{1e3 * cal.ratio(q[98]):8.1f}  {load()}",
-                flush=True,
-            )
+    print("topology  transport   robots  samples  p50_ms  p90_ms  p99_ms  max_ms  p99_mcal  load")
+    for transport in args.transport:
+        for topology in args.topology:
+            for n in args.robots:
+                _row(n, args.seconds, topology, transport, cal)
     Calibration.measure()
+
+
+def _row(n: int, seconds: float, topology: str, transport: str, cal: Calibration) -> None:
+    lat = sorted(measure(n, seconds, topology, transport == "lowlatency"))
+    q = statistics.quantiles(lat, n=100)
+    print(
+        f"{topology:8s}  {transport:10s}  {n:6d}  {len(lat):7d}  {1e3 * q[49]:6.3f}  "
+        f"{1e3 * q[89]:6.3f}  {1e3 * q[98]:6.3f}  {1e3 * lat[-1]:6.3f}  "
+        f"{1e3 * cal.ratio(q[98]):8.1f}  {load()}",
+        flush=True,
+    )
 
 
 if __name__ == "__main__":

@@ -58,7 +58,6 @@ class RuntimeOptions:
     fleet: str
     transport: TransportConfig
     clock: ClockMode = "lockstep"
-    peer_wait_s: float = 2.0
 
 
 class AgentRuntime:
@@ -187,10 +186,9 @@ class AgentRuntime:
             )
         began = time.monotonic()
         self.inbox.drain()
+        self.inbox.relayed(self.io.relayed())
         delay_s = max(self.scenario.comm_delay_s, self.scenario.dt_s)
-        peers, flags = self.inbox.for_step(
-            tick.t_s, delay_s=delay_s, watched=self.watched, wait_s=self.options.peer_wait_s
-        )  # (the bounded wait for peers is not step time)
+        peers, flags = self.inbox.for_step(tick.t_s, delay_s=delay_s, watched=self.watched)
         heard = self.scans.take()
         if heard:
             observation = dataclasses.replace(observation, scans=observation.scans + heard)
@@ -199,7 +197,8 @@ class AgentRuntime:
         if self._stale(began, tick):
             self.inbox.keep_own(out.state, out.flags)
         else:
-            self.io.write(tick, out.command)  # first: the world (lockstep) waits on it
+            if not self.lockstep:  # (in lockstep the state carries the command: one put)
+                self.io.write(tick, out.command)
             # Asked again: a process frozen while its command went out must not resume
             # by publishing the state it had before (a peer would take it as news).
             if self._stale(began, tick):
@@ -246,7 +245,7 @@ class AgentRuntime:
         fleet, rid = self.options.fleet, self.robot_id
         self._send(robot_key(fleet, rid, "state"), lambda: RobotState.of(out.state))
         flags = out.flags
-        if self.flags_out.due(flags):
+        if not self.lockstep and self.flags_out.due(flags):  # (lockstep: the states do)
             self._send(robot_key(fleet, rid, "flags"), lambda: RobotFlags.of(flags))
         self.inbox.keep_own(out.state, flags)
         scan = out.scan

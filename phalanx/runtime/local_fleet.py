@@ -22,7 +22,7 @@ from pathlib import Path
 from phalanx.core.config import Scenario
 from phalanx.runtime.exits import EXIT_FAILED, EXIT_FINISHED, agent_exit_reason, exit_reason
 from phalanx.runtime.signals import Stoppable, supervised_env
-from phalanx.wire.transport import free_tcp_port, loopback_endpoint
+from phalanx.wire.transport import LOWLATENCY_MAX_BYTES, free_tcp_port, loopback_endpoint
 
 log = logging.getLogger("phalanx.up")
 GRACE_S = 5.0
@@ -77,11 +77,24 @@ def _cli() -> list[str]:
     return [sys.executable, "-m", "phalanx"]
 
 
+def _frames_fit_lowlatency(scenario: Scenario) -> bool:
+    from phalanx.core.config_files import load_robot
+    from phalanx.runtime.world_frames import lockstep_frame_bytes
+    from phalanx.simulator.world import World
+
+    world = World.for_scenario(scenario, load_robot(scenario.robot))
+    ids = [r.id for r in scenario.robots]
+    return lockstep_frame_bytes(world, ids, scenario.dt_s) <= LOWLATENCY_MAX_BYTES
+
+
 def plan(scenario_path: Path, scenario: Scenario, options: UpOptions) -> list[Child]:
     """The world and agent command lines."""
     endpoint = loopback_endpoint(free_tcp_port())
-    # Every process on this machine: Zenoh's low-latency transport (see TransportConfig).
-    common = ["--fleet", options.fleet, "--clock", options.clock, "--lowlatency"]
+    # Every process on this machine: Zenoh's low-latency transport (see TransportConfig),
+    # if its messages carry the fleet's lockstep frames.
+    common = ["--fleet", options.fleet, "--clock", options.clock]
+    if options.clock != "lockstep" or _frames_fit_lowlatency(scenario):
+        common.append("--lowlatency")
     common += options.overrides
     world = [
         *_cli(),

@@ -115,14 +115,12 @@ class PeerInbox:
         self._subscribed: set[str] = set()
 
     def attach(self, session: FleetSession, watched: tuple[str, ...]) -> None:
-        """Subscribe: every state in lockstep, else every robot's flags (drained from a
-        ring once per step, no wake-up per message) and the states of `watched`.
+        """Subscribe to every robot's flags (drained from a ring once per step, no wake-up
+        per message) and the states of `watched`; in lockstep to nothing: the world's
+        frames carry every state (`relayed`).
         """
         self._session = session
         if self.lockstep:
-            session.subscribe(
-                robots_key(self.fleet, "state"), RobotState, self._on_state, context=self.bounds
-            )
             return
         capacity = RING_PER_ROBOT * len(self.formation.robot_ids)
         self._flag_ring = session.subscribe_polled(
@@ -149,6 +147,11 @@ class PeerInbox:
             self._flag_ring.drain(self._on_flags)
         for ring in self._state_rings:
             ring.drain(self._on_state)
+
+    def relayed(self, states: Iterable[RobotState]) -> None:
+        """The other robots' states a lockstep frame carried (checked with the frame)."""
+        for state in states:
+            self._on_state("", state)
 
     # (A message on another robot's key never gets here: the session rejects it.)
     def _on_state(self, _key: str, state: RobotState) -> None:
@@ -198,9 +201,12 @@ class PeerInbox:
         return [r for r in self.formation.robot_ids if r not in self.dead]
 
     def for_step(
-        self, t_s: float, *, delay_s: float, watched: tuple[str, ...], wait_s: float
+        self, t_s: float, *, delay_s: float, watched: tuple[str, ...]
     ) -> tuple[dict[str, PeerState], dict[str, PeerFlags]]:
-        """The states (and, in real time, flags) the agent gets for the step at `t_s`."""
+        """The states (and, in real time, flags) the agent gets for the step at `t_s`.
+        In lockstep every live robot's state `delay_s` old is due with the step's frame
+        (the world waited for them); a step without one is counted late.
+        """
         if not self.lockstep:
             states = {p: pick_state(self.states.values(p), t_s) for p in watched}
             flags = {p: pick_state(self.flags.values(p), t_s) for p in self.alive()}
@@ -210,13 +216,10 @@ class PeerInbox:
             )
         not_after = t_s - delay_s
         needed = [p for p in self.alive() if p != self.robot_id]
-        if t_s - delay_s >= -EPS_S:
-
-            def ready() -> bool:
-                return all(_has_state(self.states.values(p), not_after) for p in needed)
-
-            if not self.states.wait(ready, wait_s):
-                self.late_steps += 1
+        if not_after >= -EPS_S and not all(
+            _has_state(self.states.values(p), not_after) for p in needed
+        ):
+            self.late_steps += 1
         chosen = {p: pick_state(self.states.values(p), not_after) for p in self.alive()}
         return {p: s for p, s in chosen.items() if s is not None}, {}
 

@@ -30,7 +30,7 @@ from phalanx.runtime.signals import Stoppable
 from phalanx.wire.bounds import FleetBounds
 from phalanx.wire.codec import DecodeStats
 from phalanx.wire.keys import robot_key
-from phalanx.wire.messages import SenseFrame, VelocityCommand
+from phalanx.wire.messages import RobotState, SenseFrame, VelocityCommand
 from phalanx.wire.transport import FleetSession
 
 log = logging.getLogger("phalanx.agent")
@@ -68,6 +68,12 @@ class RobotIO(Protocol):
         """How far (s) the robot's side has moved on past `tick` already."""
         ...
 
+    def relayed(self) -> tuple[RobotState, ...]:
+        """Other robots' states that came with the last reading (the world's frames in
+        lockstep), each given once.
+        """
+        ...
+
 
 def pose_now(odometry: Odometry, now_s: float) -> Pose2D:
     """The odometry pose carried forward along its twist from its stamp to `now_s`.
@@ -103,6 +109,7 @@ class WorldLink:
         self._box = FrameBox(self.stats)
         self.gate = self._gate()
         self._frame: SenseFrame | None = None
+        self._relay_from: SenseFrame | None = None  # the frame whose peers are not taken
         self._session: FleetSession | None = None
 
     def _gate(self) -> FrameGate:
@@ -139,7 +146,7 @@ class WorldLink:
                 last_frame = time.monotonic()
             frame = self.gate.offer(frames)
             if frame is not None:
-                self._frame = frame
+                self._frame = self._relay_from = frame
                 return Tick(frame.tick, frame.t_s)
             if self.gate.ended():
                 return None
@@ -186,6 +193,11 @@ class WorldLink:
 
     def halt(self) -> None:
         """Nothing to do: the world stops a robot whose agent is gone."""
+
+    def relayed(self) -> tuple[RobotState, ...]:
+        """The other robots' states the frame read last carried (once)."""
+        frame, self._relay_from = self._relay_from, None
+        return frame.peers if frame is not None else ()
 
     def lag_s(self, tick: Tick) -> float:
         """How many ticks' time the world has sent past `tick` (frames waiting)."""
@@ -257,6 +269,10 @@ class DriverIO:
     def lag_s(self, tick: Tick) -> float:
         """None: the robot's own clock skips the ticks it is late for."""
         return 0.0
+
+    def relayed(self) -> tuple[RobotState, ...]:
+        """None: a robot on a driver hears its peers over the fleet's session."""
+        return ()
 
     def counters(self) -> dict[str, int]:
         """Readings and commands the driver failed."""

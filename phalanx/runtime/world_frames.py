@@ -16,8 +16,9 @@ from phalanx.runtime.positioning import (
     relative_message,
 )
 from phalanx.simulator.world import World
+from phalanx.wire.codec import encode
 from phalanx.wire.keys import robot_key
-from phalanx.wire.messages import SenseFrame
+from phalanx.wire.messages import RobotState, SenseFrame
 from phalanx.wire.transport import FleetSession
 
 Flat = tuple[tuple[float, ...], tuple[float, ...]]  # a frame's fixes and relative groups
@@ -31,8 +32,11 @@ def sense_frame(
     *,
     final: bool = False,
     positioning: Flat = ((), ()),
+    peers: tuple[RobotState, ...] = (),
 ) -> SenseFrame:
-    """Robot `rid`'s frame for tick `k` (at k * dt_s s), from the world as it is now."""
+    """Robot `rid`'s frame for tick `k` (at k * dt_s s), from the world as it is now,
+    carrying `peers` (the other robots' states, in lockstep).
+    """
     odo, status = world.odometry(rid), world.status(rid)
     return SenseFrame(
         robot_id=rid,
@@ -49,7 +53,23 @@ def sense_frame(
         final=final,
         fixes=positioning[0],
         relative=positioning[1],
+        peers=peers,
     )
+
+
+def lockstep_frame_bytes(world: World, ids: Sequence[str], dt_s: float) -> int:
+    """The packed size of the largest lockstep frame `world` sends its fleet `ids`:
+    every other robot's state in it, each at its largest (with a covariance).
+    """
+    states = tuple(
+        RobotState(
+            robot_id=rid, seq=0, stamp_s=0.0, x_m=0.0, y_m=0.0, theta_rad=0.0, v_mps=0.0,
+            omega_radps=0.0, fsm_state="FORMATION_TRACK", cov=(1.0, 0.0, 0.0, 1.0, 0.0, 1.0),
+            leader_id=ids[0], formation_leader_id=ids[0],
+        )
+        for rid in ids[1:]
+    )  # fmt: skip
+    return len(encode(sense_frame(world, ids[0], 1, dt_s, peers=states), "packed"))
 
 
 def publish_positioning(

@@ -2,8 +2,11 @@
 on the `sim` driver over Zenoh; runs in lockstep or in real time; writes the run's log.
 
 Lockstep: for each tick the world sends every robot its SenseFrame, waits (bounded) for
-every live robot's VelocityCommand of that tick, then integrates. A robot that misses
-the deadline is reported and keeps its last command for that tick; nobody waits forever.
+every live robot's RobotState of that tick, then integrates. The state is the robot's
+answer: its twist is the command the robot executes from the tick on. A robot that
+misses the deadline is reported and stands still for that tick; nobody waits forever.
+The next frames carry the states to the other robots (`SenseFrame.peers`): an agent
+sends one message a tick and hears one, whatever the fleet's size.
 Real time: the world integrates on the wall clock (optionally sped up) with the latest
 commands it has.
 """
@@ -11,22 +14,27 @@ commands it has.
 from __future__ import annotations
 
 import logging
-import threading
 import time
-from collections import defaultdict
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any, Literal
 
 import numpy as np
 
 from phalanx.core.config import RobotParams, Scenario
+from phalanx.core.errors import ConfigError
 from phalanx.core.formation import scenario_formation
 from phalanx.core.geometry import ZERO_TWIST, Twist2D
 from phalanx.core.limits import KinematicLimits
 from phalanx.core.runlog import RobotTrace, RunLog
 from phalanx.core.states import State, TransitionEvent
 from phalanx.runtime.signals import Stoppable
-from phalanx.runtime.world_frames import Flat, publish_positioning, sense_frame
+from phalanx.runtime.world_frames import (
+    Flat,
+    lockstep_frame_bytes,
+    publish_positioning,
+    sense_frame,
+)
+from phalanx.runtime.world_inbox import WorldInbox
 from phalanx.simulator.world import World
 from phalanx.telemetry.stream import PAPER_ANGULAR_BOUND_PCT, PAPER_LINEAR_BOUND_PCT, Telemetry
 from phalanx.wire.bounds import FleetBounds
@@ -45,13 +53,15 @@ from phalanx.wire.messages import (
     RobotState,
     VelocityCommand,
 )
-from phalanx.wire.transport import FleetSession, TransportConfig, open_session
+from phalanx.wire.transport import (
+    LOWLATENCY_MAX_BYTES,
+    FleetSession,
+    TransportConfig,
+    open_session,
+)
 
 log = logging.getLogger("phalanx.world")
 WORLD_ID = "world"
-# Transitions and leadership announcements kept for the run's log; more (a flood) are
-# dropped and counted.
-MAX_LOG_ENTRIES = 100_000
 # Commands and states are kept for ticks up to this far ahead of the world's (a late one
 # is fine; one for a tick this far off is no agent's, and would only take memory).
 AHEAD_S = 2.0
@@ -69,31 +79,6 @@ class WorldOptions:
     startup_timeout_s: float = 60.0
     report_timeout_s: float = 5.0
     epoch_s: float | None = None  # real time: tick 0 at this Unix time (shared with agents)
-
-
-@dataclass
-class _Inbox:
-    """What agents sent, filled by Zenoh callbacks (thread-safe via the condition)."""
-
-    cond: threading.Condition = field(default_factory=threading.Condition)
-    commands: dict[int, dict[str, VelocityCommand]] = field(
-        default_factory=lambda: defaultdict(dict)
-    )
-    latest: dict[str, VelocityCommand] = field(default_factory=dict)
-    states: dict[str, dict[int, RobotState]] = field(default_factory=lambda: defaultdict(dict))
-    events: list[AgentEvent] = field(default_factory=list)
-    reports: dict[str, AgentReport] = field(default_factory=dict)
-    alive: set[str] = field(default_factory=set)
-    leaders: list[LeaderAnnouncement] = field(default_factory=list)
-    overflow: int = 0  # events and announcements beyond MAX_LOG_ENTRIES
-    lost: list[tuple[str, int]] = field(default_factory=list)  # (robot, tick) it went away
-
-    def keep(self, entries: list[Any], value: object) -> None:
-        """Append to the run's log, up to MAX_LOG_ENTRIES (caller holds `cond`)."""
-        if len(entries) < MAX_LOG_ENTRIES:
-            entries.append(value)
-        else:
-            self.overflow += 1
 
 
 class WorldProcess:
@@ -116,15 +101,28 @@ class WorldProcess:
         self.steps = round(scenario.duration_s * scenario.control_rate_hz)
         self.t_s = np.arange(self.steps, dtype=np.float64) * scenario.dt_s
         self.traces = {rid: RobotTrace.empty(self.steps) for rid in self.ids}
-        self.inbox = _Inbox()
+        self.inbox = WorldInbox(self.ids)
         self.missed: dict[str, int] = dict.fromkeys(self.ids, 0)
         self.tick = 0
         self.ticks_run = 0
         self.stats: Any = None  # the session's DecodeStats, once open
         self.wall_time_s = 0.0
-        self._sent_at: dict[int, float] = {}
-        self.response_s: list[float] = []  # frame published -> command received, per command
         self.overruns = 0  # real time: ticks whose work outlasted the period
+        if options.clock == "lockstep" and options.transport.lowlatency:
+            self._check_frames_fit()
+
+    def _check_frames_fit(self) -> None:
+        """On the low-latency transport (messages up to LOWLATENCY_MAX_BYTES) refuse,
+        before anything runs, a fleet whose lockstep frames would not fit, rather than
+        fail at its first full tick.
+        """
+        size = lockstep_frame_bytes(self.world, self.ids, self.scenario.dt_s)
+        if size > LOWLATENCY_MAX_BYTES:
+            raise ConfigError(
+                f"{len(self.ids)} robots: a lockstep frame with every other robot's state is "
+                f"{size} bytes, over the low-latency transport's {LOWLATENCY_MAX_BYTES}: "
+                "run the fleet's processes without --lowlatency"
+            )
 
     def run(self, stop: Stoppable) -> RunLog:
         """Run the scenario to its end (or `stop`) and return the log."""
@@ -179,22 +177,18 @@ class WorldProcess:
 
     # (The session has checked every message: a robot of this fleet, on its own key.)
     def _on_command(self, _key: str, cmd: VelocityCommand) -> None:
-        if self._too_far_ahead(cmd.tick, "VelocityCommand", cmd.robot_id):
-            return
-        received = time.monotonic()
-        with self.inbox.cond:
-            sent = self._sent_at.get(cmd.tick)
-            if sent is not None and cmd.robot_id not in self.inbox.commands[cmd.tick]:
-                self.response_s.append(received - sent)
-            self.inbox.commands[cmd.tick][cmd.robot_id] = cmd
-            self.inbox.latest[cmd.robot_id] = cmd
-            self.inbox.cond.notify_all()
+        if not self._too_far_ahead(cmd.tick, "VelocityCommand", cmd.robot_id):
+            with self.inbox.cond:
+                self.inbox.answer(cmd.robot_id, cmd.tick, Twist2D(cmd.v_mps, cmd.omega_radps))
 
     def _on_state(self, _key: str, state: RobotState) -> None:
         tick = round(state.stamp_s / self.scenario.dt_s)
         if tick < self.steps and not self._too_far_ahead(tick, "RobotState", state.robot_id):
             with self.inbox.cond:
                 self.inbox.states[state.robot_id][tick] = state
+                if self.options.clock == "lockstep":  # the state is the robot's answer
+                    twist = Twist2D(state.v_mps, state.omega_radps)
+                    self.inbox.answer(state.robot_id, tick, twist)
 
     def _on_event(self, _key: str, event: AgentEvent) -> None:
         with self.inbox.cond:
@@ -255,9 +249,12 @@ class WorldProcess:
         self.tick = k
         self.ticks_run += 1
         with self.inbox.cond:
-            self._sent_at[k] = time.monotonic()
-            self._sent_at.pop(k - 50, None)
+            self.inbox.sent_at[k] = time.monotonic()
+            self.inbox.sent_at.pop(k - 50, None)
         self.world.sense_all()  # every robot's sonar in one pass; each frame reads its row
+        lockstep = self.options.clock == "lockstep"
+        back = max(2, round(AHEAD_S / self.scenario.dt_s))  # (older states are no news)
+        relay = self.inbox.relay(k, back) if lockstep else ()
         for rid in self.ids:
             session.publish(
                 robot_key(self.options.fleet, rid, "sense"),
@@ -267,30 +264,20 @@ class WorldProcess:
                     k,
                     self.scenario.dt_s,
                     positioning=self._positioning(session, rid),
+                    peers=tuple(s for s in relay if s.robot_id != rid),
                 ),
                 reliable_block=True,
             )
-        if self.options.clock == "lockstep":
-            self._await_commands(k)
+        if lockstep:
+            self._await_states(k)
         commands = self._commands_for(k)
         self._record(k, commands)
         self.world.step(commands, self.scenario.dt_s)
 
-    def _await_commands(self, k: int) -> None:
-        box = self.inbox
-        deadline = time.monotonic() + self.options.tick_timeout_s
-        with box.cond:
-            while True:
-                expected = {r for r in self.ids if r in box.alive}
-                if expected <= set(box.commands[k]):
-                    return
-                remaining = deadline - time.monotonic()
-                if remaining <= 0.0:
-                    for rid in expected - set(box.commands[k]):
-                        self.missed[rid] += 1
-                        log.warning("robot %s missed the deadline of tick %d", rid, k)
-                    return
-                box.cond.wait(remaining)
+    def _await_states(self, k: int) -> None:
+        for rid in self.inbox.await_states(k, self.options.tick_timeout_s):
+            self.missed[rid] += 1
+            log.warning("robot %s missed the deadline of tick %d", rid, k)
 
     def _commands_for(self, k: int) -> dict[str, Twist2D]:
         with self.inbox.cond:
@@ -299,8 +286,7 @@ class WorldProcess:
         out = {}
         for rid in self.ids:
             cmd = got.get(rid) if self.options.clock == "lockstep" else latest.get(rid)
-            alive = rid in self.inbox.alive
-            out[rid] = Twist2D(cmd.v_mps, cmd.omega_radps) if cmd and alive else ZERO_TWIST
+            out[rid] = cmd if cmd is not None and rid in self.inbox.alive else ZERO_TWIST
         return out
 
     def _log_static(self) -> None:
@@ -370,7 +356,7 @@ class WorldProcess:
     def _runtime(self) -> dict[str, object]:
         """Figures of the run as processes: response times, deadlines, reports."""
         period_s = self.scenario.dt_s / self.options.speed
-        response = np.asarray(self.response_s, dtype=np.float64)
+        response = np.asarray(self.inbox.response_s, dtype=np.float64)
         quantiles: list[float | None] = (
             np.quantile(response, [0.5, 0.99]).tolist() if response.size else [None, None]
         )

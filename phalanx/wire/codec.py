@@ -46,8 +46,9 @@ JSON_MARK = ord("{")
 
 # (field name, kind); on the wire every fixed-size field comes first, in this order, packed
 # by one Struct, then the strings and lists in this order. Kinds: s = string, d = float64,
-# I = uint32, b = int8, ? = bool, D = list of float64, B = list of bool. `version` is
-# the header, not a field.
+# I = uint32, b = int8, ? = bool, D = list of float64, B = list of bool, R = list of
+# RobotState (each its own packed form, length-prefixed). `version` is the header, not a
+# field.
 _STATE_FIELDS: tuple[tuple[str, str], ...] = (
     ("robot_id", "s"),
     ("seq", "I"),
@@ -99,6 +100,7 @@ LAYOUTS: dict[type[Message], tuple[int, tuple[tuple[str, str], ...]]] = {
             ("final", "?"),
             ("fixes", "D"),  # empty (2 bytes each) without simulated positioning
             ("relative", "D"),
+            ("peers", "R"),  # empty (2 bytes) unless in lockstep
         ),
     ),
     AgentEvent: (
@@ -172,8 +174,9 @@ LAYOUTS: dict[type[Message], tuple[int, tuple[tuple[str, str], ...]]] = {
 }
 _SCALAR_KINDS = frozenset("dIb?")
 _COUNT = struct.Struct("<H")
-# No message phalanx sends comes near this (a SenseFrame of 64 sonars is under 1 kB).
-MAX_PAYLOAD_BYTES = 64 * 1024
+# No message phalanx sends comes near this: a SenseFrame of 64 sonars is under 1 kB, and
+# in lockstep one that carries the other states of a fleet of MAX_ROBOTS about 170 kB.
+MAX_PAYLOAD_BYTES = 256 * 1024
 
 
 @dataclass(frozen=True)
@@ -205,7 +208,13 @@ def default_format() -> WireFormat:
 
 
 def _pack_variable(kind: str, value: Any, out: bytearray) -> None:
-    if kind == "s":
+    if kind == "R":
+        out += _COUNT.pack(len(value))
+        for item in value:
+            raw = _encode_packed(item if isinstance(item, RobotState) else _construct(item))
+            out += _COUNT.pack(len(raw))
+            out += raw
+    elif kind == "s":
         raw = value.encode("utf-8")
         out += _COUNT.pack(len(raw))
         out += raw
@@ -218,6 +227,14 @@ def encode(message: Message, fmt: WireFormat | None = None) -> bytes:
     """Bytes of `message` in the packed (default) or JSON form."""
     if (fmt or default_format()) == "json":
         return message.model_dump_json().encode("utf-8")
+    return _encode_packed(message)
+
+
+def _construct(values: dict[str, Any]) -> RobotState:
+    return RobotState.model_construct(**values)  # (packed as given: checked on decoding)
+
+
+def _encode_packed(message: Message) -> bytes:
     wire = _COMPILED[type(message)]
     out = bytearray((wire.kind_id, message.version))  # type: ignore[attr-defined]
     out += wire.fixed.pack(*[getattr(message, n) for n in wire.fixed_names])
@@ -229,6 +246,16 @@ def encode(message: Message, fmt: WireFormat | None = None) -> bytes:
 def _unpack_variable(kind: str, payload: bytes, offset: int) -> tuple[Any, int]:
     (count,) = _COUNT.unpack_from(payload, offset)
     offset += _COUNT.size
+    if kind == "R":
+        items = []
+        for _ in range(count):
+            (size,) = _COUNT.unpack_from(payload, offset)
+            offset += _COUNT.size
+            if offset + size > len(payload):
+                raise struct.error("a nested message runs past the payload")
+            items.append(_values(RobotState, payload[offset : offset + size]))
+            offset += size
+        return items, offset
     if kind == "s":
         end = offset + count
         if end > len(payload):
@@ -240,6 +267,11 @@ def _unpack_variable(kind: str, payload: bytes, offset: int) -> tuple[Any, int]:
 
 
 def _decode_packed(model: type[M], payload: bytes, context: Any = None) -> M:
+    return model.model_validate(_values(model, payload), context=context)
+
+
+def _values(model: type[Message], payload: bytes) -> dict[str, Any]:
+    """The field values packed in `payload` (not yet validated)."""
     wire = _COMPILED[model]
     if len(payload) < 2 or payload[0] != wire.kind_id:
         raise ValueError(f"expected message kind {wire.kind_id}, got {payload[:1]!r}")
@@ -251,7 +283,7 @@ def _decode_packed(model: type[M], payload: bytes, context: Any = None) -> M:
         values[name], offset = _unpack_variable(kind, payload, offset)
     if offset != len(payload):
         raise ValueError(f"{len(payload) - offset} trailing bytes")
-    return model.model_validate(values, context=context)
+    return values
 
 
 class _UnknownVersion(ValueError):

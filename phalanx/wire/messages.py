@@ -18,6 +18,7 @@ from pydantic import (
     model_validator,
 )
 
+from phalanx.core.config import MAX_ROBOTS
 from phalanx.core.geometry import Pose2D, Twist2D
 from phalanx.core.peers import PeerFlags, PeerState, Scan
 from phalanx.wire.bounds import (
@@ -279,6 +280,8 @@ class SenseFrame(Message):
     # scenario's robot list; heading 0 with std 0: not measured). Stamps in sim time.
     fixes: tuple[float, ...] = Field(default=(), max_length=_MAX_FIX_VALUES)
     relative: tuple[float, ...] = Field(default=(), max_length=_MAX_RELATIVE_VALUES)
+    # Lockstep: the other robots' newest states the world heard (one message in a tick).
+    peers: tuple[RobotState, ...] = Field(default=(), max_length=MAX_ROBOTS)
 
     @field_validator("fixes")
     @classmethod
@@ -299,6 +302,10 @@ class SenseFrame(Message):
         bounds = _bounds(info)
         if bounds is not None and abs(self.dt_s - bounds.dt_s) > 1e-9:
             raise ValueError(f"dt_s {self.dt_s} is not the run's {bounds.dt_s}")
+        ids = [p.robot_id for p in self.peers]  # (a state of this tick is none heard yet)
+        late = any(p.stamp_s > self.t_s - 0.5 * self.dt_s for p in self.peers)
+        if late or self.robot_id in ids or len(set(ids)) != len(ids):
+            raise ValueError("peers must be other robots' states (one each) of earlier ticks")
         return self
 
 

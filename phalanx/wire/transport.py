@@ -123,29 +123,22 @@ def open_session_count() -> int:
 
 
 class History:
-    """The last few decoded values per robot, filled by a callback, read by the loop."""
+    """The last few decoded values per robot (thread-safe: a callback may fill it)."""
 
     def __init__(self, depth: int = 8) -> None:
-        self._lock = threading.RLock()  # `wait` evaluates predicates that read values
+        self._lock = threading.Lock()
         self._values: dict[str, deque[Any]] = {}
         self._depth = depth
-        self._arrived = threading.Condition(self._lock)
 
     def push(self, robot_id: str, value: Any) -> None:
-        """Add a value (callback side)."""
-        with self._arrived:
+        """Add a value."""
+        with self._lock:
             self._values.setdefault(robot_id, deque(maxlen=self._depth)).append(value)
-            self._arrived.notify_all()
 
     def values(self, robot_id: str) -> list[Any]:
         """A copy of the values held for `robot_id`, oldest first."""
         with self._lock:
             return list(self._values.get(robot_id, ()))
-
-    def wait(self, predicate: Callable[[], bool], timeout_s: float) -> bool:
-        """Block until `predicate()` holds (checked on every arrival) or the timeout."""
-        with self._arrived:
-            return self._arrived.wait_for(predicate, timeout_s)
 
     def forget(self, robot_id: str) -> None:
         """Drop everything held for `robot_id`."""

@@ -378,8 +378,9 @@ def test_a_robot_that_brakes_softer_than_the_robot_file_is_told_to_brake_harder(
     ):
         assert driver.robot_config is not None
         assert driver.robot_config.trans_decel_mmps2 == 100
+        # (two commands, taken one after the other: wait for each)
         assert _eventually(lambda: emulator.limits.trans_decel == 300.0, 1.0)
-        assert emulator.limits.rot_decel == 100.0
+        assert _eventually(lambda: emulator.limits.rot_decel == 100.0, 1.0)
         assert emulator.limits.trans_accel == 300.0  # already the robot file's: untouched
 
 

@@ -149,7 +149,7 @@ class _Stop:
 
 class AgentUnderTest:
     """Robot r2's agent process (realtime: flags and path states through rings; or
-    lockstep: every state through a callback), stepping on frames this harness sends."""
+    lockstep: every state in the world's frames), stepping on frames this harness sends."""
 
     def __init__(self, *, clock: str = "realtime", navigating: bool = False) -> None:
         from phalanx.runtime.agent import AgentRuntime, RuntimeOptions
@@ -168,7 +168,6 @@ class AgentUnderTest:
             fleet=FLEET,
             transport=TransportConfig(),
             clock=clock,  # type: ignore[arg-type]
-            peer_wait_s=0.0,
         )
         self.link = WorldLink(FLEET, "r2", frame_timeout_s=5.0, bounds=bounds)
         self.runtime = AgentRuntime(
@@ -177,6 +176,7 @@ class AgentUnderTest:
         self.session = LoopbackSession()
         self.runtime._session = self.session  # type: ignore[assignment]
         self.runtime._wire(self.session)  # type: ignore[arg-type]
+        self.lockstep = clock == "lockstep"
         self.k = 0
         self.steps = 0
         self.commands: list[tuple[float, float]] = []
@@ -243,7 +243,16 @@ class AgentUnderTest:
             sonar_ranges_m=(5.0,) * 16,
             bumpers=(False,) * 10,
             final=final,
+            peers=self._relayed(t) if self.lockstep else (),
         )
+
+    def _relayed(self, t_s: float) -> tuple[RobotState, ...]:
+        """What the world's frame at `t_s` carries: r1's and r3's states of the tick before
+        (none from the leader while it is silent, none at the run's start)."""
+        before = t_s - self.scenario.dt_s
+        silent = (round(t_s / self.scenario.dt_s) // 40) % 4 == 3
+        peers = ("r3",) if silent else ("r1", "r3")
+        return tuple(self._peer_state(r, before) for r in peers) if before >= 0 else ()
 
     def _valid_frame(self) -> list[Message]:
         return [self._frame(self.k + 1), self._frame(self.k + 2)]
@@ -320,9 +329,7 @@ class DriverAgentUnderTest:
         io = DriverIO(
             self.safe, self.robot, origin=self.scenario.start_pose("r2"), positioning=self.inbox
         )
-        options = RuntimeOptions(
-            fleet=FLEET, transport=TransportConfig(), clock="realtime", peer_wait_s=0.0
-        )
+        options = RuntimeOptions(fleet=FLEET, transport=TransportConfig(), clock="realtime")
         clock = EpochClock(epoch_s=self.EPOCH_S, dt_s=self.scenario.dt_s, steps=10**9)
         self.runtime = AgentRuntime("r2", self.scenario, self.robot, options, clock=clock, io=io)
         self.session = LoopbackSession()

@@ -36,10 +36,10 @@ DAEMON_KEYS = ("daemon/spawn", "daemon/stop", "daemon/status")
 LAUNCHER_KEYS = ("launcher/state", "launcher/log", "launcher/reply")
 
 
-# In lockstep an agent hears every state (a callback) and no flags; in real time flags and
-# its path's states through rings.
+# In lockstep an agent hears every state in the world's frames (fuzzed with the frame)
+# and no flags; in real time flags and its path's states through rings.
 AGENT_CASES = [("realtime", k) for k in AGENT_KEYS] + [
-    ("lockstep", k) for k in AGENT_KEYS if k != "agent/flags"
+    ("lockstep", k) for k in AGENT_KEYS if k not in ("agent/flags", "agent/state")
 ]
 
 

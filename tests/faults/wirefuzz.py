@@ -59,7 +59,10 @@ def _annotation_strategy(annotation: Any, name: str) -> st.SearchStrategy[Any]:
     if origin is tuple:
         item = get_args(annotation)[0]
         inner = _annotation_strategy(item, name)
-        return st.lists(inner, max_size=80).map(tuple) | st.just(())
+        longest = 4 if _nested(item) else 80
+        return st.lists(inner, max_size=longest).map(tuple) | st.just(())
+    if _nested(annotation):  # a message inside a message (a frame's relayed states)
+        return fields_strategy(annotation)
     if annotation is bool:
         return st.booleans()
     if annotation is int:
@@ -80,6 +83,10 @@ def _annotation_strategy(annotation: Any, name: str) -> st.SearchStrategy[Any]:
     if annotation is type(None):
         return st.none()
     return st.none()
+
+
+def _nested(annotation: Any) -> bool:
+    return isinstance(annotation, type) and issubclass(annotation, Message)
 
 
 def fields_strategy(model: type[Message]) -> st.SearchStrategy[dict[str, Any]]:
@@ -195,6 +202,9 @@ def _extremes(annotation: Any) -> list[Any]:
     if origin is tuple:
         items = _extremes(get_args(annotation)[0])
         return [(), tuple(items), (items[0],) * 70] if items else [()]
+    if _nested(annotation):  # a message inside a message: empty, or each field's extremes
+        fields = annotation.model_fields
+        return [{}, *({n: v} for n, f in fields.items() for v in _extremes(f.annotation)[:3])]
     if annotation is bool:
         return [True, False]
     if annotation is int:

@@ -75,6 +75,13 @@ def test_up_reproduces_the_in_process_run(
     assert [e["target"] for e in multi["transitions"]["r1"]] == [
         e["target"] for e in single["transitions"]["r1"]
     ]
+    # One message out per robot and tick: its state, which the world drives it with (no
+    # command sent); the other robots' states came in the frames, one tick old.
+    runtime = multi["runtime"]
+    assert "VelocityCommand" not in runtime["world_decode"]["ok"]
+    assert runtime["world_decode"]["ok"]["RobotState"] == runtime["commands_expected"]
+    assert runtime["commands_received"] == runtime["commands_expected"]
+    assert not any(a["late_peer_steps"] for a in runtime["agents"].values())
 
 
 def test_up_reproduces_a_leadership_handover(tmp_path: Path) -> None:

@@ -75,3 +75,24 @@ def test_up_starts_every_process_on_it() -> None:
     assert len(children) == 4
     for child in children:
         assert "--lowlatency" in child.argv, child.name
+
+
+def test_a_fleet_whose_lockstep_frames_do_not_fit_is_refused_or_run_without_it() -> None:
+    # A lockstep frame carries every other robot's state: past about 350 robots it is
+    # over the low-latency transport's message size.
+    from phalanx.core.config_files import load_robot
+    from phalanx.core.errors import ConfigError
+    from phalanx.core.scenarios import grid_scenario
+    from phalanx.runtime.world_process import WorldOptions, WorldProcess
+
+    big = grid_scenario(load_scenario(WEDGE), 400)
+    robot = load_robot(big.robot)
+    options = WorldOptions(fleet="ll", transport=TransportConfig(lowlatency=True))
+    with pytest.raises(ConfigError, match="without --lowlatency"):
+        WorldProcess(big, robot, options)
+    for child in plan(WEDGE, big, UpOptions(fleet="ll")):
+        assert "--lowlatency" not in child.argv, child.name  # `phalanx up` leaves it off
+    realtime = plan(WEDGE, big, UpOptions(fleet="ll", clock="realtime"))
+    assert all("--lowlatency" in child.argv for child in realtime)  # no frames with states
+    fits = grid_scenario(load_scenario(WEDGE), 300)
+    WorldProcess(fits, robot, options)  # (300 robots fit)

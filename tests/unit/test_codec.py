@@ -71,8 +71,22 @@ def test_packed_form_is_smaller_than_json() -> None:
         assert len(encode(message, "packed")) < len(encode(message, "json"))
 
 
-def test_every_truncation_is_dropped_and_counted() -> None:
-    payload = encode(FRAME, "packed")
+def _state(robot_id: str, stamp_s: float, **fields: object) -> RobotState:
+    return RobotState(
+        robot_id=robot_id, seq=3, stamp_s=stamp_s, x_m=1.0, y_m=-0.5, theta_rad=0.2,
+        v_mps=0.15, omega_radps=0.05, fsm_state="FORMATION_TRACK", **fields,  # type: ignore[arg-type]
+    )  # fmt: skip
+
+
+# A lockstep frame: two other robots' states of earlier ticks, one with a covariance.
+RELAYED = FRAME.model_copy(
+    update={"peers": (_state("r2", 0.6, cov=(0.01, 0.0, 0.0, 0.01, 0.0, 0.001)), _state("r3", 0.4))}
+)
+
+
+@pytest.mark.parametrize("frame", [FRAME, RELAYED], ids=["alone", "with-states"])
+def test_every_truncation_is_dropped_and_counted(frame: SenseFrame) -> None:
+    payload = encode(frame, "packed")
     stats = DecodeStats()
     for cut in range(len(payload)):
         assert decode(SenseFrame, payload[:cut], stats) is None
@@ -123,3 +137,43 @@ def test_a_message_of_another_kind_is_dropped() -> None:
     stats = DecodeStats()
     assert decode(RobotState, encode(FRAME, "packed"), stats) is None
     assert stats.malformed["RobotState"] == 1
+
+
+@pytest.mark.parametrize("fmt", ["packed", "json"])
+def test_a_frame_carries_the_other_robots_states_whole(fmt: str) -> None:
+    got = decode(SenseFrame, encode(RELAYED, fmt))  # type: ignore[arg-type]
+    assert got == RELAYED
+    assert got is not None
+    assert got.peers[0].cov == RELAYED.peers[0].cov
+
+
+@pytest.mark.parametrize(
+    "peers",
+    [
+        (_state("r2", 0.7),),  # the frame's own tick: not heard yet
+        (_state("r2", 0.9),),
+        (_state("r1", 0.6),),  # the receiver's own state
+        (_state("r2", 0.6), _state("r2", 0.5)),  # one robot twice
+    ],
+)
+def test_a_frame_relaying_impossible_states_is_refused(peers: tuple[RobotState, ...]) -> None:
+    bad = FRAME.model_construct(**{**dict(FRAME), "peers": peers})
+    for fmt in ("packed", "json"):
+        stats = DecodeStats()
+        assert decode(SenseFrame, encode(bad, fmt), stats) is None  # type: ignore[arg-type]
+        assert stats.malformed["SenseFrame"] == 1
+        assert "other robots' states (one each) of earlier ticks" in stats.last_error
+
+
+def test_a_relayed_state_outside_the_fleet_bounds_sinks_the_frame() -> None:
+    from phalanx.wire.bounds import FleetBounds
+
+    bounds = FleetBounds(
+        robot_ids=frozenset({"r1", "r2"}), v_max_mps=1.0, omega_max_radps=2.0, t_max_s=100.0,
+        dt_s=0.1, ticks=1000,
+    )  # fmt: skip
+    stats = DecodeStats()
+    assert decode(SenseFrame, encode(RELAYED, "packed"), stats, bounds) is None  # r3: no robot
+    assert "not a robot of this fleet" in stats.last_error
+    fine = RELAYED.model_copy(update={"peers": RELAYED.peers[:1]})
+    assert decode(SenseFrame, encode(fine, "packed"), stats, bounds) == fine

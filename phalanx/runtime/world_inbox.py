@@ -1,0 +1,91 @@
+"""What agents send the world process, as its Zenoh callbacks file it, and the lockstep
+tick's bookkeeping on it: each robot's answer for a tick (the command it executes from
+the tick on), the wait for a tick's answers, and the states the next frames carry to the
+other robots.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections import defaultdict
+from dataclasses import dataclass, field
+from typing import Any
+
+from phalanx.core.geometry import Twist2D
+from phalanx.wire.messages import AgentEvent, AgentReport, LeaderAnnouncement, RobotState
+
+# Transitions and leadership announcements kept for the run's log; more (a flood) are
+# dropped and counted.
+MAX_LOG_ENTRIES = 100_000
+
+
+@dataclass
+class WorldInbox:
+    """What the fleet's robots `ids` sent (thread-safe: hold `cond`, unless a method
+    says it takes it).
+    """
+
+    ids: tuple[str, ...]
+    cond: threading.Condition = field(default_factory=threading.Condition)
+    commands: dict[int, dict[str, Twist2D]] = field(default_factory=lambda: defaultdict(dict))
+    latest: dict[str, Twist2D] = field(default_factory=dict)
+    states: dict[str, dict[int, RobotState]] = field(default_factory=lambda: defaultdict(dict))
+    events: list[AgentEvent] = field(default_factory=list)
+    reports: dict[str, AgentReport] = field(default_factory=dict)
+    alive: set[str] = field(default_factory=set)
+    leaders: list[LeaderAnnouncement] = field(default_factory=list)
+    overflow: int = 0  # events and announcements beyond MAX_LOG_ENTRIES
+    lost: list[tuple[str, int]] = field(default_factory=list)  # (robot, tick) it went away
+    sent_at: dict[int, float] = field(default_factory=dict)  # when a tick's frames went out
+    response_s: list[float] = field(default_factory=list)  # frames out -> each answer in
+    relayed: dict[str, int] = field(default_factory=dict)  # newest tick passed on, by robot
+
+    def keep(self, entries: list[Any], value: object) -> None:
+        """Append to the run's log, up to MAX_LOG_ENTRIES."""
+        if len(entries) < MAX_LOG_ENTRIES:
+            entries.append(value)
+        else:
+            self.overflow += 1
+
+    def answer(self, robot_id: str, tick: int, command: Twist2D) -> None:
+        """Robot `robot_id`'s command for `tick`; the tick's waiter is woken once, when
+        every live robot has answered (not once a robot).
+        """
+        answers = self.commands[tick]
+        sent = self.sent_at.get(tick)
+        if sent is not None and robot_id not in answers:
+            self.response_s.append(time.monotonic() - sent)
+        answers[robot_id] = command
+        self.latest[robot_id] = command
+        if len(answers) >= len(self.alive):
+            self.cond.notify_all()
+
+    def await_states(self, k: int, timeout_s: float) -> set[str]:
+        """Wait (takes `cond`) until every live robot's state of tick `k` is in, or
+        `timeout_s`; the live robots whose state is not.
+        """
+        deadline = time.monotonic() + timeout_s
+        with self.cond:
+            while True:
+                missing = {r for r in self.ids if r in self.alive and k not in self.states[r]}
+                remaining = deadline - time.monotonic()
+                if not missing or remaining <= 0.0:
+                    return missing
+                self.cond.wait(remaining)
+
+    def relay(self, k: int, back: int) -> tuple[RobotState, ...]:
+        """Each robot's newest state stamped before tick `k` not yet passed on, looked
+        for `back` ticks back at most (takes `cond`).
+        """
+        out = []
+        with self.cond:
+            for rid in self.ids:
+                states, last = self.states[rid], self.relayed.get(rid, -1)
+                for tick in range(k - 1, max(last, k - 1 - back), -1):
+                    state = states.get(tick)
+                    if state is not None:
+                        out.append(state)
+                        self.relayed[rid] = tick
+                        break
+        return tuple(out)

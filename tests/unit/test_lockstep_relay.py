@@ -1,0 +1,102 @@
+"""The lockstep world's side of a tick: a robot's state is its answer (the world drives
+the robot with the state's twist) and the next frames carry it to every other robot,
+each state once; a robot that does not answer stands still for the tick."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+from phalanx.core.config_files import CONFIG_ROOT, load_robot, load_scenario
+from phalanx.runtime.world_process import WorldOptions, WorldProcess
+from phalanx.wire.codec import DecodeStats
+from phalanx.wire.keys import alive_key
+from phalanx.wire.messages import Message, RobotState, SenseFrame
+from phalanx.wire.transport import TransportConfig
+
+FLEET = "relay"
+
+
+@dataclass
+class Recorder:
+    """The session calls the world makes, its frames kept (no Zenoh: the world's own
+    logic, which the process tests run over real sessions)."""
+
+    stats: DecodeStats = field(default_factory=DecodeStats)
+    frames: dict[str, list[SenseFrame]] = field(default_factory=dict)
+
+    def subscribe(self, key: str, model: type, handler: Callable[..., None], **_: Any) -> None:
+        """Nothing arrives but what the test hands the world."""
+
+    def publish(self, key: str, message: Message, *, reliable_block: bool = False) -> None:
+        if isinstance(message, SenseFrame):
+            self.frames.setdefault(message.robot_id, []).append(message)
+
+    def declare_alive(self, key: str) -> None:
+        """Nothing to hold."""
+
+    def watch_alive(self, key: str, on_change: Callable[[str, bool], None]) -> None:
+        """Nobody comes or goes but what the test says."""
+
+    def serve_status(self, key: str, status: Callable[[], dict[str, Any]]) -> None:
+        """No queries."""
+
+
+def _world() -> tuple[WorldProcess, Recorder]:
+    scenario = load_scenario(CONFIG_ROOT / "scenarios" / "paper_wedge.toml")
+    options = WorldOptions(fleet=FLEET, transport=TransportConfig(), tick_timeout_s=0.05)
+    world = WorldProcess(scenario, load_robot(scenario.robot), options)
+    session = Recorder()
+    world._wire(session)  # type: ignore[arg-type]
+    for rid in world.ids:
+        world._on_alive(alive_key(FLEET, rid), True)
+    return world, session
+
+
+def _answer(world: WorldProcess, rid: str, k: int) -> RobotState:
+    state = RobotState(
+        robot_id=rid, seq=k + 1, stamp_s=k * 0.1, x_m=0.0, y_m=0.0, theta_rad=0.0,
+        v_mps=0.01 * (k + 1), omega_radps=0.001 * int(rid[1:]), fsm_state="FORMATION_TRACK",
+    )  # fmt: skip
+    world._on_state("", state)
+    return state
+
+
+def _relayed(session: Recorder, rid: str, k: int) -> dict[str, int]:
+    """The tick of each state robot `rid`'s frame of tick `k` carried, by robot."""
+    frame = session.frames[rid][k]
+    assert frame.tick == k
+    return {p.robot_id: round(p.stamp_s / frame.dt_s) for p in frame.peers}
+
+
+def test_each_state_drives_its_robot_and_reaches_every_other_robot_once() -> None:
+    world, session = _world()
+    for k in range(2):
+        for rid in world.ids:
+            _answer(world, rid, k)
+        world._tick(session, k)  # type: ignore[arg-type]
+    _answer(world, "r1", 2)
+    _answer(world, "r2", 2)
+    world._tick(session, 2)  # type: ignore[arg-type]  # r3 is late for tick 2
+    late = _answer(world, "r3", 2)
+    for rid in world.ids:
+        _answer(world, rid, 3)
+    world._tick(session, 3)  # type: ignore[arg-type]
+    world._tick(session, 4)  # type: ignore[arg-type]  # nobody answers tick 4
+
+    assert _relayed(session, "r1", 0) == {}  # nothing heard before the first tick
+    assert _relayed(session, "r1", 1) == {"r2": 0, "r3": 0}  # never its own
+    assert _relayed(session, "r3", 1) == {"r1": 0, "r2": 0}
+    assert _relayed(session, "r1", 2) == {"r2": 1, "r3": 1}
+    assert _relayed(session, "r1", 3) == {"r2": 2, "r3": 2}  # r3's late one, now
+    assert _relayed(session, "r1", 4) == {"r2": 3, "r3": 3}
+    assert world.missed == {"r1": 1, "r2": 1, "r3": 2}  # r3 at tick 2; all at tick 4
+
+    trace = world.traces["r3"]
+    assert trace.cmd_v_mps[1] == 0.02  # its state's twist
+    assert trace.cmd_omega_radps[1] == 0.003
+    assert trace.cmd_v_mps[2] == 0.0  # no answer in time: it stood still
+    assert late.v_mps == 0.03  # (and its late answer was not taken for a later tick)
+    assert trace.cmd_v_mps[3] == 0.04
+    assert world.traces["r1"].cmd_v_mps[4] == 0.0
