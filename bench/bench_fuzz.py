@@ -37,7 +37,6 @@ KEYS = [
     ("navigating", "agent/scan"),
     ("driver", "agent/fix"),
     ("driver", "agent/relative"),
-    ("lockstep", "agent/state"),
     ("lockstep", "agent/sense"),
     ("lockstep", "agent/leader"),
     (None, "world/cmd"),
