@@ -39,7 +39,7 @@ KEYS = [
     ("driver", "agent/relative"),
     ("lockstep", "agent/sense"),
     ("lockstep", "agent/leader"),
-    (None, "world/cmd"),
+    ("realtime", "world/cmd"),
     (None, "world/state"),
     (None, "world/event"),
     (None, "world/report"),
@@ -80,7 +80,7 @@ def run_key(clock: str | None, key: str, per_key: int, seed: int) -> dict[str, A
         elif kind == "agent":
             receiver = AgentUnderTest(clock=clock or "realtime")
         elif kind == "world":
-            receiver = WorldUnderTest()
+            receiver = WorldUnderTest(clock=clock or "lockstep")
         elif kind == "daemon":
             receiver = DaemonUnderTest(Path(tmp))
         else:

@@ -3,7 +3,8 @@ on the `sim` driver over Zenoh; runs in lockstep or in real time; writes the run
 
 Lockstep: for each tick the world sends every robot its SenseFrame, waits (bounded) for
 every live robot's RobotState of that tick, then integrates. The state is the robot's
-answer: its twist is the command the robot executes from the tick on. A robot that
+answer: its twist is the command the robot executes from the tick on (a lockstep world
+hears no VelocityCommand). A robot that
 misses the deadline is reported and stands still for that tick; nobody waits forever.
 The next frames carry the states to the other robots (`SenseFrame.peers`): an agent
 sends one message a tick and hears one, whatever the fleet's size.
@@ -155,13 +156,14 @@ class WorldProcess:
         fleet, bounds = self.options.fleet, self.bounds
         self.stats = session.stats
         session.declare_alive(alive_key(fleet, WORLD_ID))
-        subscriptions = (
-            (robots_key(fleet, "cmd"), VelocityCommand, self._on_command),
+        subscriptions = [
             (robots_key(fleet, "state"), RobotState, self._on_state),
             (robots_key(fleet, "event"), AgentEvent, self._on_event),
             (robots_key(fleet, "report"), AgentReport, self._on_report),
             (leader_key(fleet), LeaderAnnouncement, self._on_leader),
-        )
+        ]
+        if self.options.clock == "realtime":  # (in lockstep a robot's state is its command)
+            subscriptions.append((robots_key(fleet, "cmd"), VelocityCommand, self._on_command))
         for key, model, handler in subscriptions:
             session.subscribe(key, model, handler, context=bounds)  # type: ignore[arg-type]
         session.watch_alive(alive_pattern(fleet), self._on_alive)

@@ -399,15 +399,19 @@ class DriverAgentUnderTest:
 
 
 class WorldUnderTest:
-    """The world process of the wedge: it takes payloads, ticks, and writes its log."""
+    """The world process of the wedge: it takes payloads, ticks, and writes its log (in
+    lockstep; in real time, the only world that hears commands)."""
 
-    def __init__(self) -> None:
+    def __init__(self, clock: str = "lockstep") -> None:
         from phalanx.runtime.world_process import WorldOptions, WorldProcess
         from phalanx.wire.transport import TransportConfig
 
         scenario = apply_overrides(load_scenario(WEDGE), ["duration_s=600"])
         self.robot = load_robot(scenario.robot)
-        options = WorldOptions(fleet=FLEET, transport=TransportConfig(), tick_timeout_s=0.0)
+        options = WorldOptions(
+            fleet=FLEET, transport=TransportConfig(), tick_timeout_s=0.0,
+            clock=clock,  # type: ignore[arg-type]
+        )  # fmt: skip
         self.world = WorldProcess(scenario, self.robot, options)
         self.session = LoopbackSession()
         self.world._wire(self.session)  # type: ignore[arg-type]
@@ -457,7 +461,7 @@ class WorldUnderTest:
         self.session.inject(key, payload)
 
     def step(self) -> None:
-        """One tick of the world (in lockstep with nobody alive: no waiting)."""
+        """One tick of the world (with nobody alive: no waiting)."""
         if self.k < self.world.steps:
             self.world._tick(self.session, self.k)  # type: ignore[arg-type]
             self.k += 1

@@ -12,7 +12,7 @@ from phalanx.core.config_files import CONFIG_ROOT, load_robot, load_scenario
 from phalanx.runtime.world_process import WorldOptions, WorldProcess
 from phalanx.wire.codec import DecodeStats
 from phalanx.wire.keys import alive_key
-from phalanx.wire.messages import Message, RobotState, SenseFrame
+from phalanx.wire.messages import Message, RobotState, SenseFrame, VelocityCommand
 from phalanx.wire.transport import TransportConfig
 
 FLEET = "relay"
@@ -25,9 +25,11 @@ class Recorder:
 
     stats: DecodeStats = field(default_factory=DecodeStats)
     frames: dict[str, list[SenseFrame]] = field(default_factory=dict)
+    heard: list[type] = field(default_factory=list)  # the messages subscribed to
 
     def subscribe(self, key: str, model: type, handler: Callable[..., None], **_: Any) -> None:
         """Nothing arrives but what the test hands the world."""
+        self.heard.append(model)
 
     def publish(self, key: str, message: Message, *, reliable_block: bool = False) -> None:
         if isinstance(message, SenseFrame):
@@ -93,6 +95,7 @@ def test_each_state_drives_its_robot_and_reaches_every_other_robot_once() -> Non
     assert _relayed(session, "r1", 4) == {"r2": 3, "r3": 3}
     assert world.missed == {"r1": 1, "r2": 1, "r3": 2}  # r3 at tick 2; all at tick 4
 
+    assert VelocityCommand not in session.heard  # a robot's state is its command
     trace = world.traces["r3"]
     assert trace.cmd_v_mps[1] == 0.02  # its state's twist
     assert trace.cmd_omega_radps[1] == 0.003
