@@ -4,8 +4,9 @@ Runs the 200 s paper wedge (3 robots, 10 Hz) as one world process and three agen
 processes over Zenoh on loopback, with and without the Rerun recording, and prints the
 simulated-time wall clock (what the world measures from the first to the last tick),
 the real-time factor, the whole command's wall time (process start-up and results
-included), and the world's frame -> command round trip. The in-process batch run of the
-same scenario is printed beside it for the ratio.
+included), and the world's frame -> answer round trip (the robot's state, which
+carries its command). The in-process batch run of the same scenario is printed beside
+it for the ratio.
 
     .venv/bin/python bench/bench_lockstep.py [--repeats 3]
 """

@@ -4,10 +4,10 @@ on the `sim` driver over Zenoh; runs in lockstep or in real time; writes the run
 Lockstep: for each tick the world sends every robot its SenseFrame, waits (bounded) for
 every live robot's RobotState of that tick, then integrates. The state is the robot's
 answer: its twist is the command the robot executes from the tick on (a lockstep world
-hears no VelocityCommand). A robot that
-misses the deadline is reported and stands still for that tick; nobody waits forever.
-The next frames carry the states to the other robots (`SenseFrame.peers`): an agent
-sends one message a tick and hears one, whatever the fleet's size.
+hears no VelocityCommand). A robot that misses the deadline is reported and stands
+still for that tick; nobody waits forever. The next frames carry the states to the
+other robots (`SenseFrame.peers`): an agent sends one message a tick and hears one,
+whatever the fleet's size.
 Real time: the world integrates on the wall clock (optionally sped up) with the latest
 commands it has.
 """
