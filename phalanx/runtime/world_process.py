@@ -109,6 +109,7 @@ class WorldProcess:
         self.stats: Any = None  # the session's DecodeStats, once open
         self.wall_time_s = 0.0
         self.overruns = 0  # real time: ticks whose work outlasted the period
+        self._ahead_ticks = max(2, round(AHEAD_S / scenario.dt_s))
         if options.clock == "lockstep" and options.transport.lowlatency:
             self._check_frames_fit()
 
@@ -171,7 +172,7 @@ class WorldProcess:
 
     def _too_far_ahead(self, tick: int, name: str, robot_id: str) -> bool:
         """Whether `tick` is beyond the window kept (then counted as refused)."""
-        if tick <= self.tick + max(2, round(AHEAD_S / self.scenario.dt_s)):
+        if tick <= self.tick + self._ahead_ticks:
             return False
         if self.stats is not None:
             self.stats.count("rejected", name, f"{name} of {robot_id} for tick {tick}")
@@ -255,8 +256,8 @@ class WorldProcess:
             self.inbox.sent_at.pop(k - 50, None)
         self.world.sense_all()  # every robot's sonar in one pass; each frame reads its row
         lockstep = self.options.clock == "lockstep"
-        back = max(2, round(AHEAD_S / self.scenario.dt_s))  # (older states are no news)
-        relay = self.inbox.relay(k, back) if lockstep else ()
+        # (a state older than the window kept ahead is no news either)
+        relay = self.inbox.relay(k, self._ahead_ticks) if lockstep else ()
         for rid in self.ids:
             session.publish(
                 robot_key(self.options.fleet, rid, "sense"),

@@ -211,7 +211,7 @@ def _pack_variable(kind: str, value: Any, out: bytearray) -> None:
     if kind == "R":
         out += _COUNT.pack(len(value))
         for item in value:
-            raw = _encode_packed(item if isinstance(item, RobotState) else _construct(item))
+            raw = _encode_packed(item)
             out += _COUNT.pack(len(raw))
             out += raw
     elif kind == "s":
@@ -228,10 +228,6 @@ def encode(message: Message, fmt: WireFormat | None = None) -> bytes:
     if (fmt or default_format()) == "json":
         return message.model_dump_json().encode("utf-8")
     return _encode_packed(message)
-
-
-def _construct(values: dict[str, Any]) -> RobotState:
-    return RobotState.model_construct(**values)  # (packed as given: checked on decoding)
 
 
 def _encode_packed(message: Message) -> bytes:

@@ -147,6 +147,11 @@ class _Stop:
 # --- an agent ----------------------------------------------------------------------------
 
 
+def _leader_silent(k: int) -> bool:
+    """Whether r1 says nothing at tick `k`: now and then the leader goes silent."""
+    return (k // 40) % 4 == 3
+
+
 class AgentUnderTest:
     """Robot r2's agent process (realtime: flags and path states through rings; or
     lockstep: every state in the world's frames), stepping on frames this harness sends."""
@@ -250,8 +255,7 @@ class AgentUnderTest:
         """What the world's frame at `t_s` carries: r1's and r3's states of the tick before
         (none from the leader while it is silent, none at the run's start)."""
         before = t_s - self.scenario.dt_s
-        silent = (round(t_s / self.scenario.dt_s) // 40) % 4 == 3
-        peers = ("r3",) if silent else ("r1", "r3")
+        peers = ("r3",) if _leader_silent(round(t_s / self.scenario.dt_s)) else ("r1", "r3")
         return tuple(self._peer_state(r, before) for r in peers) if before >= 0 else ()
 
     def _valid_frame(self) -> list[Message]:
@@ -272,12 +276,12 @@ class AgentUnderTest:
         if self.link.gate.ended():
             raise AssertionError(f"agent ended its run at tick {self.k} ({self.link.ending})")
         if frame is not None:
-            self.link._frame = frame
+            self.link._frame = self.link._relay_from = frame  # (its states heard too)
             self._step_on(Tick(frame.tick, frame.t_s))
         gate_tick = self.link.gate._tick  # a fuzzed frame the gate took moves the clock on
         self.k = max(self.k, gate_tick if gate_tick is not None else 0) + 1
         for rid in ("r1", "r3"):
-            if rid == "r1" and (self.k // 40) % 4 == 3:
+            if rid == "r1" and _leader_silent(self.k):
                 continue  # now and then the leader goes silent: followers hold, then elect
             state = self._peer_state(rid, self.t_s - self.scenario.dt_s)
             self.session.inject(robot_key(FLEET, rid, "state"), encode(state))

@@ -101,9 +101,21 @@ def fields_strategy(model: type[Message]) -> st.SearchStrategy[dict[str, Any]]:
 
 def _packed(model: type[Message], values: dict[str, Any]) -> bytes | None:
     try:
-        return encode(model.model_construct(**values), "packed")
+        return encode(model.model_construct(**_messages_within(model, values)), "packed")
     except (struct.error, TypeError, ValueError, OverflowError, AttributeError, KeyError):
         return None  # not representable in the packed form: JSON only
+
+
+def _messages_within(model: type[Message], values: dict[str, Any]) -> dict[str, Any]:
+    """`values` with the fields that hold messages (a frame's relayed states) built as
+    such from their dicts, unchecked, as `model_construct` builds the outer one."""
+    out = dict(values)
+    for name, info in model.model_fields.items():
+        args = get_args(info.annotation)
+        if get_origin(info.annotation) is tuple and args and _nested(args[0]):
+            items = values.get(name, ())
+            out[name] = [args[0].model_construct(**v) if isinstance(v, dict) else v for v in items]
+    return out
 
 
 def _json(values: dict[str, Any]) -> bytes:
