@@ -26,7 +26,7 @@ from phalanx.agents.control import make_controller
 from phalanx.agents.fleetmap import FleetMap
 from phalanx.agents.memory import BlockedTimers, Course, Progress, StartUp, Steering
 from phalanx.agents.perception import SonarGeometry
-from phalanx.agents.reshape import Reshape, ShapeKeeper
+from phalanx.agents.reshape import Arrived, Reshape, ShapeKeeper
 from phalanx.agents.route import RoutePlanner
 from phalanx.agents.sensing import Senses
 from phalanx.agents.shape import Shape
@@ -118,6 +118,7 @@ class Parts:
             State.FORMATION_REVERSE: track,
             State.AVOID: self.avoid,
             State.RESHAPE: self.reshape,
+            State.ARRIVED: Arrived(self.reshape),
             State.HOLD: StandStill(emergency=True),
         }
         return {state: table.get(state, still) for state in State}

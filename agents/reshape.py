@@ -209,6 +209,14 @@ class Reshape(Behaviour):
         keeper = self.keeper
         if not keeper.key.settled and keeper.wanted == keeper.key.source:
             keeper.key = ShapeKey(keeper.key.target, keeper.key.source, 1.0 - keeper.key.morph)
+        self.slide(moment)
+        if self.drive is None or not self.drive.has_goal:
+            return ZERO_TWIST
+        return _capped(self.drive.command(moment), RESHAPE_CRUISE_MPS)
+
+    def slide(self, moment: Moment) -> None:
+        """The slide moves a step on to its target; once there, the settling time runs."""
+        keeper = self.keeper
         if not keeper.key.settled:
             morph = min(1.0, keeper.key.morph + self.dt_s / self.duration_s)
             keeper.key = ShapeKey(keeper.key.source, keeper.key.target, morph)
@@ -216,15 +224,32 @@ class Reshape(Behaviour):
             self.done_s = moment.t_s
         else:
             self._since_done += self.dt_s
-        if self.drive is None or not self.drive.has_goal:
-            return ZERO_TWIST
-        return _capped(self.drive.command(moment), RESHAPE_CRUISE_MPS)
 
     def leave(self, moment: Moment) -> None:
         """Done (or interrupted): the next change waits its dwell time."""
         if self.keeper.key.settled:
             self.keeper.settled_at(moment.t_s)
             self.keeper.wanted = self.keeper.key.target
+
+
+class Arrived(Behaviour):
+    """ARRIVED (the leader): stand still. A slide under way when the leader got there
+    goes on to its end, so the group stops in the shape it was sliding to, not half-way
+    between two; no other starts.
+    """
+
+    def __init__(self, reshape: Reshape) -> None:
+        self.reshape = reshape
+
+    def command(self, moment: Moment) -> Twist2D:
+        """Zero; the slide, if one is under way, a step on."""
+        if not self.reshape.keeper.key.settled:
+            self.reshape.slide(moment)
+        return ZERO_TWIST
+
+    def leave(self, moment: Moment) -> None:
+        """As a reshape's end: the next change waits its dwell time."""
+        self.reshape.leave(moment)
 
 
 def _capped(twist: Twist2D, v_max_mps: float) -> Twist2D:

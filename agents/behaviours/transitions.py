@@ -56,13 +56,17 @@ def _leader_targets(
     priority: int,
     *,
     role_change: bool = False,
+    arrive: bool = True,
 ) -> list[Transition[StackContext]]:
-    """`sources` -> the leader state the plan calls for, when `guard` also holds."""
+    """`sources` -> the leader state the plan calls for, when `guard` also holds
+    (`arrive`: ARRIVED is one of them; not where a transition of its own leads there).
+    """
     targets: list[tuple[str, Guard]] = [
-        (State.ARRIVED, _leads(None, arrived=True)),
         (State.WANDER, _leads("wander", arrived=False)),
         (State.NAVIGATE, _leads("goto", arrived=False)),
     ]
+    if arrive:
+        targets.insert(0, (State.ARRIVED, _leads(None, arrived=True)))
     return [
         Transition(
             s,
@@ -272,12 +276,21 @@ def _navigation_transitions() -> list[Transition[StackContext]]:
             "the way ahead needs another shape: slide every slot to it on the move",
             P_RESHAPE,
         ),
-        *_leader_targets((State.RESHAPE,), lambda c: c.reshaped, "reshaped", P_RESUME),
+        *_leader_targets(
+            (State.RESHAPE,), lambda c: c.reshaped, "reshaped", P_RESUME, arrive=False
+        ),
         Transition(
             State.NAVIGATE,
             State.ARRIVED,
             lambda c: c.is_leader and c.arrived,
             "last waypoint reached",
+            P_ARRIVE,
+        ),
+        Transition(
+            State.RESHAPE,
+            State.ARRIVED,
+            lambda c: c.is_leader and c.arrived,
+            "last waypoint reached: a slide under way ends standing",
             P_ARRIVE,
         ),
         Transition(

@@ -106,6 +106,8 @@ class WorldProcess:
         self.missed: dict[str, int] = dict.fromkeys(self.ids, 0)
         self.tick = 0
         self.ticks_run = 0
+        self.started = False  # past the start, a robot that goes away is lost to the run
+        self.absent: tuple[str, ...] = ()  # robots not there when the run started
         self.stats: Any = None  # the session's DecodeStats, once open
         self.wall_time_s = 0.0
         self.overruns = 0  # real time: ticks whose work outlasted the period
@@ -214,7 +216,7 @@ class WorldProcess:
             (self.inbox.alive.add if alive else self.inbox.alive.discard)(robot)
             if not alive:  # a restarted process must not inherit its predecessor's command
                 self.inbox.latest.pop(robot, None)
-                if self.ticks_run:
+                if self.started:
                     self.inbox.lost.append((robot, self.tick))
             self.inbox.cond.notify_all()
         if not alive:
@@ -233,15 +235,23 @@ class WorldProcess:
         }
 
     def _await_agents(self, stop: Stoppable) -> None:
+        """Wait for every robot (up to the startup timeout), then start the run with
+        those there: one gone before (killed, or never come) is lost to it from tick 0.
+        """
         deadline = time.monotonic() + self.options.startup_timeout_s
         with self.inbox.cond:
             while not set(self.ids) <= self.inbox.alive and not stop.is_set():
-                self.inbox.cond.wait(min(0.2, max(0.0, deadline - time.monotonic())))
-                if time.monotonic() > deadline:
-                    missing = sorted(set(self.ids) - self.inbox.alive)
-                    log.warning("starting without %s", missing)
-                    return
-        time.sleep(0.2)  # let the agents' subscriptions reach the world's publications
+                remaining = deadline - time.monotonic()
+                if remaining <= 0.0:
+                    break
+                self.inbox.cond.wait(min(0.2, remaining))
+        if set(self.ids) <= self.inbox.alive:
+            time.sleep(0.2)  # let the agents' subscriptions reach the world's publications
+        with self.inbox.cond:
+            self.started = True
+            self.absent = tuple(r for r in self.ids if r not in self.inbox.alive)
+        if self.absent:
+            log.warning("starting without %s", list(self.absent))
 
     def _positioning(self, session: FleetSession, rid: str) -> Flat:
         fixes, relative = self.world.positioning(rid)
@@ -387,6 +397,7 @@ class WorldProcess:
         reasons = []
         if self.ticks_run < self.steps:
             reasons.append(f"the world ran {self.ticks_run} of {self.steps} ticks")
+        reasons += [f"robot {r} was not there at the start" for r in self.absent]
         reasons += [f"robot {r} went away at tick {k}" for r, k in self.inbox.lost]
         missing = sorted(set(self.ids) - set(self.inbox.reports))
         if missing:
@@ -394,6 +405,7 @@ class WorldProcess:
         return {
             "ticks_run": self.ticks_run,
             "lost": [{"robot": r, "tick": k} for r, k in self.inbox.lost],
+            "absent": list(self.absent),
             "complete": not reasons,
             "incomplete_reason": "; ".join(reasons),
         }

@@ -143,7 +143,9 @@ def test_a_killed_follower_ends_up_with_an_error_and_an_incomplete_results_folde
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["complete"] is False
     assert "agent r3: killed by SIGKILL" in metrics["incomplete_reason"]
-    assert "robot r3 went away" in metrics["incomplete_reason"]
+    reason = metrics["incomplete_reason"]
+    # Killed in the run, or before its first tick when the fleet was slow to come up.
+    assert "robot r3 went away" in reason or "robot r3 was not there at the start" in reason
     assert set(metrics["runtime"]["agents"]) == {"r1", "r2"}  # r3's report never came
     assert (out / "fig5_trajectories.png").exists()
     _recording_reads_back(out)

@@ -167,7 +167,10 @@ CASES: list[tuple[str, str, str, StackContext]] = [
     *_plan(S.DEADLOCK_TURN, "a robot stopped for an obstacle", someone_stopped=True),
     (S.NAVIGATE, S.RESHAPE, "the way ahead needs another shape",
      replace(LEADER, plan="goto", reshape_wanted=True)),
-    *_plan(S.RESHAPE, "reshaped", reshaped=True),
+    *[c for c in _plan(S.RESHAPE, "reshaped", reshaped=True) if c[1] != S.ARRIVED],
+    # at the goal mid-slide (or settled, or not): it arrives, the slide ends standing
+    *[(S.RESHAPE, S.ARRIVED, "last waypoint reached", replace(LEADER, arrived=True, reshaped=r))
+      for r in (False, True)],
 ]  # fmt: skip
 
 

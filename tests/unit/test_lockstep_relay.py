@@ -1,9 +1,11 @@
 """The lockstep world's side of a tick: a robot's state is its answer (the world drives
 the robot with the state's twist) and the next frames carry it to every other robot,
-each state once; a robot that does not answer stands still for the tick."""
+each state once; a robot that does not answer stands still for the tick. And who the
+run starts with: a robot gone before it is marked absent, not forgotten."""
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
@@ -47,7 +49,9 @@ class Recorder:
 
 def _world() -> tuple[WorldProcess, Recorder]:
     scenario = load_scenario(CONFIG_ROOT / "scenarios" / "paper_wedge.toml")
-    options = WorldOptions(fleet=FLEET, transport=TransportConfig(), tick_timeout_s=0.05)
+    options = WorldOptions(
+        fleet=FLEET, transport=TransportConfig(), tick_timeout_s=0.05, startup_timeout_s=0.3
+    )
     world = WorldProcess(scenario, load_robot(scenario.robot), options)
     session = Recorder()
     world._wire(session)  # type: ignore[arg-type]
@@ -103,3 +107,20 @@ def test_each_state_drives_its_robot_and_reaches_every_other_robot_once() -> Non
     assert late.v_mps == 0.03  # (and its late answer was not taken for a later tick)
     assert trace.cmd_v_mps[3] == 0.04
     assert world.traces["r1"].cmd_v_mps[4] == 0.0
+
+
+def test_a_robot_gone_before_the_start_is_absent_from_the_results_and_one_gone_after_lost() -> None:
+    world, session = _world()
+    world._on_alive(alive_key(FLEET, "r3"), False)  # killed while the fleet came up
+    assert world.inbox.lost == []  # not yet a loss: it could come back before the start
+    world._await_agents(threading.Event())  # waits out the startup timeout for it
+    assert world.absent == ("r3",)
+    world._tick(session, 0)  # type: ignore[arg-type]
+    world._on_alive(alive_key(FLEET, "r2"), False)
+    done = world._completeness()
+    assert done["complete"] is False
+    assert done["absent"] == ["r3"]
+    assert done["lost"] == [{"robot": "r2", "tick": 0}]
+    reason = str(done["incomplete_reason"])
+    assert "robot r3 was not there at the start" in reason
+    assert "robot r2 went away at tick 0" in reason

@@ -11,7 +11,7 @@ import pytest
 
 from phalanx.agents.behaviours.base import Moment
 from phalanx.agents.mapping import OCCUPIED, OccupancyMap
-from phalanx.agents.reshape import SQUEEZE_S, Reshape, ShapeKeeper
+from phalanx.agents.reshape import SQUEEZE_S, Arrived, Reshape, ShapeKeeper
 from phalanx.agents.shape import Shape
 from phalanx.core.config import NavigationConfig
 from phalanx.core.config_files import load_robot
@@ -63,6 +63,28 @@ def test_a_fold_wanted_half_way_through_an_unfold_slides_back_from_where_the_slo
     for step in range(400):
         behaviour.command(moment(2.1 + 0.1 * step))
     assert k.key == ShapeKey(SCENARIO_SHAPE, COLUMN, 1.0)
+
+
+def test_a_leader_that_arrives_mid_unfold_stands_still_while_the_slide_ends() -> None:
+    k = keeper()
+    k.key, k.wanted = ShapeKey(COLUMN, COLUMN, 1.0), SCENARIO_SHAPE
+    behaviour = reshape_for(k)
+    behaviour.enter(moment(0.0))
+    for step in range(10):
+        behaviour.command(moment(0.1 * step))
+    behaviour.leave(moment(1.0))  # the goal is reached: RESHAPE -> ARRIVED
+    arrived = Arrived(behaviour)
+    arrived.enter(moment(1.0))
+    morphs = [k.key.morph]
+    for step in range(400):
+        twist = arrived.command(moment(1.1 + 0.1 * step))
+        assert (twist.v_mps, twist.omega_radps) == (0.0, 0.0)
+        morphs.append(k.key.morph)
+    assert morphs[0] < 1.0
+    assert morphs == sorted(morphs)  # on to the end, never back
+    assert k.key == ShapeKey(COLUMN, SCENARIO_SHAPE, 1.0)  # in the scenario's shape
+    arrived.leave(moment(41.0))
+    assert k.wanted == SCENARIO_SHAPE
 
 
 def test_the_shapes_are_not_weighed_again_and_a_squeeze_is_not_counted_mid_slide() -> None:
