@@ -6,6 +6,7 @@ other robots.
 
 from __future__ import annotations
 
+import logging
 import threading
 import time
 from collections import defaultdict
@@ -14,6 +15,8 @@ from typing import Any
 
 from phalanx.core.geometry import Twist2D
 from phalanx.wire.messages import AgentEvent, AgentReport, LeaderAnnouncement, RobotState
+
+log = logging.getLogger("phalanx.world")
 
 # Transitions and leadership announcements kept for the run's log; more (a flood) are
 # dropped and counted.
@@ -47,6 +50,21 @@ class WorldInbox:
             entries.append(value)
         else:
             self.overflow += 1
+
+    def heard(self, robot_id: str, tick: int, now: int) -> None:
+        """A message of `robot_id`'s for `tick`, the world being at tick `now`: one for
+        the tick before or later proves the robot is there, whatever its liveliness
+        token says.
+
+        Zenoh does not always bring a token back when a lost link comes back: a world
+        frozen past the lease then waited for no answer and no report of that robot's. A
+        robot that died sends nothing after its token's loss.
+        """
+        if tick >= now - 1 and robot_id not in self.alive:
+            self.alive.add(robot_id)
+            log.warning(
+                "robot %s is heard again at tick %d (its liveliness token is not)", robot_id, now
+            )
 
     def answer(self, robot_id: str, tick: int, command: Twist2D) -> None:
         """Robot `robot_id`'s command for `tick`; the tick's waiter is woken once, when

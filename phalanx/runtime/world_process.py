@@ -184,12 +184,14 @@ class WorldProcess:
     def _on_command(self, _key: str, cmd: VelocityCommand) -> None:
         if not self._too_far_ahead(cmd.tick, "VelocityCommand", cmd.robot_id):
             with self.inbox.cond:
+                self.inbox.heard(cmd.robot_id, cmd.tick, self.tick)
                 self.inbox.answer(cmd.robot_id, cmd.tick, Twist2D(cmd.v_mps, cmd.omega_radps))
 
     def _on_state(self, _key: str, state: RobotState) -> None:
         tick = round(state.stamp_s / self.scenario.dt_s)
         if tick < self.steps and not self._too_far_ahead(tick, "RobotState", state.robot_id):
             with self.inbox.cond:
+                self.inbox.heard(state.robot_id, tick, self.tick)
                 self.inbox.states[state.robot_id][tick] = state
                 if self.options.clock == "lockstep":  # the state is the robot's answer
                     twist = Twist2D(state.v_mps, state.omega_radps)
