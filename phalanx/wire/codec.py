@@ -207,11 +207,30 @@ def default_format() -> WireFormat:
     return "json" if os.environ.get("PHALANX_WIRE") == "json" else "packed"
 
 
+# The packed form of the nested messages packed lately, by identity (a message is frozen):
+# a lockstep world puts each robot's state into every other robot's frame, n - 1 times a
+# tick, and packs it once. Cleared when full; an entry keeps its message, so an id is
+# never another message's while it is in here.
+_NESTED: dict[int, tuple[Message, bytes]] = {}
+_NESTED_MAX = 4096
+
+
+def _packed_nested(item: Message) -> bytes:
+    hit = _NESTED.get(id(item))
+    if hit is not None and hit[0] is item:
+        return hit[1]
+    raw = _encode_packed(item)
+    if len(_NESTED) >= _NESTED_MAX:
+        _NESTED.clear()
+    _NESTED[id(item)] = (item, raw)
+    return raw
+
+
 def _pack_variable(kind: str, value: Any, out: bytearray) -> None:
     if kind == "R":
         out += _COUNT.pack(len(value))
         for item in value:
-            raw = _encode_packed(item)
+            raw = _packed_nested(item)
             out += _COUNT.pack(len(raw))
             out += raw
     elif kind == "s":
