@@ -238,7 +238,8 @@ class WorldProcess:
 
     def _await_agents(self, stop: Stoppable) -> None:
         """Wait for every robot (up to the startup timeout), then start the run with
-        those there: one gone before (killed, or never come) is lost to it from tick 0.
+        those there: one not there (gone before the start, or never come) is marked
+        absent in the run's results; from the start on, one that goes away is lost.
         """
         deadline = time.monotonic() + self.options.startup_timeout_s
         with self.inbox.cond:
