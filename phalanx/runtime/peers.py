@@ -14,6 +14,8 @@ fleet's scans to its copy of the shared map (`phalanx.agents.fleetmap`).
 from __future__ import annotations
 
 import dataclasses
+import logging
+import math
 from collections.abc import Iterable
 from typing import TypeVar
 
@@ -24,7 +26,15 @@ from phalanx.wire.keys import robot_key, robots_key
 from phalanx.wire.messages import RobotFlags, RobotState, ScanMessage
 from phalanx.wire.transport import FleetSession, History, Polled
 
+log = logging.getLogger("phalanx.agent")
+
 EPS_S = 1e-6
+# A robot whose liveliness token went is taken back when a message of its arrives stamped
+# this much later than the step at which the token went (s, on the fleet clock): Zenoh
+# does not always bring a token back when a lost link comes back. A robot that died sends
+# nothing newer (what of it still waits in a ring is older; the margin covers the clocks'
+# offsets in real time).
+REVIVE_AFTER_S = 1.0
 # An epoch grows by one per leadership change: a claim this far above the highest heard
 # is no peer's (a fleet would need years of handovers), and is refused and counted
 # rather than adopted by every robot (the top of the range would then stick for good).
@@ -106,7 +116,8 @@ class PeerInbox:
         self.bounds = bounds  # what every state and flags are held against
         self.states = History(depth=16)
         self.flags = History(depth=4)  # one a period per robot; real time needs the newest
-        self.dead: set[str] = set()
+        self.dead: dict[str, float] = {}  # robot -> the step's time when its token went
+        self._step_s = math.inf  # the latest step's time (none yet: nobody comes back)
         self.late_steps = 0
         self.max_epoch = 0  # the highest epoch heard (or held) so far
         self._session: FleetSession | None = None
@@ -166,7 +177,7 @@ class PeerInbox:
         """Whether to take a peer's message: not our own, not a robot known gone, and an
         epoch within EPOCH_WINDOW of the highest heard (else refused and counted).
         """
-        if message.robot_id == self.robot_id or message.robot_id in self.dead:
+        if message.robot_id == self.robot_id or not self._back(message):
             return False
         if message.epoch > self.max_epoch + EPOCH_WINDOW:
             if self._session is not None:
@@ -185,14 +196,25 @@ class PeerInbox:
         self.states.push(self.robot_id, state)
         self.max_epoch = max(self.max_epoch, state.epoch)
 
+    def _back(self, message: RobotState | RobotFlags) -> bool:
+        """Whether `message`'s robot is not known gone, or is back (REVIVE_AFTER_S)."""
+        gone = self.dead.get(message.robot_id)
+        if gone is None:
+            return True
+        if message.stamp_s <= gone + REVIVE_AFTER_S:
+            return False
+        self.dead.pop(message.robot_id, None)
+        log.warning("robot %s is heard again (its liveliness token is not)", message.robot_id)
+        return True
+
     def on_alive(self, robot: str, alive: bool) -> None:
         """A robot's process appeared or went (its liveliness token)."""
         if robot == self.robot_id or robot not in self.formation.positions:
             return
         if alive:
-            self.dead.discard(robot)
+            self.dead.pop(robot, None)
         else:
-            self.dead.add(robot)
+            self.dead[robot] = self._step_s
             self.states.forget(robot)
             self.flags.forget(robot)
 
@@ -207,6 +229,7 @@ class PeerInbox:
         In lockstep every live robot's state `delay_s` old is due with the step's frame
         (the world waited for them); a step without one is counted late.
         """
+        self._step_s = t_s
         if not self.lockstep:
             states = {p: pick_state(self.states.values(p), t_s) for p in watched}
             flags = {p: pick_state(self.flags.values(p), t_s) for p in self.alive()}
