@@ -240,6 +240,11 @@ class Arrived(Behaviour):
 
     def __init__(self, reshape: Reshape) -> None:
         self.reshape = reshape
+        self.sliding = False  # it arrived between two shapes
+
+    def enter(self, moment: Moment) -> None:
+        """Note whether a slide is under way."""
+        self.sliding = not self.reshape.keeper.key.settled
 
     def command(self, moment: Moment) -> Twist2D:
         """Zero; the slide, if one is under way, a step on."""
@@ -248,8 +253,9 @@ class Arrived(Behaviour):
         return ZERO_TWIST
 
     def leave(self, moment: Moment) -> None:
-        """As a reshape's end: the next change waits its dwell time."""
-        self.reshape.leave(moment)
+        """After a slide: as a reshape's end (the next change waits its dwell time)."""
+        if self.sliding:
+            self.reshape.leave(moment)
 
 
 def _capped(twist: Twist2D, v_max_mps: float) -> Twist2D:
