@@ -248,7 +248,8 @@ class WorldProcess:
                 if remaining <= 0.0:
                     break
                 self.inbox.cond.wait(min(0.2, remaining))
-        if set(self.ids) <= self.inbox.alive:
+            everyone = set(self.ids) <= self.inbox.alive
+        if everyone:
             time.sleep(0.2)  # let the agents' subscriptions reach the world's publications
         with self.inbox.cond:
             self.started = True
