@@ -138,19 +138,21 @@ class SlotMasks:
         )
 
     @cached_property
-    def _universe(self) -> tuple[list[str], npt.NDArray[np.intp]]:
-        """Every robot some slot disc stands for, and each stacked disc's among them."""
+    def _universe(self) -> tuple[list[str], npt.NDArray[np.intp], dict[str, int]]:
+        """Every robot some slot disc stands for, each stacked disc's among them, and
+        each robot's place in that list.
+        """
         names = sorted({r for ids in self.slot_ids for r in ids})
         index = {r: i for i, r in enumerate(names)}
-        return names, np.array([index[r] for ids in self.slot_ids for r in ids], dtype=np.intp)
+        slot = np.array([index[r] for ids in self.slot_ids for r in ids], dtype=np.intp)
+        return names, slot, index
 
     def rows(self, inputs: Sequence[MaskInputs]) -> BoolArray:
         """Which stacked slot discs hold a robot to mask this step: not the one their
         owner tracks (masked where its state says), heard to be in formation (or not
         heard yet, at the start), and their owner itself in formation.
         """
-        names, slot = self._universe
-        index = {r: i for i, r in enumerate(names)}
+        names, slot, index = self._universe
         # Robots stepped together share one view of the flags: in slot or not, worked out
         # once per distinct view rather than once per owner.
         groups: dict[tuple[int, bool], int] = {}
@@ -240,9 +242,13 @@ def _slots_met(sonar: SonarGeometry, r: FloatArray, slots: SlotMasks, rows: Bool
     idx = np.flatnonzero(rows)
     if idx.size == 0:
         return met
-    owner = slots.owner[idx]
     dirs = (slots.cos[idx], slots.sin[idx])
-    hit = sonar.arcs_meet_at(r[owner], slots.cx[idx], slots.cy[idx], slots.slot_radius_m, dirs)
+    cx, cy, radius_m = slots.cx[idx], slots.cy[idx], slots.slot_radius_m
+    if len(slots.slot_ids) == 1:  # one robot's discs (an agent on its own): its one row
+        met[0] = sonar.arcs_meet_at(r, cx, cy, radius_m, dirs).any(axis=0)
+        return met
+    owner = slots.owner[idx]
+    hit = sonar.arcs_meet_at(r[owner], cx, cy, radius_m, dirs)
     starts = np.flatnonzero(np.concatenate(([True], owner[1:] != owner[:-1])))
     met[owner[starts]] = np.logical_or.reduceat(hit, starts, axis=0)
     return met

@@ -76,6 +76,14 @@ class SonarBatch:
     readings: list[SonarEchoes]
 
 
+def _clip(a: FloatArray, bound: FloatArray) -> FloatArray:
+    """`np.clip(a, -bound, bound)`, the same arithmetic (max, then min) at a fraction of
+    its call's cost on arrays this small.
+    """
+    out: FloatArray = np.minimum(np.maximum(a, -bound), bound)
+    return out
+
+
 def _flat_rows(
     x: FloatArray, y: FloatArray, keep: BoolArray
 ) -> tuple[FloatArray, FloatArray, list[tuple[int, int]]]:
@@ -194,7 +202,7 @@ class SonarGeometry:
         # grazed by the side of a beam 4 m off would otherwise seem to close a doorway.
         # Closer in the arc widens again, so what is really there is seen in time.
         spread = np.arctan2(ARC_SPREAD_M, np.maximum(r, 1e-6))
-        offset = np.where(self.gap_fill, self.offset_rad, np.clip(self.offset_rad, -spread, spread))
+        offset = np.where(self.gap_fill, self.offset_rad, _clip(self.offset_rad, spread))
         angle = self.angle_rad - self.offset_rad + offset
         x = self.origin_x_m + r * np.cos(angle)
         y = self.origin_y_m + r * np.sin(angle)
@@ -220,7 +228,7 @@ class SonarGeometry:
         ray_r = r[:, self.unit_of_ray]
         seen = echo[:, self.unit_of_ray] & (~self.gap_fill | (ray_r < GAP_FILL_RANGE_M))
         spread = np.arctan2(ARC_SPREAD_M, np.maximum(ray_r, 1e-6))
-        offset = np.where(self.gap_fill, self.offset_rad, np.clip(self.offset_rad, -spread, spread))
+        offset = np.where(self.gap_fill, self.offset_rad, _clip(self.offset_rad, spread))
         angle = self.angle_rad - self.offset_rad + offset
         x = self.origin_x_m + ray_r * np.cos(angle)
         y = self.origin_y_m + ray_r * np.sin(angle)

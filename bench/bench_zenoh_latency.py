@@ -5,7 +5,8 @@ publishes its RobotState on its own 20 Hz timer with a random phase, as free-run
 agents do; each follower subscribes to its own leader in a grid formation (rows chained
 behind the root) and, on every state received, runs the real agent core's step and
 publishes its command. Latency = command computed (follower) - state stamped (leader),
-both read from CLOCK_MONOTONIC, one clock for every process on this machine.
+both read from CLOCK_MONOTONIC, one clock for every process on this machine. Beside
+it, the hop alone (state received - state stamped): the rest is the follower's step.
 
 Two topologies: every process a Zenoh client of one router (as `phalanx up` runs), and
 peers connected directly (each listens on its own loopback port and connects to the
@@ -58,7 +59,7 @@ def robot(cfg: TransportConfig, rid: str, n: int, seconds: float, ready: Any, ou
     leader_id = formation.leader_of(rid)
     here = formation.positions[rid]
     inbox: queue.SimpleQueue[RobotState] = queue.SimpleQueue()
-    latencies: list[float] = []
+    latencies: list[tuple[float, float]] = []  # (state -> command, state -> received)
     state = RobotState(
         robot_id=rid,
         seq=0,
@@ -107,7 +108,7 @@ def robot(cfg: TransportConfig, rid: str, n: int, seconds: float, ready: Any, ou
                 ),
             )
             if got - start > WARMUP_S:
-                latencies.append(done - lead.stamp_s)
+                latencies.append((done - lead.stamp_s, got - lead.stamp_s))
     out.put(latencies)
 
 
@@ -129,8 +130,10 @@ def _configs(
     ]
 
 
-def measure(n: int, seconds: float, topology: str, lowlatency: bool = False) -> list[float]:
-    """Latencies (s) of every follower command in an `n`-robot fleet."""
+def measure(
+    n: int, seconds: float, topology: str, lowlatency: bool = False
+) -> list[tuple[float, float]]:
+    """Every follower command's latency and its hop's (s), in an `n`-robot fleet."""
     router_cfg, cfgs = _configs(n, topology, lowlatency)
     ctx = mp.get_context("spawn")
     ready = ctx.Barrier(n)
@@ -169,7 +172,10 @@ def main() -> None:
     args = parser.parse_args()
     cal = Calibration.measure()
     print(f"leader state -> follower command over Zenoh, {RATE_HZ:.0f} Hz per robot, loopback")
-    print("topology  transport   robots  samples  p50_ms  p90_ms  p99_ms  max_ms  p99_mcal  load")
+    print(
+        "topology  transport   robots  samples  p50_ms  p90_ms  p99_ms  max_ms  p99_mcal"
+        "  hop_p50_ms  hop_p99_ms  load"
+    )
     for transport in args.transport:
         for topology in args.topology:
             for n in args.robots:
@@ -178,12 +184,14 @@ def main() -> None:
 
 
 def _row(n: int, seconds: float, topology: str, transport: str, cal: Calibration) -> None:
-    lat = sorted(measure(n, seconds, topology, transport == "lowlatency"))
+    pairs = measure(n, seconds, topology, transport == "lowlatency")
+    lat = sorted(total for total, _ in pairs)
     q = statistics.quantiles(lat, n=100)
+    hop = statistics.quantiles([h for _, h in pairs], n=100)
     print(
         f"{topology:8s}  {transport:10s}  {n:6d}  {len(lat):7d}  {1e3 * q[49]:6.3f}  "
         f"{1e3 * q[89]:6.3f}  {1e3 * q[98]:6.3f}  {1e3 * lat[-1]:6.3f}  "
-        f"{1e3 * cal.ratio(q[98]):8.1f}  {load()}",
+        f"{1e3 * cal.ratio(q[98]):8.1f}  {1e3 * hop[49]:10.3f}  {1e3 * hop[98]:10.3f}  {load()}",
         flush=True,
     )
 
