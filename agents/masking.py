@@ -4,8 +4,10 @@ A sonar echo whose arc passes within a robot of the formation is that robot, not
 obstacle (`SonarGeometry.echoes`): the tracked robot where its last state says it is
 (dead-reckoned to now), the others in formation where the shape puts them. In one
 process (the batch runner) the arithmetic is the same for every robot and is done for
-all of them at once, a row per robot; a robot on its own goes through the same code as
-a batch of one, and elementwise arithmetic gives each row the same numbers either way.
+all of them at once, a row per robot; a robot on its own goes through the same
+arithmetic as a batch of one (its slot discs met by its one row, without the grouping
+by robot a batch needs), and elementwise arithmetic gives each row the same numbers
+either way.
 
 What does not change (each robot's slot discs, and the direction from each transducer
 towards them) is stacked once (`SlotMasks`); a step brings the ranges, the tracked
@@ -245,7 +247,7 @@ def _slots_met(sonar: SonarGeometry, r: FloatArray, slots: SlotMasks, rows: Bool
     dirs = (slots.cos[idx], slots.sin[idx])
     cx, cy, radius_m = slots.cx[idx], slots.cy[idx], slots.slot_radius_m
     if len(slots.slot_ids) == 1:  # one robot's discs (an agent on its own): its one row
-        met[0] = sonar.arcs_meet_at(r, cx, cy, radius_m, dirs).any(axis=0)
+        met[0] = sonar.arcs_meet_at(r[:1], cx, cy, radius_m, dirs).any(axis=0)
         return met
     owner = slots.owner[idx]
     hit = sonar.arcs_meet_at(r[owner], cx, cy, radius_m, dirs)
