@@ -31,6 +31,7 @@ SEED = int(os.environ.get("PHALANX_CHAOS_SEED", str(time.time_ns() % 2**32)))
 RNG = random.Random(SEED)
 LIMITS = run_limits(load_robot("p3dx"), load_scenario(WEDGE).limits)
 HOLD_TO_ZERO_S = 0.5
+STOP_SETTLE_S = 0.3  # after a SIGSTOP, what the process had sent has arrived
 
 
 def _within_limits(seen: list[Seen]) -> None:
@@ -76,10 +77,13 @@ def test_a_frozen_leader_is_held_and_publishes_nothing_stale_when_it_resumes(
     with running_fleet(tmp_path, fleet=f"chaos-frz{int(frozen_s * 10)}") as fleet:
         assert fleet.wait_tracking(), f"followers never tracked (seed {SEED})"
         time.sleep(RNG.uniform(0.0, 2.0))
-        before = fleet.watch.latest("r1")
         frozen = time.monotonic()
         fleet.signal("r1", signal.SIGSTOP)
-        time.sleep(frozen_s)
+        # The last state heard once what r1 sent before the stop has arrived (read before
+        # the stop, it lagged r1 by as many steps as this process was slow to take in).
+        time.sleep(STOP_SETTLE_S)
+        before = fleet.watch.latest("r1")
+        time.sleep(frozen_s - STOP_SETTLE_S)
         resumed = time.monotonic()
         fleet_now = max(fleet.watch.latest(r).state.stamp_s for r in ("r2", "r3"))  # type: ignore[union-attr]
         fleet.signal("r1", signal.SIGCONT)
