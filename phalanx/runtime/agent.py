@@ -41,6 +41,7 @@ from phalanx.wire.messages import (
     RobotState,
     ScanMessage,
 )
+from phalanx.wire.relink import Relinker
 from phalanx.wire.transport import FleetSession, TransportConfig, open_session
 
 log = logging.getLogger("phalanx.agent")
@@ -121,9 +122,13 @@ class AgentRuntime:
         `stop`, or the robot's side goes quiet; then report.
         """
         fleet = self.options.fleet
-        with open_session(self.options.transport) as session:
+        with (
+            open_session(self.options.transport) as session,
+            Relinker(session, self._heard) as relinker,
+        ):
             self._session = session
             self._wire(session)
+            relinker.start()
             try:
                 while (tick := self.clock.next_tick(stop)) is not None:
                     observation = self.io.read(tick)
@@ -148,6 +153,13 @@ class AgentRuntime:
         session.watch_alive(alive_pattern(fleet), self._on_alive)
         session.serve_status(status_key(fleet, rid), self._status)
 
+    def _heard(self) -> float | None:
+        """When this process last heard what it expects from the fleet: the world's
+        frames, another robot's flags or state (None: nothing yet, or a fleet of one).
+        """
+        heard = [t for t in (self.io.heard_s(), self.inbox.heard_s) if t is not None]
+        return max(heard, default=None)
+
     def _on_announcement(self, _key: str, message: LeaderAnnouncement) -> None:
         self.announcements.append(message)  # a record: the flags carry the decision
 
@@ -169,6 +181,7 @@ class AgentRuntime:
             "unsent": self.unsent,
             "stale_steps": self.stale_steps,
             "dropped": self._session.stats.dropped if self._session else 0,
+            "relinks": self._session.relinks if self._session else 0,
             "decode": stats,
             **self.io.counters(),
         }

@@ -54,10 +54,12 @@ class FrameBox:
         self._stats = stats
         self._frames: deque[SenseFrame] = deque(maxlen=capacity)
         self._arrived = threading.Condition()
+        self.put_s: float | None = None  # when the last frame came (monotonic)
 
     def put(self, frame: SenseFrame) -> None:
         """A decoded frame (Zenoh's thread)."""
         with self._arrived:
+            self.put_s = time.monotonic()
             if len(self._frames) == self._frames.maxlen:
                 self._stats.ring_dropped[_KIND] += 1
             self._frames.append(frame)

@@ -16,15 +16,17 @@ from __future__ import annotations
 import dataclasses
 import logging
 import math
+import time
 from collections.abc import Iterable
 from typing import TypeVar
 
 from phalanx.core.formation import Formation
 from phalanx.core.peers import PeerFlags, PeerState, Scan
 from phalanx.wire.bounds import FleetBounds
+from phalanx.wire.delivery import History, Polled
 from phalanx.wire.keys import robot_key, robots_key
 from phalanx.wire.messages import RobotFlags, RobotState, ScanMessage
-from phalanx.wire.transport import FleetSession, History, Polled
+from phalanx.wire.transport import FleetSession
 
 log = logging.getLogger("phalanx.agent")
 
@@ -120,6 +122,7 @@ class PeerInbox:
         self._step_s = math.inf  # the latest step's time (none yet: nobody comes back)
         self.late_steps = 0
         self.max_epoch = 0  # the highest epoch heard (or held) so far
+        self.heard_s: float | None = None  # when another robot's message was last taken
         self._session: FleetSession | None = None
         self._flag_ring: Polled[RobotFlags] | None = None
         self._state_rings: list[Polled[RobotState]] = []
@@ -186,6 +189,7 @@ class PeerInbox:
                 self._session.stats.count("rejected", name, f"{name} of {message.robot_id}: {why}")
             return False
         self.max_epoch = max(self.max_epoch, message.epoch)
+        self.heard_s = time.monotonic()
         return True
 
     def keep_own(self, state: PeerState, flags: PeerFlags) -> None:

@@ -74,6 +74,12 @@ class RobotIO(Protocol):
         """
         ...
 
+    def heard_s(self) -> float | None:
+        """When (monotonic) the robot's side last sent over the fleet's session (None:
+        it sends nothing that way, or has not yet).
+        """
+        ...
+
 
 def pose_now(odometry: Odometry, now_s: float) -> Pose2D:
     """The odometry pose carried forward along its twist from its stamp to `now_s`.
@@ -194,6 +200,12 @@ class WorldLink:
     def halt(self) -> None:
         """Nothing to do: the world stops a robot whose agent is gone."""
 
+    def heard_s(self) -> float | None:
+        """When the last frame arrived (None: none yet; the world may still be waiting
+        for the fleet to come).
+        """
+        return self._box.put_s
+
     def relayed(self) -> tuple[RobotState, ...]:
         """The other robots' states the frame read last carried (once)."""
         frame, self._relay_from = self._relay_from, None
@@ -273,6 +285,10 @@ class DriverIO:
     def relayed(self) -> tuple[RobotState, ...]:
         """None: a robot on a driver hears its peers over the fleet's session."""
         return ()
+
+    def heard_s(self) -> float | None:
+        """None: the robot's side is its driver, not the fleet's session."""
+        return None
 
     def counters(self) -> dict[str, int]:
         """Readings and commands the driver failed."""

@@ -43,6 +43,7 @@ class WorldInbox:
     sent_at: dict[int, float] = field(default_factory=dict)  # when a tick's frames went out
     response_s: list[float] = field(default_factory=list)  # frames out -> each answer in
     relayed: dict[str, int] = field(default_factory=dict)  # newest tick passed on, by robot
+    heard_s: float | None = None  # when a robot's message was last taken (monotonic)
 
     def keep(self, entries: list[Any], value: object) -> None:
         """Append to the run's log, up to MAX_LOG_ENTRIES."""
@@ -60,6 +61,7 @@ class WorldInbox:
         frozen past the lease then waited for no answer and no report of that robot's. A
         robot that died sends nothing after its token's loss.
         """
+        self.heard_s = time.monotonic()
         if tick >= now - 1 and robot_id not in self.alive:
             self.alive.add(robot_id)
             log.warning(

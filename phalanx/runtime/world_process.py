@@ -54,6 +54,7 @@ from phalanx.wire.messages import (
     RobotState,
     VelocityCommand,
 )
+from phalanx.wire.relink import Relinker
 from phalanx.wire.transport import (
     LOWLATENCY_MAX_BYTES,
     FleetSession,
@@ -130,8 +131,12 @@ class WorldProcess:
 
     def run(self, stop: Stoppable) -> RunLog:
         """Run the scenario to its end (or `stop`) and return the log."""
-        with open_session(self.options.transport) as session:
+        with (
+            open_session(self.options.transport) as session,
+            Relinker(session, lambda: self.inbox.heard_s) as relinker,
+        ):
             self._wire(session)
+            relinker.start()  # (a world that is its fleet's router has nothing to re-open)
             self._log_static()
             self._await_agents(stop)
             period_s = self.scenario.dt_s / self.options.speed

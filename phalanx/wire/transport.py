@@ -18,16 +18,15 @@ import logging
 import socket
 import threading
 import time
-from collections import deque
 from collections.abc import Callable, Iterable
-from typing import Any, Generic, Literal, TypeVar
+from typing import Any, Literal, TypeVar
 
 from pydantic import BaseModel, ConfigDict, Field
 
 from phalanx.core.errors import TransportError
 from phalanx.core.lifecycle import Closing
-from phalanx.wire.codec import DecodeStats, decode, encode
-from phalanx.wire.keys import robot_of
+from phalanx.wire.codec import DecodeStats, encode
+from phalanx.wire.delivery import Polled, deliver_sample
 from phalanx.wire.messages import Message
 from phalanx.wire.security import AccessControl, TlsFiles, apply_security
 
@@ -36,6 +35,7 @@ MAX_STATUS_BYTES = 1024 * 1024
 # The largest payload sent on a low-latency session: under Zenoh's 64 KiB batch with room
 # for its headers (a fleet's messages are a few hundred bytes; a status reply a few KiB).
 LOWLATENCY_MAX_BYTES = 60_000
+RELINK_OPEN_S = 2.0  # how long `FleetSession.relink` waits for a new session's handshake
 M = TypeVar("M", bound=Message)
 _open_sessions: set[int] = set()
 _registry_lock = threading.Lock()
@@ -122,107 +122,16 @@ def open_session_count() -> int:
         return len(_open_sessions)
 
 
-class History:
-    """The last few decoded values per robot (thread-safe: a callback may fill it)."""
-
-    def __init__(self, depth: int = 8) -> None:
-        self._lock = threading.Lock()
-        self._values: dict[str, deque[Any]] = {}
-        self._depth = depth
-
-    def push(self, robot_id: str, value: Any) -> None:
-        """Add a value."""
-        with self._lock:
-            self._values.setdefault(robot_id, deque(maxlen=self._depth)).append(value)
-
-    def values(self, robot_id: str) -> list[Any]:
-        """A copy of the values held for `robot_id`, oldest first."""
-        with self._lock:
-            return list(self._values.get(robot_id, ()))
-
-    def forget(self, robot_id: str) -> None:
-        """Drop everything held for `robot_id`."""
-        with self._lock:
-            self._values.pop(robot_id, None)
-
-
-class Polled(Generic[M]):
-    """A subscription whose payloads wait in a ring of `capacity` until `drain` (see
-    `FleetSession.subscribe_polled`). Zenoh's callback only appends the raw payload (no
-    decoding on its thread); when the ring is full the oldest payload is dropped and
-    counted (`DecodeStats.ring_dropped`).
-    """
-
-    def __init__(
-        self, model: type[M], stats: DecodeStats, capacity: int, context: Any = None
-    ) -> None:
-        self._model = model
-        self._stats = stats
-        self._context = context
-        self._ring: deque[tuple[str, bytes]] = deque(maxlen=capacity)
-        self._lock = threading.Lock()
-
-    def put(self, sample: Any) -> None:
-        """Zenoh's side: keep the sample's key and payload (the oldest goes if full)."""
-        item = (str(sample.key_expr), sample.payload.to_bytes())
-        with self._lock:
-            if len(self._ring) == self._ring.maxlen:
-                self._stats.ring_dropped[self._model.__name__] += 1
-            self._ring.append(item)
-
-    def drain(self, on_message: Callable[[str, M], None]) -> int:
-        """Call `on_message(key, value)` for every valid message waiting (the rest
-        counted); how many payloads were taken.
-        """
-        with self._lock:
-            items = list(self._ring)
-            self._ring.clear()
-        for key, payload in items:
-            deliver(key, payload, self._model, self._stats, on_message, self._context)
-        return len(items)
-
-
-def deliver(
-    key: str,
-    payload: bytes,
-    model: type[M],
-    stats: DecodeStats,
-    on_message: Callable[[str, M], None],
-    context: Any = None,
-) -> None:
-    """Decode `payload` (arrived on `key`) as `model` and hand it on, or count it: as
-    malformed, as rejected when it names a robot other than its key's, or when the
-    handler fails (a hostile value must never take the process down).
-    """
-    value = decode(model, payload, stats, context)
-    if value is None:
-        return
-    name = model.__name__
-    sender = getattr(value, "robot_id", None)
-    keyed = robot_of(key)
-    if sender is not None and keyed and sender != keyed:
-        stats.count("rejected", name, f"{name} of {sender!r} on {keyed!r}'s key")
-        return
-    try:
-        on_message(key, value)
-    except Exception as exc:  # counted and logged, never raised into Zenoh's thread
-        stats.count("handler_errors", name, f"{name}: handler failed: {type(exc).__name__}: {exc}")
-        log.warning("a %s on %s could not be handled: %s", name, key, exc)
-
-
-def _deliver(
-    sample: Any,
-    model: type[M],
-    stats: DecodeStats,
-    on_message: Callable[[str, M], None],
-    context: Any = None,
-) -> None:
-    """Decode a Zenoh sample as `model` and hand it on (see `deliver`)."""
-    deliver(str(sample.key_expr), sample.payload.to_bytes(), model, stats, on_message, context)
+Declare = Callable[[Any], Any]  # declares one entity on a zenoh.Session, returns it
 
 
 class FleetSession(Closing):
-    """A Zenoh session with phalanx's codec, drop counting and liveliness; context manager."""
+    """A Zenoh session with phalanx's codec, drop counting and liveliness; context manager.
+
+    Everything declared through its methods is declared again by `relink`, on a new Zenoh
+    session with the same configuration: the way back for a process that a router
+    stopped serving (see `relink`).
+    """
 
     def __init__(self, cfg: TransportConfig) -> None:
         import zenoh
@@ -231,10 +140,14 @@ class FleetSession(Closing):
         if not _log_initialised:
             zenoh.init_log_from_env_or("error")
             _log_initialised = True
+        self._cfg = cfg
         self._session = _open_with_retry(cfg)
         self.stats = DecodeStats()
-        self._keep: list[Any] = []
+        self.relinks = 0  # how many times `relink` replaced the Zenoh session
+        # What was declared, with how to declare it again (None: held as given, `hold`).
+        self._keep: list[tuple[Declare | None, Any]] = []
         self._publishers: dict[str, Any] = {}
+        self._lock = threading.RLock()  # the Zenoh session and its entities, swapped whole
         self._max_bytes = LOWLATENCY_MAX_BYTES if cfg.lowlatency else None
         self._closed = False
         with _registry_lock:
@@ -247,10 +160,12 @@ class FleetSession(Closing):
 
     def publish(self, key: str, message: Message, *, reliable_block: bool = False) -> None:
         """Put `message` on `key` (express; BLOCK congestion for must-arrive messages)."""
-        publisher = self._publishers.get(key)
-        if publisher is None:
-            publisher = self._declare_publisher(key, reliable_block)
-        publisher.put(self._fits(encode(message), key))
+        payload = self._fits(encode(message), key)
+        with self._lock:
+            publisher = self._publishers.get(key)
+            if publisher is None:
+                publisher = self._declare_publisher(key, reliable_block)
+            publisher.put(payload)
 
     def _fits(self, payload: bytes, key: str) -> bytes:
         """`payload`, if this session's links carry it whole (else a TransportError)."""
@@ -263,7 +178,8 @@ class FleetSession(Closing):
 
     def publish_raw(self, key: str, payload: bytes) -> None:
         """Put raw bytes (tests inject malformed payloads with this)."""
-        self._session.put(key, payload)
+        with self._lock:
+            self._session.put(key, payload)
 
     def _declare_publisher(self, key: str, block: bool) -> Any:
         import zenoh
@@ -295,9 +211,9 @@ class FleetSession(Closing):
         stats = self.stats
 
         def callback(sample: Any) -> None:
-            _deliver(sample, model, stats, on_message, context)
+            deliver_sample(sample, model, stats, on_message, context)
 
-        self._keep.append(self._session.declare_subscriber(key_expr, callback))
+        self._declare(lambda session: session.declare_subscriber(key_expr, callback))
 
     def subscribe_polled(
         self, key_expr: str, model: type[M], capacity: int, *, context: Any = None
@@ -308,12 +224,12 @@ class FleetSession(Closing):
         which is what a subscription every robot hears from every robot needs.
         """
         ring = Polled(model, self.stats, capacity, context)
-        self._keep.append(self._session.declare_subscriber(key_expr, ring.put))
+        self._declare(lambda session: session.declare_subscriber(key_expr, ring.put))
         return ring
 
     def declare_alive(self, key: str) -> None:
         """Hold a liveliness token on `key` while the session lives."""
-        self._keep.append(self._session.liveliness().declare_token(key))
+        self._declare(lambda session: session.liveliness().declare_token(key))
 
     def watch_alive(self, key_expr: str, on_change: Callable[[str, bool], None]) -> None:
         """`on_change(key, alive)` on every token appearing (True) or vanishing (False)."""
@@ -322,8 +238,11 @@ class FleetSession(Closing):
         def callback(sample: Any) -> None:
             on_change(str(sample.key_expr), sample.kind == zenoh.SampleKind.PUT)
 
-        liveliness = self._session.liveliness()
-        self._keep.append(liveliness.declare_subscriber(key_expr, callback, history=True))
+        self._declare(
+            lambda session: session.liveliness().declare_subscriber(
+                key_expr, callback, history=True
+            )
+        )
 
     def serve_status(self, key: str, status: Callable[[], dict[str, Any]]) -> None:
         """Answer queries on `key` with `status()` as JSON."""
@@ -335,7 +254,7 @@ class FleetSession(Closing):
             except TransportError as exc:
                 query.reply(key, json.dumps({"error": str(exc)}).encode("utf-8"))
 
-        self._keep.append(self._session.declare_queryable(key, callback))
+        self._declare(lambda session: session.declare_queryable(key, callback))
 
     def query_status(self, key: str, timeout_s: float = 2.0) -> list[dict[str, Any]]:
         """Every status reply to `key` within `timeout_s` (a reply that is not a JSON
@@ -357,22 +276,91 @@ class FleetSession(Closing):
         return replies
 
     def hold(self, entity: Any) -> Any:
-        """Keep an entity declared on `self.zenoh` until `close()` undeclares it; returns it."""
-        self._keep.append(entity)
+        """Keep an entity declared on `self.zenoh` until `close()` undeclares it; returns it
+        (a session holding one cannot `relink`: it could not declare it again).
+        """
+        with self._lock:
+            self._keep.append((None, entity))
         return entity
+
+    def _declare(self, declare: Declare) -> None:
+        with self._lock:
+            self._keep.append((declare, declare(self._session)))
+
+    @property
+    def can_relink(self) -> bool:
+        """Whether `relink` could declare everything again: nothing held raw (`hold`),
+        no endpoint to listen on (the old session holds it until the new one is open).
+        """
+        with self._lock:
+            return not self._cfg.listen and all(d is not None for d, _ in self._keep)
+
+    def relink(self, open_timeout_s: float = RELINK_OPEN_S) -> bool:
+        """Replace the Zenoh session by a new one with the same configuration (a new
+        Zenoh id) and declare on it everything declared so far; whether it did.
+
+        Zenoh 1.x, when its router stops past the lease and comes back, sometimes
+        re-attaches a client to the router while the router drops everything the client
+        had declared: the client looks connected and hears nothing, for good. A new
+        session starts clean. Publishing goes on meanwhile, on the old session until the
+        swap. A new session that cannot be opened within `open_timeout_s` (the router
+        still gone) leaves the old one in place.
+        """
+        with self._lock:
+            if self._closed:
+                return False
+            if self._cfg.listen:  # the new session could not listen where the old one does
+                raise TransportError("a session listening on endpoints cannot relink")
+            if not self.can_relink:
+                raise TransportError("a session holding raw Zenoh entities cannot relink")
+        try:
+            session = _open_once(self._cfg, open_timeout_s)
+        except Exception as exc:  # zenoh raises its own ZError
+            log.warning("could not open a new Zenoh session: %s", exc)
+            return False
+        with self._lock:
+            if self._closed:
+                session.close()
+                return False
+            old, self._session = self._session, session
+            declares = [d for d, _ in self._keep if d is not None]
+            old_entities = [e for _, e in self._keep] + list(self._publishers.values())
+            self._keep, self._publishers = [], {}
+        # The old session goes first: a token declared twice would be lost to the fleet
+        # when the old one's is undeclared, and a subscription twice would hear twice.
+        _close_quietly(old, old_entities)
+        with self._lock:
+            if self._closed:  # `close` closed the new session
+                return False
+            self._keep[:0] = [(d, d(session)) for d in declares]
+            self.relinks += 1
+        log.warning("re-opened the Zenoh session (%d entities declared again)", len(declares))
+        return True
 
     def close(self) -> None:
         """Undeclare everything and close the session; safe twice."""
-        if self._closed:
-            return
-        self._closed = True
-        for entity in reversed(self._keep + list(self._publishers.values())):
-            _quietly(entity.undeclare)
-        self._keep.clear()
-        self._publishers.clear()
-        self._session.close()
+        with self._lock:
+            if self._closed:
+                return
+            self._closed = True
+            entities = [e for _, e in self._keep] + list(self._publishers.values())
+            self._keep.clear()
+            self._publishers.clear()
+        _close_quietly(self._session, entities, strict=True)
         with _registry_lock:
             _open_sessions.discard(id(self))
+
+
+def _close_quietly(session: Any, entities: list[Any], *, strict: bool = False) -> None:
+    """Undeclare `entities`, newest first, then close `session` (a failure to close is
+    raised when `strict`, else logged: a relinked session may be half gone already).
+    """
+    for entity in reversed(entities):
+        _quietly(entity.undeclare)
+    if strict:
+        session.close()
+    else:
+        _quietly(session.close)
 
 
 def _quietly(action: Callable[[], object]) -> None:
@@ -395,6 +383,15 @@ def _open_with_retry(cfg: TransportConfig) -> Any:
                 raise TransportError(f"cannot open a Zenoh session with {shown}: {exc}") from exc
             time.sleep(delay_s)
             delay_s = min(1.0, delay_s * 2)
+
+
+def _open_once(cfg: TransportConfig, open_timeout_s: float) -> Any:
+    """One attempt at a session for `cfg`, its handshake bounded by `open_timeout_s`."""
+    import zenoh
+
+    conf = zenoh_config(cfg)
+    conf.insert_json5("transport/unicast/open_timeout", json.dumps(round(1000 * open_timeout_s)))
+    return zenoh.open(conf)
 
 
 def open_session(cfg: TransportConfig) -> FleetSession:

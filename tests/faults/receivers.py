@@ -22,6 +22,7 @@ from phalanx.core.config_files import CONFIG_ROOT, apply_overrides, load_robot, 
 from phalanx.core.limits import run_limits
 from phalanx.runtime.clock import Tick
 from phalanx.wire.codec import DecodeStats, encode
+from phalanx.wire.delivery import Polled, deliver
 from phalanx.wire.keys import leader_key, robot_key
 from phalanx.wire.messages import (
     AgentEvent,
@@ -34,7 +35,6 @@ from phalanx.wire.messages import (
     SenseFrame,
     VelocityCommand,
 )
-from phalanx.wire.transport import Polled, deliver
 
 WEDGE = CONFIG_ROOT / "scenarios" / "paper_wedge.toml"
 NAV_WEDGE = CONFIG_ROOT / "scenarios" / "nav_corridor_wedge3.toml"  # a fleet that maps

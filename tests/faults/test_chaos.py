@@ -24,6 +24,7 @@ from fleetlab import CLI, WEDGE, Fleet, Seen, child_running, running_fleet, wait
 
 from phalanx.core.config_files import load_robot, load_scenario
 from phalanx.core.limits import run_limits
+from phalanx.runtime.local_fleet import telemetry_dir
 from phalanx.telemetry.rrd import summarize
 
 pytestmark = pytest.mark.slow
@@ -32,6 +33,7 @@ RNG = random.Random(SEED)
 LIMITS = run_limits(load_robot("p3dx"), load_scenario(WEDGE).limits)
 HOLD_TO_ZERO_S = 0.5
 STOP_SETTLE_S = 0.3  # after a SIGSTOP, what the process had sent has arrived
+RECORDING_B = 4096  # a telemetry part this large holds more than its header
 
 
 def _within_limits(seen: list[Seen]) -> None:
@@ -118,7 +120,10 @@ def _run_up(tmp_path: Path, name: str, act: Any) -> tuple[int, str, Path]:
         proc = subprocess.Popen(argv, stdout=sink, stderr=subprocess.STDOUT)
         try:
             assert wait_for(lambda: child_running(proc.pid, "--robot", "r3") is not None, 30.0)
-            time.sleep(3.0 + RNG.uniform(0.0, 5.0))  # the processes are up and the run going
+            # The run is going once every process records (a slow host takes a while to
+            # start four interpreters: a fixed wait could act before anything ran).
+            assert wait_for(lambda: _recording(out), 60.0), (SEED, "nothing recorded")
+            time.sleep(1.0 + RNG.uniform(0.0, 5.0))
             act(proc.pid)
             code = proc.wait(120)
         finally:
@@ -126,6 +131,12 @@ def _run_up(tmp_path: Path, name: str, act: Any) -> tuple[int, str, Path]:
                 proc.kill()
                 proc.wait(10)
     return code, log.read_text(errors="replace"), out
+
+
+def _recording(out: Path) -> bool:
+    """Whether every process of the run has written telemetry past its file's header."""
+    parts = {p.stem: p.stat().st_size for p in telemetry_dir(out).glob("*.rrd")}
+    return set(parts) == {"world", "r1", "r2", "r3"} and min(parts.values()) > RECORDING_B
 
 
 def _recording_reads_back(out: Path) -> None:

@@ -13,8 +13,8 @@ import pytest
 from phalanx.core.config_files import CONFIG_ROOT, load_robot, load_scenario
 from phalanx.wire.bounds import FleetBounds
 from phalanx.wire.codec import DecodeStats, decode, encode
+from phalanx.wire.delivery import Polled, deliver
 from phalanx.wire.messages import LeaderAnnouncement, RobotFlags, RobotState, SenseFrame
-from phalanx.wire.transport import Polled, deliver
 
 SCENARIO = load_scenario(CONFIG_ROOT / "scenarios" / "paper_wedge.toml")
 BOUNDS = FleetBounds.of(SCENARIO, load_robot(SCENARIO.robot))
