@@ -64,6 +64,7 @@ class LoopbackSession:
     stats: DecodeStats = field(default_factory=DecodeStats)
     subscriptions: list[tuple[str, Callable[[str, bytes], None]]] = field(default_factory=list)
     published: int = 0
+    relinks: int = 0  # (never re-opened: nothing to lose)
 
     def subscribe(
         self, key_expr: str, model: type, on_message: Callable[..., None], *, context: Any = None

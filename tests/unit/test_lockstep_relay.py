@@ -130,15 +130,20 @@ def test_a_robot_heard_after_its_liveliness_was_lost_is_waited_for_again() -> No
     """Zenoh may not bring a token back after a lost link comes back: the robot's answers
     for the world's tick prove it is there; an old one does not."""
     world, session = _world()
+    assert world.inbox.heard_s is None  # nothing heard yet: no silence is suspect
     for k in range(3):
         for rid in world.ids:
             _answer(world, rid, k)
         world._tick(session, k)  # type: ignore[arg-type]
+    heard_s = world.inbox.heard_s  # what the world's Relinker watches
+    assert heard_s is not None
     world._on_alive(alive_key(FLEET, "r2"), False)  # the world was frozen past the lease
     world._on_alive(alive_key(FLEET, "r3"), False)
     _answer(world, "r3", 0)  # a late one, from before
     assert world.inbox.alive == {"r1"}
     _answer(world, "r2", 2)  # its answer for the tick the world is at
     assert world.inbox.alive == {"r1", "r2"}
+    assert world.inbox.heard_s is not None
+    assert world.inbox.heard_s >= heard_s
     assert world.inbox.await_states(2, 0.01) == set()  # r2 is waited for again, r3 not
     assert world.inbox.await_states(3, 0.01) == {"r1", "r2"}

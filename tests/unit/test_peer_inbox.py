@@ -53,3 +53,15 @@ def test_a_robot_gone_before_the_first_step_comes_back_only_with_its_token() -> 
     inbox.relayed([_state("r3", 100.0)])
     assert "r3" in inbox.alive()
     assert _heard(inbox, "r3") == [100.0]
+
+
+def test_only_another_live_robot_counts_as_heard() -> None:
+    """What the agent's Relinker watches: its own state (delivered to it locally even
+    when the router dropped its subscriptions) and a gone robot's old news do not count."""
+    inbox = _inbox()
+    inbox.for_step(10.0, delay_s=0.1, watched=())
+    inbox.on_alive("r3", False)
+    inbox.relayed([_state("r2", 9.9), _state("r3", 9.9)])
+    assert inbox.heard_s is None
+    inbox.relayed([_state("r1", 9.9)])
+    assert inbox.heard_s is not None
