@@ -1,8 +1,9 @@
 """Re-opening a session that has gone deaf.
 
-Zenoh 1.x clients come back by themselves when their router comes back, except
-sometimes after the router stopped past the lease (a frozen process, a stalled host):
-the client is attached again, but the router has dropped what it had declared. The
+Zenoh clients come back by themselves when their router comes back, except (1.10, on
+the low-latency transport; measured in `bench/bench_relink.py`) sometimes after the
+router stopped past the lease (a frozen process, a stalled host): the client is attached
+again, but the router has dropped what it had declared. The
 client looks connected and hears nothing, for good; the rest of the fleet no longer sees
 its liveliness. Zenoh cannot tell it; only its owner can, by what stops arriving (an
 agent: the world's frames, its peers' flags).

@@ -299,9 +299,9 @@ class FleetSession(Closing):
         """Replace the Zenoh session by a new one with the same configuration (a new
         Zenoh id) and declare on it everything declared so far; whether it did.
 
-        Zenoh 1.x, when its router stops past the lease and comes back, sometimes
-        re-attaches a client to the router while the router drops everything the client
-        had declared: the client looks connected and hears nothing, for good. A new
+        Zenoh 1.10 on the low-latency transport, when a router stops past the lease and
+        comes back, sometimes re-attaches a client to it while the router drops
+        everything the client had declared: the client looks connected and hears nothing, for good. A new
         session starts clean. Publishing goes on meanwhile, on the old session until the
         swap. A new session that cannot be opened within `open_timeout_s` (the router
         still gone) leaves the old one in place.
