@@ -34,6 +34,7 @@ class Row:
     rate_hz: float | None
     last_error: str
     dropped: int | None = None  # payloads the process dropped (malformed, ring, refused)
+    relinks: int | None = None  # times the process re-opened its Zenoh session (deaf)
 
 
 class Output(Protocol):
@@ -80,7 +81,8 @@ def fleet_rows(
                 leader=(state.leader_id or "-") if state else "-",
                 rate_hz=watch.rate_hz(placement.id, now),
                 last_error=child.last_error if child else "",
-                dropped=_dropped(processes.get(placement.id)),
+                dropped=_counter(processes.get(placement.id), "dropped"),
+                relinks=_counter(processes.get(placement.id), "relinks"),
             )
         )
     if loaded.spec.world is not None:
@@ -89,14 +91,14 @@ def fleet_rows(
         process = _process(child, host in present)
         error = child.last_error if child else ""
         progress = _world_state(world, total_ticks or scenario_ticks(loaded.scenario))
-        dropped = _dropped(processes.get("world"))
-        rows.append(Row("world", host, process, 0, progress, "-", None, error, dropped))
+        dropped, relinks = (_counter(processes.get("world"), c) for c in ("dropped", "relinks"))
+        rows.append(Row("world", host, process, 0, progress, "-", None, error, dropped, relinks))
     return rows
 
 
-def _dropped(status: dict[str, Any] | None) -> int | None:
-    value = status.get("dropped") if status else None
-    return value if isinstance(value, int) else None
+def _counter(status: dict[str, Any] | None, name: str) -> int | None:
+    value = status.get(name) if status else None
+    return value if isinstance(value, int) and not isinstance(value, bool) else None
 
 
 def scenario_ticks(scenario: Scenario) -> int:
@@ -176,7 +178,7 @@ def render_table(rows: list[Row], *, title: str) -> Any:
 
     table = Table(title=title, expand=False)
     columns = ("robot", "host", "process", "restarts", "state", "leader", "rate", "dropped",
-               "last error")  # fmt: skip
+               "relinks", "last error")  # fmt: skip
     for column in columns:
         table.add_column(column, no_wrap=column != "last error", overflow="fold")
     for row in rows:
@@ -190,6 +192,7 @@ def render_table(rows: list[Row], *, title: str) -> Any:
             row.leader,
             rate,
             "-" if row.dropped is None else str(row.dropped),
+            "-" if row.relinks is None else str(row.relinks),
             row.last_error[-80:],
         )
     return table

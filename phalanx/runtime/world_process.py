@@ -110,6 +110,7 @@ class WorldProcess:
         self.started = False  # past the start, a robot that goes away is lost to the run
         self.absent: tuple[str, ...] = ()  # robots not there when the run started
         self.stats: Any = None  # the session's DecodeStats, once open
+        self._fabric: FleetSession | None = None  # the session, once open
         self.wall_time_s = 0.0
         self.overruns = 0  # real time: ticks whose work outlasted the period
         self._ahead_ticks = max(2, round(AHEAD_S / scenario.dt_s))
@@ -162,7 +163,7 @@ class WorldProcess:
 
     def _wire(self, session: FleetSession) -> None:
         fleet, bounds = self.options.fleet, self.bounds
-        self.stats = session.stats
+        self.stats, self._fabric = session.stats, session
         session.declare_alive(alive_key(fleet, WORLD_ID))
         subscriptions = [
             (robots_key(fleet, "state"), RobotState, self._on_state),
@@ -238,6 +239,7 @@ class WorldProcess:
             "lost": [{"robot": r, "tick": k} for r, k in self.inbox.lost],
             "log_overflow": self.inbox.overflow,
             "dropped": stats.get("dropped", 0),
+            "relinks": self._fabric.relinks if self._fabric is not None else 0,
             "decode": stats,
         }
 

@@ -301,10 +301,10 @@ class FleetSession(Closing):
 
         Zenoh 1.10 on the low-latency transport, when a router stops past the lease and
         comes back, sometimes re-attaches a client to it while the router drops
-        everything the client had declared: the client looks connected and hears nothing, for good. A new
-        session starts clean. Publishing goes on meanwhile, on the old session until the
-        swap. A new session that cannot be opened within `open_timeout_s` (the router
-        still gone) leaves the old one in place.
+        everything the client had declared: the client looks connected and hears
+        nothing, for good. A new session starts clean. Publishing goes on meanwhile, on
+        the old session until the swap. A new session that cannot be opened within
+        `open_timeout_s` (the router still gone) leaves the old one in place.
         """
         with self._lock:
             if self._closed:

@@ -9,7 +9,7 @@ from pathlib import Path
 from phalanx.analysis.results import mark_results
 from phalanx.hosts.deployment import load_deployment
 from phalanx.hosts.fleet_client import FleetWatch
-from phalanx.hosts.fleet_output import fleet_rows, render_table
+from phalanx.hosts.fleet_output import fleet_rows, render_table, rows_as_json
 from phalanx.hosts.launch import deaths
 from phalanx.hosts.protocol import ChildStatus, HostStatus
 from phalanx.runtime.exits import EXIT_RUN_CUT_SHORT, agent_exit_reason, exit_reason
@@ -65,13 +65,20 @@ def test_a_launch_names_every_process_that_died_on_its_own() -> None:
     ]
 
 
-def test_status_shows_what_each_process_dropped() -> None:
+def test_status_shows_what_each_process_dropped_and_how_often_it_relinked() -> None:
     loaded = load_deployment("loopback")
-    processes = {"r2": {"robot_id": "r2", "dropped": 9847}, "world": {"tick": 5, "dropped": 3}}
+    processes = {
+        "r2": {"robot_id": "r2", "dropped": 9847, "relinks": 2},
+        "r3": {"robot_id": "r3", "relinks": True},  # not a count: shown as unknown
+        "world": {"tick": 5, "dropped": 3, "relinks": 0},
+    }
     rows = fleet_rows(loaded, {}, FleetWatch(), world=processes["world"], processes=processes)
     dropped = {row.name: row.dropped for row in rows}
     assert dropped == {"r1": None, "r2": 9847, "r3": None, "world": 3}
-    assert render_table(rows, title="t").columns[7].header == "dropped"
+    assert {row.name: row.relinks for row in rows} == {"r1": None, "r2": 2, "r3": None, "world": 0}
+    columns = render_table(rows, title="t").columns
+    assert [c.header for c in columns[7:9]] == ["dropped", "relinks"]
+    assert rows_as_json(rows)[1]["relinks"] == 2  # `phalanx status --json`
 
 
 def test_exit_codes_in_words() -> None:
