@@ -41,9 +41,9 @@ class Relinker(Closing):
 
     `heard()` gives the monotonic time at which the owner last heard what it expects,
     or None while it expects nothing (a lone robot: no silence is suspect). A session
-    that cannot relink (a router's, listening) is left alone. `check`
-    takes one decision; `start` runs it every `POLL_S` on a thread of its own, which
-    `close` ends (a relink under way finishes first, within its open timeout).
+    that cannot relink (a router's, listening) is left alone. `check` takes one
+    decision; `start` runs it every `POLL_S` on a thread of its own, which `close` ends
+    (a relink under way finishes first, within its open timeout).
     """
 
     def __init__(
