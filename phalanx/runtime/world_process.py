@@ -109,7 +109,6 @@ class WorldProcess:
         self.ticks_run = 0
         self.started = False  # past the start, a robot that goes away is lost to the run
         self.absent: tuple[str, ...] = ()  # robots not there when the run started
-        self.stats: Any = None  # the session's DecodeStats, once open
         self._fabric: FleetSession | None = None  # the session, once open
         self.wall_time_s = 0.0
         self.overruns = 0  # real time: ticks whose work outlasted the period
@@ -161,9 +160,14 @@ class WorldProcess:
             self._finish(session)
         return self._log()
 
+    @property
+    def stats(self) -> Any:
+        """The session's DecodeStats (None until it is open)."""
+        return self._fabric.stats if self._fabric is not None else None
+
     def _wire(self, session: FleetSession) -> None:
         fleet, bounds = self.options.fleet, self.bounds
-        self.stats, self._fabric = session.stats, session
+        self._fabric = session
         session.declare_alive(alive_key(fleet, WORLD_ID))
         subscriptions = [
             (robots_key(fleet, "state"), RobotState, self._on_state),

@@ -106,14 +106,3 @@ def deliver(
     except Exception as exc:  # counted and logged, never raised into Zenoh's thread
         stats.count("handler_errors", name, f"{name}: handler failed: {type(exc).__name__}: {exc}")
         log.warning("a %s on %s could not be handled: %s", name, key, exc)
-
-
-def deliver_sample(
-    sample: Any,
-    model: type[M],
-    stats: DecodeStats,
-    on_message: Callable[[str, M], None],
-    context: Any = None,
-) -> None:
-    """Decode a Zenoh sample as `model` and hand it on (see `deliver`)."""
-    deliver(str(sample.key_expr), sample.payload.to_bytes(), model, stats, on_message, context)

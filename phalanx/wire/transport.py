@@ -26,7 +26,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from phalanx.core.errors import TransportError
 from phalanx.core.lifecycle import Closing
 from phalanx.wire.codec import DecodeStats, encode
-from phalanx.wire.delivery import Polled, deliver_sample
+from phalanx.wire.delivery import Polled, deliver
 from phalanx.wire.messages import Message
 from phalanx.wire.security import AccessControl, TlsFiles, apply_security
 
@@ -211,7 +211,8 @@ class FleetSession(Closing):
         stats = self.stats
 
         def callback(sample: Any) -> None:
-            deliver_sample(sample, model, stats, on_message, context)
+            key, payload = str(sample.key_expr), sample.payload.to_bytes()
+            deliver(key, payload, model, stats, on_message, context)
 
         self._declare(lambda session: session.declare_subscriber(key_expr, callback))
 
