@@ -19,12 +19,20 @@ from phalanx.core.limits import KinematicLimits
 from phalanx.core.peers import PeerState
 from phalanx.core.states import State
 
-# A follower on its slot aligns its heading once its leader has stood still this long
-# (below these speeds), turning at this gain.
+# A follower near its slot settles onto it once its leader has stood still this long
+# (below these speeds): it drives straight onto the slot's position (within SETTLE_M of
+# it), then turns on the spot to the slot's heading, turning at this gain.
 ALIGN_AFTER_S = 1.0
 STILL_MPS = 0.005
 STILL_RADPS = 0.005
 ALIGN_GAIN_PER_S = 1.0
+SETTLE_M = 0.5  # further off, the controller brings it back
+# Near enough: only the heading is left; it drives again only once this far off (a pose
+# estimate's jitter does not send it turning back and forth).
+ON_SLOT_M, OFF_SLOT_M = 0.01, 0.03
+SETTLE_GAIN_PER_S = 2.0  # heading gain on the way to the slot's position
+SETTLE_SPEED_MPS = (0.02, 0.1)  # slowest, fastest on the way
+SETTLE_AIMED_RAD = math.radians(10.0)  # drives only once aimed this well
 # A follower going round an obstacle aims this far ahead of its moving slot.
 AVOID_LEAD_S = 1.0
 
@@ -48,20 +56,21 @@ class Track(Behaviour):
         self.robot_id = robot_id
         self.shape, self.limits, self.controller = shape, limits, controller
         self.dt_s = scenario.dt_s
-        self.formed_m = scenario.leadership.formed_m
         self.leader_still_s = 0.0
+        self.on_slot = False  # settled onto the slot's position while the leader stands
 
     def command(self, moment: Moment) -> Twist2D:
-        """The controller's twist, or a turn on the spot onto the slot's heading."""
+        """The controller's twist, or (its leader standing still) settling onto the slot."""
         lead = moment.view.anchor
         if lead is None:
             return ZERO_TWIST
         still = abs(lead.v_mps) < STILL_MPS and abs(lead.omega_radps) < STILL_RADPS
         self.leader_still_s = self.leader_still_s + self.dt_s if still else 0.0
+        self.on_slot = self.on_slot and still
         if self.leader_still_s >= ALIGN_AFTER_S:
-            aligned = self._align(moment.pose, lead, moment.t_s)
-            if aligned is not None:
-                return aligned
+            settled = self._settle(moment.pose, lead, moment.t_s)
+            if settled is not None:
+                return settled
         odometry = moment.odometry
         inp = FollowerInput(
             follower=odometry.pose,
@@ -75,18 +84,40 @@ class Track(Behaviour):
         )
         return self.controller.command(inp)
 
-    def _align(self, pose: Pose2D, lead: PeerState, t_s: float) -> Twist2D | None:
-        """On its slot beside a leader standing still, turn on the spot to the slot's heading.
+    def _settle(self, pose: Pose2D, lead: PeerState, t_s: float) -> Twist2D | None:
+        """Near its slot beside a leader standing still: drive straight onto the slot's
+        position (forwards or backwards, whichever needs less turning), then turn on the
+        spot to the slot's heading. None further off than `SETTLE_M`.
 
-        Tracking a point aims the robot's position, not its heading, and a still target
-        leaves any heading error where it is: the group's next move, a reverse out of a
-        dead end say, would start with it.
+        Tracking a point aims a point ahead of (or behind) the axle, not the axle and the
+        heading: beside a still target it ends with the axle off the slot by up to that
+        distance and the heading off by up to 90 deg, which the group's next move, a
+        reverse out of a dead end say, would start with. A differential drive reaches a
+        pose standing still only this way (turn, drive, turn).
         """
         target, _ = self.shape.slot_target(lead, t_s)
-        if (pose.position - target.position).norm() > self.formed_m:
+        offset = target.position - pose.position
+        distance_m = offset.norm()
+        if distance_m > SETTLE_M:
             return None
-        error = wrap_angle(target.theta_rad - pose.theta_rad)
-        rate = min(self.limits.omega_max_radps, ALIGN_GAIN_PER_S * abs(error))
+        self.on_slot = distance_m <= (OFF_SLOT_M if self.on_slot else ON_SLOT_M)
+        if self.on_slot:
+            return self._turn_to(target.theta_rad - pose.theta_rad, ALIGN_GAIN_PER_S)
+        error = wrap_angle(math.atan2(offset.y_m, offset.x_m) - pose.theta_rad)
+        sign = 1.0
+        if abs(error) > math.pi / 2:  # backing onto it turns less
+            sign, error = -1.0, wrap_angle(error + math.pi)
+        turn = self._turn_to(error, SETTLE_GAIN_PER_S)
+        if abs(error) > SETTLE_AIMED_RAD:
+            return turn
+        slow, fast = SETTLE_SPEED_MPS
+        speed = min(fast, max(slow, ALIGN_GAIN_PER_S * distance_m)) * math.cos(error)
+        return Twist2D(sign * min(speed, distance_m / self.dt_s), turn.omega_radps)
+
+    def _turn_to(self, error_rad: float, gain_per_s: float) -> Twist2D:
+        """On the spot, towards a heading `error_rad` away."""
+        error = wrap_angle(error_rad)
+        rate = min(self.limits.omega_max_radps, gain_per_s * abs(error))
         return Twist2D(0.0, math.copysign(rate, error))
 
 

@@ -267,7 +267,11 @@ def navigation_scenario(
             # shape is turned back to the way it came in; elsewhere back along the path
             # driven, which is known to be free.
             "reverse_mode": "fixed" if course == "deadend" else "path",
-            "pause_s": 3.0,
+            # Before the paper's straight reverse, time for every follower to settle
+            # onto its slot, position then heading (`Track`, phalanx.agents.behaviours
+            # .follower): a slot swung sideways by the turn back takes a turn, a short
+            # drive and a turn, 12 s at most.
+            "pause_s": 12.0 if course == "deadend" else 3.0,
             "safe_distance_m": 10.0 if course == "deadend" else 2.0,
             "turn_away_deg": 60.0,
             "escape_distance_m": 3.0,
