@@ -172,8 +172,9 @@ def section(
         "in; once the leader's map shows its route leading back the way it came and no room "
         "to turn the shape round, the group is in deadlock: it turns the shape back to the "
         "way it came in (the heading of the leader's last 2 m of path: a leader caught "
-        "turning would otherwise back out diagonally), stands still 3 s "
-        "(`deadlock.pause_s`: the followers settle on their slots), backs out straight in "
+        "turning would otherwise back out diagonally), stands still 12 s "
+        "(`deadlock.pause_s`: the followers settle onto their slots, position then "
+        "heading), backs out straight in "
         "formation (`deadlock.reverse_mode = 'fixed'`, as the paper) for 10 m, turns "
         "towards the route and goes round. Backward-phase errors are measured from 5 s "
         "after the reverse starts (the formation-core convention), against the "
@@ -191,25 +192,18 @@ def section(
 
 
 DEADEND_NOTES = [
-    "- **wedge** (the paper's shape): in, out in reverse within the bounds, round, goal.",
-    "- **inline** (a chain: r3 tracks r2 tracks r1): linear and angular within the "
-    "bounds; the last robot reaches the deadlock with its heading far off (heading "
-    "swings on the way in grow along the chain, and the 3 s pause does not settle a "
-    "heading: the point tracker aims positions), so 5 s into the reverse its "
-    "orientation error is still 0.62 deg, above the 0.5 deg bound, and it stays near "
-    "0.5 deg for 3 s more before it decays.",
-    "- **collateral** (a 2.5 m wide line): the deadlock is declared while the leader is "
-    "turning the line on the spot at the end of the U, 16 deg off the U's axis. The "
-    "group turns back to the axis, backs out 10 m straight, turns and goes round the U "
-    "to the goal (in 322 s: the dead-end scenarios allow 360 s). Without the turn back "
-    "it backed out diagonally, stopped 0.3 m from the side wall and ended STUCK. The "
-    "turn back leaves the followers 4-5 cm off their slots, which the reverse "
-    "controller removes over about 6 s: 5 s into the reverse the orientation error is "
-    "0.68 deg, above the 0.5 deg bound.",
-    "- **5 robots** (`nav_deadend_*5.toml`, not in the table): the wedge backs out and "
-    "reaches the goal (it ended STUCK before the turn back), outside the bounds (2.1 %, "
-    "3.0 deg); the inline chain goes round without a deadlock; the collateral line "
-    "still ends STUCK, without a collision.",
+    "- **Every formation of three backs out within the bounds**: the wedge and the line "
+    "abreast fold into a column on the way in, the turn back swings the column's slots "
+    "about 0.1 m sideways and the point tracker turns the followers about 90 deg towards "
+    "them, and the followers settle "
+    "onto their slots (a turn, a straight drive, a turn on the spot) before the reverse "
+    "starts. The wedge and the line reach the goal; the chain backs out three times "
+    "within the bounds, but its route after each reverse leads it back into the U.",
+    "- **5 robots** (`nav_deadend_*5.toml`, not in the table): linear and angular within "
+    "the bounds; orientation 0.727 / 0.434 / 0.703 deg (wedge / chain / line). The fourth "
+    "and fifth robots are measured against the robot they track, whose own corrections "
+    "at the start of the reverse (about 0.5 deg/s) tilt the heading a rigid formation "
+    "would give them. None reaches the goal (4, 2 and 6 reverses); no collision.",
 ]
 
 

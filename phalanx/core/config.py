@@ -220,7 +220,8 @@ class DeadlockConfig(Model):
     for a navigating leader also: the leader blocked for `leadership.confirm_s` with no
     follower clear to take over, or in a dead end (its route leads back the way it came
     and the shape has no room to turn round). The leader stands still `pause_s` (the
-    followers settle on their slots; 0 as the paper), backs the group off
+    followers settle onto their slots, position then heading: the dead-end scenarios
+    give them 12 s; 0 as the paper), backs the group off
     `safe_distance_m` in formation (or until an obstacle behind stops it), then turns:
     towards its route if its map has one, else by `turn_away_deg` (times the deadlocks
     so far at this waypoint) towards the more open side and drives `escape_distance_m`

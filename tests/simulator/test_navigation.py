@@ -103,7 +103,9 @@ def test_the_group_backs_out_of_the_dead_end_in_formation() -> None:
 @pytest.mark.slow
 def test_a_wedge_folded_into_the_dead_end_backs_out_folded_and_gets_there() -> None:
     # The dead end looks passable for a column until its far wall is seen: the wedge
-    # folds, drives in, backs out as a column, goes round and unfolds on the way.
+    # folds, drives in, backs out as a column, goes round and unfolds on the way. The
+    # turn back to the way it came in swings the column's slots sideways; the followers
+    # settle onto them during the pause, so the reverse is within the paper's bounds.
     log = run_batch(load_scenario(SCENARIOS / "nav_deadend_wedge3.toml"))
     leader = [(e.target, e.reason) for e in log.transitions["r1"]]
     targets = [t for t, _ in leader]
@@ -114,8 +116,11 @@ def test_a_wedge_folded_into_the_dead_end_backs_out_folded_and_gets_there() -> N
     assert not log.collisions
     _, backward = phase_masks(log)
     assert backward.sum() * log.scenario.dt_s > 20.0
-    for rid in ("r2", "r3"):  # settled in the column as it backs out (its transient:
-        assert np.median(error_series(log, rid).linear_pct[backward]) < 0.5  # RESULTS.md)
+    for rid in ("r2", "r3"):
+        series = error_series(log, rid)
+        assert series.linear_pct[backward].max() < 0.5
+        assert series.angular_pct[backward].max() < 0.3
+        assert series.orientation_deg[backward].max() < 0.5
 
 
 @pytest.mark.slow
