@@ -1,0 +1,76 @@
+"""No command drives a robot into an echo it stands against: the emergency stop watches
+a robot that moves, so the step that starts it moving is checked on its own.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from hypothesis import given
+from hypothesis import strategies as st
+
+from phalanx.agents.perception import clearance_along
+from phalanx.agents.sensing import CONTACT_MARGIN_M, Sensing, short_of_contact
+from phalanx.core.geometry import Twist2D
+
+RADIUS_M, DT_S, V_MAX_MPS = 0.25, 0.1, 0.3
+
+
+def _sensing(x_m: float, y_m: float) -> Sensing:
+    """One echo at (x, y) in the body frame."""
+    raw = (np.array([x_m]), np.array([y_m]))
+    return Sensing(
+        points=raw, raw=raw, ahead_m=x_m, blocked={1: True, -1: False},
+        path_clear=False, imminent=False, bumper=False,
+    )  # fmt: skip
+
+
+def test_a_robot_against_an_obstacle_does_not_creep_into_it() -> None:
+    # As a follower in reverse whose slot lies ahead, past the obstacle: it asks for
+    # 3 cm/s forwards while 5 mm from the obstacle.
+    against = _sensing(RADIUS_M + 0.005, 0.0)
+    cut = short_of_contact(
+        Twist2D(0.03, 0.2), against, radius_m=RADIUS_M, dt_s=DT_S, v_max_mps=V_MAX_MPS
+    )
+    assert cut == Twist2D(0.0, 0.2)  # turning is left alone
+    away = Twist2D(-0.03, 0.0)
+    assert (
+        short_of_contact(away, against, radius_m=RADIUS_M, dt_s=DT_S, v_max_mps=V_MAX_MPS) == away
+    )
+    alongside = _sensing(0.05, RADIUS_M + 0.01)  # a wall passed 1 cm off
+    assert short_of_contact(
+        Twist2D(0.03, 0.0), alongside, radius_m=RADIUS_M, dt_s=DT_S, v_max_mps=V_MAX_MPS
+    ).v_mps
+    roomy = _sensing(RADIUS_M + 0.2, 0.0)
+    onward = Twist2D(0.03, 0.0)
+    assert (
+        short_of_contact(onward, roomy, radius_m=RADIUS_M, dt_s=DT_S, v_max_mps=V_MAX_MPS) == onward
+    )
+
+
+@given(
+    v_mps=st.floats(-1.5, 1.5),  # what a controller asks, before the limiter
+    omega_radps=st.floats(-0.7, 0.7),
+    range_m=st.floats(0.0, 1.0),
+    bearing_rad=st.floats(-math.pi, math.pi),
+)
+def test_a_step_never_ends_within_the_margin_of_an_echo_the_way_it_drives(
+    v_mps: float, omega_radps: float, range_m: float, bearing_rad: float
+) -> None:
+    echo = (
+        (RADIUS_M + range_m) * math.cos(bearing_rad),
+        (RADIUS_M + range_m) * math.sin(bearing_rad),
+    )
+    sensing = _sensing(*echo)
+    wanted = Twist2D(v_mps, omega_radps)
+    out = short_of_contact(wanted, sensing, radius_m=RADIUS_M, dt_s=DT_S, v_max_mps=V_MAX_MPS)
+    assert out.omega_radps == omega_radps
+    assert out.v_mps in (0.0, v_mps)
+    ahead = echo[0] * out.v_mps > 0.0  # the echo on the side it drives to
+    if out.v_mps != 0.0 and ahead:
+        way = 0.0 if out.v_mps > 0.0 else math.pi
+        gap_m = clearance_along(sensing.raw, way, half_width_m=RADIUS_M)
+        assert gap_m >= min(abs(out.v_mps), V_MAX_MPS) * DT_S + CONTACT_MARGIN_M
+    if out.v_mps == 0.0 and v_mps != 0.0:  # cut only for an echo it drives towards
+        assert echo[0] * v_mps > 0.0
