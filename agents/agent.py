@@ -42,13 +42,7 @@ from phalanx.agents.inputs import FleetView, Observation
 from phalanx.agents.leadership import Flags, Leadership, LeadershipChange, group_deadlock
 from phalanx.agents.masking import MaskInputs, SlotMasks
 from phalanx.agents.parts import Parts
-from phalanx.agents.sensing import (
-    STANDSTILL_MPS,
-    Sensing,
-    Stance,
-    short_of_contact,
-    way_clear,
-)
+from phalanx.agents.sensing import STANDSTILL_MPS, Sensing, Stance, short_of_contact, way_clear
 from phalanx.core.config import RobotParams, Scenario
 from phalanx.core.formation import Formation
 from phalanx.core.geometry import Pose2D, Twist2D, wrap_angle
