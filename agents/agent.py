@@ -42,7 +42,7 @@ from phalanx.agents.inputs import FleetView, Observation
 from phalanx.agents.leadership import Flags, Leadership, LeadershipChange, group_deadlock
 from phalanx.agents.masking import MaskInputs, SlotMasks
 from phalanx.agents.parts import Parts
-from phalanx.agents.sensing import STANDSTILL_MPS, Sensing, Stance, short_of_contact, way_clear
+from phalanx.agents.sensing import STANDSTILL_MPS, ContactGuard, Sensing, Stance, way_clear
 from phalanx.core.config import RobotParams, Scenario
 from phalanx.core.formation import Formation
 from phalanx.core.geometry import Pose2D, Twist2D, wrap_angle
@@ -106,6 +106,9 @@ class Agent:
         self.dt_s = scenario.dt_s
         self.limits = run_limits(robot, scenario.limits)
         self.limiter = CommandLimiter(self.limits)
+        self.contact = ContactGuard(
+            robot.radius_m, self.dt_s, self.limits.v_max_mps, on=scenario.navigation.reactive
+        )
         self.spacing = Spacing(
             robot_id,
             contact_m=2.0 * robot.radius_m + SPACING_MARGIN_M,
@@ -201,11 +204,7 @@ class Agent:
         wanted = self.spacing.apply(
             active.command(moment), observation.odometry.pose, peers, observation.near
         )
-        if self.scenario.navigation.reactive:
-            wanted = short_of_contact(
-                wanted, sensing, radius_m=self.robot.radius_m, dt_s=self.dt_s,
-                v_max_mps=self.limits.v_max_mps,
-            )  # fmt: skip
+        wanted = self.contact.apply(wanted, sensing)
         command = self.limiter.apply(
             wanted, self.dt_s, emergency=active.emergency, brake_hard=self.spacing.cut
         )

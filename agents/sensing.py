@@ -43,7 +43,7 @@ ESTOP_MARGIN_M = 0.02
 BEHIND_RAD = math.radians(100.0)
 # A robot whose route turns off by more than this cannot lead on from where it is.
 REORIENT_ROUTE_RAD = math.radians(60.0)
-# A command never drives the body nearer than this to an echo (`short_of_contact`).
+# A command never drives the body nearer than this to an echo (`ContactGuard`).
 CONTACT_MARGIN_M = 0.01
 # An emergency stop ends with this much room beyond the braking distance, not less.
 RELEASE_MARGIN_M = 0.1
@@ -250,25 +250,32 @@ def way_clear(sensing: Sensing, shape: Shape, view: FleetView, pose: Pose2D, t_s
     return gap >= shape.stop_gap_m() + RELEASE_MARGIN_M
 
 
-def short_of_contact(
-    command: Twist2D, sensing: Sensing, *, radius_m: float, dt_s: float, v_max_mps: float
-) -> Twist2D:
-    """`command` with its speed cut to 0 where this step (at most `v_max_mps`, what the
-    limiter lets through) would carry the body within `CONTACT_MARGIN_M` of an echo ahead
-    of it, the way it drives; turning, and driving away, are left alone.
+@dataclass(frozen=True, slots=True)
+class ContactGuard:
+    """No command drives the robot, in the step it asks for (at most `v_max_mps`, what
+    the limiter lets through), within `CONTACT_MARGIN_M` of an echo ahead of it the way
+    it drives; turning, and driving away, are left alone. `on`: a reactive scenario.
 
     The emergency stop watches a robot that moves (its speed, or its last command): a
     robot standing against an obstacle whose behaviour then drives it that way (a
     follower in reverse whose slot is ahead, past the obstacle) would take one step
     into it before the stop, and a step more at every retry.
     """
-    v_mps = command.v_mps
-    if v_mps == 0.0:
-        return command
-    x, y = sensing.raw
-    ahead = x > 0.0 if v_mps > 0.0 else x < 0.0
-    way = 0.0 if v_mps > 0.0 else math.pi
-    gap_m = clearance_along((x[ahead], y[ahead]), way, half_width_m=radius_m)
-    if gap_m >= min(abs(v_mps), v_max_mps) * dt_s + CONTACT_MARGIN_M:
-        return command
-    return Twist2D(0.0, command.omega_radps)
+
+    radius_m: float
+    dt_s: float
+    v_max_mps: float
+    on: bool = True
+
+    def apply(self, command: Twist2D, sensing: Sensing) -> Twist2D:
+        """`command`, its speed cut to 0 where it would bring the body that near."""
+        v_mps = command.v_mps
+        if v_mps == 0.0 or not self.on:
+            return command
+        x, y = sensing.raw
+        ahead = x > 0.0 if v_mps > 0.0 else x < 0.0
+        way = 0.0 if v_mps > 0.0 else math.pi
+        gap_m = clearance_along((x[ahead], y[ahead]), way, half_width_m=self.radius_m)
+        if gap_m >= min(abs(v_mps), self.v_max_mps) * self.dt_s + CONTACT_MARGIN_M:
+            return command
+        return Twist2D(0.0, command.omega_radps)

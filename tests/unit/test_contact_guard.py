@@ -11,10 +11,11 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from phalanx.agents.perception import clearance_along
-from phalanx.agents.sensing import CONTACT_MARGIN_M, Sensing, short_of_contact
+from phalanx.agents.sensing import CONTACT_MARGIN_M, ContactGuard, Sensing
 from phalanx.core.geometry import Twist2D
 
 RADIUS_M, DT_S, V_MAX_MPS = 0.25, 0.1, 0.3
+GUARD = ContactGuard(RADIUS_M, DT_S, V_MAX_MPS)
 
 
 def _sensing(x_m: float, y_m: float) -> Sensing:
@@ -30,23 +31,17 @@ def test_a_robot_against_an_obstacle_does_not_creep_into_it() -> None:
     # As a follower in reverse whose slot lies ahead, past the obstacle: it asks for
     # 3 cm/s forwards while 5 mm from the obstacle.
     against = _sensing(RADIUS_M + 0.005, 0.0)
-    cut = short_of_contact(
-        Twist2D(0.03, 0.2), against, radius_m=RADIUS_M, dt_s=DT_S, v_max_mps=V_MAX_MPS
-    )
+    cut = GUARD.apply(Twist2D(0.03, 0.2), against)
     assert cut == Twist2D(0.0, 0.2)  # turning is left alone
+    off = ContactGuard(RADIUS_M, DT_S, V_MAX_MPS, on=False)  # scripted obstacles (the paper)
+    assert off.apply(Twist2D(0.03, 0.2), against) == Twist2D(0.03, 0.2)
     away = Twist2D(-0.03, 0.0)
-    assert (
-        short_of_contact(away, against, radius_m=RADIUS_M, dt_s=DT_S, v_max_mps=V_MAX_MPS) == away
-    )
+    assert GUARD.apply(away, against) == away
     alongside = _sensing(0.05, RADIUS_M + 0.01)  # a wall passed 1 cm off
-    assert short_of_contact(
-        Twist2D(0.03, 0.0), alongside, radius_m=RADIUS_M, dt_s=DT_S, v_max_mps=V_MAX_MPS
-    ).v_mps
+    assert GUARD.apply(Twist2D(0.03, 0.0), alongside).v_mps
     roomy = _sensing(RADIUS_M + 0.2, 0.0)
     onward = Twist2D(0.03, 0.0)
-    assert (
-        short_of_contact(onward, roomy, radius_m=RADIUS_M, dt_s=DT_S, v_max_mps=V_MAX_MPS) == onward
-    )
+    assert GUARD.apply(onward, roomy) == onward
 
 
 @given(
@@ -64,7 +59,7 @@ def test_a_step_never_ends_within_the_margin_of_an_echo_the_way_it_drives(
     )
     sensing = _sensing(*echo)
     wanted = Twist2D(v_mps, omega_radps)
-    out = short_of_contact(wanted, sensing, radius_m=RADIUS_M, dt_s=DT_S, v_max_mps=V_MAX_MPS)
+    out = GUARD.apply(wanted, sensing)
     assert out.omega_radps == omega_radps
     assert out.v_mps in (0.0, v_mps)
     ahead = echo[0] * out.v_mps > 0.0  # the echo on the side it drives to
