@@ -32,7 +32,6 @@ SEED = int(os.environ.get("PHALANX_CHAOS_SEED", str(time.time_ns() % 2**32)))
 RNG = random.Random(SEED)
 LIMITS = run_limits(load_robot("p3dx"), load_scenario(WEDGE).limits)
 HOLD_TO_ZERO_S = 0.5
-STOP_SETTLE_S = 0.3  # after a SIGSTOP, what the process had sent has arrived
 RECORDING_B = 4096  # a telemetry part this large holds more than its header
 
 
@@ -81,11 +80,11 @@ def test_a_frozen_leader_is_held_and_publishes_nothing_stale_when_it_resumes(
         time.sleep(RNG.uniform(0.0, 2.0))
         frozen = time.monotonic()
         fleet.signal("r1", signal.SIGSTOP)
-        # The last state heard once what r1 sent before the stop has arrived (read before
-        # the stop, it lagged r1 by as many steps as this process was slow to take in).
-        time.sleep(STOP_SETTLE_S)
+        time.sleep(frozen_s)
+        # The last state heard just before the resume, once what r1 sent before the stop
+        # has arrived (read sooner, it lagged r1 by as many steps as this process, loaded,
+        # was slow to take in: 0.3 s after the stop was once 2 steps short in CI).
         before = fleet.watch.latest("r1")
-        time.sleep(frozen_s - STOP_SETTLE_S)
         resumed = time.monotonic()
         fleet_now = max(fleet.watch.latest(r).state.stamp_s for r in ("r2", "r3"))  # type: ignore[union-attr]
         fleet.signal("r1", signal.SIGCONT)
