@@ -10,6 +10,7 @@ the agent when the next step's context is built, never by a command writing to i
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 from phalanx.agents.inputs import FleetView
@@ -72,3 +73,11 @@ class StandStill(Behaviour):
 
     def __init__(self, *, emergency: bool = False) -> None:
         self.emergency = emergency
+
+
+def turn_on_spot(error_rad: float, gain_per_s: float, cap_radps: float) -> Twist2D:
+    """Turn on the spot towards a heading `error_rad` away (wrapped to [-pi, pi) by the
+    caller): proportional, `gain_per_s` x |error|, at most `cap_radps`.
+    """
+    rate = min(cap_radps, gain_per_s * abs(error_rad))
+    return Twist2D(0.0, math.copysign(rate, error_rad))

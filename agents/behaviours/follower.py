@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import math
 
-from phalanx.agents.behaviours.base import Behaviour, Moment
+from phalanx.agents.behaviours.base import Behaviour, Moment, turn_on_spot
 from phalanx.agents.behaviours.navigation import Clearances, bearing_rad, steer
 from phalanx.agents.control.common import FollowerController, FollowerInput
 from phalanx.agents.memory import Steering
@@ -102,23 +102,21 @@ class Track(Behaviour):
             return None
         self.on_slot = distance_m <= (OFF_SLOT_M if self.on_slot else ON_SLOT_M)
         if self.on_slot:
-            return self._turn_to(target.theta_rad - pose.theta_rad, ALIGN_GAIN_PER_S)
+            return turn_on_spot(
+                wrap_angle(target.theta_rad - pose.theta_rad),
+                ALIGN_GAIN_PER_S,
+                self.limits.omega_max_radps,
+            )
         error = wrap_angle(math.atan2(offset.y_m, offset.x_m) - pose.theta_rad)
         sign = 1.0
         if abs(error) > math.pi / 2:  # backing onto it turns less
             sign, error = -1.0, wrap_angle(error + math.pi)
-        turn = self._turn_to(error, SETTLE_GAIN_PER_S)
+        turn = turn_on_spot(error, SETTLE_GAIN_PER_S, self.limits.omega_max_radps)
         if abs(error) > SETTLE_AIMED_RAD:
             return turn
         slow, fast = SETTLE_SPEED_MPS
         speed = min(fast, max(slow, ALIGN_GAIN_PER_S * distance_m)) * math.cos(error)
         return Twist2D(sign * min(speed, distance_m / self.dt_s), turn.omega_radps)
-
-    def _turn_to(self, error_rad: float, gain_per_s: float) -> Twist2D:
-        """On the spot, towards a heading `error_rad` away."""
-        error = wrap_angle(error_rad)
-        rate = min(self.limits.omega_max_radps, gain_per_s * abs(error))
-        return Twist2D(0.0, math.copysign(rate, error))
 
 
 class Avoid(Behaviour):

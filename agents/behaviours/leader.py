@@ -9,7 +9,7 @@ import math
 
 import numpy as np
 
-from phalanx.agents.behaviours.base import Behaviour, Moment
+from phalanx.agents.behaviours.base import Behaviour, Moment, turn_on_spot
 from phalanx.agents.behaviours.navigation import (
     REORIENT_RAD,
     Clearances,
@@ -119,8 +119,7 @@ class Steered(Behaviour):
             return None
         error = wrap_angle(self.steering.turn_to_rad - pose.theta_rad)
         if abs(error) > REORIENTED_RAD:
-            rate = min(self.shape.turn_rate_radps(), self.nav.heading_gain_per_s * abs(error))
-            return Twist2D(0.0, math.copysign(rate, error))
+            return turn_on_spot(error, self.nav.heading_gain_per_s, self.shape.turn_rate_radps())
         self.steering.turn_to_rad = None
         return None
 
@@ -296,8 +295,7 @@ class DeadlockReverse(Behaviour):
         error = wrap_angle(came_in - moment.pose.theta_rad)
         if not REALIGNED_RAD < abs(error) <= REALIGN_MAX_RAD:
             return None
-        rate = min(self.shape.turn_rate_radps(), self.nav.heading_gain_per_s * abs(error))
-        return Twist2D(0.0, math.copysign(rate, error))
+        return turn_on_spot(error, self.nav.heading_gain_per_s, self.shape.turn_rate_radps())
 
 
 class DeadlockTurn(Behaviour):

@@ -270,7 +270,8 @@ def navigation_scenario(
             # Before the paper's straight reverse, time for every follower to settle
             # onto its slot, position then heading (`Track`, phalanx.agents.behaviours
             # .follower): a slot swung sideways by the turn back takes a turn, a short
-            # drive and a turn, 12 s at most.
+            # drive and a turn: done within 12 s in all six dead ends (not a bound for
+            # any start: a follower further off takes longer).
             "pause_s": 12.0 if course == "deadend" else 3.0,
             "safe_distance_m": 10.0 if course == "deadend" else 2.0,
             "turn_away_deg": 60.0,
