@@ -9,9 +9,11 @@ is), and a frame stamped far ahead would make every other robot look silent. The
 - drops a frame no newer than the last one acted on;
 - holds a frame that jumps more than `max_jump` ticks ahead until the next tick confirms
   it (a world that really moved on sends tick + 1; a lone forged frame never is);
-- ends the run on a final frame at the run's last tick; a final frame before it ends the
-  run only once no frame has followed it for `confirm_s` (a world still running sends
-  the next one within its tick timeout), and then as cut short, not finished.
+- ends the run on a final frame at the run's last tick; one far ahead of the last frame
+  acted on (the robot missed the run's last ticks), or one before the last tick, ends it
+  only once no frame has followed it for `confirm_s` (a world still running sends the
+  next one within its tick timeout), and the one before the last tick as cut short, not
+  finished.
 
 Every frame refused is counted in the session's `DecodeStats` (`rejected`).
 """
@@ -120,7 +122,9 @@ class FrameGate:
     def ended(self) -> bool:
         """Whether the run is over: a final frame at its end, or one never refuted."""
         if self._final is not None and self._clock() - self._final[1] > FINAL_CONFIRM_S:
-            self.ending = "cut_short"
+            # (at the run's last tick: the run did end there, this robot missed its last
+            # ticks, frozen or cut off; the world's log says so)
+            self.ending = "finished" if self._at_end(self._final[0]) else "cut_short"
         return self.ending is not None
 
     def _plausible(self, frame: SenseFrame) -> bool:
@@ -146,11 +150,13 @@ class FrameGate:
     def _offer_final(self, frame: SenseFrame) -> None:
         last = self._tick
         near = last is None or last - 1 <= frame.tick <= last + self.max_jump
-        at_end = self.last_tick is None or frame.tick >= self.last_tick
-        if near and at_end:
+        if near and self._at_end(frame):
             self.ending = "finished"
         elif self._final is None:
             self._final = (frame, self._clock())
+
+    def _at_end(self, frame: SenseFrame) -> bool:
+        return self.last_tick is None or frame.tick >= self.last_tick
 
     def _refute_final(self) -> None:
         if self._final is not None:

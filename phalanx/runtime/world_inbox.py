@@ -7,6 +7,7 @@ other robots.
 from __future__ import annotations
 
 import logging
+import math
 import threading
 import time
 from collections import defaultdict
@@ -40,6 +41,7 @@ class WorldInbox:
     leaders: list[LeaderAnnouncement] = field(default_factory=list)
     overflow: int = 0  # events and announcements beyond MAX_LOG_ENTRIES
     lost: list[tuple[str, int]] = field(default_factory=list)  # (robot, tick) it went away
+    lost_s: dict[str, float] = field(default_factory=dict)  # when it last went (monotonic)
     sent_at: dict[int, float] = field(default_factory=dict)  # when a tick's frames went out
     response_s: list[float] = field(default_factory=list)  # frames out -> each answer in
     relayed: dict[str, int] = field(default_factory=dict)  # newest tick passed on, by robot
@@ -67,6 +69,30 @@ class WorldInbox:
             log.warning(
                 "robot %s is heard again at tick %d (its liveliness token is not)", robot_id, now
             )
+
+    def gone(self, robot_id: str, tick: int | None) -> None:
+        """`robot_id`'s liveliness went (at `tick` of the run; None: before it started).
+        A process restarted in its place must not inherit its predecessor's command.
+        """
+        self.latest.pop(robot_id, None)
+        self.lost_s[robot_id] = time.monotonic()
+        if tick is not None:
+            self.lost.append((robot_id, tick))
+
+    def unreported(self, grace_s: float) -> set[str]:
+        """The robots whose report is not in (takes `cond`): the live ones, and those
+        whose liveliness went within the last `grace_s`. A robot Zenoh left deaf loses
+        its token and re-opens its session a few seconds later (`phalanx.wire.relink`):
+        it may still hear the final frame, sent again, and report.
+        """
+        now = time.monotonic()
+        with self.cond:
+            return {
+                r
+                for r in self.ids
+                if r not in self.reports
+                and (r in self.alive or now - self.lost_s.get(r, -math.inf) <= grace_s)
+            }
 
     def answer(self, robot_id: str, tick: int, command: Twist2D) -> None:
         """Robot `robot_id`'s command for `tick`; the tick's waiter is woken once, when

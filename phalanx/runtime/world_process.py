@@ -67,6 +67,11 @@ WORLD_ID = "world"
 # Commands and states are kept for ticks up to this far ahead of the world's (a late one
 # is fine; one for a tick this far off is no agent's, and would only take memory).
 AHEAD_S = 2.0
+# At the end: the final frame is sent again this often (s) to a robot whose report is not
+# in, and one whose liveliness went this recently (s) is still waited for: past the 5 s a
+# deaf robot waits before it re-opens its session, and the 2 s that takes at most.
+FINAL_RESEND_S = 1.0
+REPORT_GRACE_S = 10.0
 
 
 @dataclass
@@ -79,7 +84,7 @@ class WorldOptions:
     speed: float = 1.0
     tick_timeout_s: float = 2.0
     startup_timeout_s: float = 60.0
-    report_timeout_s: float = 5.0
+    report_timeout_s: float = 12.0  # (waited only while a report is missing)
     epoch_s: float | None = None  # real time: tick 0 at this Unix time (shared with agents)
 
 
@@ -226,10 +231,8 @@ class WorldProcess:
             return  # another process (a tool, the world itself) or no robot of this fleet
         with self.inbox.cond:
             (self.inbox.alive.add if alive else self.inbox.alive.discard)(robot)
-            if not alive:  # a restarted process must not inherit its predecessor's command
-                self.inbox.latest.pop(robot, None)
-                if self.started:
-                    self.inbox.lost.append((robot, self.tick))
+            if not alive:
+                self.inbox.gone(robot, self.tick if self.started else None)
             self.inbox.cond.notify_all()
         if not alive:
             log.warning("robot %s is gone (liveliness lost)", robot)
@@ -347,18 +350,19 @@ class WorldProcess:
                 self.telemetry.log_truth(rid, t_s=float(self.t_s[k]), pose=pose)
 
     def _finish(self, session: FleetSession) -> None:
-        for rid in self.ids:
-            session.publish(
-                robot_key(self.options.fleet, rid, "sense"),
-                sense_frame(self.world, rid, self.tick, self.scenario.dt_s, final=True),
-                reliable_block=True,
-            )
-        deadline = time.monotonic() + self.options.report_timeout_s
-        with self.inbox.cond:
-            self.inbox.cond.wait_for(
-                lambda: set(self.inbox.reports) >= {r for r in self.ids if r in self.inbox.alive},
-                max(0.0, deadline - time.monotonic()),
-            )
+        """The final frame; again every `FINAL_RESEND_S` to robots whose report is not in."""
+        deadline, waiting = time.monotonic() + self.options.report_timeout_s, set(self.ids)
+        while waiting:
+            for rid in sorted(waiting):
+                frame = sense_frame(self.world, rid, self.tick, self.scenario.dt_s, final=True)
+                session.publish(
+                    robot_key(self.options.fleet, rid, "sense"), frame, reliable_block=True
+                )
+            if (left := deadline - time.monotonic()) <= 0.0:
+                return
+            with self.inbox.cond:
+                self.inbox.cond.wait(min(FINAL_RESEND_S, left))
+            waiting = self.inbox.unreported(REPORT_GRACE_S)
 
     def _log(self) -> RunLog:
         self._fill_states()

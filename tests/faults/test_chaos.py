@@ -105,6 +105,32 @@ def test_a_frozen_leader_is_held_and_publishes_nothing_stale_when_it_resumes(
         assert fleet.crashed() == []
 
 
+def test_a_follower_frozen_across_the_end_still_reports(tmp_path: Path) -> None:
+    """Frozen from about 2 s before the end until the others have reported and left: the
+    world lost its token, but still waits for it and sends it the final frame again;
+    resumed, it hears it and reports (the world once ended without its report)."""
+    duration_s = 12.0
+    with running_fleet(tmp_path, fleet="chaos-end", duration_s=duration_s) as fleet:
+        assert fleet.wait_tracking(), f"followers never tracked (seed {SEED})"
+        near_end = duration_s - RNG.uniform(1.5, 2.5)
+        assert wait_for(lambda: _stamp(fleet, "r3") >= near_end, 60.0), (SEED, "r3 silent")
+        fleet.signal("r3", signal.SIGSTOP)
+        try:
+            assert fleet.wait_exit("r1", 30.0) is not None, (SEED, "r1 never ended")
+        finally:
+            fleet.signal("r3", signal.SIGCONT)
+        assert fleet.wait_exit("world", 30.0) is not None, (SEED, "the world never ended")
+        metrics = json.loads((fleet.out / "metrics.json").read_text())
+        assert set(metrics["runtime"]["agents"]) == {"r1", "r2", "r3"}, (SEED, metrics)
+        assert fleet.wait_exit("r3", 10.0) == 0, SEED
+        assert fleet.tracebacks() == dict.fromkeys(fleet.procs, 0)
+
+
+def _stamp(fleet: Fleet, rid: str) -> float:
+    seen = fleet.watch.latest(rid)
+    return seen.state.stamp_s if seen is not None else -math.inf
+
+
 def _up(tmp_path: Path, name: str, duration_s: float = 15.0) -> tuple[list[str], Path]:
     out = tmp_path / name
     argv = [*CLI, "up", str(WEDGE), "--out", str(out), "--fleet", name, "--clock", "realtime",

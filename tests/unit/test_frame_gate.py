@@ -82,3 +82,16 @@ def test_a_final_frame_mid_run_never_refuted_ends_the_run_cut_short() -> None:
     clock.now_s = FINAL_CONFIRM_S + 0.1
     assert g.ended()
     assert g.ending == "cut_short"  # an ending nobody asked for: not a finished run
+
+
+def test_a_final_frame_at_the_end_far_ahead_finishes_the_run_once_confirmed() -> None:
+    # The robot was frozen over the run's last ticks: the world's final frame comes far
+    # ahead of the last it acted on. The run did end; but a lone frame far ahead could
+    # be anyone's, so it ends the run only once no frame has followed it.
+    g, _, clock = gate(last_tick=100)
+    g.offer([frame(70)])
+    g.offer([frame(100, final=True)])
+    assert not g.ended()
+    clock.now_s = FINAL_CONFIRM_S + 0.1
+    assert g.ended()
+    assert g.ending == "finished"
