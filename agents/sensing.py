@@ -41,6 +41,10 @@ __all__ = ["EXPECTED_MASK_M", "STANDSTILL_MPS", "TRACKED_MASK_M", "Senses", "Sen
 ESTOP_MARGIN_M = 0.02
 # A route leading further round than this from the heading goes back the way it came.
 BEHIND_RAD = math.radians(100.0)
+# ... and only one that has led back this long (s; two re-plans running) is a dead end:
+# sonar arcs come and go on the map, and a route turned back by one of them for a single
+# re-plan (the mouth of a passage closed by an arc, then open again) is none.
+DEAD_END_CONFIRM_S = 2.0
 # A robot whose route turns off by more than this cannot lead on from where it is.
 REORIENT_ROUTE_RAD = math.radians(60.0)
 # A command never drives the body nearer than this to an echo (`ContactGuard`).
@@ -101,6 +105,7 @@ class Senses:
         self.sonar, self.shape, self.limits = sonar, shape, limits
         self.planner, self.progress, self.plan = planner, progress, plan
         self.stall = StallWatch(self.nav.stall_s)
+        self._boxed_since_s: float | None = None  # since when the route has led back
         # Asked before a dead end is declared: fold the group into a narrower shape
         # if it has one (True: a fold is coming, the way may open for it).
         self.fold: Callable[[], bool] = lambda: False
@@ -163,7 +168,7 @@ class Senses:
             self.planner.add(observation.scans)
             self.planner.see(pose, self.sonar, reading.ranges_m, mask.echo, t_s)
         bumper = any(status.bumpers)
-        dead_end = self._boxed_in(pose, masked, stance.state)
+        dead_end = self._dead_end(pose, masked, stance.state, t_s)
         # (short-circuit kept: the stall watch only runs with room ahead)
         blocked_ahead = ahead_m < self.near_m or self._stalled(pose, t_s, stance.state) or dead_end
         return Sensing(
@@ -205,6 +210,15 @@ class Senses:
         else:
             carrot = self.planner.carrot or Vec2(*waypoints[waypoint])
         return abs(bearing_rad(pose, carrot)) <= REORIENT_ROUTE_RAD
+
+    def _dead_end(self, pose: Pose2D, points: Points, state: str, t_s: float) -> bool:
+        """`_boxed_in` for `DEAD_END_CONFIRM_S` running."""
+        if not self._boxed_in(pose, points, state):
+            self._boxed_since_s = None
+            return False
+        if self._boxed_since_s is None:
+            self._boxed_since_s = t_s
+        return t_s - self._boxed_since_s >= DEAD_END_CONFIRM_S - 1e-9
 
     def _boxed_in(self, pose: Pose2D, points: Points, state: str) -> bool:
         """A navigating leader whose route leads back the way it came, with no room for

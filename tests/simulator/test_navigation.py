@@ -124,6 +124,27 @@ def test_a_wedge_folded_into_the_dead_end_backs_out_folded_and_gets_there() -> N
 
 
 @pytest.mark.slow
+def test_the_chain_backs_out_of_the_dead_end_once_and_gets_there() -> None:
+    # At the U's mouth the sonar's arcs close the mouth on the map and open it again
+    # from one re-plan to the next, so the chain's route flipped between going in and
+    # going round: a route leading back for a single re-plan declared a dead end at the
+    # mouth, three times, and the chain never got round. Only a route that leads back
+    # two re-plans running does now.
+    log = run_batch(load_scenario(SCENARIOS / "nav_deadend_inline3.toml"))
+    leader = [e.target for e in log.transitions["r1"]]
+    assert leader.count(State.DEADLOCK_REVERSE) == 1
+    assert leader[-1] == State.ARRIVED
+    assert not log.collisions
+    _, backward = phase_masks(log)
+    assert backward.sum() * log.scenario.dt_s > 20.0
+    for rid in ("r2", "r3"):
+        series = error_series(log, rid)
+        assert series.linear_pct[backward].max() < 0.5
+        assert series.angular_pct[backward].max() < 0.3
+        assert series.orientation_deg[backward].max() < 0.5
+
+
+@pytest.mark.slow
 def test_a_group_caught_turning_turns_back_before_it_backs_out() -> None:
     # The wedge of five (kept in its shape) is turning on the spot at the end
     # of the U when the deadlock is declared: backing out along that heading would run
