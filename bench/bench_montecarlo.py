@@ -192,18 +192,16 @@ def section(
 
 
 DEADEND_NOTES = [
-    "- **Every formation of three backs out within the bounds**: the wedge and the line "
-    "abreast fold into a column on the way in, the turn back swings the column's slots "
-    "about 0.1 m sideways and the point tracker turns the followers about 90 deg towards "
-    "them, and the followers settle "
-    "onto their slots (a turn, a straight drive, a turn on the spot) before the reverse "
-    "starts. The wedge and the line reach the goal; the chain backs out three times "
-    "within the bounds, but its route after each reverse leads it back into the U.",
-    "- **5 robots** (`nav_deadend_*5.toml`, not in the table): linear and angular within "
-    "the bounds; orientation 0.727 / 0.434 / 0.703 deg (wedge / chain / line). The fourth "
-    "and fifth robots are measured against the robot they track, whose own corrections "
-    "at the start of the reverse (about 0.5 deg/s) tilt the heading a rigid formation "
-    "would give them. None reaches the goal (4, 2 and 6 reverses); no collision.",
+    "- **Every formation of three backs out within the bounds and reaches the goal**: the "
+    "wedge and the line abreast fold into a column on the way in, the turn back swings "
+    "the column's slots about 0.1 m sideways, and the followers settle onto their slots "
+    "(a turn, a straight drive, a turn on the spot) before the reverse starts. The chain "
+    "drives in because a dead end needs its route to lead back two re-plans running (the "
+    "sonar's arcs close and open the U's mouth on the map from one re-plan to the next).",
+    "- **5 robots** (`nav_deadend_*5.toml`, not in the table): the chain backs out within "
+    "the bounds three times and runs out of time; the wedge reaches the goal after a "
+    "reverse an obstacle stopped at 0.08 m; the line abreast backs away from a follower "
+    "held by its emergency stop (41.8 %, 84.6 deg) and does not reach it. No collision.",
 ]
 
 
