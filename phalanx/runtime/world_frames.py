@@ -57,6 +57,15 @@ def sense_frame(
     )
 
 
+def send_final(
+    session: FleetSession, world: World, fleet: str, robots: Sequence[str], k: int, dt_s: float
+) -> None:
+    """The final frame (tick `k`, the run's end) to each of `robots`."""
+    for rid in robots:
+        frame = sense_frame(world, rid, k, dt_s, final=True)
+        session.publish(robot_key(fleet, rid, "sense"), frame, reliable_block=True)
+
+
 def lockstep_frame_bytes(world: World, ids: Sequence[str], dt_s: float) -> int:
     """The packed size of the largest lockstep frame `world` sends its fleet `ids`:
     every other robot's state in it, each at its largest (with a covariance).

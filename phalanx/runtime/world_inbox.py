@@ -11,6 +11,7 @@ import math
 import threading
 import time
 from collections import defaultdict
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -93,6 +94,30 @@ class WorldInbox:
                 if r not in self.reports
                 and (r in self.alive or now - self.lost_s.get(r, -math.inf) <= grace_s)
             }
+
+    def await_reports(
+        self,
+        send: Callable[[list[str]], None],
+        *,
+        timeout_s: float,
+        every_s: float,
+        grace_s: float,
+    ) -> None:
+        """The run's end (takes `cond` to wait): `send` the final frame to every robot,
+        then again every `every_s` to those `unreported(grace_s)`, until none is or
+        `timeout_s` has passed. A report wakes the wait at once.
+        """
+        now = time.monotonic()
+        deadline, waiting, sent_s = now + timeout_s, sorted(self.ids), -math.inf
+        while waiting:
+            if now - sent_s >= every_s:
+                send(waiting)
+                sent_s = now
+            if now >= deadline:
+                return
+            with self.cond:
+                self.cond.wait(min(sent_s + every_s, deadline) - now)
+            waiting, now = sorted(self.unreported(grace_s)), time.monotonic()
 
     def answer(self, robot_id: str, tick: int, command: Twist2D) -> None:
         """Robot `robot_id`'s command for `tick`; the tick's waiter is woken once, when

@@ -33,6 +33,7 @@ from phalanx.runtime.world_frames import (
     Flat,
     lockstep_frame_bytes,
     publish_positioning,
+    send_final,
     sense_frame,
 )
 from phalanx.runtime.world_inbox import WorldInbox
@@ -350,19 +351,12 @@ class WorldProcess:
                 self.telemetry.log_truth(rid, t_s=float(self.t_s[k]), pose=pose)
 
     def _finish(self, session: FleetSession) -> None:
-        """The final frame; again every `FINAL_RESEND_S` to robots whose report is not in."""
-        deadline, waiting = time.monotonic() + self.options.report_timeout_s, set(self.ids)
-        while waiting:
-            for rid in sorted(waiting):
-                frame = sense_frame(self.world, rid, self.tick, self.scenario.dt_s, final=True)
-                session.publish(
-                    robot_key(self.options.fleet, rid, "sense"), frame, reliable_block=True
-                )
-            if (left := deadline - time.monotonic()) <= 0.0:
-                return
-            with self.inbox.cond:
-                self.inbox.cond.wait(min(FINAL_RESEND_S, left))
-            waiting = self.inbox.unreported(REPORT_GRACE_S)
+        """The final frame, again to robots whose report is not in (`await_reports`)."""
+        fleet, k, dt_s = self.options.fleet, self.tick, self.scenario.dt_s
+        self.inbox.await_reports(
+            lambda robots: send_final(session, self.world, fleet, robots, k, dt_s),
+            timeout_s=self.options.report_timeout_s, every_s=FINAL_RESEND_S, grace_s=REPORT_GRACE_S,
+        )  # fmt: skip
 
     def _log(self) -> RunLog:
         self._fill_states()

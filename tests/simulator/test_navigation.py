@@ -16,6 +16,7 @@ from phalanx.core.config import PolygonObstacle
 from phalanx.core.config_files import CONFIG_ROOT, apply_overrides, load_scenario
 from phalanx.core.geometry import ZERO_TWIST, Vec2
 from phalanx.core.peers import PeerState
+from phalanx.core.runlog import RunLog
 from phalanx.core.scenarios import navigation_scenario
 from phalanx.core.states import State
 from phalanx.runtime.batch import BatchRunner, run_batch
@@ -72,6 +73,17 @@ def test_a_lost_leader_stops_the_followers_then_the_best_robot_leads() -> None:
     assert not runner.world.collisions
 
 
+def _backed_out_within_the_papers_bounds(log: RunLog) -> None:
+    """More than 20 s of settled reverse, every follower within the backward bounds."""
+    _, backward = phase_masks(log)
+    assert backward.sum() * log.scenario.dt_s > 20.0
+    for rid in ("r2", "r3"):
+        series = error_series(log, rid)
+        assert series.linear_pct[backward].max() < 0.5
+        assert series.angular_pct[backward].max() < 0.3
+        assert series.orientation_deg[backward].max() < 0.5
+
+
 @pytest.mark.slow
 def test_the_group_backs_out_of_the_dead_end_in_formation() -> None:
     # The paper's reverse, in the scenario's own shape (no reshaping into the dead end:
@@ -91,13 +103,7 @@ def test_the_group_backs_out_of_the_dead_end_in_formation() -> None:
     reverses = [e for e in log.transitions["r1"] if e.target == State.DEADLOCK_REVERSE]
     assert len(reverses) == 1
     assert "dead end" in reverses[0].reason
-    _, backward = phase_masks(log)
-    assert backward.sum() * scenario.dt_s > 20.0  # > 20 s of settled reverse
-    for rid in ("r2", "r3"):
-        series = error_series(log, rid)
-        assert series.linear_pct[backward].max() < 0.5
-        assert series.angular_pct[backward].max() < 0.3
-        assert series.orientation_deg[backward].max() < 0.5
+    _backed_out_within_the_papers_bounds(log)
 
 
 @pytest.mark.slow
@@ -114,13 +120,7 @@ def test_a_wedge_folded_into_the_dead_end_backs_out_folded_and_gets_there() -> N
     assert State.RESHAPE in targets[:first_reverse]
     assert targets[-1] == State.ARRIVED
     assert not log.collisions
-    _, backward = phase_masks(log)
-    assert backward.sum() * log.scenario.dt_s > 20.0
-    for rid in ("r2", "r3"):
-        series = error_series(log, rid)
-        assert series.linear_pct[backward].max() < 0.5
-        assert series.angular_pct[backward].max() < 0.3
-        assert series.orientation_deg[backward].max() < 0.5
+    _backed_out_within_the_papers_bounds(log)
 
 
 @pytest.mark.slow
@@ -135,13 +135,7 @@ def test_the_chain_backs_out_of_the_dead_end_once_and_gets_there() -> None:
     assert leader.count(State.DEADLOCK_REVERSE) == 1
     assert leader[-1] == State.ARRIVED
     assert not log.collisions
-    _, backward = phase_masks(log)
-    assert backward.sum() * log.scenario.dt_s > 20.0
-    for rid in ("r2", "r3"):
-        series = error_series(log, rid)
-        assert series.linear_pct[backward].max() < 0.5
-        assert series.angular_pct[backward].max() < 0.3
-        assert series.orientation_deg[backward].max() < 0.5
+    _backed_out_within_the_papers_bounds(log)
 
 
 @pytest.mark.slow

@@ -3,6 +3,8 @@ that is alive, or went away recently enough to come back (a robot Zenoh left dea
 
 from __future__ import annotations
 
+import itertools
+import threading
 import time
 
 from phalanx.core.geometry import Twist2D
@@ -43,3 +45,46 @@ def test_a_robot_gone_before_the_start_is_not_lost_to_the_run_but_still_waited_f
     assert inbox.unreported(10.0) == {"r1"}
     time.sleep(0.02)
     assert inbox.unreported(0.01) == set()
+
+
+def test_the_end_sends_the_final_frame_again_to_the_unreported_until_they_report() -> None:
+    inbox = WorldInbox(("r1", "r2", "r3"))
+    inbox.alive |= {"r1", "r2", "r3"}
+    sent: list[tuple[float, list[str]]] = []
+    start = time.monotonic()
+
+    def report_late() -> None:
+        with inbox.cond:
+            inbox.reports["r1"] = _report("r1")  # at once
+            inbox.cond.notify_all()
+        time.sleep(0.35)
+        with inbox.cond:
+            inbox.reports["r2"] = _report("r2")
+            inbox.reports["r3"] = _report("r3")
+            inbox.cond.notify_all()
+
+    reporter = threading.Thread(target=report_late)
+    reporter.start()
+    inbox.await_reports(
+        lambda robots: sent.append((time.monotonic() - start, robots)),
+        timeout_s=30.0, every_s=0.1, grace_s=1.0,
+    )  # fmt: skip
+    took_s = time.monotonic() - start
+    reporter.join(5.0)
+    assert sent[0] == (sent[0][0], ["r1", "r2", "r3"])  # everyone, at once
+    assert all(robots == ["r2", "r3"] for _, robots in sent[1:])  # then the missing only
+    assert 2 <= len(sent) <= 6  # every 0.1 s while they were missing, not at every wake-up
+    assert all(b[0] - a[0] >= 0.09 for a, b in itertools.pairwise(sent))
+    assert took_s < 10.0  # the last report ended the wait, long before the timeout
+
+
+def test_the_end_gives_up_at_its_timeout_when_a_report_never_comes() -> None:
+    inbox = WorldInbox(("r1",))
+    inbox.alive.add("r1")
+    sent: list[list[str]] = []
+    start = time.monotonic()
+    inbox.await_reports(sent.append, timeout_s=0.3, every_s=0.1, grace_s=1.0)
+    took_s = time.monotonic() - start
+    assert 0.3 <= took_s < 5.0
+    assert 2 <= len(sent) <= 5  # at once, then every 0.1 s (fewer if a wait overshoots)
+    assert all(robots == ["r1"] for robots in sent)
