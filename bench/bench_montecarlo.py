@@ -200,7 +200,8 @@ DEADEND_NOTES = [
     "sonar's arcs close and open the U's mouth on the map from one re-plan to the next).",
     "- **5 robots** (`nav_deadend_*5.toml`, not in the table): the chain backs out within "
     "the bounds three times and runs out of time; the wedge reaches the goal after a "
-    "reverse an obstacle stopped at 0.08 m; the line abreast backs away from a follower "
+    "reverse an obstacle stopped at 0.08 m (it turns round inside the U instead); the "
+    "line abreast backs away from a follower "
     "held by its emergency stop (41.8 %, 84.6 deg) and does not reach it. No collision.",
 ]
 
