@@ -105,7 +105,8 @@ class WorldInbox:
     ) -> None:
         """The run's end (takes `cond` to wait): `send` the final frame to every robot,
         then again every `every_s` to those `unreported(grace_s)`, until none is or
-        `timeout_s` has passed. A report wakes the wait at once.
+        `timeout_s` has passed. A report wakes the wait at once (`cond` is re-entrant:
+        `unreported` takes it again inside the wait).
         """
         now = time.monotonic()
         deadline, waiting, sent_s = now + timeout_s, sorted(self.ids), -math.inf
@@ -115,8 +116,12 @@ class WorldInbox:
                 sent_s = now
             if now >= deadline:
                 return
-            with self.cond:
-                self.cond.wait(min(sent_s + every_s, deadline) - now)
+            with self.cond:  # (a report that came since `waiting` was taken: no wait)
+                missing = set(waiting)
+                self.cond.wait_for(
+                    lambda: self.unreported(grace_s) != missing,  # noqa: B023 (used at once)
+                    min(sent_s + every_s, deadline) - now,
+                )
             waiting, now = sorted(self.unreported(grace_s)), time.monotonic()
 
     def answer(self, robot_id: str, tick: int, command: Twist2D) -> None:
