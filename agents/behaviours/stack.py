@@ -67,7 +67,7 @@ PRIORITIES: dict[int, Priority] = {
         "the robot's driver reports an E-stop, a drive fault, a stalled wheel or a low "
         "battery: stop and stay stopped until it clears"),
     P_BEHIND: Priority("navigation", "leader",
-        "the deadlock escape meets an obstacle behind, or a robot stops for one: stop "
+        "the deadlock reverse meets an obstacle behind, or a robot stops for one: stop "
         "reversing and turn (a scripted leader resumes its script, as it does once backed off)"),
     P_ESTOP: Priority("navigation", "any",
         "bumper, or an obstacle within braking distance + margin in the direction of motion"),

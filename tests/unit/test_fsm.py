@@ -164,7 +164,6 @@ CASES: list[tuple[str, str, str, StackContext]] = [
     (S.DEADLOCK_REVERSE, S.DEADLOCK_TURN, "backed off the safe distance",
      replace(LEADER, path_used_up=True)),
     *_plan(S.DEADLOCK_TURN, "turned away", turned=True),
-    *_plan(S.DEADLOCK_TURN, "a robot stopped for an obstacle", someone_stopped=True),
     (S.NAVIGATE, S.RESHAPE, "the way ahead needs another shape",
      replace(LEADER, plan="goto", reshape_wanted=True)),
     *[c for c in _plan(S.RESHAPE, "reshaped", reshaped=True) if c[1] != S.ARRIVED],
