@@ -52,8 +52,6 @@ RECENT_ECHOES_S = 1.0
 # what it may otherwise (`rigid_limit`): on a bend, a robot trailing an outer slot that
 # needs nearly the speed limit would have no speed left to catch up with.
 CATCH_UP_SHARE = 0.8
-# The deadlock turn holds at most this long in all (s) for robots it ran against something.
-TURN_HOLD_S = 2.5
 
 
 class Scripted(Behaviour):
@@ -303,10 +301,7 @@ class DeadlockReverse(Behaviour):
 class DeadlockTurn(Behaviour):
     """DEADLOCK_TURN: turn on the spot towards the route if the map has one, else towards
     the more open side by `turn_away_deg` per deadlock at this waypoint; then (without a
-    map) make for a point `escape_distance_m` along the new heading first. A robot of the
-    group stopping for an obstacle (one not stopped as the turn began) holds the turn
-    while it stays stopped, `TURN_HOLD_S` at most in all: the shape swinging round has run
-    it against something, and it gets the time to go round to its slot.
+    map) make for a point `escape_distance_m` along the new heading first.
     """
 
     def __init__(
@@ -323,12 +318,9 @@ class DeadlockTurn(Behaviour):
         self.navigating = plan_of(scenario) == "goto"
         self.shape, self.planner, self.progress, self.course = shape, planner, progress, course
         self.blocked = blocked
-        self.dt_s = scenario.dt_s
         self.side = 1
         self.target_rad = 0.0
         self.turned_rad = 0.0
-        self.held_s = 0.0
-        self._stopped_before: frozenset[str] = frozenset()
 
     @property
     def turned(self) -> bool:
@@ -348,8 +340,6 @@ class DeadlockTurn(Behaviour):
             self.side, angle = (1 if towards >= 0.0 else -1), abs(towards)
         self.target_rad = min(math.pi, angle)
         self.turned_rad = 0.0
-        self.held_s = 0.0
-        self._stopped_before = _others_stopped(moment)
 
     def leave(self, moment: Moment) -> None:
         """A new heading: blocked only if blocked again; without a map, leave the dead
@@ -365,13 +355,5 @@ class DeadlockTurn(Behaviour):
         self.turned_rad += abs(wrap_angle(odometry.pose.theta_rad - previous.pose.theta_rad))
 
     def command(self, moment: Moment) -> Twist2D:
-        """Turn on the spot, as fast as the shape allows (or hold, above)."""
-        if _others_stopped(moment) - self._stopped_before and self.held_s < TURN_HOLD_S:
-            self.held_s += self.dt_s
-            return ZERO_TWIST
+        """Turn on the spot, as fast as the shape allows."""
         return Twist2D(0.0, self.side * self.shape.turn_rate_radps())
-
-
-def _others_stopped(moment: Moment) -> frozenset[str]:
-    """The other robots of the group in an emergency stop."""
-    return moment.view.live.stopped - {moment.view.leader_id}

@@ -317,8 +317,8 @@ def _navigation_transitions() -> list[Transition[StackContext]]:
             P_RESUME,
             detail=lambda c: f"{c.reversed_m:.2f} m",
         ),
-        # (A robot stopping for an obstacle holds the turn a while, `DeadlockTurn`, but
-        # does not end it: that left a boxed-in group reversing and turning by inches.)
+        # (A robot stopping for an obstacle does not end the turn: ending it there left a
+        # boxed-in group reversing and turning by inches, over and over; docs/RESULTS.md.)
         *_leader_targets((State.DEADLOCK_TURN,), lambda c: c.turned, "turned away", P_RESUME),
     ]
 
