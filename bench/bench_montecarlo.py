@@ -201,9 +201,8 @@ DEADEND_NOTES = [
     "- **5 robots** (`nav_deadend_*5.toml`, not in the table): the chain backs out within "
     "the bounds three times and runs out of time; the wedge reaches the goal after a "
     "reverse an obstacle stopped at 0.08 m (it turns round inside the U instead); the "
-    "line abreast backs away from a follower that its first deadlock turn ran against the "
-    "side wall, held there by its emergency stop (41.8 %, 84.6 deg), and does not reach "
-    "the goal. No collision.",
+    "line abreast backs away from a follower already held by its emergency stop for an "
+    "obstacle behind it (41.8 %, 84.6 deg) and does not reach the goal. No collision.",
 ]
 
 

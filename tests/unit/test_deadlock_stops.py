@@ -91,8 +91,7 @@ def test_the_turn_goes_on_while_robots_stop() -> None:
     _in_turn(group)
     track = State.FORMATION_TRACK
     # r3 stopping as the shape swings round does not end the turn (ending it there left a
-    # boxed-in group reversing and turning by inches, over and over); it goes on, and
-    # the stopped robot goes round to its slot afterwards.
+    # boxed-in group reversing and turning by inches, over and over): it goes on.
     assert group.run(3.0, track, track, stopped=("r2", "r3")) == State.DEADLOCK_TURN
     assert group.leader.limiter.last.omega_radps != 0.0
 
