@@ -125,7 +125,6 @@ class Agent:
         self.joined = not joining
         self.role_reason = ""
         self._seq = 0
-        self._stopped_before: frozenset[str] = frozenset()
         self._last_odometry: Odometry | None = None
         self._heard: tuple[float, FleetView, Observation] | None = None
         self.estimator: PoseEstimator | None = None
@@ -317,9 +316,8 @@ class Agent:
             if self.fsm.state == State.NAVIGATE:
                 parts.weigh_shapes(odometry.pose, t_s)
         parts.blocked.update(sensing.blocked, self.dt_s)
-        stopped = view.live.stopped - {self.robot_id}
-        if self.fsm.state != State.DEADLOCK_REVERSE:
-            self._stopped_before = stopped  # stops for what lay ahead are not a reason
+        reversing = self.fsm.state == State.DEADLOCK_REVERSE
+        parts.stops.update(view.live, self.robot_id, reversing=reversing)
         if odometry.twist.v_mps > STANDSTILL_MPS:
             parts.course.crumbs.drop(odometry.pose.position)  # ground just crossed: free
         if self._last_odometry is not None:
@@ -349,7 +347,6 @@ class Agent:
                 confirm_s=self.scenario.navigation.confirm_s,
                 widened=parts.plan != "scripted",
             )
-        stopped = live.stopped - {self.robot_id}
         waypoints = self.scenario.navigation.waypoints
         in_estop = stance.state == State.EMERGENCY_STOP
         return StackContext(
@@ -373,7 +370,7 @@ class Agent:
             parent_direction=lead.direction if lead else 1,
             deadlock=bool(reason),
             deadlock_reason=reason,
-            someone_stopped=bool(stopped - self._stopped_before),
+            someone_stopped=parts.stops.someone_stopped(live, self.robot_id),
             retries_left=parts.retries_left(odometry.pose, deadlocked=bool(reason)),
             stuck_reason=(
                 f"{reason}; {progress.deadlocks} deadlock reverses already at waypoint "
@@ -420,6 +417,8 @@ class Agent:
             parts.steering.reset()
             parts.planner.forget_carrot()
         parts.senses.stall.reset()
+        if event.target == State.DEADLOCK_REVERSE:
+            parts.stops.reverse_begins(moment.view.live)
 
     # --- after the command ------------------------------------------------------------
 
@@ -448,6 +447,8 @@ class Agent:
         # dead-reckons over the state's age then lands where the leader really is.
         self._seq += 1
         pose, direction, progress = odometry.pose, self.direction, self.parts.progress
+        # Stopped, the way it was going: the side its obstacle is on.
+        way = self.parts.estop.way if self.fsm.state == State.EMERGENCY_STOP else direction
         state = PeerState(
             robot_id=self.robot_id,
             seq=self._seq,
@@ -459,7 +460,7 @@ class Agent:
             omega_radps=command.omega_radps,
             fsm_state=self.state_name,
             obstacle=sensing.blocked[direction],
-            direction=1 if direction > 0 else -1,
+            direction=1 if way > 0 else -1,
             leader_id=self.parent_id or "",
             epoch=self.leadership.epoch,
             formation_leader_id=self.leadership.leader_id,

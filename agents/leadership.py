@@ -51,6 +51,8 @@ class FlagsView(Protocol):
     @property
     def obstacle(self) -> bool: ...  # noqa: D102
     @property
+    def direction(self) -> int: ...  # noqa: D102
+    @property
     def blocked_s(self) -> float: ...  # noqa: D102
     @property
     def dead_end(self) -> bool: ...  # noqa: D102
@@ -136,6 +138,11 @@ class LiveFlags(dict[str, FlagsView]):
     def stopped(self) -> frozenset[str]:
         """The robots in an emergency stop."""
         return frozenset(r for r, f in self.items() if f.fsm_state == State.EMERGENCY_STOP)
+
+    @cached_property
+    def stopped_behind(self) -> frozenset[str]:
+        """The robots in an emergency stop they came to backwards: for what lies behind."""
+        return frozenset(r for r in self.stopped if self[r].direction < 0)
 
     @cached_property
     def busy(self) -> frozenset[str]:

@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from phalanx.agents.behaviours.navigation import Breadcrumbs
-from phalanx.agents.leadership import FlagsView
+from phalanx.agents.leadership import FlagsView, LiveFlags
 from phalanx.agents.perception import FloatArray
 from phalanx.core.geometry import ZERO_TWIST, Pose2D, Twist2D, Vec2
 
@@ -159,3 +159,34 @@ class StartUp:
     def waited_s(self, t_s: float) -> float:
         """How long since the first step."""
         return t_s - (self.started_s if self.started_s is not None else t_s)
+
+
+@dataclass
+class StopsBefore:
+    """The robots in an emergency stop that the deadlock reverse passes over (a leader's).
+
+    Robots already stopped as the reverse begins stopped for what lay ahead, which the
+    reverse moves away from: not a reason to end it. One that stopped backing up is (the
+    reverse would drive the group at what stopped it), once per stop: still stopped at the
+    next deadlock, it is passed over and the group backs away regardless, else a group
+    boxed in would start and end reverses on the spot, for ever.
+    """
+
+    before: frozenset[str] = frozenset()
+    cut_by: frozenset[str] = frozenset()  # stopped backing up, have cut a reverse short
+
+    def update(self, live: LiveFlags, own_id: str, *, reversing: bool) -> None:
+        """Every step: forget a robot that moved again; outside the reverse, take who is
+        stopped now (and may be passed over, should a reverse begin).
+        """
+        self.cut_by &= live.stopped_behind
+        if not reversing:
+            self.before = live.stopped - (live.stopped_behind - self.cut_by) - {own_id}
+
+    def reverse_begins(self, live: LiveFlags) -> None:
+        """The reverse begins: those stopped backing up have had their cut."""
+        self.cut_by |= live.stopped_behind
+
+    def someone_stopped(self, live: LiveFlags, own_id: str) -> bool:
+        """Whether a robot is stopped that the reverse does not pass over."""
+        return bool(live.stopped - {own_id} - self.before)

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import math
 
-from phalanx.agents.behaviours.base import Behaviour, StandStill
+from phalanx.agents.behaviours.base import Behaviour, EmergencyStop, StandStill
 from phalanx.agents.behaviours.follower import Avoid, Track
 from phalanx.agents.behaviours.leader import (
     DeadlockReverse,
@@ -24,7 +24,7 @@ from phalanx.agents.behaviours.leader import (
 from phalanx.agents.behaviours.navigation import Breadcrumbs, Plan, plan_of
 from phalanx.agents.control import make_controller
 from phalanx.agents.fleetmap import FleetMap
-from phalanx.agents.memory import BlockedTimers, Course, Progress, StartUp, Steering
+from phalanx.agents.memory import BlockedTimers, Course, Progress, StartUp, Steering, StopsBefore
 from phalanx.agents.perception import SonarGeometry
 from phalanx.agents.reshape import Arrived, Reshape, ShapeKeeper
 from phalanx.agents.route import RoutePlanner
@@ -63,6 +63,7 @@ class Parts:
         self.steering = Steering()
         self.course = Course(Breadcrumbs(2.0 * scenario.deadlock.safe_distance_m))
         self.startup = StartUp()
+        self.stops = StopsBefore()
         self.planner = RoutePlanner(keep_off_m=self.shape.half_span_m, robot_id=robot_id)
         if self.plan != "scripted" and nav.reactive:
             self.planner.share(fleet_map(scenario, robot, formation, prior))
@@ -84,6 +85,7 @@ class Parts:
         )  # fmt: skip
         self.avoid = Avoid(scenario, shape=self.shape, limits=limits, steering=self.steering)
         self.reshape = Reshape(self.keeper, self.shape, dt_s=scenario.dt_s)
+        self.estop = EmergencyStop()
         seed = scenario.seed + formation.robot_ids.index(robot_id)
         self.behaviours = self._table(robot_id, limits, seed)
 
@@ -120,6 +122,7 @@ class Parts:
             State.RESHAPE: self.reshape,
             State.ARRIVED: Arrived(self.reshape),
             State.HOLD: StandStill(emergency=True),
+            State.EMERGENCY_STOP: self.estop,
         }
         return {state: table.get(state, still) for state in State}
 

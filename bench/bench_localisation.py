@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 
 from phalanx.analysis.estimation import drift_cm_per_m, estimation_metrics, pose_errors
-from phalanx.analysis.metrics import error_series, is_follower, run_metrics
+from phalanx.analysis.metrics import CORE_BOUNDS, error_series, is_follower, run_metrics
 from phalanx.analysis.report import LOCALISATION_BEGIN, LOCALISATION_END, with_section, worst
 from phalanx.core.config import Scenario
 from phalanx.core.config_files import CONFIG_ROOT, load_scenario
@@ -41,7 +41,6 @@ SETS = {
     "odometry + markers": (False, True),
     "both": (True, True),
 }
-CORE_BOUNDS = (0.5, 0.3, 0.5)  # linear %, angular %, orientation deg: perfect sensing's
 PAPER_BOUNDS = (2.0, 0.8, 1.3)
 ERROR_KEYS = ("linear_pct", "angular_pct", "orientation_deg")
 BEGIN = LOCALISATION_BEGIN
@@ -195,7 +194,7 @@ def matrix_table(rows: list[dict[str, Any]]) -> list[str]:
     ]
     for r in rows:
         bounds = (
-            CORE_BOUNDS
+            tuple(CORE_BOUNDS[k] for k in ERROR_KEYS)
             if "mocap" in r["set"] or r["set"] == "both"
             else PAPER_BOUNDS
             if "markers" in r["set"]

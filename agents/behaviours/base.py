@@ -14,7 +14,7 @@ import math
 from dataclasses import dataclass
 
 from phalanx.agents.inputs import FleetView
-from phalanx.agents.sensing import Sensing
+from phalanx.agents.sensing import STANDSTILL_MPS, Sensing
 from phalanx.core.frozen import quick_init
 from phalanx.core.geometry import ZERO_TWIST, Pose2D, Twist2D
 from phalanx.core.robot import Odometry
@@ -73,6 +73,23 @@ class StandStill(Behaviour):
 
     def __init__(self, *, emergency: bool = False) -> None:
         self.emergency = emergency
+
+
+class EmergencyStop(StandStill):
+    """EMERGENCY_STOP: brake to a standstill, remembering which way the robot was moving
+    when it stopped (`way`, +1 forwards, -1 backwards), which is the side its obstacle
+    is on. The robot publishes it as its `direction` while it stands, so a leader about
+    to reverse the group can tell a robot stopped for what lies behind (in the way of
+    the reverse) from one stopped for what lay ahead.
+    """
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.way = 1
+
+    def enter(self, moment: Moment) -> None:
+        """Remember the way the robot was moving (forwards if it was not moving)."""
+        self.way = -1 if moment.odometry.twist.v_mps < -STANDSTILL_MPS else 1
 
 
 def turn_on_spot(error_rad: float, gain_per_s: float, cap_radps: float) -> Twist2D:

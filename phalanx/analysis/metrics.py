@@ -34,6 +34,10 @@ from phalanx.core.states import ROBOT_STATES
 FloatArray = npt.NDArray[np.float64]
 BoolArray = npt.NDArray[np.bool_]
 
+# The backward-phase bounds phalanx holds its formation to with perfect sensing (the
+# paper reports +-2 %, +-0.8 % and +-1.3 for its own): the worst of each error series.
+CORE_BOUNDS: dict[str, float] = {"linear_pct": 0.5, "angular_pct": 0.3, "orientation_deg": 0.5}
+
 
 @dataclass(frozen=True)
 class Stat:

@@ -34,8 +34,10 @@ class PeerFlags:
     deadlock decisions the same way (`phalanx.agents.leadership`), without its pose.
 
     `obstacle`: its path is blocked (in its `direction` of motion, +1 or -1), for
-    `blocked_s`; `dead_end`: (a leader) its route leads back the way it came and the
-    shape has no room to turn; `clear`: its path ahead is free far enough to lead;
+    `blocked_s`; in an emergency stop, `direction` is the way it was going when it
+    stopped (the side what stopped it is on), `obstacle` still the way ahead;
+    `dead_end`: (a leader) its route leads back the way it came and the shape has no
+    room to turn; `clear`: its path ahead is free far enough to lead;
     `formed`: it is in its slot (a robot that is not may not be tracked);
     `formation_leader_id`/`epoch`: who it thinks leads, under which epoch; `waypoint`,
     `deadlocks`, `profile_s`: the group's progress (next waypoint, deadlocks at it,

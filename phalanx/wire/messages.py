@@ -88,7 +88,7 @@ class RobotState(Message):
     omega_radps: YawRate
     fsm_state: StateName
     obstacle: bool = False
-    direction: Literal[-1, 1] = 1
+    direction: Literal[-1, 1] = 1  # in an EMERGENCY_STOP: the way it was going
     leader_id: MaybeRobotId = ""
     epoch: Epoch = 0
     formation_leader_id: MaybeRobotId = ""
@@ -163,7 +163,7 @@ class RobotFlags(Message):
     stamp_s: Stamp
     fsm_state: StateName
     obstacle: bool = False
-    direction: Literal[-1, 1] = 1
+    direction: Literal[-1, 1] = 1  # in an EMERGENCY_STOP: the way it was going
     epoch: Epoch = 0
     formation_leader_id: MaybeRobotId = ""
     clear: bool = False

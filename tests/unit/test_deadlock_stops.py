@@ -1,6 +1,7 @@
 """A robot of the group stopping for an obstacle ends the leader's deadlock reverse; one
 already stopped as the reverse began does not (it stopped for what lay ahead, which the
-reverse moves the group away from). The turn that follows goes on whoever stops.
+reverse moves the group away from), unless it stopped backing up (what stopped it lies
+where the reverse would take the group). The turn that follows goes on whoever stops.
 
 The leader is a whole `Agent`, fed the group's flags as they would arrive.
 """
@@ -26,33 +27,54 @@ HERE = Pose2D(0.0, 0.0, math.pi / 2)
 
 
 def _flags(
-    robot: str, k: int, t_s: float, state: str, *, stopped: bool = False, blocked: bool = True
+    robot: str,
+    k: int,
+    t_s: float,
+    state: str,
+    *,
+    stopped: bool = False,
+    blocked: bool = True,
+    way: int = 1,
 ) -> PeerState:
     slot = FORMATION.slot_pose(robot, HERE) if robot != "r1" else HERE
     return PeerState(
         robot, k, t_s, slot.x_m, slot.y_m, slot.theta_rad, 0.0, 0.0,
         State.EMERGENCY_STOP if stopped else state, obstacle=blocked, blocked_s=float(blocked),
-        formation_leader_id="r1", leader_id="" if robot == "r1" else "r1",
+        direction=way, formation_leader_id="r1", leader_id="" if robot == "r1" else "r1",
     )  # fmt: skip
 
 
 class Group:
     """The leader r1 standing at `HERE`, stepped with the flags of r2 and r3 given."""
 
-    def __init__(self) -> None:
+    def __init__(self, *, turning: bool = False) -> None:
         self.leader = Agent("r1", scenario=SCENARIO, robot=ROBOT, formation=FORMATION)
         self.k = 0
+        self.turning = turning  # r1's heading follows its yaw rate (else it stays put)
+        self.theta_rad = HERE.theta_rad
 
-    def step(self, r2: str, r3: str, *, stopped: tuple[str, ...] = (), blocked: bool = True) -> str:
-        """One step (`blocked`: r1 reports an obstacle ahead); r1's state after it."""
+    def step(
+        self,
+        r2: str,
+        r3: str,
+        *,
+        stopped: tuple[str, ...] = (),
+        blocked: bool = True,
+        backing: tuple[str, ...] = (),
+    ) -> str:
+        """One step (`blocked`: r1 reports an obstacle ahead; `backing`: the stopped robots
+        that stopped while moving backwards); r1's state after it.
+        """
         t_s = self.k * SCENARIO.dt_s
-        flags = {
-            "r1": _flags("r1", self.k, t_s, self.leader.state_name, blocked=blocked),
-            "r2": _flags("r2", self.k, t_s, r2, stopped="r2" in stopped),
-            "r3": _flags("r3", self.k, t_s, r3, stopped="r3" in stopped),
-        }
-        observation = Observation(Odometry(HERE, Twist2D(0.0, 0.0), t_s), FREE)
-        self.leader.step(observation, flags, t_s)
+        flags = {"r1": _flags("r1", self.k, t_s, self.leader.state_name, blocked=blocked)}
+        for robot, state in (("r2", r2), ("r3", r3)):
+            way = -1 if robot in backing else 1
+            flags[robot] = _flags(robot, self.k, t_s, state, stopped=robot in stopped, way=way)
+        pose = Pose2D(HERE.x_m, HERE.y_m, self.theta_rad)
+        observation = Observation(Odometry(pose, Twist2D(0.0, 0.0), t_s), FREE)
+        command = self.leader.step(observation, flags, t_s).command
+        if self.turning:
+            self.theta_rad += command.omega_radps * SCENARIO.dt_s
         self.k += 1
         return self.leader.state_name
 
@@ -64,11 +86,12 @@ class Group:
         *,
         stopped: tuple[str, ...] = (),
         blocked: bool = True,
+        backing: tuple[str, ...] = (),
     ) -> str:
         """Steps for `seconds`, or until r1's state changes; r1's state then."""
         before = self.leader.state_name
         for _ in range(round(seconds / SCENARIO.dt_s)):
-            if self.step(r2, r3, stopped=stopped, blocked=blocked) != before:
+            if self.step(r2, r3, stopped=stopped, blocked=blocked, backing=backing) != before:
                 break
         return self.leader.state_name
 
@@ -104,3 +127,51 @@ def test_a_robot_stopped_before_the_reverse_does_not_end_it() -> None:
     assert group.run(2.0, rev, rev, stopped=("r3",)) == State.DEADLOCK_REVERSE
     assert group.run(1.0, rev, rev, stopped=("r2", "r3")) == State.DEADLOCK_TURN
     assert "obstacle behind" in group.last_reason()
+
+
+def test_a_robot_stopped_backing_up_before_the_reverse_ends_it() -> None:
+    group = Group()
+    track = State.FORMATION_TRACK
+    r3_back = {"stopped": ("r3",), "backing": ("r3",)}
+    assert group.run(1.0, track, track, blocked=False, **r3_back) == State.NAVIGATE
+    assert group.run(2.0, track, track, **r3_back) == State.DEADLOCK_REVERSE
+    # The first step of the reverse already sees r3 in its way: straight to the turn.
+    assert group.run(1.0, State.FORMATION_REVERSE, track, **r3_back) == State.DEADLOCK_TURN
+    assert "obstacle behind" in group.last_reason()
+
+
+def test_a_robot_still_stopped_behind_cuts_one_reverse_only() -> None:
+    # Boxed in, a group would otherwise start and end reverses on the spot for ever: at
+    # the next deadlock the robot still stopped is passed over, and the group backs away.
+    group = Group(turning=True)
+    track, rev = State.FORMATION_TRACK, State.FORMATION_REVERSE
+    r3_back = {"stopped": ("r3",), "backing": ("r3",)}
+    assert group.run(1.0, track, track, blocked=False, **r3_back) == State.NAVIGATE
+    assert group.run(2.0, track, track, **r3_back) == State.DEADLOCK_REVERSE
+    assert group.run(1.0, rev, track, **r3_back) == State.DEADLOCK_TURN
+    assert group.run(30.0, track, track, **r3_back) == State.NAVIGATE
+    assert group.run(2.0, track, track, **r3_back) == State.DEADLOCK_REVERSE
+    assert group.run(1.0, rev, track, **r3_back) == State.DEADLOCK_REVERSE
+
+
+def _stop_moving(v_mps: float) -> PeerState:
+    """A follower that meets an obstacle all round while moving at `v_mps`: its state."""
+    follower = Agent("r2", scenario=SCENARIO, robot=ROBOT, formation=FORMATION)
+    near = RobotStatus(sonar_ranges_m=(0.3,) * 16, bumpers=(False,), battery_v=12.6)
+    pose = FORMATION.slot_pose("r2", HERE)
+    for k in range(3):
+        t_s = k * SCENARIO.dt_s
+        flags = {
+            "r1": _flags("r1", k, t_s, State.NAVIGATE, blocked=False),
+            "r2": _flags("r2", k, t_s, follower.state_name, blocked=False),
+            "r3": _flags("r3", k, t_s, State.FORMATION_TRACK, blocked=False),
+        }
+        observation = Observation(Odometry(pose, Twist2D(v_mps, 0.0), t_s), near)
+        state = follower.step(observation, flags, t_s).state
+    assert follower.state_name == State.EMERGENCY_STOP
+    return state
+
+
+def test_a_stopped_robot_publishes_the_way_it_was_going() -> None:
+    assert _stop_moving(-0.3).direction == -1
+    assert _stop_moving(0.3).direction == 1
