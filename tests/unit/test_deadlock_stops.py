@@ -9,6 +9,7 @@ The leader is a whole `Agent`, fed the group's flags as they would arrive.
 from __future__ import annotations
 
 import math
+from typing import Any
 
 from phalanx.agents.agent import Agent, Observation
 from phalanx.core.config_files import CONFIG_ROOT, load_robot, load_scenario
@@ -78,20 +79,13 @@ class Group:
         self.k += 1
         return self.leader.state_name
 
-    def run(
-        self,
-        seconds: float,
-        r2: str,
-        r3: str,
-        *,
-        stopped: tuple[str, ...] = (),
-        blocked: bool = True,
-        backing: tuple[str, ...] = (),
-    ) -> str:
-        """Steps for `seconds`, or until r1's state changes; r1's state then."""
+    def run(self, seconds: float, r2: str, r3: str, **how: Any) -> str:
+        """Steps (`how` as for `step`) for `seconds`, or until r1's state changes; r1's
+        state then.
+        """
         before = self.leader.state_name
         for _ in range(round(seconds / SCENARIO.dt_s)):
-            if self.step(r2, r3, stopped=stopped, blocked=blocked, backing=backing) != before:
+            if self.step(r2, r3, **how) != before:
                 break
         return self.leader.state_name
 
