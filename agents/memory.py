@@ -166,7 +166,8 @@ class StopsBefore:
     """The robots in an emergency stop that the deadlock reverse passes over (a leader's).
 
     Robots already stopped as the reverse begins stopped for what lay ahead, which the
-    reverse moves away from: not a reason to end it. One that stopped backing up is (the
+    reverse moves away from: not a reason to end it (until one moves, and stops again
+    during the reverse). One that stopped backing up is (the
     reverse would drive the group at what stopped it), once per stop: still stopped at the
     next deadlock, it is passed over and the group backs away regardless, else a group
     boxed in would start and end reverses on the spot, for ever.
@@ -182,6 +183,8 @@ class StopsBefore:
         self.cut_by &= live.stopped_behind
         if not reversing:
             self.before = live.stopped - (live.stopped_behind - self.cut_by) - {own_id}
+        else:
+            self.before &= live.stopped  # one that moved again and stops anew ends it
 
     def reverse_begins(self, live: LiveFlags) -> None:
         """The reverse begins: those stopped backing up have had their cut."""

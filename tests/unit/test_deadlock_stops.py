@@ -1,7 +1,8 @@
 """A robot of the group stopping for an obstacle ends the leader's deadlock reverse; one
 already stopped as the reverse began does not (it stopped for what lay ahead, which the
-reverse moves the group away from), unless it stopped backing up (what stopped it lies
-where the reverse would take the group). The turn that follows goes on whoever stops.
+reverse moves the group away from) until it moves and stops again, unless it stopped
+backing up (what stopped it lies where the reverse would take the group). The turn that
+follows goes on whoever stops.
 
 The leader is a whole `Agent`, fed the group's flags as they would arrive.
 """
@@ -121,6 +122,16 @@ def test_a_robot_stopped_before_the_reverse_does_not_end_it() -> None:
     assert group.run(2.0, rev, rev, stopped=("r3",)) == State.DEADLOCK_REVERSE
     assert group.run(1.0, rev, rev, stopped=("r2", "r3")) == State.DEADLOCK_TURN
     assert "obstacle behind" in group.last_reason()
+
+
+def test_a_robot_passed_over_that_moves_and_stops_again_ends_the_reverse() -> None:
+    group = Group()
+    track, rev = State.FORMATION_TRACK, State.FORMATION_REVERSE
+    assert group.run(1.0, track, track, stopped=("r3",), blocked=False) == State.NAVIGATE
+    assert group.run(2.0, track, track, stopped=("r3",)) == State.DEADLOCK_REVERSE
+    assert group.run(1.0, rev, rev, stopped=("r3",)) == State.DEADLOCK_REVERSE
+    assert group.run(0.5, rev, rev) == State.DEADLOCK_REVERSE  # r3 moves with the group
+    assert group.run(1.0, rev, rev, stopped=("r3",)) == State.DEADLOCK_TURN  # a new stop
 
 
 def test_a_robot_stopped_backing_up_before_the_reverse_ends_it() -> None:
