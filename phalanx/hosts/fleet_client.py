@@ -35,6 +35,7 @@ from phalanx.hosts.protocol import (
 )
 from phalanx.hosts.request_auth import sign
 from phalanx.hosts.wiring import client_transport
+from phalanx.runtime.signals import Stoppable
 from phalanx.wire.bounds import FleetBounds
 from phalanx.wire.keys import (
     host_key,
@@ -184,8 +185,12 @@ class FleetClient(Closing):
                 out[name] = reply
         return out
 
-    def wait_for_hosts(self, timeout_s: float, say: Callable[[str], None]) -> dict[str, HostStatus]:
-        """Every host's status once all are present; DeploymentError naming the missing."""
+    def wait_for_hosts(
+        self, timeout_s: float, say: Callable[[str], None], stop: Stoppable | None = None
+    ) -> dict[str, HostStatus]:
+        """Every host's status once all are present; DeploymentError naming the missing.
+        Empty if `stop` is set first (Ctrl-C while waiting).
+        """
         deadline = time.monotonic() + timeout_s
         statuses: dict[str, HostStatus | None] = {}
         while True:
@@ -197,7 +202,10 @@ class FleetClient(Closing):
                 break
             if time.monotonic() > deadline:
                 raise DeploymentError(self._missing_message(missing, timeout_s))
-            time.sleep(0.1)
+            if stop is None:
+                time.sleep(0.1)
+            elif stop.wait(0.1):
+                return {}
         present = {h: s for h, s in statuses.items() if s is not None}
         self._check_digests(present)
         self._check_clocks(say)

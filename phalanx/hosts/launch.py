@@ -59,7 +59,10 @@ def launch(
     """Run a deployment to its end (or Ctrl-C, or the timeout); the exit code."""
     run = _Run(started=time.monotonic())
     with FleetClient(loaded, transport) as client:
-        client.wait_for_hosts(options.host_wait_s, output.event)
+        client.wait_for_hosts(options.host_wait_s, output.event, stop)
+        if stop.is_set():
+            output.event("interrupted while waiting for the hosts")
+            return 1
         output.event(
             f"hosts present: {', '.join(client.host_names)} "
             f"({time.monotonic() - run.started:.2f} s)"

@@ -181,6 +181,35 @@ def test_launch_names_the_hosts_that_are_missing(kit: Any, tmp_path: Path) -> No
     assert codes == {"h1": 0}
 
 
+def test_ctrl_c_while_launch_waits_for_its_hosts_stops_it(kit: Any, tmp_path: Path) -> None:
+    path = _deployment(kit, tmp_path, "waiting")
+    daemons = kit.start_daemons(path, ["h1"], tmp_path / "logs")
+    try:
+        launcher = subprocess.Popen(
+            [*kit.CLI, "launch", str(path), "--host-wait", "120", "--no-table"],
+            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        )  # fmt: skip
+        try:
+            assert launcher.stdout is not None
+            first = launcher.stdout.readline()  # printed once the signal handlers are in
+            assert "launching" in first, first
+            time.sleep(1.0)  # into the wait for h2, which never comes
+            started = time.monotonic()
+            launcher.send_signal(signal.SIGINT)
+            out, err = launcher.communicate(timeout=20)
+            stopped_s = time.monotonic() - started
+        finally:
+            if launcher.poll() is None:
+                launcher.kill()
+                launcher.communicate()
+    finally:
+        codes = daemons.stop()
+    assert launcher.returncode == 1, first + out + err
+    assert "interrupted while waiting for the hosts" in out, out + err
+    assert stopped_s < 10.0, stopped_s  # not the 120 s of --host-wait
+    assert codes == {"h1": 0}
+
+
 def test_hosts_that_only_reach_a_router_find_each_other_through_it(
     kit: Any, tmp_path: Path
 ) -> None:
