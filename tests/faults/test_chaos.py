@@ -98,10 +98,18 @@ def test_a_frozen_leader_is_held_and_publishes_nothing_stale_when_it_resumes(
         stale = [s.state for s in fleet.watch.since("r1", resumed)
                  if s.state.stamp_s < fleet_now - 0.5]  # fmt: skip
         # A stop can land inside the transport's put: the state then on its way out may
-        # arrive after the resume. At most that one; never a step computed afterwards.
+        # arrive after the resume. At most that one, and it is the next state r1 sent after
+        # the last heard before the resume (its seq need not be the next number: a step
+        # kept back as too late, under load just before the stop, uses one up unsent);
+        # never a step computed afterwards.
         assert before is not None
         assert len(stale) <= 1, (SEED, stale[:3])
-        assert all(s.seq <= before.state.seq + 1 for s in stale), (SEED, before.state.seq, stale)
+        sent_next = min(
+            (s.state for s in fleet.watch.since("r1", 0.0) if s.state.seq > before.state.seq),
+            key=lambda state: state.seq,
+            default=None,
+        )
+        assert all(s == sent_next for s in stale), (SEED, before.state.seq, stale, sent_next)
         assert fleet.crashed() == []
 
 
