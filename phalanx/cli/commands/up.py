@@ -40,6 +40,13 @@ def up(
         str | None,
         typer.Option(help="Stream live to a running viewer, e.g. from `phalanx view --web`."),
     ] = None,
+    pin: Annotated[
+        bool | None,
+        typer.Option(
+            "--pin/--no-pin",
+            help="Pin each process to one CPU, round robin (default: in lockstep only).",
+        ),
+    ] = None,
 ) -> None:
     """Start the world and one agent process per robot here; supervise; write results
     (marked incomplete, with the reason, when a process died or the world did not finish;
@@ -71,6 +78,7 @@ def up(
         recording=recording,
         overrides=tuple(f"--set={o}" for o in set_ or ()),
         driver=driver,
+        pin=pin,
     )
     if driver not in ("sim", "arcos"):
         raise typer.BadParameter(f"up runs sim or arcos robots, not {driver!r}")
