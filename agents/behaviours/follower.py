@@ -28,8 +28,11 @@ STILL_RADPS = 0.005
 ALIGN_GAIN_PER_S = 1.0
 SETTLE_M = 0.5  # further off, the controller brings it back
 # Near enough: only the heading is left; it drives again only once this far off (a pose
-# estimate's jitter does not send it turning back and forth).
-ON_SLOT_M, OFF_SLOT_M = 0.01, 0.03
+# estimate's jitter does not send it turning back and forth). A reverse starts from
+# here, and the controller takes an offset out over seconds (its heading mode decays
+# with control_point_m / |v|, 2 s at reverse speed): 1 cm left a column of five's rear
+# robots 0.73 deg off the robot they track 5 s into its reverse, 5 mm 0.33 deg.
+ON_SLOT_M, OFF_SLOT_M = 0.005, 0.03
 SETTLE_GAIN_PER_S = 2.0  # heading gain on the way to the slot's position
 SETTLE_SPEED_MPS = (0.02, 0.1)  # slowest, fastest on the way
 SETTLE_AIMED_RAD = math.radians(10.0)  # drives only once aimed this well
