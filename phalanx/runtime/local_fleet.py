@@ -10,7 +10,7 @@ finished, no process died on its own) and, if not, which process ended how.
 In lockstep every process is pinned to one CPU, round robin over the CPUs this one may
 use (the world on the first): a tick wakes every process in turn, and a process that
 comes back to the core it left finds its caches warm (on a 2-core machine the paper
-run's ticks take about 8 % less wall time; `bench/bench_lockstep.py` measures both).
+run's ticks take about 11 % less wall time; `bench/bench_lockstep.py` measures both).
 """
 
 from __future__ import annotations
@@ -97,11 +97,11 @@ def usable_cpus() -> list[int]:
 
 
 def assign_cpus(children: list[Child], cpus: list[int]) -> None:
-    """One CPU per child, `children` the world first, then the agents in the order it
-    sends them their frames: as many on each CPU as round robin puts there, the world
-    on the first, and the agents that share the world's CPU last (a robot woken on the
-    world's CPU takes it from the world until it has answered, so its frame goes out
-    after the others'). Nothing with fewer than two CPUs: there is nothing to choose.
+    """One CPU per child, `children` the world first, then the rest (the agents in the
+    order it sends them their frames): as many on each CPU as round robin puts there,
+    the world on the first, and those that share the world's CPU last (a robot woken on
+    the world's CPU takes it from the world until it has answered, so its frame goes
+    out after the others'). Nothing with fewer than two CPUs: there is nothing to choose.
     """
     if len(cpus) < 2:
         return
