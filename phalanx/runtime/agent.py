@@ -13,6 +13,7 @@ epoch.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import logging
 import time
 from collections import deque
@@ -29,7 +30,7 @@ from phalanx.runtime.clock import Clock, Tick
 from phalanx.runtime.peers import FlagsThrottle, PeerInbox, ScanInbox
 from phalanx.runtime.robot_io import RobotIO
 from phalanx.runtime.signals import Stoppable
-from phalanx.telemetry.stream import Telemetry, sonar_rays
+from phalanx.telemetry.stream import Telemetry
 from phalanx.wire.bounds import MAX_TEXT, UINT32_MAX, FleetBounds
 from phalanx.wire.keys import alive_key, alive_pattern, leader_key, robot_key, status_key
 from phalanx.wire.messages import (
@@ -302,9 +303,11 @@ class AgentRuntime:
                 reason=event.reason,
             )  # fmt: skip
         leader = peers.get(state.leader_id) if state.leader_id else None
-        errors = None
-        if leader is not None:
-            errors = live_errors(self.formation, self.robot_id, state.pose, leader, t_s=tick.t_s)
+        tracking = None
+        if leader is not None:  # computed on the telemetry thread, off the control step
+            tracking = functools.partial(
+                live_errors, self.formation, self.robot_id, state.pose, leader, t_s=tick.t_s
+            )
         telemetry.log_step(
             self.robot_id,
             t_s=tick.t_s,
@@ -312,11 +315,9 @@ class AgentRuntime:
             pose=state.pose,
             cmd=out.command,
             measured=observation.odometry.twist,
-            slot_target=errors.slot_target if errors else None,
-            errors=(errors.linear_pct, errors.angular_pct, errors.orientation_deg)
-            if errors
-            else None,
-            sonar_rays=sonar_rays(self.robot, state.pose, observation.status.sonar_ranges_m),
+            tracking=tracking,
+            sonar=self.robot.sonar,
+            sonar_ranges_m=observation.status.sonar_ranges_m,
             fsm_state=state.fsm_state,
             leader_id=state.leader_id,
             cov=state.cov,

@@ -5,15 +5,18 @@ of one `log` per entity per step; see docs/PERFORMANCE.md).
 
 from __future__ import annotations
 
+import logging
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 
+from phalanx.core.config import SonarParams
 from phalanx.core.geometry import Pose2D, Twist2D
+from phalanx.core.rigid_body import LiveErrors
 from phalanx.telemetry.uncertainty import ellipse, position_std_m, send_ellipses
 
 FloatArray = npt.NDArray[np.float64]
@@ -22,23 +25,38 @@ POSE_RADIUS_M = 0.25
 HEADING_LENGTH_M = 0.4
 SONAR_RAY_RADIUS_M = 0.005
 ERROR_NAMES = ("linear_pct", "angular_pct", "orientation_deg")
+log = logging.getLogger("phalanx.telemetry")
+
+
+# The slot target and the errors of a step that tracks a leader, or what computes them
+# when the batch goes out (on the telemetry thread, off the control step).
+Tracking = LiveErrors | Callable[[], LiveErrors]
 
 
 @dataclass(frozen=True, slots=True)
 class StepRow:
-    """One robot's control step as logged: where it is, what it does, how it does."""
+    """One robot's control step as logged: where it is, what it does, how it does.
+
+    Only what the step has at hand is kept: labels and sonar rays are made for a whole
+    batch of rows when it goes out (`send_step_rows`), off the control step.
+    """
 
     t_s: float
     step: int
     pose: Pose2D
     cmd: Twist2D
     measured: Twist2D
-    label: str
-    slot_target: Pose2D | None = None
-    errors: tuple[float, float, float] | None = None
-    rays: tuple[tuple[Point, Point], ...] = ()
+    fsm_state: str = ""
+    leader_id: str = ""
+    tracking: Tracking | None = None
+    sonar_ranges_m: Sequence[float] = ()
     trail: tuple[Point, ...] | None = None  # the trail to redraw at this step, if any
     cov: tuple[float, ...] = ()  # the pose's covariance, when the robot estimates it
+
+    def label(self, robot_id: str) -> str:
+        """The text beside the robot on the map: its id, state and leader."""
+        leader = f" -> {self.leader_id}" if self.leader_id else ""
+        return f"{robot_id} {self.fsm_state}{leader}"
 
 
 @dataclass(frozen=True, slots=True)
@@ -64,15 +82,21 @@ def _indexes(t_s: Sequence[float], steps: Sequence[int] | None = None) -> list[A
     return times
 
 
-def send_step_rows(rec: Any, robot_id: str, rows: Sequence[StepRow]) -> None:
-    """Every entity of `robots/<id>/` for a batch of steps, one column send per entity."""
+def send_step_rows(
+    rec: Any, robot_id: str, rows: Sequence[StepRow], sonar: SonarParams | None = None
+) -> None:
+    """Every entity of `robots/<id>/` for a batch of steps, one column send per entity
+    (the sonar rays from `sonar`'s geometry and each row's ranges; none without it).
+    """
     rr, base = _rr(), f"robots/{robot_id}"
     index = _indexes([r.t_s for r in rows], [r.step for r in rows])
-    xy = np.array([(r.pose.x_m, r.pose.y_m) for r in rows], dtype=np.float64)
-    theta = np.array([r.pose.theta_rad for r in rows], dtype=np.float64)
+    poses = np.array([(r.pose.x_m, r.pose.y_m, r.pose.theta_rad) for r in rows], np.float64)
+    xy, theta = poses[:, :2], poses[:, 2]
     heading = HEADING_LENGTH_M * np.column_stack([np.cos(theta), np.sin(theta)])
     pose = rr.Points2D.columns(
-        positions=xy, radii=np.full(len(rows), POSE_RADIUS_M), labels=[r.label for r in rows]
+        positions=xy,
+        radii=np.full(len(rows), POSE_RADIUS_M),
+        labels=[r.label(robot_id) for r in rows],
     )
     rec.send_columns(f"{base}/pose", indexes=index, columns=pose)
     arrows = rr.Arrows2D.columns(vectors=heading, origins=xy)
@@ -87,7 +111,8 @@ def send_step_rows(rec: Any, robot_id: str, rows: Sequence[StepRow]) -> None:
         rec.send_columns(
             f"{base}/{name}", indexes=index, columns=rr.Scalars.columns(scalars=values)
         )
-    _send_rays(rec, base, rows, index)
+    if sonar is not None:
+        _send_rays(rec, base, sonar_segments(sonar, poses, [r.sonar_ranges_m for r in rows]), index)
     _send_tracking(rec, base, rows)
     if any(r.cov for r in rows):
         strips = [ellipse(r.pose.x_m, r.pose.y_m, r.cov) for r in rows]
@@ -103,32 +128,68 @@ def send_step_rows(rec: Any, robot_id: str, rows: Sequence[StepRow]) -> None:
             rec.log(f"{base}/trail", rr.LineStrips2D([list(row.trail)]))
 
 
-def _send_rays(rec: Any, base: str, rows: Sequence[StepRow], index: list[Any]) -> None:
+def sonar_segments(
+    sonar: SonarParams, poses: FloatArray, ranges_m: Sequence[Sequence[float]]
+) -> tuple[FloatArray, list[int]]:
+    """World-frame segments (m x 2 x 2: start, end) of the sonars that see something
+    (range below the maximum) at each of the n poses (n x 3: x, y, theta), and how many
+    each pose has. A row of ranges shorter than the ring leaves its last sonars unseen.
+    """
+    units = np.array([(u.x_m, u.y_m, math.radians(u.heading_deg)) for u in sonar.units])
+    units = units.reshape(-1, 3)
+    ranges = np.full((len(poses), len(units)), np.inf)
+    for k, row in enumerate(ranges_m):
+        count = min(len(row), len(units))
+        ranges[k, :count] = row[:count]
+    x, y, theta = (poses[:, i : i + 1] for i in range(3))
+    cos, sin = np.cos(theta), np.sin(theta)
+    start_x = x + cos * units[:, 0] - sin * units[:, 1]
+    start_y = y + sin * units[:, 0] + cos * units[:, 1]
+    heading = theta + units[:, 2]
+    seen = ranges < sonar.max_range_m
+    reach = np.where(seen, ranges, 0.0)
+    end_x, end_y = start_x + reach * np.cos(heading), start_y + reach * np.sin(heading)
+    segments = np.stack([start_x, start_y, end_x, end_y], axis=-1)[seen].reshape(-1, 2, 2)
+    return segments, [int(n) for n in seen.sum(axis=1)]
+
+
+def _send_rays(rec: Any, base: str, rays: tuple[FloatArray, list[int]], index: list[Any]) -> None:
     """Sonar rays; a step that sees nothing clears the previous step's rays."""
-    strips = [[a, b] for r in rows for a, b in r.rays]
+    segments, per_row = rays
     columns = _rr().LineStrips2D.columns(
-        strips=strips, radii=np.full(len(strips), SONAR_RAY_RADIUS_M)
+        strips=segments, radii=np.full(len(segments), SONAR_RAY_RADIUS_M)
     )
-    rec.send_columns(
-        f"{base}/sonar", indexes=index, columns=columns.partition([len(r.rays) for r in rows])
-    )
+    rec.send_columns(f"{base}/sonar", indexes=index, columns=columns.partition(per_row))
 
 
 def _send_tracking(rec: Any, base: str, rows: Sequence[StepRow]) -> None:
     """The slot target and the errors, at the steps that have a leader to track."""
     rr = _rr()
-    tracked = [r for r in rows if r.slot_target is not None and r.errors is not None]
+    tracked = [(r, e) for r in rows if (e := _resolved(r.tracking)) is not None]
     if not tracked:
         return
-    index = _indexes([r.t_s for r in tracked], [r.step for r in tracked])
-    targets = np.array([(r.slot_target.x_m, r.slot_target.y_m) for r in tracked if r.slot_target])
+    index = _indexes([r.t_s for r, _ in tracked], [r.step for r, _ in tracked])
+    targets = np.array([(e.slot_target.x_m, e.slot_target.y_m) for _, e in tracked])
     slot = rr.Points2D.columns(positions=targets, radii=np.full(len(tracked), 0.05))
     rec.send_columns(f"{base}/slot_target", indexes=index, columns=slot)
-    for k, name in enumerate(ERROR_NAMES):
-        values = [r.errors[k] for r in tracked if r.errors is not None]
+    for name in ERROR_NAMES:
+        values = [getattr(e, name) for _, e in tracked]
         rec.send_columns(
             f"{base}/errors/{name}", indexes=index, columns=rr.Scalars.columns(scalars=values)
         )
+
+
+def _resolved(tracking: Tracking | None) -> LiveErrors | None:
+    """A step's slot target and errors; None (the step is left out) when what computes
+    them fails: that must cost the recording one point, not the batch.
+    """
+    if tracking is None or isinstance(tracking, LiveErrors):
+        return tracking
+    try:
+        return tracking()
+    except Exception:
+        log.exception("telemetry: a step's errors could not be computed")
+        return None
 
 
 def send_truth_rows(rec: Any, robot_id: str, rows: Sequence[TruthRow]) -> None:

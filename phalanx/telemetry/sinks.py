@@ -2,7 +2,8 @@
 memory) and the background thread that hands them to the Rerun SDK.
 
 Logging never blocks a control step: calls append to a bounded outbox drained by a
-background thread; when the sink is slow the oldest entries are dropped, when a viewer
+background thread, which runs at the lowest priority so that its work fills the time the
+control steps leave; when the sink is slow the oldest entries are dropped, when a viewer
 is gone its entries are, and both are counted in `dropped`.
 """
 
@@ -10,8 +11,10 @@ from __future__ import annotations
 
 import importlib.util
 import logging
+import os
 import shutil
 import socket
+import sys
 import threading
 import time
 from collections import deque
@@ -26,12 +29,13 @@ from pydantic import BaseModel, ConfigDict
 Job = Callable[[Any], None]  # logs to a recording stream
 log = logging.getLogger("phalanx.telemetry")
 OUTBOX_CAPACITY = 20_000  # jobs; a job is one entry, or one batch of rows
-FLUSH_ROWS = 20  # a robot's steps go out in batches of at most this many ...
+FLUSH_ROWS = 100  # a robot's steps go out in batches of at most this many ...
 FLUSH_S = 0.2  # ... and at most this old (wall time), so a live view lags by no more
 CLOSE_TIMEOUT_S = 10.0
 VIEWER_FLUSH_S = 2.0
 VIEWER_CHECK_S = 1.0
 DEFAULT_URL = "rerun+http://127.0.0.1:9876/proxy"
+TELEMETRY_NICE = 19  # the telemetry thread's priority: the lowest a thread may have
 
 
 class TelemetrySink(BaseModel):
@@ -213,15 +217,25 @@ class Outbox:
                 self._flush(key)
 
     def wait(self, timeout_s: float) -> bool:
-        """Wait (bounded) until the background thread has passed everything to the sinks.
-
-        Whether it has.
+        """Wait (bounded) until the background thread has passed everything to the sinks,
+        and the SDK has sent or written it. Whether it has.
         """
         deadline = time.monotonic() + timeout_s
         while self._jobs or self._busy:
             if time.monotonic() >= deadline:
                 return False
             time.sleep(0.01)
+        for stream in self._streams:
+            rec, left_s = stream.rec, deadline - time.monotonic()
+            if rec is None:
+                continue
+            if left_s <= 0.0:
+                return False
+            try:
+                rec.flush(timeout_sec=left_s)
+            except RuntimeError as exc:  # the SDK's timeout, or a viewer that went away
+                log.info("telemetry: the %s sink did not take everything yet: %s", stream.kind, exc)
+                return False
         return True
 
     def close(self) -> None:
@@ -242,6 +256,7 @@ class Outbox:
     # --- the background thread -----------------------------------------------------------
 
     def _drain(self) -> None:
+        _yield_to_control()
         while True:
             with self._wake:
                 if not self._jobs and not self.closed:
@@ -307,3 +322,17 @@ class Outbox:
         if stream.kind == "file":
             stream.rec.disconnect()  # finalizes the .rrd footer
         stream.rec = None
+
+
+def _yield_to_control() -> None:
+    """Run the calling (telemetry) thread at the lowest priority (Linux: a thread has its
+    own nice value): turning rows into columns takes a few milliseconds a batch, which
+    must come out of the time a control step leaves, not delay the next step of this
+    process or of another on the same CPU. Elsewhere, or when refused, it runs as it is.
+    """
+    if not sys.platform.startswith("linux"):
+        return
+    try:
+        os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), TELEMETRY_NICE)
+    except OSError as exc:
+        log.info("telemetry: could not lower the telemetry thread's priority: %s", exc)

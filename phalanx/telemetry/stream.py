@@ -30,11 +30,12 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from phalanx.core.config import RobotParams
-from phalanx.core.geometry import Pose2D, Twist2D, Vec2
+from phalanx.core.config import SonarParams
+from phalanx.core.geometry import Pose2D, Twist2D
 from phalanx.core.lifecycle import Closing
 from phalanx.telemetry.layout import (
     StepRow,
+    Tracking,
     TruthRow,
     make_blueprint,
     send_step_rows,
@@ -57,17 +58,24 @@ class _Extent:
     def __init__(self) -> None:
         self.box: list[float] | None = None  # x_min, x_max, y_min, y_max
 
-    def add(self, x_m: FloatArray | float, y_m: FloatArray | float) -> None:
+    def add(self, x_m: FloatArray, y_m: FloatArray) -> None:
         """Grow the box to include the given positions."""
-        xs, ys = np.atleast_1d(x_m), np.atleast_1d(y_m)
-        if xs.size == 0:
+        if x_m.size == 0:
             return
-        new = [float(xs.min()), float(xs.max()), float(ys.min()), float(ys.max())]
-        if self.box is None:
-            self.box = new
-            return
+        self._grow(float(x_m.min()), float(x_m.max()), float(y_m.min()), float(y_m.max()))
+
+    def add_point(self, x_m: float, y_m: float) -> None:
+        """Grow the box to include one position (a control step's: no array made)."""
         b = self.box
-        self.box = [min(b[0], new[0]), max(b[1], new[1]), min(b[2], new[2]), max(b[3], new[3])]
+        if b is None or not (b[0] <= x_m <= b[1] and b[2] <= y_m <= b[3]):
+            self._grow(x_m, x_m, y_m, y_m)
+
+    def _grow(self, x0: float, x1: float, y0: float, y1: float) -> None:
+        b = self.box
+        if b is None:
+            self.box = [x0, x1, y0, y1]
+        else:
+            self.box = [min(b[0], x0), max(b[1], x1), min(b[2], y0), max(b[3], y1)]
 
     def framed(self, margin_m: float = 1.5) -> tuple[float, float, float, float] | None:
         """The box with a margin (m), or None when nothing was logged."""
@@ -160,18 +168,25 @@ class Telemetry(Closing):
         pose: Pose2D,
         cmd: Twist2D,
         measured: Twist2D,
-        slot_target: Pose2D | None = None,
-        errors: tuple[float, float, float] | None = None,
-        sonar_rays: Sequence[tuple[Vec2, Vec2]] = (),
+        tracking: Tracking | None = None,
+        sonar: SonarParams | None = None,
+        sonar_ranges_m: Sequence[float] = (),
         fsm_state: str = "",
         leader_id: str = "",
         cov: tuple[float, ...] = (),
     ) -> None:
-        """One control step of one robot (live agents); sent in batches of steps."""
+        """One control step of one robot (live agents); sent in batches of steps.
+
+        The sonar rays are drawn from the ring's geometry (`sonar`, the same for every
+        step of a robot) and the step's ranges; those at the maximum range see nothing.
+        `tracking`: the slot target and the errors of a step that tracks a leader, or
+        what computes them. Only the values are kept here: the batch is turned into
+        columns when it goes out, on the telemetry thread.
+        """
         self.logged_steps[robot_id] = self.logged_steps.get(robot_id, 0) + 1
         if not self._outbox.enabled:
             return
-        self._extent.add(pose.x_m, pose.y_m)
+        self._extent.add_point(pose.x_m, pose.y_m)
         trail = self._trails.setdefault(robot_id, deque(maxlen=TRAIL_POINTS))
         # The trail keeps every TRAIL_EVERY_STEPS-th position (a point a second at 10 Hz, up
         # to TRAIL_POINTS) and is redrawn as often: its cost stays flat however long the run.
@@ -180,19 +195,12 @@ class Telemetry(Closing):
             trail.append((pose.x_m, pose.y_m))
             trail_points = tuple(trail)
         row = StepRow(
-            t_s=t_s,
-            step=step,
-            pose=pose,
-            cmd=cmd,
-            measured=measured,
-            label=f"{robot_id} {fsm_state}" + (f" -> {leader_id}" if leader_id else ""),
-            slot_target=slot_target,
-            errors=errors,
-            rays=tuple(((a.x_m, a.y_m), (b.x_m, b.y_m)) for a, b in sonar_rays),
-            trail=trail_points,
-            cov=cov,
+            t_s, step, pose, cmd, measured, fsm_state, leader_id, tracking,
+            sonar_ranges_m, trail_points, cov,
+        )  # fmt: skip
+        self._outbox.add_row(
+            robot_id, row, lambda rec, rows: send_step_rows(rec, robot_id, rows, sonar)
         )
-        self._outbox.add_row(robot_id, row, lambda rec, rows: send_step_rows(rec, robot_id, rows))
 
     def log_transition(
         self, robot_id: str, *, t_s: float, source: str, target: str, reason: str
@@ -210,7 +218,7 @@ class Telemetry(Closing):
 
     def log_truth(self, robot_id: str, *, t_s: float, pose: Pose2D) -> None:
         """Ground truth from the world; sent in batches of steps."""
-        self._extent.add(pose.x_m, pose.y_m)
+        self._extent.add_point(pose.x_m, pose.y_m)
         self._outbox.add_row(
             f"truth/{robot_id}",
             TruthRow(t_s, pose.x_m, pose.y_m),
@@ -327,7 +335,8 @@ class Telemetry(Closing):
 
     def flush(self, timeout_s: float = 0.0) -> bool:
         """Hand every buffered row over now; with a timeout, wait (bounded) until the
-        background thread has passed everything to the sinks. Whether it has.
+        background thread has passed everything to the sinks and they have it (written,
+        or sent to the viewer). Whether they have.
 
         For a figure that must be complete at a given moment (`dropped` in a final report).
         """
@@ -343,21 +352,6 @@ class Telemetry(Closing):
         if self._layout_ids is not None and extent is not None:
             self.send_blueprint(self._layout_ids, extent_m=extent)  # the whole run in view
         self._outbox.close()
-
-
-def sonar_rays(
-    robot: RobotParams, pose: Pose2D, ranges_m: Sequence[float]
-) -> list[tuple[Vec2, Vec2]]:
-    """World-frame segments of the sonars that see something (range below the maximum)."""
-    rays = []
-    for unit, range_m in zip(robot.sonar.units, ranges_m, strict=False):
-        if range_m >= robot.sonar.max_range_m:
-            continue
-        start = pose.to_world(Vec2(unit.x_m, unit.y_m))
-        heading = pose.theta_rad + math.radians(unit.heading_deg)
-        end = start + Vec2(range_m * math.cos(heading), range_m * math.sin(heading))
-        rays.append((start, end))
-    return rays
 
 
 def _circle_outline(x: float, y: float, r: float, n: int = 32) -> list[tuple[float, float]]:

@@ -16,6 +16,7 @@ from pathlib import Path
 import pytest
 
 from phalanx.core.geometry import Pose2D, Twist2D
+from phalanx.core.rigid_body import LiveErrors
 from phalanx.telemetry.rrd import summarize
 from phalanx.telemetry.sinks import TelemetrySink, rerun_executable, viewer_reachable
 from phalanx.telemetry.stream import Telemetry
@@ -72,11 +73,22 @@ def wait_for(condition: Callable[[], bool], timeout_s: float) -> None:
         time.sleep(0.05)
 
 
+def rows_in(path: Path, entity: str) -> int:
+    """Rows of `entity` an aggregator has written to `path` so far (it writes as it
+    receives: the SDK's flush is done when the rows are sent, the file a little later).
+    """
+    try:
+        return summarize(path).rows[entity] if path.exists() else 0
+    except Exception:  # a message half written
+        return 0
+
+
 def log_steps(tel: Telemetry, first: int, count: int) -> int:
     for k in range(first, first + count):
         tel.log_step(
             "r1", t_s=0.1 * k, step=k, pose=Pose2D(0.01 * k, 0.0, 0.0),
-            cmd=Twist2D(0.1, 0.0), measured=Twist2D(0.1, 0.0), errors=(0.1, 0.2, 0.3),
+            cmd=Twist2D(0.1, 0.0), measured=Twist2D(0.1, 0.0),
+            tracking=LiveErrors(Pose2D(0.01 * k, 1.0, 0.0), 0.1, 0.2, 0.3),
         )  # fmt: skip
     return first + count
 
@@ -107,6 +119,7 @@ def test_viewer_that_goes_and_comes_back(tmp_path: Path) -> None:
         wait_for(lambda: tel.viewer_live, 10.0)
         k = log_steps(tel, 0, 40)
         assert tel.flush(10.0)
+        wait_for(lambda: rows_in(first, "/robots/r1/pose") == 40, 10.0)
     wait_for(lambda: not tel.viewer_live, 10.0)
     k = log_steps(tel, k, 30)  # nobody listening: dropped and counted
     assert tel.flush(10.0)
@@ -115,6 +128,7 @@ def test_viewer_that_goes_and_comes_back(tmp_path: Path) -> None:
         wait_for(lambda: tel.viewer_live, 10.0)
         k = log_steps(tel, k, 20)
         tel.close()
+        wait_for(lambda: rows_in(second, "/robots/r1/pose") == 20, 10.0)
     tel.close()  # safe twice
     assert summarize(first).rows["/robots/r1/pose"] == 40
     back = summarize(second)
