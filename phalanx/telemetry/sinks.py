@@ -2,9 +2,9 @@
 memory) and the background thread that hands them to the Rerun SDK.
 
 Logging never blocks a control step: calls append to a bounded outbox drained by a
-background thread, which runs at the lowest priority so that its work fills the time the
-control steps leave; when the sink is slow the oldest entries are dropped, when a viewer
-is gone its entries are, and both are counted in `dropped`.
+background thread (beside a control loop, at the lowest priority, so that its work fills
+the time the control steps leave); when the sink is slow the oldest entries are dropped,
+when a viewer is gone its entries are, and both are counted in `dropped`.
 """
 
 from __future__ import annotations
@@ -118,14 +118,22 @@ class _Batch:
 class Outbox:
     """The bounded queue between logging calls and the sinks, drained by its own thread.
 
+    `background`: the thread runs at the lowest priority (beside a control loop, whose
+    steps must not wait for it). Not for a recording written after a run, which nothing
+    waits for but its end: a low-priority thread on a busy host could not finish it
+    within `CLOSE_TIMEOUT_S`.
+
     A viewer is probed every `VIEWER_CHECK_S`: while it is gone its entries are dropped
     (counted), and when it comes back the stream reconnects and re-sends the static jobs
     (obstacles, bounds, layout). A file sink is a stream of its own, so a viewer coming
     and going never costs the recording anything.
     """
 
-    def __init__(self, *, recording_id: str, sink: TelemetrySink, app_id: str) -> None:
+    def __init__(
+        self, *, recording_id: str, sink: TelemetrySink, app_id: str, background: bool = False
+    ) -> None:
         self.app_id, self.recording_id = app_id, recording_id
+        self.background = background  # the thread yields to the process's control loop
         self.dropped = 0  # entries that missed at least one sink
         self.closed = False
         self._jobs: deque[tuple[Job, int]] = deque()  # (job, entries it carries)
@@ -256,7 +264,8 @@ class Outbox:
     # --- the background thread -----------------------------------------------------------
 
     def _drain(self) -> None:
-        _yield_to_control()
+        if self.background:
+            _yield_to_control()
         while True:
             with self._wake:
                 if not self._jobs and not self.closed:

@@ -89,9 +89,10 @@ class Telemetry(Closing):
     """phalanx's entity layout over one recording id, to a file, a viewer, both, or memory.
 
     Every call only appends to a bounded `Outbox`, whose background thread hands entries
-    to the Rerun SDK; a viewer that goes away costs only its own entries (counted in
-    `dropped`), and one that comes back is sent the static entities (obstacles, bounds,
-    layout) again.
+    to the Rerun SDK (at the lowest priority with `background`, for a process whose
+    control loop must not wait for it); a viewer that goes away costs only its own
+    entries (counted in `dropped`), and one that comes back is sent the static entities
+    (obstacles, bounds, layout) again.
     """
 
     def __init__(
@@ -101,6 +102,7 @@ class Telemetry(Closing):
         sink: TelemetrySink,
         app_id: str = "phalanx",
         robot_id: str | None = None,
+        background: bool = False,
     ) -> None:
         self.sink = sink
         self.robot_id = robot_id
@@ -109,7 +111,9 @@ class Telemetry(Closing):
         self._trails: dict[str, deque[tuple[float, float]]] = {}
         self._extent = _Extent()
         self._layout_ids: list[str] | None = None  # set once a layout was sent
-        self._outbox = Outbox(recording_id=recording_id, sink=sink, app_id=app_id)
+        self._outbox = Outbox(
+            recording_id=recording_id, sink=sink, app_id=app_id, background=background
+        )
 
     @property
     def dropped(self) -> int:

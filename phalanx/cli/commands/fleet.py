@@ -229,7 +229,10 @@ def _telemetry(
     sink = sink_for(path, url)
     if sink.kind != "off" and recording_id is None:
         raise typer.BadParameter("telemetry needs --recording-id (one per fleet run)")
-    return Telemetry(recording_id=recording_id or "off", sink=sink, robot_id=robot_id)
+    # (the world's and agents' control loops come first: the telemetry thread yields)
+    return Telemetry(
+        recording_id=recording_id or "off", sink=sink, robot_id=robot_id, background=True
+    )
 
 
 def _run_agent(
