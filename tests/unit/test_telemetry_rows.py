@@ -84,22 +84,22 @@ def test_the_recording_has_each_steps_rays_and_errors(tmp_path: Path) -> None:
             raise ZeroDivisionError("a leader on its follower's slot")
         return LiveErrors(Pose2D(0.5 * k, 1.0, 0.0), 0.1 * k, 0.2, 0.3)
 
-    poses = [Pose2D(0.5 * k, 0.1 * k, 0.2 * k) for k in range(6)]
+    visited = [Pose2D(0.5 * k, 0.1 * k, 0.2 * k) for k in range(6)]
     with Telemetry(recording_id="rows", sink=TelemetrySink(kind="file", path=path)) as tel:
-        for k, pose in enumerate(poses):
+        for k, pose in enumerate(visited):
             tel.log_step(
                 "r2", t_s=0.1 * k, step=k, pose=pose, cmd=Twist2D(0.1, 0.0),
                 measured=Twist2D(0.1, 0.0), tracking=lambda k=k: tracking(k), sonar=SONAR,
                 sonar_ranges_m=ranges, fsm_state="FORMATION_TRACK", leader_id="r1",
             )  # fmt: skip
     strips = read_back(path, "/robots/r2/sonar", "LineStrips2D:strips")
-    assert len(strips) == len(poses)
-    for pose, row in zip(poses, strips, strict=True):
+    assert len(strips) == len(visited)
+    for pose, row in zip(visited, strips, strict=True):
         expected = np.reshape(ray_by_ray(SONAR, pose, list(ranges)), (-1, 2, 2))
         np.testing.assert_allclose(np.array(row), expected, atol=1e-5)  # stored as float32
     linear = read_back(path, "/robots/r2/errors/linear_pct", "Scalars:scalars")
     assert [v for (v,) in linear] == pytest.approx([0.0, 0.1, 0.2, 0.4, 0.5])  # not step 3
-    assert len(read_back(path, "/robots/r2/pose", "Points2D:positions")) == len(poses)
+    assert len(read_back(path, "/robots/r2/pose", "Points2D:positions")) == len(visited)
     labels = read_back(path, "/robots/r2/pose", "Points2D:labels")
     assert labels[0] == ["r2 FORMATION_TRACK -> r1"]
 
