@@ -165,7 +165,7 @@ def _send_rays(rec: Any, base: str, rays: tuple[FloatArray, list[int]], index: l
 def _send_tracking(rec: Any, base: str, rows: Sequence[StepRow]) -> None:
     """The slot target and the errors, at the steps that have a leader to track."""
     rr = _rr()
-    tracked = [(r, e) for r in rows if (e := _resolved(r.tracking)) is not None]
+    tracked = _resolved(rows)
     if not tracked:
         return
     index = _indexes([r.t_s for r, _ in tracked], [r.step for r, _ in tracked])
@@ -179,17 +179,26 @@ def _send_tracking(rec: Any, base: str, rows: Sequence[StepRow]) -> None:
         )
 
 
-def _resolved(tracking: Tracking | None) -> LiveErrors | None:
-    """A step's slot target and errors; None (the step is left out) when what computes
-    them fails: that must cost the recording one point, not the batch.
+def _resolved(rows: Sequence[StepRow]) -> list[tuple[StepRow, LiveErrors]]:
+    """The rows that track a leader, with their slot target and errors. A row whose
+    errors cannot be computed is left out: that costs the recording its point, not the
+    batch, and the log one line a batch (with the first failure), not one a step.
     """
-    if tracking is None or isinstance(tracking, LiveErrors):
-        return tracking
-    try:
-        return tracking()
-    except Exception:
-        log.exception("telemetry: a step's errors could not be computed")
-        return None
+    tracked, failed, first = [], 0, None
+    for row in rows:
+        tracking = row.tracking
+        if tracking is None:
+            continue
+        try:
+            tracked.append((row, tracking if isinstance(tracking, LiveErrors) else tracking()))
+        except Exception as exc:
+            failed, first = failed + 1, first or exc
+    if first is not None:
+        log.error(
+            "telemetry: the errors of %d of %d steps could not be computed", failed, len(rows),
+            exc_info=first,
+        )  # fmt: skip
+    return tracked
 
 
 def send_truth_rows(rec: Any, robot_id: str, rows: Sequence[TruthRow]) -> None:

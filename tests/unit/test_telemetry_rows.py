@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import math
 import os
+import re
 import sys
 import threading
 import time
@@ -72,7 +73,9 @@ def read_back(path: Path, entity: str, column: str) -> list[object]:
     return values
 
 
-def test_the_recording_has_each_steps_rays_and_errors(tmp_path: Path) -> None:
+def test_the_recording_has_each_steps_rays_and_errors(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
     """Rays and errors are made when the batch goes out: what lands in the file is what
     the step saw, and a step whose errors cannot be computed loses only those.
     """
@@ -99,6 +102,11 @@ def test_the_recording_has_each_steps_rays_and_errors(tmp_path: Path) -> None:
         np.testing.assert_allclose(np.array(row), expected, atol=1e-5)  # stored as float32
     linear = read_back(path, "/robots/r2/errors/linear_pct", "Scalars:scalars")
     assert [v for (v,) in linear] == pytest.approx([0.0, 0.1, 0.2, 0.4, 0.5])  # not step 3
+    failures = [r for r in caplog.records if "could not be computed" in r.getMessage()]
+    assert len(failures) == 1  # one line for the batch (6 steps, unless the host stalled)
+    assert re.fullmatch(r"telemetry: the errors of 1 of \d steps could not be computed",
+                        failures[0].getMessage())  # fmt: skip
+    assert failures[0].exc_info is not None
     assert len(read_back(path, "/robots/r2/pose", "Points2D:positions")) == len(visited)
     labels = read_back(path, "/robots/r2/pose", "Points2D:labels")
     assert labels[0] == ["r2 FORMATION_TRACK -> r1"]
