@@ -99,6 +99,30 @@ def _assignment(text: str) -> tuple[str, object]:
     return path.strip(), parsed
 
 
+def sweep_compare(
+    before: Annotated[Path, typer.Argument(help="Results file of the sweep before.")],
+    after: Annotated[Path, typer.Argument(help="Results file of the sweep after.")],
+) -> None:
+    """Compare two sweeps of the same fields run by run: per row, the runs each reached
+    and the other did not, an exact sign test on them, and each reach's 95 % interval.
+    """
+    from phalanx.analysis import paired
+    from phalanx.core.errors import ConfigError
+
+    try:
+        sweeps = paired.load_sweep(before), paired.load_sweep(after)
+    except ConfigError as exc:
+        raise typer.BadParameter(str(exc)) from exc
+    for path, found in zip((before, after), sweeps, strict=True):
+        if found.skipped:
+            typer.echo(f"{path}: {found.skipped} lines that are not sweep runs, skipped", err=True)
+    pairs = paired.compare(*sweeps)
+    if not pairs:
+        raise typer.BadParameter("the two files share no run (same family, shape, robots, seed)")
+    typer.echo("\n".join(paired.table(pairs)))
+
+
 def register(app: typer.Typer) -> None:
-    """Add `phalanx sweep`."""
+    """Add `phalanx sweep` and `phalanx sweep-compare`."""
     app.command("sweep")(sweep)
+    app.command("sweep-compare")(sweep_compare)
