@@ -101,26 +101,35 @@ def _run_of(row: Any) -> tuple[Field, Run] | None:
     if not isinstance(row, dict) or not isinstance(row.get("job"), dict):
         return None
     job = row["job"]
-    try:
-        group = (str(job["course"]), str(job["shape"]), int(job["robots"]), str(job["controller"]))
-        seed = int(job["seed"])
-        reached, reverses = row["goal_reached"], int(row["deadlock_reverses"])
-        share = float(row["episode_share"])
-        time_s, route_s = row.get("time_to_goal_s"), row.get("route_s")
-    except (KeyError, TypeError, ValueError):
+    course, shape, controller = job.get("course"), job.get("shape"), job.get("controller")
+    robots, seed = _count(job.get("robots")), _count(job.get("seed"))
+    reverses, share = _count(row.get("deadlock_reverses")), _number(row.get("episode_share"))
+    reached = row.get("goal_reached")
+    if not (isinstance(course, str) and isinstance(shape, str) and isinstance(controller, str)):
         return None
-    if not isinstance(reached, bool) or reverses < 0 or not 0.0 <= share <= 1.0:
+    if robots is None or seed is None or reverses is None or share is None or share > 1.0:
         return None
-    time, route = _number(time_s), _number(route_s)
+    if not isinstance(reached, bool):
+        return None
+    time, route = _number(row.get("time_to_goal_s")), _number(row.get("route_s"))
     ratio = time / route if reached and time is not None and route else None
-    return (group, seed), Run(reached, ratio, reverses, share)
+    return ((course, shape, robots, controller), seed), Run(reached, ratio, reverses, share)
+
+
+def _count(value: object) -> int | None:
+    """A whole number >= 0 from a results line (None for anything else)."""
+    return value if isinstance(value, int) and not isinstance(value, bool) and value >= 0 else None
 
 
 def _number(value: object) -> float | None:
-    """A finite, non-negative number from a results line (None for anything else)."""
+    """A finite number >= 0 from a results line (None for anything else)."""
     if isinstance(value, bool) or not isinstance(value, int | float):
         return None
-    return float(value) if math.isfinite(value) and value >= 0 else None
+    try:
+        number = float(value)
+    except OverflowError:  # an integer too large for a float
+        return None
+    return number if math.isfinite(number) and number >= 0 else None
 
 
 def load_sweep(path: Path) -> Sweep:

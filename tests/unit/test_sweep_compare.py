@@ -103,9 +103,23 @@ def test_lines_that_are_not_runs_are_skipped_and_counted(
     odd["job"]["seed"] = 4
     odd["episode_share"] = 7.0  # a share above 1
     lines += [json.dumps(bad), json.dumps(worse), json.dumps(odd), "[1, 2]", '{"key": "torn', ""]
+    for seed, (where, field, value) in enumerate(
+        [
+            ("job", "robots", 5.0),  # a count that is not a whole number
+            ("job", "robots", True),
+            ("job", "shape", ["inline"]),
+            ("row", "episode_share", 10**400),  # too large for a float
+            ("row", "deadlock_reverses", float("inf")),
+        ],
+        start=5,
+    ):
+        row = json.loads(lines[0])
+        row["job"]["seed"] = seed
+        (row["job"] if where == "job" else row)[field] = value
+        lines.append(json.dumps(row))
     sweep = load_sweep(_write(tmp_path / "a.jsonl", lines))
     assert sorted(seed for _, seed in sweep.runs) == [0, 1]
-    assert sweep.skipped == 6
+    assert sweep.skipped == 11
 
 
 def test_one_field_twice_in_a_file_is_an_error(template: dict[str, Any], tmp_path: Path) -> None:
