@@ -118,7 +118,9 @@ def sweep_compare(
             typer.echo(f"{path}: {found.skipped} lines that are not sweep runs, skipped", err=True)
     pairs = paired.compare(*sweeps)
     if not pairs:
-        raise typer.BadParameter("the two files share no run (same family, shape, robots, seed)")
+        raise typer.BadParameter(
+            "the two files share no run (same family, shape, robots, controller, seed)"
+        )
     typer.echo("\n".join(paired.table(pairs)))
 
 
