@@ -229,7 +229,7 @@ class Senses:
         if state not in _NAVIGATING or carrot is None:
             return False
         behind = abs(bearing_rad(pose, carrot)) > BEHIND_RAD
-        return behind and not self.shape.sweep_clear(points) and not self.fold()
+        return behind and not self.shape.sweep_clear(points, rigid=True) and not self.fold()
 
     def _imminent(self, raw: Points, nearest: float, odometry: Odometry, last: Twist2D) -> bool:
         """An obstacle (any, robots included) inside the braking distance + margin."""

@@ -35,6 +35,8 @@ SWEEP_MARGIN_M = 0.35
 TURN_CENTRE_MARGIN_M = 0.75
 # ... and on an arc no tighter than this share of the shape's reach from it.
 TAIL_SHARE = 0.5
+# A slot at most this far across its tracked robot's heading, behind it, trails it (m).
+TRAIL_ACROSS_M = 1e-6
 # Left and right, for the formation's room to either side.
 SIDEWAYS_RAD = np.array([math.pi / 2, -math.pi / 2])
 
@@ -67,6 +69,12 @@ def _furthest_m(dx: FloatArray, dy: FloatArray) -> float:
     return max(math.hypot(float(dx[i]), float(dy[i])) for i in near_top)
 
 
+def _behind(formation: Formation, robot_id: str, parent: str) -> bool:
+    """Whether `robot_id`'s slot is straight behind `parent`'s."""
+    slot = formation.slot_of(robot_id, parent)
+    return slot.x_m < 0.0 and abs(slot.y_m) <= TRAIL_ACROSS_M
+
+
 class Shape:
     """One robot's view of its formation's shape (SI units, this robot's body frame)."""
 
@@ -90,15 +98,13 @@ class Shape:
     def adopt(self, formation: Formation) -> None:
         """Take `formation`'s slots (the group changed its shape; the same robots)."""
         self.formation = formation
-        for cached in ("offsets", "follower_slots"):
+        for cached in ("offsets", "follower_slots", "trailing", "reach_m"):
             self.__dict__.pop(cached, None)
         here = formation.positions[self.robot_id]
         # Every slot less this one's, as arrays (a fleet of n builds n of these: O(n) each
         # in numpy, the same numbers as subtracting the Vec2s)
         self._ids, xs, ys = _slot_arrays(formation)
         self._dx, self._dy = xs - here.x_m, ys - here.y_m
-        # How far the shape reaches from this robot (what turning on the spot sweeps).
-        self.reach_m = _furthest_m(self._dx, self._dy)
         # Half the shape's width across its heading, plus a robot radius.
         self.half_span_m = (float(ys.max()) - float(ys.min())) / 2 + self.radius_m
         self.half_width_m = self.radius_m + self.nav.body_margin_m
@@ -112,9 +118,34 @@ class Shape:
         return {r: Vec2(x, y) for r, x, y in zip(self._ids, dx, dy, strict=True)}
 
     @cached_property
+    def trailing(self) -> frozenset[str]:
+        """The robots that trail, with this robot leading: each tracks a slot straight
+        behind a robot other than this one (a column's third robot on). This robot's
+        turns and the whole shape's free way are reckoned without them: their slots
+        still swing with its turns, but they catch up at their own speed limit, going
+        round (`AVOID`) what lies across their way, instead of holding a long column to
+        the turn rate and the straight course its tail's swing alone would allow.
+        """
+        formation = self.formation
+        parents = formation.reroot(self.robot_id)
+        return frozenset(
+            r
+            for r, parent in parents.items()
+            if parent is not None and parent != self.robot_id and _behind(formation, r, parent)
+        )
+
+    @cached_property
+    def reach_m(self) -> float:
+        """How far the shape's robots that do not trail reach from this robot: what its
+        turning on the spot is reckoned to sweep.
+        """
+        keep = [i for i, r in enumerate(self._ids) if r not in self.trailing]
+        return _furthest_m(self._dx[keep], self._dy[keep])
+
+    @cached_property
     def follower_slots(self) -> list[Vec2]:
-        """Every other robot's slot relative to this robot's."""
-        return [p for r, p in self.offsets.items() if r != self.robot_id]
+        """Every other robot's slot relative to this robot's, but for those that trail."""
+        return [p for r, p in self.offsets.items() if r != self.robot_id and r not in self.trailing]
 
     def slots_within(self, distance_m: float) -> dict[str, Vec2]:
         """The robots whose slot is nearer than `distance_m` to this robot's (by
@@ -128,10 +159,16 @@ class Shape:
                 out[self._ids[i]] = offset
         return out
 
-    def turn_rate_radps(self) -> float:
-        """The fastest turn on the spot that keeps every slot within its speed share."""
+    def turn_rate_radps(self, *, rigid: bool = False) -> float:
+        """The fastest turn on the spot that keeps every slot within its speed share:
+        the slots that do not trail, or (`rigid`: the deadlock's turns, which swing the
+        whole shape round as one body before it backs out) every slot.
+        """
+        slots = [p for r, p in self.offsets.items() if r != self.robot_id] if rigid else None
         return turn_rate_radps(
-            self.follower_slots, self.limits.v_max_mps, self.limits.omega_max_radps
+            self.follower_slots if slots is None else slots,
+            self.limits.v_max_mps,
+            self.limits.omega_max_radps,
         )
 
     def turn_radius_m(self) -> float:
@@ -150,17 +187,24 @@ class Shape:
         )
         return braking + self.nav.stop_margin_m
 
-    def sweep_clear(self, points: Points) -> bool:
+    def sweep_clear(self, points: Points, *, rigid: bool = False) -> bool:
         """Whether the shape can turn on the spot about this robot: nothing within the
-        disc its slots sweep (seen from here).
+        disc its slots sweep (seen from here): those that do not trail, or (`rigid`: the
+        deadlock's question, whose turns swing the whole shape as one body) all of them.
         """
-        return nearest_m(points) > self.reach_m + self.radius_m + SWEEP_MARGIN_M
+        reach_m = _furthest_m(self._dx, self._dy) if rigid else self.reach_m
+        return nearest_m(points) > reach_m + self.radius_m + SWEEP_MARGIN_M
 
     def slots_in_formation(self, live: Flags, *, origin: bool = False) -> list[Vec2]:
-        """Slots of the robots in formation, in this robot's frame (own origin if asked)."""
+        """Slots of the robots in formation that do not trail, in this robot's frame (own
+        origin if asked).
+        """
         slots = [Vec2(0.0, 0.0)] if origin else []
+        trailing = self.trailing
         for rid, f in live.items():
-            if rid != self.robot_id and f.formed and f.fsm_state not in OUT_OF_FORMATION:
+            if rid == self.robot_id or rid in trailing:
+                continue
+            if f.formed and f.fsm_state not in OUT_OF_FORMATION:
                 slots.append(self.offsets[rid])
         return slots
 

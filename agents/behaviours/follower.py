@@ -7,11 +7,18 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
+
 from phalanx.agents.behaviours.base import Behaviour, Moment, turn_on_spot
 from phalanx.agents.behaviours.navigation import Clearances, bearing_rad, steer
 from phalanx.agents.control.common import FollowerController, FollowerInput
 from phalanx.agents.memory import Steering
-from phalanx.agents.perception import HEADINGS_RAD, clearance_along, corridor_clearance
+from phalanx.agents.perception import (
+    HEADINGS_RAD,
+    FloatArray,
+    clearance_along,
+    corridor_clearance,
+)
 from phalanx.agents.shape import Shape
 from phalanx.core.config import Scenario
 from phalanx.core.geometry import ZERO_TWIST, Pose2D, Twist2D, Vec2, wrap_angle
@@ -38,6 +45,9 @@ SETTLE_SPEED_MPS = (0.02, 0.1)  # slowest, fastest on the way
 SETTLE_AIMED_RAD = math.radians(10.0)  # drives only once aimed this well
 # A follower going round an obstacle aims this far ahead of its moving slot.
 AVOID_LEAD_S = 1.0
+# A follower boxed in on its detour (its way blocked at the bumper) takes any way out
+# with room for this many body widths and a stop.
+POCKET_NEED_BODIES = 1.0
 
 
 class Track(Behaviour):
@@ -165,15 +175,32 @@ class Avoid(Behaviour):
         narrow = corridor_clearance(sensing.points, HEADINGS_RAD, half_width_m=half_width)
         chosen_rad = self.steering.chosen_rad
         previous = None if chosen_rad is None else wrap_angle(chosen_rad - pose.theta_rad)
-        twist, chosen = steer(
-            desired,
-            Clearances(narrow, narrow),
-            nav=self.nav,
-            speed_mps=speed,
-            stop_gap_m=self.shape.stop_gap_m(),
-            need_m=min(dist_m, self.nav.lookahead_m),
-            omega_max_radps=self.limits.omega_max_radps,
-            previous_rad=previous,
-        )
+        clear, stop_gap_m = Clearances(narrow, narrow), self.shape.stop_gap_m()
+
+        def steer_for(need_m: float, window_rad: float) -> tuple[Twist2D, float]:
+            return steer(
+                desired,
+                clear,
+                nav=self.nav,
+                speed_mps=speed,
+                stop_gap_m=stop_gap_m,
+                need_m=need_m,
+                omega_max_radps=self.limits.omega_max_radps,
+                window_rad=window_rad,
+                previous_rad=previous,
+            )
+
+        twist, chosen = steer_for(min(dist_m, self.nav.lookahead_m), math.pi / 2)
+        if _way_m(narrow, chosen) <= stop_gap_m:
+            # In a pocket: no way within a quarter turn of the aim is clear for the
+            # whole way, and what it heads for is at its bumper. A lone robot may turn
+            # its back on its slot: the way nearest the aim with room for a body
+            # width and a stop, all round.
+            twist, chosen = steer_for(POCKET_NEED_BODIES * 2 * half_width + stop_gap_m, math.pi)
         self.steering.chosen_rad = pose.theta_rad + chosen
         return twist
+
+
+def _way_m(narrow: FloatArray, heading_rad: float) -> float:
+    """The free way along the candidate heading nearest `heading_rad` (body frame)."""
+    return float(narrow[int(np.argmin(np.abs(HEADINGS_RAD - heading_rad)))])

@@ -295,7 +295,9 @@ class DeadlockReverse(Behaviour):
         error = wrap_angle(came_in - moment.pose.theta_rad)
         if not REALIGNED_RAD < abs(error) <= REALIGN_MAX_RAD:
             return None
-        return turn_on_spot(error, self.nav.heading_gain_per_s, self.shape.turn_rate_radps())
+        return turn_on_spot(
+            error, self.nav.heading_gain_per_s, self.shape.turn_rate_radps(rigid=True)
+        )
 
 
 class DeadlockTurn(Behaviour):
@@ -356,4 +358,4 @@ class DeadlockTurn(Behaviour):
 
     def command(self, moment: Moment) -> Twist2D:
         """Turn on the spot, as fast as the shape allows."""
-        return Twist2D(0.0, self.side * self.shape.turn_rate_radps())
+        return Twist2D(0.0, self.side * self.shape.turn_rate_radps(rigid=True))

@@ -256,6 +256,7 @@ def deadend_escape(log: RunLog) -> Figure:
     """The dead-end escape: the way in, the deadlock reverse back out (dashed), the way
     round; and the errors of every follower while the group reverses, against the
     formation-core bounds (measured from `settle_s` after the switch, shaded before).
+    A group that went round without reversing is drawn and said so.
     """
     fig, (ax_map, ax_err) = plt.subplots(1, 2, figsize=(15, 6), width_ratios=[1.3, 1])
     draw_world(ax_map, log)
@@ -265,13 +266,14 @@ def deadend_escape(log: RunLog) -> Figure:
         back = np.where(tr.direction < 0, tr.y_m, np.nan)
         ax_map.plot(tr.x_m, back, color=colour, lw=2.5, ls="--")
         ax_map.plot(tr.x_m[0], tr.y_m[0], "o", color=colour)
+    direction = leader_direction(log)
+    reversing = direction < 0
+    how = "in, back out in formation (dashed), round" if reversing.any() else "round, no reverse"
     ax_map.set(xlabel="x (m)", ylabel="y (m)", aspect="equal",
-               title=f"{log.scenario.name}: in, back out in formation (dashed), round")  # fmt: skip
+               title=f"{log.scenario.name}: {how}")  # fmt: skip
     ax_map.legend(loc="upper left")
     ax_map.grid(True, alpha=0.3)
     _, backward = phase_masks(log)
-    direction = leader_direction(log)
-    reversing = direction < 0
     for i, rid in enumerate(_followers(log)):
         series = error_series(log, rid)
         colour = COLOURS[(i + 1) % len(COLOURS)]
@@ -295,6 +297,8 @@ def deadend_escape(log: RunLog) -> Figure:
                        color="0.9", lw=0)  # fmt: skip
     if spans.size:
         ax_err.set_xlim(float(log.t_s[spans[0]]) - 2, float(log.t_s[spans[-1]]) + 2)
+    else:
+        ax_err.text(0.5, 0.5, "no reverse", transform=ax_err.transAxes, ha="center")
     ax_err.set_yscale("symlog", linthresh=0.01)
     ax_err.set(xlabel="t (s)", ylabel="error (% or deg)",
                title="errors while reversing (grey: first settle_s, not measured)")  # fmt: skip

@@ -124,18 +124,22 @@ def test_a_wedge_folded_into_the_dead_end_backs_out_folded_and_gets_there() -> N
 
 
 @pytest.mark.slow
-def test_the_chain_backs_out_of_the_dead_end_once_and_gets_there() -> None:
+def test_the_chain_gets_past_the_dead_end_backing_out_at_most_once() -> None:
     # At the U's mouth the sonar's arcs close the mouth on the map and open it again
-    # from one re-plan to the next, so the chain's route flipped between going in and
+    # from one re-plan to the next, so the chain's route flips between going in and
     # going round: a route leading back for a single re-plan declared a dead end at the
     # mouth, three times, and the chain never got round. Only a route that leads back
-    # two re-plans running does now.
+    # two re-plans running does now. The chain's third robot trails the second, so
+    # its leader turns as fast as the second robot's slot allows: it now takes the way
+    # round while the route offers it (102 s, no reverse), where it used to drive in
+    # and back out (264 s). Either way it gets there, in formation when backing out.
     log = run_batch(load_scenario(SCENARIOS / "nav_deadend_inline3.toml"))
     leader = [e.target for e in log.transitions["r1"]]
-    assert leader.count(State.DEADLOCK_REVERSE) == 1
+    assert leader.count(State.DEADLOCK_REVERSE) <= 1
     assert leader[-1] == State.ARRIVED
     assert not log.collisions
-    _backed_out_within_the_papers_bounds(log)
+    if State.DEADLOCK_REVERSE in leader:
+        _backed_out_within_the_papers_bounds(log)
 
 
 @pytest.mark.slow
@@ -217,6 +221,35 @@ def test_without_a_goal_the_leader_wanders_and_nobody_collides() -> None:
     assert State.WANDER in log.traces["r1"].states
     assert not log.collisions
     assert np.hypot(log.traces["r1"].x_m[-1], log.traces["r1"].y_m[-1]) > 3.0
+
+
+def test_a_follower_boxed_in_on_its_detour_turns_away_from_its_slot_to_get_out() -> None:
+    # Where the chain of five's field 20 left its last robot: 11 cm from a post ahead and
+    # to its right, the field's wall 1.2 m to its left, its slot 2-3 m ahead past the
+    # post. No way within a quarter turn of the slot is clear for 2 m; it stood there
+    # (AVOID, 0 m/s) while the group went on, 96 s in that run.
+    scenario = navigation_scenario(
+        "field",
+        "inline",
+        2,
+        seed=20,
+        overrides={
+            "robots": [
+                {"id": "r1", "start": {"x_m": 10.5, "y_m": 5.3, "theta_deg": 0.0}},
+                {"id": "r2", "start": {"x_m": 7.83, "y_m": 4.82, "theta_deg": 31.0}},
+            ],
+            "duration_s": 20.0,
+            "initial_settle_s": 0.0,
+        },
+    )
+    log = run_batch(scenario)
+    boxed = log.traces["r2"]
+    assert State.AVOID in boxed.states[:10]  # it starts on a detour
+    out = next(e for e in log.transitions["r2"] if e.source == State.AVOID)
+    assert out.target == State.FORMATION_TRACK
+    assert out.t_s < 10.0
+    assert math.hypot(boxed.x_m[-1] - 7.83, boxed.y_m[-1] - 4.82) > 3.0
+    assert not log.collisions
 
 
 def test_breadcrumbs_know_the_way_they_came_in() -> None:

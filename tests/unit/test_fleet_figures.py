@@ -1,4 +1,5 @@
-"""Figures of a large fleet are drawn as collections, and the figure step can be skipped."""
+"""Figures of a large fleet are drawn as collections, and the figure step can be skipped;
+a dead end's drawing says when there was no reverse."""
 
 from __future__ import annotations
 
@@ -52,3 +53,14 @@ def test_results_without_figures_write_metrics_only(fleet_log: RunLog, tmp_path:
     assert (tmp_path / "metrics.json").exists()
     assert not list(tmp_path.glob("*.png"))
     assert metrics["followers"]
+
+
+def test_a_dead_end_drawing_of_a_group_that_never_reversed_says_so(fleet_log: RunLog) -> None:
+    # (the fleet's 3 s go forwards only: no reverse to draw the errors of)
+    fig = figures.deadend_escape(fleet_log)
+    try:
+        ax_map, ax_err = fig.axes[:2]
+        assert ax_map.get_title().endswith("round, no reverse")
+        assert [t.get_text() for t in ax_err.texts if t.get_text() == "no reverse"]
+    finally:
+        figures.plt.close(fig)
