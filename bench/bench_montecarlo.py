@@ -65,9 +65,11 @@ def summarise(rows: list[dict[str, Any]]) -> dict[str, Any]:
     return summary
 
 
-def deadend_run(shape: str) -> tuple[RunLog, dict[str, Any]]:
-    """The dead end to the end: backward-phase errors of every follower (after settle_s)."""
-    scenario = load_scenario(CONFIG_ROOT / "scenarios" / f"nav_deadend_{shape}3.toml")
+def deadend_run(shape: str, robots: int = 3) -> tuple[RunLog, dict[str, Any]]:
+    """The dead end (`nav_deadend_{shape}{robots}.toml`) to the end: backward-phase errors
+    of every follower (after settle_s).
+    """
+    scenario = load_scenario(CONFIG_ROOT / "scenarios" / f"nav_deadend_{shape}{robots}.toml")
     log = run_until_done(BatchRunner(scenario))
     _, backward = phase_masks(log)
     worst = dict.fromkeys(CORE_BOUNDS, 0.0)
