@@ -225,9 +225,9 @@ def test_without_a_goal_the_leader_wanders_and_nobody_collides() -> None:
 
 def test_a_follower_boxed_in_on_its_detour_turns_away_from_its_slot_to_get_out() -> None:
     # Where the chain of five's field 20 left its last robot: 11 cm from a post ahead and
-    # to its right, the field's wall 1.2 m to its left, its slot 2-3 m ahead past the
-    # post. No way within a quarter turn of the slot is clear for 2 m; it stood there
-    # (AVOID, 0 m/s) while the group went on, 96 s in that run.
+    # to its right, the field's wall 1.2 m to its left, its slot 1.7 m ahead past the
+    # post and moving away. No way within a quarter turn of the slot is clear for the
+    # whole way; it stood there (AVOID, 0 m/s) while the group went on, 96 s in that run.
     scenario = navigation_scenario(
         "field",
         "inline",
