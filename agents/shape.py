@@ -75,6 +75,10 @@ def _behind(formation: Formation, robot_id: str, parent: str) -> bool:
     return slot.x_m < 0.0 and abs(slot.y_m) <= TRAIL_ACROSS_M
 
 
+# What a shape derives from its slots once (dropped when it adopts new ones).
+_CACHED = ("offsets", "other_slots", "follower_slots", "trailing", "reach_m", "whole_reach_m")
+
+
 class Shape:
     """One robot's view of its formation's shape (SI units, this robot's body frame)."""
 
@@ -98,7 +102,7 @@ class Shape:
     def adopt(self, formation: Formation) -> None:
         """Take `formation`'s slots (the group changed its shape; the same robots)."""
         self.formation = formation
-        for cached in ("offsets", "follower_slots", "trailing", "reach_m"):
+        for cached in _CACHED:
             self.__dict__.pop(cached, None)
         here = formation.positions[self.robot_id]
         # Every slot less this one's, as arrays (a fleet of n builds n of these: O(n) each
@@ -135,6 +139,11 @@ class Shape:
         )
 
     @cached_property
+    def whole_reach_m(self) -> float:
+        """How far the whole shape reaches from this robot, trailing robots included."""
+        return _furthest_m(self._dx, self._dy)
+
+    @cached_property
     def reach_m(self) -> float:
         """How far the shape's robots that do not trail reach from this robot: what its
         turning on the spot is reckoned to sweep.
@@ -143,9 +152,14 @@ class Shape:
         return _furthest_m(self._dx[keep], self._dy[keep])
 
     @cached_property
+    def other_slots(self) -> dict[str, Vec2]:
+        """Every other robot's slot relative to this robot's."""
+        return {r: p for r, p in self.offsets.items() if r != self.robot_id}
+
+    @cached_property
     def follower_slots(self) -> list[Vec2]:
         """Every other robot's slot relative to this robot's, but for those that trail."""
-        return [p for r, p in self.offsets.items() if r != self.robot_id and r not in self.trailing]
+        return [p for r, p in self.other_slots.items() if r not in self.trailing]
 
     def slots_within(self, distance_m: float) -> dict[str, Vec2]:
         """The robots whose slot is nearer than `distance_m` to this robot's (by
@@ -164,12 +178,8 @@ class Shape:
         the slots that do not trail, or (`rigid`: the deadlock's turns, which swing the
         whole shape round as one body before it backs out) every slot.
         """
-        slots = [p for r, p in self.offsets.items() if r != self.robot_id] if rigid else None
-        return turn_rate_radps(
-            self.follower_slots if slots is None else slots,
-            self.limits.v_max_mps,
-            self.limits.omega_max_radps,
-        )
+        slots = list(self.other_slots.values()) if rigid else self.follower_slots
+        return turn_rate_radps(slots, self.limits.v_max_mps, self.limits.omega_max_radps)
 
     def turn_radius_m(self) -> float:
         """The tightest arc this robot may lead the shape along (m): the configured
@@ -192,7 +202,7 @@ class Shape:
         disc its slots sweep (seen from here): those that do not trail, or (`rigid`: the
         deadlock's question, whose turns swing the whole shape as one body) all of them.
         """
-        reach_m = _furthest_m(self._dx, self._dy) if rigid else self.reach_m
+        reach_m = self.whole_reach_m if rigid else self.reach_m
         return nearest_m(points) > reach_m + self.radius_m + SWEEP_MARGIN_M
 
     def slots_in_formation(self, live: Flags, *, origin: bool = False) -> list[Vec2]:

@@ -7,18 +7,11 @@ from __future__ import annotations
 
 import math
 
-import numpy as np
-
 from phalanx.agents.behaviours.base import Behaviour, Moment, turn_on_spot
 from phalanx.agents.behaviours.navigation import Clearances, bearing_rad, steer
 from phalanx.agents.control.common import FollowerController, FollowerInput
 from phalanx.agents.memory import Steering
-from phalanx.agents.perception import (
-    HEADINGS_RAD,
-    FloatArray,
-    clearance_along,
-    corridor_clearance,
-)
+from phalanx.agents.perception import HEADINGS_RAD, clearance_along, corridor_clearance
 from phalanx.agents.shape import Shape
 from phalanx.core.config import Scenario
 from phalanx.core.geometry import ZERO_TWIST, Pose2D, Twist2D, Vec2, wrap_angle
@@ -191,7 +184,7 @@ class Avoid(Behaviour):
             )
 
         twist, chosen = steer_for(min(dist_m, self.nav.lookahead_m), math.pi / 2)
-        if _way_m(narrow, chosen) <= stop_gap_m:
+        if clear.along_m(chosen) <= stop_gap_m:
             # In a pocket: no way within a quarter turn of the aim is clear for the
             # whole way, and what it heads for is at its bumper. A lone robot may turn
             # its back on its slot: the way nearest the aim with room for a body
@@ -199,8 +192,3 @@ class Avoid(Behaviour):
             twist, chosen = steer_for(POCKET_NEED_BODIES * 2 * half_width + stop_gap_m, math.pi)
         self.steering.chosen_rad = pose.theta_rad + chosen
         return twist
-
-
-def _way_m(narrow: FloatArray, heading_rad: float) -> float:
-    """The free way along the candidate heading nearest `heading_rad` (body frame)."""
-    return float(narrow[int(np.argmin(np.abs(HEADINGS_RAD - heading_rad)))])

@@ -7,8 +7,6 @@ from __future__ import annotations
 
 import math
 
-import numpy as np
-
 from phalanx.agents.behaviours.base import Behaviour, Moment, turn_on_spot
 from phalanx.agents.behaviours.navigation import (
     REORIENT_RAD,
@@ -17,13 +15,14 @@ from phalanx.agents.behaviours.navigation import (
     WanderHeading,
     bearing_rad,
     centring_rad,
+    heading_index,
     plan_of,
     reverse_twist,
     rigid_limit,
     steer,
 )
 from phalanx.agents.memory import BlockedTimers, Course, Progress, RecentEchoes, Steering
-from phalanx.agents.perception import HEADINGS_RAD, open_side
+from phalanx.agents.perception import open_side
 from phalanx.agents.reshape import ShapeKeeper
 from phalanx.agents.route import RoutePlanner
 from phalanx.agents.shape import Shape
@@ -166,7 +165,7 @@ class Steered(Behaviour):
 
 def _squeezed(clear: Clearances, desired_rad: float, dist_m: float, nav: NavigationConfig) -> bool:
     """The way towards `desired_rad` is free for the leader alone but not for the shape."""
-    i = int(np.argmin(np.abs(np.mod(HEADINGS_RAD - desired_rad + math.pi, 2 * math.pi) - math.pi)))
+    i = heading_index(desired_rad)
     need = min(nav.lookahead_m, dist_m)
     return bool(clear.wide[i] < need <= clear.narrow[i])
 

@@ -138,6 +138,17 @@ def bearing_rad(pose: Pose2D, point: Vec2) -> float:
     return math.atan2(local.y_m, local.x_m)
 
 
+def heading_index(heading_rad: float) -> int:
+    """Index of the candidate heading (`HEADINGS_RAD`) nearest `heading_rad` (body
+    frame, any number of turns).
+    """
+    off = np.abs(np.mod(HEADINGS_RAD - heading_rad + math.pi, 2 * math.pi) - math.pi)
+    return int(np.argmin(off))
+
+
+AHEAD_INDEX = heading_index(0.0)
+
+
 @dataclass(frozen=True, slots=True)
 class Clearances:
     """Free distance (m) along every candidate heading, the formation's and own; and the
@@ -151,7 +162,11 @@ class Clearances:
 
     def ahead_m(self) -> float:
         """Own free distance straight ahead."""
-        return float(self.narrow[np.argmin(np.abs(HEADINGS_RAD))])
+        return float(self.narrow[AHEAD_INDEX])
+
+    def along_m(self, heading_rad: float) -> float:
+        """Own free distance along the candidate heading nearest `heading_rad`."""
+        return float(self.narrow[heading_index(heading_rad)])
 
 
 def centring_rad(clear: Clearances) -> float:
