@@ -54,7 +54,7 @@ from phalanx.core.states import OUT_OF_FORMATION, State, TransitionEvent
 
 __all__ = ["Agent", "Observation", "StepOutput"]
 
-# Back in formation: within `leadership.formed_m` of the slot and this of its heading.
+# Back in formation: within `Shape.formed_within_m` of the slot and this of its heading.
 FORMED_RAD = math.radians(15.0)
 # A robot stopped for a low battery goes on once it is this far above the mark.
 BATTERY_HYSTERESIS_V = 0.3
@@ -432,7 +432,8 @@ class Agent:
             target, _ = self.parts.shape.slot_target(lead, t_s)
             error_m = (pose.position - target.position).norm()
             error_rad = abs(wrap_angle(pose.theta_rad - target.theta_rad))
-            self.formed = error_m < self.scenario.leadership.formed_m and error_rad < FORMED_RAD
+            within_m = self.parts.shape.formed_within_m(lead.robot_id, self.scenario.leadership)
+            self.formed = error_m < within_m and error_rad < FORMED_RAD
 
     def _output(
         self,

@@ -296,8 +296,9 @@ class LeadershipConfig(Model):
     `handover`: the leader blocked for `confirm_s` hands over to a follower whose path
     is clear. `min_tenure_s`: no handover sooner after the last change. `loss_grace_s`:
     after the leader's state goes stale (followers hold), wait this long before electing
-    a new one. `formed_m`: a robot that left its slot (avoiding, stopped, rejoining) is
-    back in formation, and may be tracked again, once within this of its slot.
+    a new one. `formed_m`, `formed_share`: a robot that left its slot is back in formation
+    (tracked again) within the larger of `formed_m` and `formed_share` of its slot's
+    distance from the robot it is laid out from (the paper's errors are shares of it).
     `join_timeout_s`: a restarted robot waits this long to hear the fleet (JOIN) before
     it acts on its own view.
     """
@@ -307,6 +308,7 @@ class LeadershipConfig(Model):
     min_tenure_s: NonNegativeFloat = 3.0
     loss_grace_s: NonNegativeFloat = 1.0
     formed_m: PositiveFloat = 0.1
+    formed_share: float = Field(default=0.1, ge=0.0, le=0.5)
     join_timeout_s: PositiveFloat = 2.0
 
 
