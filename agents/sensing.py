@@ -101,6 +101,9 @@ class Senses:
         self.robot_id = robot_id
         self.nav = scenario.navigation
         self.near_m = scenario.deadlock.obstacle_range_m
+        # (a follower in reactive navigation leaves its slot for what is this near)
+        avoid_m = self.nav.avoid_range_m
+        self.follower_near_m = avoid_m if avoid_m is not None and self.nav.reactive else self.near_m
         self.dt_s = scenario.dt_s
         self.sonar, self.shape, self.limits = sonar, shape, limits
         self.planner, self.progress, self.plan = planner, progress, plan
@@ -170,7 +173,8 @@ class Senses:
         bumper = any(status.bumpers)
         dead_end = self._dead_end(pose, masked, stance.state, t_s)
         # (short-circuit kept: the stall watch only runs with room ahead)
-        blocked_ahead = ahead_m < self.near_m or self._stalled(pose, t_s, stance.state) or dead_end
+        near_m = self.near_m if view.is_leader else self._follower_near_m(stance.state)
+        blocked_ahead = ahead_m < near_m or self._stalled(pose, t_s, stance.state) or dead_end
         return Sensing(
             points=masked,
             raw=raw,
@@ -185,6 +189,15 @@ class Senses:
             bumper=bumper,
             dead_end=dead_end,
         )
+
+    def _follower_near_m(self, state: str) -> float:
+        """How near ahead an obstacle blocks this robot as a follower: `avoid_range_m`,
+        or, stopped for one, anything that leaves it no room to start again (the stop's
+        release gap): it then goes round instead of standing there.
+        """
+        if state != State.EMERGENCY_STOP:
+            return self.follower_near_m
+        return max(self.follower_near_m, self.shape.stop_gap_m() + RELEASE_MARGIN_M)
 
     def _stalled(self, pose: Pose2D, t_s: float, state: str) -> bool:
         """A navigating leader that turns and creeps without getting anywhere is blocked

@@ -62,10 +62,12 @@ def test_a_step_never_ends_within_the_margin_of_an_echo_the_way_it_drives(
     out = GUARD.apply(wanted, sensing)
     assert out.omega_radps == omega_radps
     assert out.v_mps in (0.0, v_mps)
-    ahead = echo[0] * out.v_mps > 0.0  # the echo on the side it drives to
+    # the echo on the side it drives to (signs compared: a subnormal speed times the
+    # echo's x would round to 0)
+    ahead = out.v_mps != 0.0 and echo[0] * math.copysign(1.0, out.v_mps) > 0.0
     if out.v_mps != 0.0 and ahead:
         way = 0.0 if out.v_mps > 0.0 else math.pi
         gap_m = clearance_along(sensing.raw, way, half_width_m=RADIUS_M)
         assert gap_m >= min(abs(out.v_mps), V_MAX_MPS) * DT_S + CONTACT_MARGIN_M
     if out.v_mps == 0.0 and v_mps != 0.0:  # cut only for an echo it drives towards
-        assert echo[0] * v_mps > 0.0
+        assert echo[0] * math.copysign(1.0, v_mps) > 0.0
