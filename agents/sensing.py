@@ -197,7 +197,7 @@ class Senses:
         """
         if state != State.EMERGENCY_STOP:
             return self.follower_near_m
-        return max(self.follower_near_m, self.shape.stop_gap_m() + RELEASE_MARGIN_M)
+        return max(self.follower_near_m, release_gap_m(self.shape))
 
     def _stalled(self, pose: Pose2D, t_s: float, state: str) -> bool:
         """A navigating leader that turns and creeps without getting anywhere is blocked
@@ -274,7 +274,14 @@ def way_clear(sensing: Sensing, shape: Shape, view: FleetView, pose: Pose2D, t_s
     gap = clearance_along(
         sensing.raw, math.pi if backwards else 0.0, half_width_m=shape.radius_m + ESTOP_MARGIN_M
     )
-    return gap >= shape.stop_gap_m() + RELEASE_MARGIN_M
+    return gap >= release_gap_m(shape)
+
+
+def release_gap_m(shape: Shape) -> float:
+    """The free way ahead an emergency stop ends with: room to brake from cruise speed,
+    and `RELEASE_MARGIN_M` more (m).
+    """
+    return shape.stop_gap_m() + RELEASE_MARGIN_M
 
 
 @dataclass(frozen=True, slots=True)

@@ -12,7 +12,7 @@ unchanged; with reactive navigation off (the paper's scripted runs) every robot 
 from __future__ import annotations
 
 from phalanx.agents.agent import Agent, Observation
-from phalanx.agents.sensing import RELEASE_MARGIN_M
+from phalanx.agents.sensing import release_gap_m
 from phalanx.core.config import Scenario
 from phalanx.core.config_files import CONFIG_ROOT, load_robot, load_scenario
 from phalanx.core.formation import scenario_formation
@@ -96,7 +96,7 @@ def test_a_follower_stopped_short_of_an_obstacle_goes_round_it() -> None:
     agent = Agent("r2", scenario=SCENARIO, robot=ROBOT, formation=FORMATION)
     pose = FORMATION.slot_pose("r2", LEADER)
     range_m = 0.38  # past avoid_range_m, short of the room the stop asks to start again
-    release_m = agent.parts.shape.stop_gap_m() + RELEASE_MARGIN_M
+    release_m = release_gap_m(agent.parts.shape)
     assert AVOID_M < _gap_ahead_m(range_m) < release_m
     ranges = tuple(range_m if i in FRONT else 5.0 for i in range(16))
     status = RobotStatus(sonar_ranges_m=ranges, bumpers=(False,), battery_v=12.6)
