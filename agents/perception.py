@@ -37,6 +37,8 @@ _DOUBT = 1e-9
 GAP_FILL_RANGE_M = 1.5
 # Lateral spread an echo's arc is narrowed to when far (m).
 ARC_SPREAD_M = 0.3
+# An echo at the minimum range is taken this far outside the body's disc (m).
+EDGE_MARGIN_M = 1e-3
 # Free way enough to head straight for where one wants to go (m).
 NEAR_NEED_M = 2.0
 # Weight of "close to the last choice" against "close to the goal" (choose_heading).
@@ -127,6 +129,8 @@ class SonarGeometry:
     gap_fill: BoolArray  # rays that stand in for a blind gap beside the beam
     max_range_m: float
     radius_m: float
+    min_range_m: float
+    edge_m: FloatArray  # per ray: range to just outside the body's disc
 
     @classmethod
     def from_params(cls, robot: RobotParams) -> SonarGeometry:
@@ -174,7 +178,18 @@ class SonarGeometry:
             np.array(fill, dtype=bool),
             robot.sonar.max_range_m,
             robot.radius_m,
+            robot.sonar.min_range_m,
+            _edge_m(np.array(ox), np.array(oy), np.array(angle), robot.radius_m + EDGE_MARGIN_M),
         )
+
+    def _unclipped(self, ray_r: FloatArray) -> FloatArray:
+        """Ray ranges with a minimum-range reading moved in to the body's edge.
+
+        A sonar reads its minimum range for anything nearer, down to the transducer:
+        such an echo may be as near as the body itself (on the P3DX's rear ring, 10 cm
+        nearer than it reads), and is taken to be, so nothing drives into what it hides.
+        """
+        return np.where(ray_r <= self.min_range_m, np.minimum(ray_r, self.edge_m), ray_r)
 
     def points(
         self, ranges_m: Sequence[float] | FloatArray, known: Sequence[tuple[Vec2, float]] = ()
@@ -192,7 +207,7 @@ class SonarGeometry:
         """Obstacle points of the transducers `echo` marks (see `echoes`)."""
         if not echo.any():  # (also a reading short of the ring: `echoes` marks none)
             return np.zeros(0), np.zeros(0)
-        r = ranges[self.unit_of_ray]
+        r = self._unclipped(ranges[self.unit_of_ray])
         # A blind gap is assumed as near as its neighbour only close by, where it matters
         # for safety; far off it would close every opening the robot aims for.
         seen = echo[self.unit_of_ray] & (~self.gap_fill | (r < GAP_FILL_RANGE_M))
@@ -225,7 +240,7 @@ class SonarGeometry:
         """
         r = np.asarray(ranges_m, dtype=np.float64)
         echo = r < self.max_range_m - _AT_MAX_RANGE_M
-        ray_r = r[:, self.unit_of_ray]
+        ray_r = self._unclipped(r[:, self.unit_of_ray])
         seen = echo[:, self.unit_of_ray] & (~self.gap_fill | (ray_r < GAP_FILL_RANGE_M))
         spread = np.arctan2(ARC_SPREAD_M, np.maximum(ray_r, 1e-6))
         offset = np.where(self.gap_fill, self.offset_rad, _clip(self.offset_rad, spread))
@@ -311,6 +326,15 @@ class SonarGeometry:
 
 
 _LAST_RING: list[tuple[RobotParams, SonarGeometry]] = []
+
+
+def _edge_m(x_m: FloatArray, y_m: FloatArray, angle_rad: FloatArray, radius_m: float) -> FloatArray:
+    """Per ray from (`x_m`, `y_m`) along `angle_rad`: the distance to a circle of
+    `radius_m` about the body origin (0 from a transducer outside it).
+    """
+    along = x_m * np.cos(angle_rad) + y_m * np.sin(angle_rad)
+    inside = radius_m * radius_m - x_m * x_m - y_m * y_m
+    return np.asarray(np.maximum(-along + np.sqrt(np.maximum(along * along + inside, 0.0)), 0.0))
 
 
 def _reach(headings: Sequence[float], i: int, half_beam_rad: float) -> tuple[float, float]:

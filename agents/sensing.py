@@ -102,8 +102,7 @@ class Senses:
         self.nav = scenario.navigation
         self.near_m = scenario.deadlock.obstacle_range_m
         # (a follower in reactive navigation leaves its slot for what is this near)
-        avoid_m = self.nav.avoid_range_m
-        self.follower_near_m = avoid_m if avoid_m is not None and self.nav.reactive else self.near_m
+        self.follower_near_m = self.nav.avoid_range_m if self.nav.reactive else self.near_m
         self.dt_s = scenario.dt_s
         self.sonar, self.shape, self.limits = sonar, shape, limits
         self.planner, self.progress, self.plan = planner, progress, plan

@@ -258,8 +258,8 @@ class NavigationConfig(Model):
     Ranges are gaps between the robot's disc and an obstacle along a straight corridor
     `radius + body_margin_m` wide, measured in the direction of motion. A leader that
     gets no further than 0.3 m in `stall_s` counts as blocked; a follower leaves its
-    slot (AVOID) for what is nearer than `avoid_range_m` (unset: the leader's
-    `deadlock.obstacle_range_m`; its heading swings as its slot's motion bends).
+    slot (AVOID) for what is nearer than `avoid_range_m` (its heading swings as its
+    slot's motion bends: the leader's `deadlock.obstacle_range_m` would be too far).
     `reactive = false` switches avoidance and the emergency stop off (deadlocks and
     leadership still work; every robot is blocked within `deadlock.obstacle_range_m`):
     for scripted sensor events such as the paper's. Never on a real robot.
@@ -280,7 +280,7 @@ class NavigationConfig(Model):
     min_turn_radius_m: NonNegativeFloat = 2.5
     lookahead_m: PositiveFloat = 3.0
     clear_range_m: PositiveFloat = 2.5
-    avoid_range_m: PositiveFloat | None = None
+    avoid_range_m: PositiveFloat = 0.2
     body_margin_m: NonNegativeFloat = 0.05
     stop_margin_m: NonNegativeFloat = 0.08
     confirm_s: PositiveFloat = 0.2

@@ -1,5 +1,5 @@
 """How near an obstacle ahead has to be before a follower leaves its slot to go round it
-(`navigation.avoid_range_m`; unset, the leader's `deadlock.obstacle_range_m`).
+(`navigation.avoid_range_m`, 0.2 m by default; the leader's is `deadlock.obstacle_range_m`).
 
 A follower on its slot swings its heading from side to side as its slot's motion bends
 (a slot 1 m behind a leader on its tightest arc moves 22 deg off the leader's heading),
@@ -23,10 +23,8 @@ from phalanx.core.robot import Odometry, RobotStatus
 ROBOT = load_robot("p3dx")
 # A line abreast of five led from its middle: nothing of the group ahead of anyone.
 DEFAULT = load_scenario(CONFIG_ROOT / "scenarios" / "nav_corridor_collateral5.toml")
-AVOID_M = 0.2
-SCENARIO = DEFAULT.model_copy(
-    update={"navigation": DEFAULT.navigation.model_copy(update={"avoid_range_m": AVOID_M})}
-)
+AVOID_M = DEFAULT.navigation.avoid_range_m
+SCENARIO = DEFAULT
 FORMATION = scenario_formation(SCENARIO)
 LEADER = Pose2D(0.0, 0.0, 0.0)
 FRONT = (3, 4)  # the P3DX ring's two sonars at +-10 deg, 0.166 m ahead of the axle
@@ -76,10 +74,12 @@ def test_a_follower_is_blocked_only_nearer_than_the_leader() -> None:
     assert _blocked("r2", near)
 
 
-def test_unset_a_follower_is_blocked_where_the_leader_is() -> None:
-    assert DEFAULT.navigation.avoid_range_m is None
-    assert _blocked("r2", 0.45, DEFAULT)
-    assert not _blocked("r2", 1.0, DEFAULT)
+def test_set_to_the_leader_s_range_a_follower_is_blocked_where_the_leader_is() -> None:
+    leader_m = DEFAULT.deadlock.obstacle_range_m
+    navigation = DEFAULT.navigation.model_copy(update={"avoid_range_m": leader_m})
+    same = DEFAULT.model_copy(update={"navigation": navigation})
+    assert _blocked("r2", 0.45, same)
+    assert not _blocked("r2", 1.0, same)
 
 
 def test_without_reactive_navigation_a_follower_keeps_the_leader_s_threshold() -> None:
