@@ -294,6 +294,6 @@ def _clearances(
     lat2 = np.square(py * c - px * s)
     w2 = (half_width_m * half_width_m)[:, None, None]
     half_chord = np.sqrt(np.maximum(w2 - lat2, 0.0))
-    ahead = keep[:, None, :] & (lat2 < w2) & (f + half_chord > 0.0)
+    ahead = keep[:, None, :] & (lat2 < w2) & (f > 0.0)
     gap: FloatArray = np.where(ahead, f - half_chord, np.inf).min(axis=2)
     return gap

@@ -376,7 +376,9 @@ def corridor_clearance(
 
     A disc at `o` moving along unit `u` touches point `p` after `f - sqrt(w^2 - l^2)`,
     with `f`, `l` the along and across components of `p - o` and `w` the half-width;
-    a point already inside the disc gives 0, a point behind it never counts.
+    a point already inside the disc gives 0 along the headings it lies ahead of (`f > 0`);
+    a point behind the disc's centre never counts, so one the disc already overlaps there
+    (an echo at the body's edge) leaves every way away from it open.
     """
     x, y = points
     out = np.full(headings_rad.shape, NO_OBSTACLE_M)
@@ -393,7 +395,7 @@ def corridor_clearance(
         lat = -dx * s + dy * c
         inside = lat * lat < w2
         half_chord = np.sqrt(np.maximum(w2 - lat * lat, 0.0))
-        ahead = inside & (f + half_chord > 0.0)
+        ahead = inside & (f > 0.0)
         hit = np.where(ahead, np.maximum(f - half_chord, 0.0), np.inf)
         out = np.minimum(out, hit.min(axis=1))
     return out
@@ -411,7 +413,7 @@ def clearance_along(
     lat2 = np.square(y * c - x * s)
     w2 = half_width_m * half_width_m
     half_chord = np.sqrt(np.maximum(w2 - lat2, 0.0))
-    ahead = (lat2 < w2) & (f + half_chord > 0.0)
+    ahead = (lat2 < w2) & (f > 0.0)
     if not ahead.any():
         return NO_OBSTACLE_M
     return max(0.0, float(np.min(f[ahead] - half_chord[ahead])))

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from phalanx.agents.mapping import OccupancyMap
+from phalanx.agents.masking import _clearances
 from phalanx.agents.perception import (
     HEADINGS_RAD,
     SonarGeometry,
@@ -131,3 +132,21 @@ def test_a_reading_short_of_the_ring_has_no_echo_and_raises_nothing() -> None:
     assert SONAR.points(short)[0].size == 0
     grid = OccupancyMap(Vec2(0.0, 0.0))
     grid.update(Pose2D(0.0, 0.0, 0.0), SONAR, short, echo)
+
+
+def test_an_echo_the_body_overlaps_blocks_only_the_ways_towards_it() -> None:
+    """An echo at the body's edge (where one read at the sonar's minimum range is put)
+    lies inside the corridor's disc: it blocks every heading it lies ahead of, and none
+    of those leading away from it, so a robot standing against it can leave.
+    """
+    edge = pts((-0.251, 0.0))  # touching the body's back, half-width 0.3
+    gaps = corridor_clearance(edge, HEADINGS_RAD, half_width_m=0.3)
+    towards = np.cos(HEADINGS_RAD) < 0.0
+    assert np.all(gaps[towards] == 0.0)
+    assert np.all(gaps[~towards] == math.inf)
+    assert clearance_along(edge, 0.0, half_width_m=0.3) == math.inf
+    assert clearance_along(edge, math.pi, half_width_m=0.3) == 0.0
+    x, y = edge
+    batched = _clearances(x[None, :], y[None, :], np.ones((1, 1), dtype=bool), np.array([0.3]))
+    assert batched[0, 0] == math.inf  # ahead
+    assert batched[0, 1] < 0.0  # behind: overlapped (floored at 0 by its callers)
