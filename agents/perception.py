@@ -186,7 +186,7 @@ class SonarGeometry:
         """Ray ranges with a minimum-range reading moved in to the body's edge.
 
         A sonar reads its minimum range for anything nearer, down to the transducer:
-        such an echo may be as near as the body itself (on the P3DX's rear ring, 10 cm
+        such an echo may be as near as the body itself (on the P3DX's rear ring, 9.6 cm
         nearer than it reads), and is taken to be, so nothing drives into what it hides.
         """
         return np.where(ray_r <= self.min_range_m, np.minimum(ray_r, self.edge_m), ray_r)
@@ -329,12 +329,14 @@ _LAST_RING: list[tuple[RobotParams, SonarGeometry]] = []
 
 
 def _edge_m(x_m: FloatArray, y_m: FloatArray, angle_rad: FloatArray, radius_m: float) -> FloatArray:
-    """Per ray from (`x_m`, `y_m`) along `angle_rad`: the distance to a circle of
-    `radius_m` about the body origin (0 from a transducer outside it).
+    """Per ray from (`x_m`, `y_m`) along `angle_rad`: the distance out to a circle of
+    `radius_m` about the body origin (0 from a transducer outside it: nothing lies
+    between it and what it hears).
     """
     along = x_m * np.cos(angle_rad) + y_m * np.sin(angle_rad)
     inside = radius_m * radius_m - x_m * x_m - y_m * y_m
-    return np.asarray(np.maximum(-along + np.sqrt(np.maximum(along * along + inside, 0.0)), 0.0))
+    out = -along + np.sqrt(np.maximum(along * along + inside, 0.0))
+    return np.asarray(np.where(inside > 0.0, out, 0.0))
 
 
 def _reach(headings: Sequence[float], i: int, half_beam_rad: float) -> tuple[float, float]:
