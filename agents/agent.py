@@ -100,9 +100,7 @@ class Agent:
         joining: bool = False,
         prior_map: GridMap | None = None,
     ) -> None:
-        self.robot_id = robot_id
-        self.scenario = scenario
-        self.robot = robot
+        self.robot_id, self.scenario, self.robot = robot_id, scenario, robot
         self.dt_s = scenario.dt_s
         self.limits = run_limits(robot, scenario.limits)
         self.limiter = CommandLimiter(self.limits)
@@ -320,6 +318,8 @@ class Agent:
         parts.stops.update(view.live, self.robot_id, reversing=reversing)
         if odometry.twist.v_mps > STANDSTILL_MPS:
             parts.course.crumbs.drop(odometry.pose.position)  # ground just crossed: free
+        if view.anchor is not None and not view.is_leader:
+            parts.trail.hear(view.anchor.robot_id, view.anchor.pose.position, view.anchor.v_mps)
         if self._last_odometry is not None:
             self._active.observe(odometry, self._last_odometry)
 
@@ -429,7 +429,7 @@ class Agent:
         elif state in OUT_OF_FORMATION:
             self.formed = False
         elif not self.formed and lead is not None and state != State.HOLD:
-            target, _ = self.parts.shape.slot_target(lead, t_s)
+            target = self.parts.track.target(lead, t_s)
             error_m = (pose.position - target.position).norm()
             error_rad = abs(wrap_angle(pose.theta_rad - target.theta_rad))
             within_m = self.parts.shape.formed_within_m(lead.robot_id, self.scenario.leadership)

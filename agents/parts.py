@@ -30,6 +30,7 @@ from phalanx.agents.reshape import Arrived, Reshape, ShapeKeeper
 from phalanx.agents.route import RoutePlanner
 from phalanx.agents.sensing import Senses
 from phalanx.agents.shape import Shape
+from phalanx.agents.trail import Trail
 from phalanx.core.config import RobotParams, Scenario
 from phalanx.core.formation import Formation
 from phalanx.core.geometry import Pose2D, Vec2
@@ -62,6 +63,7 @@ class Parts:
         self.blocked = BlockedTimers()
         self.steering = Steering()
         self.course = Course(Breadcrumbs(2.0 * scenario.deadlock.safe_distance_m))
+        self.trail = Trail()  # the path of the robot this one's slot is laid out from
         self.startup = StartUp()
         self.stops = StopsBefore()
         self.planner = RoutePlanner(keep_off_m=self.shape.half_span_m, robot_id=robot_id)
@@ -91,7 +93,7 @@ class Parts:
 
     def _table(self, robot_id: str, limits: KinematicLimits, seed: int) -> dict[str, Behaviour]:
         """The behaviour of each state."""
-        scenario = self.scenario
+        scenario, nav = self.scenario, self.scenario.navigation
         wander = Wander(
             scenario, shape=self.shape, limits=limits, steering=self.steering,
             course=self.course, seed=seed,
@@ -106,9 +108,10 @@ class Parts:
             navigate = wander
         else:
             navigate = self.reshape.drive = self._go_to_goal(limits)
-        track = Track(
+        track = self.track = Track(
             robot_id, scenario, shape=self.shape, limits=limits,
             controller=make_controller(scenario.controller),
+            trail=self.trail if nav.column_path and nav.reactive else None,
         )  # fmt: skip
         still = StandStill()
         table: dict[str, Behaviour] = {

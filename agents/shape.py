@@ -138,6 +138,14 @@ class Shape:
             if parent is not None and parent != self.robot_id and _behind(formation, r, parent)
         )
 
+    def behind_by_m(self, anchor_id: str) -> float | None:
+        """How far this robot's slot is straight behind `anchor_id`'s (m), or None if it
+        is not straight behind it (a column's follower, not a wedge's or a line's).
+        """
+        if not _behind(self.formation, self.robot_id, anchor_id):
+            return None
+        return -self.formation.slot_of(self.robot_id, anchor_id).x_m
+
     def formed_within_m(self, anchor_id: str, leadership: LeadershipConfig) -> float:
         """How near its slot, laid out from `anchor_id`'s, this robot is back in
         formation: `formed_m`, or `formed_share` of the slot's distance from it if more (a

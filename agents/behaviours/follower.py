@@ -13,11 +13,13 @@ from phalanx.agents.control.common import FollowerController, FollowerInput
 from phalanx.agents.memory import Steering
 from phalanx.agents.perception import HEADINGS_RAD, clearance_along, corridor_clearance
 from phalanx.agents.shape import Shape
+from phalanx.agents.trail import Trail
 from phalanx.core.config import Scenario
 from phalanx.core.geometry import ZERO_TWIST, Pose2D, Twist2D, Vec2, wrap_angle
 from phalanx.core.limits import KinematicLimits
 from phalanx.core.peers import PeerState
-from phalanx.core.states import State
+from phalanx.core.rigid_body import predict_leader
+from phalanx.core.states import DEADLOCK_STATES, State
 
 # A follower near its slot settles onto it once its leader has stood still this long
 # (below these speeds): it drives straight onto the slot's position (within SETTLE_M of
@@ -36,6 +38,9 @@ ON_SLOT_M, OFF_SLOT_M = 0.005, 0.03
 SETTLE_GAIN_PER_S = 2.0  # heading gain on the way to the slot's position
 SETTLE_SPEED_MPS = (0.02, 0.1)  # slowest, fastest on the way
 SETTLE_AIMED_RAD = math.radians(10.0)  # drives only once aimed this well
+# While the group is in one of these states, a column's follower keeps to its rigid
+# slot (`_keeps_to_path`).
+RIGID_STATES = DEADLOCK_STATES | {State.ARRIVED}
 # A follower going round an obstacle aims this far ahead of its moving slot.
 AVOID_LEAD_S = 1.0
 # A follower boxed in on its detour (its way blocked at the bumper) takes any way out
@@ -47,7 +52,8 @@ class Track(Behaviour):
     """FORMATION_TRACK and FORMATION_REVERSE: the follower controller on the slot behind
     the tracked robot, its control point ahead of the axle forwards and behind it in
     reverse (the paper's switch, figure 4a, is the state; one object serves both, so
-    how long the leader has stood still carries across the switch).
+    how long the leader has stood still carries across the switch). Given the tracked
+    robot's `trail`, a column's follower keeps forwards to its slot on that robot's path.
     """
 
     def __init__(
@@ -58,9 +64,11 @@ class Track(Behaviour):
         shape: Shape,
         limits: KinematicLimits,
         controller: FollowerController,
+        trail: Trail | None = None,
     ) -> None:
         self.robot_id = robot_id
         self.shape, self.limits, self.controller = shape, limits, controller
+        self.trail = trail
         self.dt_s = scenario.dt_s
         self.leader_still_s = 0.0
         self.on_slot = False  # settled onto the slot's position while the leader stands
@@ -73,24 +81,51 @@ class Track(Behaviour):
         still = abs(lead.v_mps) < STILL_MPS and abs(lead.omega_radps) < STILL_RADPS
         self.leader_still_s = self.leader_still_s + self.dt_s if still else 0.0
         self.on_slot = self.on_slot and still
+        on_path = self.path_slot(lead, moment.t_s) if _keeps_to_path(moment) else None
         if self.leader_still_s >= ALIGN_AFTER_S:
-            settled = self._settle(moment.pose, lead, moment.t_s)
+            target = on_path or self.shape.slot_target(lead, moment.t_s)[0]
+            settled = self._settle(moment.pose, target)
             if settled is not None:
                 return settled
         odometry = moment.odometry
+        slot = self.shape.formation.slot_of(self.robot_id, lead.robot_id)
+        leader, twist, age_s = lead.pose, lead.twist, max(0.0, moment.t_s - lead.stamp_s)
+        if on_path is not None:
+            # The robot that would have this slot there, driving straight on.
+            at = on_path.to_world(Vec2(-slot.x_m, -slot.y_m))
+            leader, age_s = Pose2D(at.x_m, at.y_m, on_path.theta_rad), 0.0
+            twist = Twist2D(lead.v_mps, 0.0)
         inp = FollowerInput(
             follower=odometry.pose,
             follower_twist=odometry.twist,
-            leader=lead.pose,
-            leader_twist=lead.twist,
-            leader_age_s=max(0.0, moment.t_s - lead.stamp_s),
-            slot=self.shape.formation.slot_of(self.robot_id, lead.robot_id),
+            leader=leader,
+            leader_twist=twist,
+            leader_age_s=age_s,
+            slot=slot,
             direction=-1 if moment.state == State.FORMATION_REVERSE else 1,
             dt_s=self.dt_s,
         )
         return self.controller.command(inp)
 
-    def _settle(self, pose: Pose2D, lead: PeerState, t_s: float) -> Twist2D | None:
+    def path_slot(self, lead: PeerState, t_s: float) -> Pose2D | None:
+        """The robot's slot on `lead`'s path: None without a trail of it, for a slot
+        not straight behind it, or while the path is shorter than the slot is far.
+        """
+        trail = self.trail
+        if trail is None or trail.robot_id != lead.robot_id:
+            return None
+        behind_m = self.shape.behind_by_m(lead.robot_id)
+        if behind_m is None:
+            return None
+        now = predict_leader(lead.pose, lead.twist, max(0.0, t_s - lead.stamp_s))
+        return trail.pose_back(now.position, behind_m)
+
+    def target(self, lead: PeerState, t_s: float) -> Pose2D:
+        """Where this robot belongs now: its slot on `lead`'s path, or the rigid slot."""
+        on_path = self.path_slot(lead, t_s)
+        return on_path or self.shape.slot_target(lead, t_s)[0]
+
+    def _settle(self, pose: Pose2D, target: Pose2D) -> Twist2D | None:
         """Near its slot beside a leader standing still: drive straight onto the slot's
         position (forwards or backwards, whichever needs less turning), then turn on the
         spot to the slot's heading. None further off than `SETTLE_M`.
@@ -101,7 +136,6 @@ class Track(Behaviour):
         reverse out of a dead end say, would start with. A differential drive reaches a
         pose standing still only this way (turn, drive, turn).
         """
-        target, _ = self.shape.slot_target(lead, t_s)
         offset = target.position - pose.position
         distance_m = offset.norm()
         if distance_m > SETTLE_M:
@@ -123,6 +157,17 @@ class Track(Behaviour):
         slow, fast = SETTLE_SPEED_MPS
         speed = min(fast, max(slow, ALIGN_GAIN_PER_S * distance_m)) * math.cos(error)
         return Twist2D(sign * min(speed, distance_m / self.dt_s), turn.omega_radps)
+
+
+def _keeps_to_path(moment: Moment) -> bool:
+    """Whether a column's follower keeps to the path driven ahead of it: tracking
+    forwards, but for while the group backs out of a deadlock (a rigid turn and
+    reverse, which start from the rigid shape) or stands at its goal.
+    """
+    if moment.state != State.FORMATION_TRACK:
+        return False
+    head = moment.view.live.get(moment.view.leader_id)
+    return head is None or head.fsm_state not in RIGID_STATES
 
 
 class Avoid(Behaviour):

@@ -1,8 +1,7 @@
 """Configuration models (pydantic v2) for robots and scenarios.
 
 Every model forbids unknown keys and is frozen. `phalanx.core.config_files` reads them
-from TOML files, with errors that name the file, the field path and, for a misspelt key,
-the closest valid name.
+from TOML files, with errors naming the file, the field path and a misspelt key's fix.
 """
 
 from __future__ import annotations
@@ -18,9 +17,8 @@ from phalanx.core.localisation import LocalisationConfig
 PositiveFloat = Annotated[float, Field(gt=0.0)]
 NonNegativeFloat = Annotated[float, Field(ge=0.0)]
 
-# Resources a scenario may ask for. A run keeps every robot's trace in memory (about 100
-# bytes per robot and control step) and the world simulates every robot: these keep a
-# mistyped file from eating the machine before anything useful happens.
+# Resources a scenario may ask for (a run keeps every robot's trace in memory, about 100
+# bytes per robot and step): a mistyped file must not eat the machine before it starts.
 MAX_ROBOTS = 1000  # the largest fleet the batch runner is measured with (docs/PERFORMANCE.md)
 MAX_DURATION_S = 86_400.0  # a day of fleet time
 MAX_CONTROL_RATE_HZ = 100.0
@@ -262,7 +260,9 @@ class NavigationConfig(Model):
     slot's motion bends: the leader's `deadlock.obstacle_range_m` would be too far).
     `reactive = false` switches avoidance and the emergency stop off (deadlocks and
     leadership still work; every robot is blocked within `deadlock.obstacle_range_m`):
-    for scripted sensor events such as the paper's. Never on a real robot.
+    for scripted sensor events such as the paper's. Never on a real robot. `column_path`
+    (reactive only): a follower whose slot is straight behind the one it is laid out from
+    keeps to the path that robot drove, not to a slot swung out (`phalanx.agents.trail`).
 
     `reshape`: a navigating leader may change the formation's shape (shrink it, fold it
     into a column) where the scenario's shape does not fit, and back
@@ -271,6 +271,7 @@ class NavigationConfig(Model):
     """
 
     reactive: bool = True
+    column_path: bool = True
     reshape: bool = True
     prior_map: str = Field(default="", max_length=4096)
     waypoints: tuple[tuple[float, float], ...] = Field(default=(), max_length=MAX_ITEMS)
@@ -299,8 +300,7 @@ class LeadershipConfig(Model):
     a new one. `formed_m`, `formed_share`: a robot that left its slot is back in formation
     (tracked again) within the larger of `formed_m` and `formed_share` of its slot's
     distance from the robot it is laid out from (the paper's errors are shares of it).
-    `join_timeout_s`: a restarted robot waits this long to hear the fleet (JOIN) before
-    it acts on its own view.
+    `join_timeout_s`: a restarted robot waits this long to hear the fleet (JOIN) first.
     """
 
     handover: bool = True
