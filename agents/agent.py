@@ -318,7 +318,7 @@ class Agent:
         parts.stops.update(view.live, self.robot_id, reversing=reversing)
         if odometry.twist.v_mps > STANDSTILL_MPS:
             parts.course.crumbs.drop(odometry.pose.position)  # ground just crossed: free
-        if view.anchor is not None and not view.is_leader:
+        if parts.trail is not None and view.anchor is not None and not view.is_leader:
             parts.trail.hear(view.anchor.robot_id, view.anchor.pose.position, view.anchor.v_mps)
         if self._last_odometry is not None:
             self._active.observe(odometry, self._last_odometry)

@@ -63,7 +63,8 @@ class Parts:
         self.blocked = BlockedTimers()
         self.steering = Steering()
         self.course = Course(Breadcrumbs(2.0 * scenario.deadlock.safe_distance_m))
-        self.trail = Trail()  # the path of the robot this one's slot is laid out from
+        # The path of the robot this one's slot is laid out from (a column keeps to it).
+        self.trail = Trail() if nav.column_path and nav.reactive else None
         self.startup = StartUp()
         self.stops = StopsBefore()
         self.planner = RoutePlanner(keep_off_m=self.shape.half_span_m, robot_id=robot_id)
@@ -93,7 +94,7 @@ class Parts:
 
     def _table(self, robot_id: str, limits: KinematicLimits, seed: int) -> dict[str, Behaviour]:
         """The behaviour of each state."""
-        scenario, nav = self.scenario, self.scenario.navigation
+        scenario = self.scenario
         wander = Wander(
             scenario, shape=self.shape, limits=limits, steering=self.steering,
             course=self.course, seed=seed,
@@ -111,7 +112,7 @@ class Parts:
         track = self.track = Track(
             robot_id, scenario, shape=self.shape, limits=limits,
             controller=make_controller(scenario.controller),
-            trail=self.trail if nav.column_path and nav.reactive else None,
+            trail=self.trail,
         )  # fmt: skip
         still = StandStill()
         table: dict[str, Behaviour] = {

@@ -53,19 +53,15 @@ class Trail:
         """The robot `robot_id` is at `position`, driving at `v_mps` (another robot, or
         this one driving backwards or heard far from where it was, starts a new path).
         """
-        if robot_id != self.robot_id or v_mps < -REVERSE_MPS:
+        xs, ys, along = self._xs, self._ys, self._along
+        step_m = math.hypot(position.x_m - xs[-1], position.y_m - ys[-1]) if xs else 0.0
+        if robot_id != self.robot_id or v_mps < -REVERSE_MPS or step_m > JUMP_M:
             self.clear()
             self.robot_id = robot_id
-        xs, ys, along = self._xs, self._ys, self._along
         if not xs:
             xs.append(position.x_m)
             ys.append(position.y_m)
             along.append(0.0)
-            return
-        step_m = math.hypot(position.x_m - xs[-1], position.y_m - ys[-1])
-        if step_m > JUMP_M:
-            self.clear()
-            self.hear(robot_id, position, v_mps)
         elif step_m >= SPACING_M:
             xs.append(position.x_m)
             ys.append(position.y_m)
