@@ -43,7 +43,12 @@ from phalanx.wire.transport import TransportConfig, free_tcp_port, loopback_endp
 
 RATE_HZ = 20.0
 WARMUP_S = 1.0  # connection set-up and first-call costs are not steady state
+READY_S = 60.0  # every robot's session open and subscribed, or the row fails
 FLEET = "bench"
+
+
+class RowFailed(RuntimeError):
+    """A row's fleet did not run: some robots never started or never reported."""
 
 
 def _scenario(n: int) -> Scenario:
@@ -76,7 +81,7 @@ def robot(cfg: TransportConfig, rid: str, n: int, seconds: float, ready: Any, ou
             session.subscribe(
                 robot_key(FLEET, leader_id, "state"), RobotState, lambda _k, m: inbox.put(m)
             )
-        ready.wait()
+        ready.wait(timeout=READY_S)  # a robot that cannot start breaks it for all
         start = time.monotonic()
         next_pub = start + random.random() / RATE_HZ
         end = start + WARMUP_S + seconds
@@ -139,21 +144,28 @@ def measure(
     ready = ctx.Barrier(n)
     out = ctx.Queue()
     router = open_session(router_cfg) if router_cfg else None
+    procs = [
+        ctx.Process(target=robot, args=(cfgs[i], f"g{i}", n, seconds, ready, out), daemon=True)
+        for i in range(n)
+    ]
     try:
-        procs = [
-            ctx.Process(target=robot, args=(cfgs[i], f"g{i}", n, seconds, ready, out))
-            for i in range(n)
-        ]
         for p in procs:
             p.start()
-        results = [out.get(timeout=seconds + 120) for _ in range(n)]
+        results = []
+        give_up = time.monotonic() + READY_S + seconds + 60.0
+        while len(results) < n:
+            try:
+                results.append(out.get(timeout=max(0.1, give_up - time.monotonic())))
+            except queue.Empty:
+                raise RowFailed(f"{n - len(results)} of {n} robots sent no figures") from None
         deadline = time.monotonic() + 30.0
         for p in procs:
             p.join(max(0.1, deadline - time.monotonic()))
-            if p.is_alive():  # its figures are in: one stuck closing its session is killed
+    finally:
+        for p in procs:  # its figures are in (or the row failed): one still here is killed
+            if p.is_alive():
                 p.kill()
                 p.join(5)
-    finally:
         if router is not None:
             router.close()
     return [x for r in results for x in r]
@@ -184,7 +196,11 @@ def main() -> None:
 
 
 def _row(n: int, seconds: float, topology: str, transport: str, cal: Calibration) -> None:
-    pairs = measure(n, seconds, topology, transport == "lowlatency")
+    try:
+        pairs = measure(n, seconds, topology, transport == "lowlatency")
+    except RowFailed as failed:  # (each robot's own error is on stderr)
+        print(f"{topology:8s}  {transport:10s}  {n:6d}  failed: {failed}", flush=True)
+        return
     lat = sorted(total for total, _ in pairs)
     q = statistics.quantiles(lat, n=100)
     hop = statistics.quantiles([h for _, h in pairs], n=100)

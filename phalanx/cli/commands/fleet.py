@@ -39,7 +39,8 @@ LowLatencyOpt = Annotated[
     typer.Option(
         "--lowlatency",
         help="Zenoh's low-latency transport (no priorities, messages under 64 KiB): for a "
-        "fleet on one machine, as phalanx up runs it.",
+        "fleet on one machine joined through a router, as phalanx up runs it (a large "
+        "mesh of peers on it can hang Zenoh's declarations).",
     ),
 ]
 TlsCaOpt = Annotated[str | None, typer.Option(help="tls/ endpoints: the fleet CA's certificate.")]

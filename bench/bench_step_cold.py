@@ -1,0 +1,107 @@
+"""The agent core's step after a pause: what a 20 Hz follower pays for waking up.
+
+`bench_zenoh_latency.py`'s latency is the hop (leader's state put -> follower's
+process) plus the follower's step, run once per state, 50 ms apart. This steps the same
+follower (`g1` of a 10-robot grid, the benchmark's inputs) in one process, with
+nothing between two steps ("tight"), 50 ms of busy waiting ("spin"), or 50 ms asleep
+("sleep"), and with the garbage collector frozen after warm-up ("sleep, gc frozen").
+Each row: p50 / p90 / p99 of the step's wall time, and p99 as a ratio to the
+calibration workload timed in the same run (`bench/calibration.py`).
+
+    .venv/bin/python bench/bench_step_cold.py [--steps 300]
+"""
+
+from __future__ import annotations
+
+import argparse
+import gc
+import statistics
+import time
+from collections.abc import Callable
+
+from bench_zenoh_latency import _scenario
+from calibration import Calibration, load
+
+from phalanx.agents.agent import Agent, Observation
+from phalanx.core.config_files import load_robot
+from phalanx.core.formation import scenario_formation
+from phalanx.core.geometry import Pose2D, Twist2D
+from phalanx.core.robot import Odometry, RobotStatus
+from phalanx.wire.messages import RobotState
+
+PAUSE_S = 0.05  # a 20 Hz leader's states, one step each
+WARMUP = 50
+
+
+def follower() -> Callable[[int], float]:
+    """One step of the benchmark's follower on its leader's state `seq`: its wall time."""
+    scenario = _scenario(10)
+    formation = scenario_formation(scenario)
+    rid = "g1"
+    agent = Agent(rid, scenario=scenario, robot=load_robot("p3dx"), formation=formation)
+    leader_id = formation.leader_of(rid)
+    if leader_id is None:
+        raise SystemExit(f"{rid} has no leader in the grid")
+    here, there = formation.positions[rid], formation.positions[leader_id]
+    status = RobotStatus(sonar_ranges_m=(5.0,) * 16)
+
+    def step(seq: int) -> float:
+        now = time.monotonic()
+        lead = RobotState(
+            robot_id=leader_id,
+            seq=seq,
+            stamp_s=now,
+            x_m=there.x_m,
+            y_m=there.y_m,
+            theta_rad=0.0,
+            v_mps=0.15,
+            omega_radps=0.0,
+            fsm_state="NAVIGATE",
+        )
+        odometry = Odometry(Pose2D(here.x_m, here.y_m, 0.0), Twist2D(0.15, 0.0), now)
+        started = time.perf_counter()
+        agent.step(Observation(odometry, status), {leader_id: lead.peer()}, now)
+        return time.perf_counter() - started
+
+    return step
+
+
+def pause(kind: str) -> None:
+    """Between two steps: nothing, a busy wait or a sleep of PAUSE_S."""
+    if kind == "spin":
+        end = time.perf_counter() + PAUSE_S
+        while time.perf_counter() < end:
+            pass
+    elif kind != "tight":
+        time.sleep(PAUSE_S)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser()
+    parser.add_argument("--steps", type=int, default=300)
+    args = parser.parse_args()
+    cal = Calibration.measure()
+    print("the follower's step after a pause (ms)")
+    print("pause              p50     p90     p99  p99_mcal  load")
+    for kind in ("tight", "spin", "sleep", "sleep, gc frozen"):
+        step = follower()
+        for k in range(WARMUP):
+            step(k)
+        if kind.endswith("frozen"):
+            gc.freeze()
+        times = []
+        for k in range(WARMUP, WARMUP + args.steps):
+            pause(kind)
+            times.append(step(k))
+        gc.unfreeze()
+        q = statistics.quantiles(times, n=100)
+        print(
+            f"{kind:16s}  {1e3 * q[49]:6.3f}  {1e3 * q[89]:6.3f}  {1e3 * q[98]:6.3f}  "
+            f"{1e3 * cal.ratio(q[98]):8.1f}  {load()}",
+            flush=True,
+        )
+    Calibration.measure()
+
+
+if __name__ == "__main__":
+    main()
