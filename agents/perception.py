@@ -268,9 +268,7 @@ class SonarGeometry:
         echo: BoolArray = r < self.max_range_m - _AT_MAX_RANGE_M
         if not known or not echo.any():
             return echo
-        # No echo's arc reaches further from the body origin than this: a disc wholly
-        # beyond it cannot be met (the margin keeps rounding on the safe side).
-        reach_m = self.mount_m + float(r[echo].max()) + _REACH_MARGIN_M
+        reach_m = float(self.reach_m(r, echo))
         near = [(c, rad) for c, rad in known if math.hypot(c.x_m, c.y_m) - rad < reach_m]
         if near:
             echo &= ~self.arcs_meet(r, near).any(axis=0)
@@ -323,6 +321,16 @@ class SonarGeometry:
     def mount_m(self) -> float:
         """The furthest transducer from the body origin (m)."""
         return float(np.hypot(self.unit_x_m, self.unit_y_m).max())
+
+    def reach_m(self, ranges_m: FloatArray, echo: BoolArray) -> FloatArray:
+        """Per reading (the last axis its transducers): how far from the body origin
+        (m) its echoes' arcs can reach, the furthest transducer's mount plus the longest
+        echo, with a margin that keeps rounding on the safe side. A disc wholly beyond it
+        is met by no echo's arc.
+        """
+        longest = np.where(echo, ranges_m, 0.0).max(axis=-1)
+        reach: FloatArray = self.mount_m + longest + _REACH_MARGIN_M
+        return reach
 
 
 _LAST_RING: list[tuple[RobotParams, SonarGeometry]] = []

@@ -2,6 +2,7 @@
 gives each robot, bit for bit, what masking that robot on its own gives (an agent in its
 own process: the lockstep and real-time runtimes). The two take different code paths
 (a robot alone has one robot's slot discs), and `phalanx up` must reproduce `phalanx run`.
+Leaving out the slot discs no echo can reach (a large fleet's masking) changes nothing.
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
+from phalanx.agents import masking
 from phalanx.agents.masking import MaskInputs, SlotMasks, mask_readings
 from phalanx.agents.perception import MaskedEchoes, SonarGeometry
 from phalanx.analysis.sweep import Job
@@ -82,17 +84,12 @@ def _same(a: MaskedEchoes, b: MaskedEchoes) -> None:
     assert (a.ahead_m, a.behind_m) == (b.ahead_m, b.behind_m)
 
 
-@settings(max_examples=60, deadline=None)
-@given(data=st.data())
-def test_a_batch_masks_each_robot_as_masking_it_alone_does(
-    passes: list[Pass], data: st.DataObject
-) -> None:
-    assert len(passes) >= STEPS // EVERY - 1  # the spy saw the runner's passes
-    assert any(heard.view.lead is not None for p in passes for heard in p.inputs)
-    step = data.draw(st.sampled_from(passes))
+def _ranges(step: Pass, data: st.DataObject) -> np.ndarray:
+    """The pass's ranges, each transducer keeping the range the world gave it or taking
+    any other one: echoes anywhere, near the slot discs and the tracked robot's disc
+    among them.
+    """
     sonar = step.sonar
-    # Each transducer keeps the range the world gave it or takes any other one: echoes
-    # anywhere, near the slot discs and the tracked robot's disc among them.
     shape = step.ranges_m.shape
     top = sonar.max_range_m
     near_a_disc = st.builds(
@@ -102,7 +99,46 @@ def test_a_batch_masks_each_robot_as_masking_it_alone_does(
     )
     redrawn = data.draw(arrays(np.bool_, shape))
     drawn = data.draw(arrays(np.float64, shape, elements=st.floats(0.0, top) | near_a_disc))
-    ranges = np.where(redrawn, drawn, step.ranges_m)
+    return np.where(redrawn, drawn, step.ranges_m)
+
+
+@settings(max_examples=60, deadline=None)
+@given(data=st.data())
+def test_leaving_out_the_discs_no_echo_reaches_changes_no_mask(
+    passes: list[Pass], data: st.DataObject
+) -> None:
+    step = data.draw(st.sampled_from(passes))
+    sonar = step.sonar
+    ranges = _ranges(step, data)
+    readings = sonar.read_all(ranges).readings
+    reached = step.fleet.reached(sonar, ranges, ranges < sonar.max_range_m - 1e-6)
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(masking, "REACH_FROM_DISCS", 0)  # every pass leaves them out
+        left_out = mask_readings(sonar, readings, step.inputs, step.fleet)
+        patch.setattr(masking, "REACH_FROM_DISCS", 10**9)  # none does
+        kept = mask_readings(sonar, readings, step.inputs, step.fleet)
+    for a, b in zip(left_out, kept, strict=True):
+        _same(a, b)
+    # and no disc an echo's arc meets is among those left out
+    echo = ranges < sonar.max_range_m - 1e-6
+    for k in np.flatnonzero(~reached):
+        i = step.fleet.owner[k]
+        cx, cy = step.fleet.cx[k : k + 1], step.fleet.cy[k : k + 1]
+        dirs = (step.fleet.cos[k : k + 1], step.fleet.sin[k : k + 1])
+        met = sonar.arcs_meet_at(ranges[i : i + 1], cx, cy, step.fleet.slot_radius_m, dirs)
+        assert not (met[0] & echo[i]).any()
+
+
+@settings(max_examples=60, deadline=None)
+@given(data=st.data())
+def test_a_batch_masks_each_robot_as_masking_it_alone_does(
+    passes: list[Pass], data: st.DataObject
+) -> None:
+    assert len(passes) >= STEPS // EVERY - 1  # the spy saw the runner's passes
+    assert any(heard.view.lead is not None for p in passes for heard in p.inputs)
+    step = data.draw(st.sampled_from(passes))
+    sonar = step.sonar
+    ranges = _ranges(step, data)
     together = mask_readings(sonar, sonar.read_all(ranges).readings, step.inputs, step.fleet)
     for i, (inputs, own) in enumerate(zip(step.inputs, step.own, strict=True)):
         alone = mask_readings(sonar, [sonar.read(ranges[i])], [inputs], own)
