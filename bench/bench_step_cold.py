@@ -19,7 +19,7 @@ import statistics
 import time
 from collections.abc import Callable
 
-from bench_zenoh_latency import _scenario
+from bench_zenoh_latency import driving, fleet_scenario
 from calibration import Calibration, load
 
 from phalanx.agents.agent import Agent, Observation
@@ -27,7 +27,6 @@ from phalanx.core.config_files import load_robot
 from phalanx.core.formation import scenario_formation
 from phalanx.core.geometry import Pose2D, Twist2D
 from phalanx.core.robot import Odometry, RobotStatus
-from phalanx.wire.messages import RobotState
 
 PAUSE_S = 0.05  # a 20 Hz leader's states, one step each
 WARMUP = 50
@@ -35,7 +34,7 @@ WARMUP = 50
 
 def follower() -> Callable[[int], float]:
     """One step of the benchmark's follower on its leader's state `seq`: its wall time."""
-    scenario = _scenario(10)
+    scenario = fleet_scenario(10)
     formation = scenario_formation(scenario)
     rid = "g1"
     agent = Agent(rid, scenario=scenario, robot=load_robot("p3dx"), formation=formation)
@@ -47,17 +46,7 @@ def follower() -> Callable[[int], float]:
 
     def step(seq: int) -> float:
         now = time.monotonic()
-        lead = RobotState(
-            robot_id=leader_id,
-            seq=seq,
-            stamp_s=now,
-            x_m=there.x_m,
-            y_m=there.y_m,
-            theta_rad=0.0,
-            v_mps=0.15,
-            omega_radps=0.0,
-            fsm_state="NAVIGATE",
-        )
+        lead = driving(leader_id, there, seq, now)
         odometry = Odometry(Pose2D(here.x_m, here.y_m, 0.0), Twist2D(0.15, 0.0), now)
         started = time.perf_counter()
         agent.step(Observation(odometry, status), {leader_id: lead.peer()}, now)

@@ -34,7 +34,7 @@ from phalanx.agents.agent import Agent, Observation
 from phalanx.core.config import Scenario
 from phalanx.core.config_files import CONFIG_ROOT, apply_overrides, load_robot, load_scenario
 from phalanx.core.formation import scenario_formation
-from phalanx.core.geometry import Pose2D, Twist2D
+from phalanx.core.geometry import Pose2D, Twist2D, Vec2
 from phalanx.core.robot import Odometry, RobotStatus
 from phalanx.core.scenarios import grid_scenario
 from phalanx.wire.keys import robot_key
@@ -51,31 +51,37 @@ class RowFailed(RuntimeError):
     """A row's fleet did not run: some robots never started or never reported."""
 
 
-def _scenario(n: int) -> Scenario:
+def fleet_scenario(n: int) -> Scenario:
+    """The paper scenario's grid of `n` robots, no leader ever timed out."""
     base = load_scenario(CONFIG_ROOT / "scenarios" / "paper_wedge.toml")
     return apply_overrides(grid_scenario(base, n), ["leader_timeout_s=1e9"])
 
 
+def driving(rid: str, at: Vec2, seq: int = 0, stamp_s: float = 0.0) -> RobotState:
+    """`rid`'s state at `at`, heading along x at 0.15 m/s, as every robot here sends it."""
+    return RobotState(
+        robot_id=rid,
+        seq=seq,
+        stamp_s=stamp_s,
+        x_m=at.x_m,
+        y_m=at.y_m,
+        theta_rad=0.0,
+        v_mps=0.15,
+        omega_radps=0.0,
+        fsm_state="NAVIGATE",
+    )
+
+
 def robot(cfg: TransportConfig, rid: str, n: int, seconds: float, ready: Any, out: Any) -> None:
     """One robot: publish own state at RATE_HZ, step on every leader state received."""
-    scenario = _scenario(n)
+    scenario = fleet_scenario(n)
     formation = scenario_formation(scenario)
     agent = Agent(rid, scenario=scenario, robot=load_robot("p3dx"), formation=formation)
     leader_id = formation.leader_of(rid)
     here = formation.positions[rid]
     inbox: queue.SimpleQueue[RobotState] = queue.SimpleQueue()
     latencies: list[tuple[float, float]] = []  # (state -> command, state -> received)
-    state = RobotState(
-        robot_id=rid,
-        seq=0,
-        stamp_s=0.0,
-        x_m=here.x_m,
-        y_m=here.y_m,
-        theta_rad=0.0,
-        v_mps=0.15,
-        omega_radps=0.0,
-        fsm_state="NAVIGATE",
-    )
+    state = driving(rid, here)
     with open_session(cfg) as session:
         if leader_id is not None:
             session.subscribe(
