@@ -1,10 +1,10 @@
 """`phalanx run` of a large fleet, phase by phase: what a user waits for.
 
 The paper scenario's grid formation of N robots (`grid_scenario`), 20 s simulated,
-taken through the same steps as `phalanx run` (`run_batch`, then `write_results`'s
-parts): building the runner, stepping it, the metrics, the four PNG figures and the
-Rerun recording, each timed on its own, with the machine's load beside it and every
-time as a ratio to the calibration workload timed in the same run
+taken through the same steps as `phalanx run` (`run_batch`'s `BatchRunner`, then
+`write_results`'s parts): building the runner, stepping it, the metrics, the four PNG
+figures and the Rerun recording, each timed on its own, with the machine's load beside
+it and every time as a ratio to the calibration workload timed in the same run
 (`bench/calibration.py`). `phalanx run --no-figures` skips the figures' step.
 
     .venv/bin/python bench/bench_run.py [--robots 100 1000] [--seconds 20]

@@ -12,7 +12,9 @@ Two topologies: every process a Zenoh client of one router (as `phalanx up` runs
 peers connected directly (each listens on its own loopback port and connects to the
 others). Scouting is off in both. Two transports: Zenoh's default, and its low-latency
 one (a put written to the link from the calling thread), which `phalanx up` runs its
-processes on (`--lowlatency`).
+processes on (`--lowlatency`). A row whose robots do not all start within READY_S, or
+do not all report, is printed as failed (each robot's error on stderr), its processes
+killed, and the benchmark goes on.
 
     .venv/bin/python bench/bench_zenoh_latency.py [--robots 3 10 30] [--seconds 10]
         [--topology router peer] [--transport default lowlatency]
