@@ -31,6 +31,10 @@ from phalanx.wire.messages import Message
 from phalanx.wire.security import AccessControl, TlsFiles, apply_security
 
 log = logging.getLogger("phalanx.transport")
+PEER_LOWLATENCY = (
+    "a peer on the low-latency transport: in a mesh of 20 or more, Zenoh 1.10 was seen to "
+    "hang a declaration for good (docs/HARDWARE.md); join the fleet through a router"
+)
 MAX_STATUS_BYTES = 1024 * 1024
 # The largest payload sent on a low-latency session: under Zenoh's 64 KiB batch with room
 # for its headers (a fleet's messages are a few hundred bytes; a status reply a few KiB).
@@ -141,6 +145,8 @@ class FleetSession(Closing):
             zenoh.init_log_from_env_or("error")
             _log_initialised = True
         self._cfg = cfg
+        if cfg.lowlatency and cfg.mode == "peer":
+            log.warning(PEER_LOWLATENCY)
         self._session = _open_with_retry(cfg)
         self.stats = DecodeStats()
         self.relinks = 0  # how many times `relink` replaced the Zenoh session

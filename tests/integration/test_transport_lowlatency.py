@@ -4,6 +4,7 @@ process `phalanx up` starts asks for it."""
 
 from __future__ import annotations
 
+import logging
 import threading
 
 import pytest
@@ -13,6 +14,7 @@ from phalanx.runtime.local_fleet import UpOptions, plan
 from phalanx.wire.messages import AgentEvent
 from phalanx.wire.transport import (
     LOWLATENCY_MAX_BYTES,
+    PEER_LOWLATENCY,
     TransportConfig,
     free_tcp_port,
     loopback_endpoint,
@@ -36,6 +38,17 @@ def test_the_config_turns_priorities_off_with_it() -> None:
     assert on.get_json("transport/unicast/qos/enabled") == "false"
     assert off.get_json("transport/unicast/lowlatency") == "false"
     assert off.get_json("transport/unicast/qos/enabled") == "true"
+
+
+def test_a_peer_on_it_is_told_to_use_a_router(caplog: pytest.LogCaptureFixture) -> None:
+    """A large mesh of peers on it can hang Zenoh's declarations: a peer is warned, a
+    router (as `phalanx up` runs it) is not."""
+    with caplog.at_level(logging.WARNING, logger="phalanx.transport"):
+        for mode in ("router", "peer"):
+            listen = (loopback_endpoint(free_tcp_port()),)
+            with open_session(TransportConfig(mode=mode, listen=listen, lowlatency=True)):
+                pass
+            assert (PEER_LOWLATENCY in caplog.text) == (mode == "peer"), mode
 
 
 def test_messages_cross_and_an_oversized_status_is_refused_not_sent() -> None:
