@@ -24,6 +24,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from calibration import Calibration
 
 from phalanx.analysis.estimation import drift_cm_per_m, estimation_metrics, pose_errors
 from phalanx.analysis.metrics import CORE_BOUNDS, error_series, is_follower, run_metrics
@@ -210,13 +211,16 @@ def matrix_table(rows: list[dict[str, Any]]) -> list[str]:
     return out
 
 
-def cost_table(rows: list[dict[str, Any]]) -> list[str]:
-    """Estimator cost per step by sensing set, all formations and robots pooled."""
-    out = ["| sensing | steps | p50 µs | p99 µs |", "|---|---:|---:|---:|"]
+def cost_table(rows: list[dict[str, Any]], cal: Calibration) -> list[str]:
+    """Estimator cost per step by sensing set, all formations and robots pooled; each
+    figure also in micro-cal (millionths of the calibration workload).
+    """
+    out = ["| sensing | steps | p50 µs (micro-cal) | p99 µs (micro-cal) |", "|---|---:|---:|---:|"]
     for name in SETS:
         costs = np.concatenate([r["cost_us"] for r in rows if r["set"] == name])
         p50, p99 = np.percentile(costs, [50, 99])
-        out.append(f"| {name} | {costs.size} | {p50:.0f} | {p99:.0f} |")
+        u50, u99 = (1e6 * cal.ratio(us * 1e-6) for us in (p50, p99))
+        out.append(f"| {name} | {costs.size} | {p50:.0f} ({u50:.0f}) | {p99:.0f} ({u99:.0f}) |")
     return out
 
 
@@ -364,6 +368,7 @@ def main() -> None:
     parser.add_argument("--write", action="store_true", help="rewrite docs/RESULTS.md's part")
     args = parser.parse_args()
     jobs = [(form, name) for form in args.formations for name in SETS]
+    cal = Calibration.measure()
     started = time.perf_counter()
     with ProcessPoolExecutor(max_workers=args.workers) as pool:
         long_future = pool.submit(long_run)
@@ -373,7 +378,8 @@ def main() -> None:
     print(f"{len(jobs) + 2} runs in {time.perf_counter() - started:.0f} s wall")
     print("\n".join(matrix_table(rows)))
     print()
-    print("\n".join(cost_table(rows)))
+    print("\n".join(cost_table(rows, cal)))
+    Calibration.measure()
     print()
     print("long:", long)
     print("hidden:", hidden)

@@ -3,7 +3,8 @@ Python per message, but what it drops is counted nowhere) against phalanx's coun
 ring (`FleetSession.subscribe_polled`: a Zenoh callback appends the payload to a bounded
 deque and counts what falls out). A second process publishes `--n` payloads at about 10 000
 a second; the receiving process's CPU time per message is printed for each, with how many
-it kept and counted as dropped.
+it kept and counted as dropped, and as a ratio to the calibration workload timed in the
+same run (`bench/calibration.py`).
 
     .venv/bin/python bench/bench_rings.py [--n 20000] [--repeats 3]
 """
@@ -15,6 +16,8 @@ import resource
 import subprocess
 import sys
 import time
+
+from calibration import Calibration
 
 from phalanx.wire.transport import TransportConfig, free_tcp_port, open_session
 
@@ -75,14 +78,20 @@ def main() -> None:
     if args.publish:
         publish(args.publish[0], args.publish[1], int(args.publish[2]))
         return
+    cal = Calibration.measure()
     endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
-    print("| ring | run | receiver CPU per message | kept | counted dropped |")
+    print("| ring | run | receiver CPU per message (micro-cal) | kept | counted dropped |")
     print("|---|---:|---:|---:|---:|")
     with open_session(TransportConfig(mode="peer", listen=(endpoint,))) as session:
         for run in range(args.repeats):
             for kind in ("zenoh-ring", "counting-ring"):
                 cpu_us, kept, dropped = measure(kind, endpoint, session, args.n)
-                print(f"| {kind} | {run} | {cpu_us:.2f} µs | {kept} | {dropped} |", flush=True)
+                ucal = 1e6 * cal.ratio(cpu_us * 1e-6)
+                print(
+                    f"| {kind} | {run} | {cpu_us:.2f} µs ({ucal:.0f}) | {kept} | {dropped} |",
+                    flush=True,
+                )
+    Calibration.measure()
 
 
 if __name__ == "__main__":
