@@ -3,8 +3,8 @@
 `bench_zenoh_latency.py`'s latency is the hop (leader's state put -> follower's
 process) plus the follower's step, run once per state, 50 ms apart. This steps the same
 follower (`g1` of a 10-robot grid, the benchmark's inputs) in one process, with
-nothing between two steps ("tight"), 50 ms of busy waiting ("spin"), or 50 ms asleep
-("sleep"), and with the garbage collector frozen after warm-up ("sleep, gc frozen").
+nothing between two steps, 5, 20 or 50 ms of busy waiting, or 50 ms asleep (also with
+the garbage collector frozen after warm-up).
 Each row: p50 / p90 / p99 of the step's wall time, and p99 as a ratio to the
 calibration workload timed in the same run (`bench/calibration.py`).
 
@@ -55,14 +55,25 @@ def follower() -> Callable[[int], float]:
     return step
 
 
-def pause(kind: str) -> None:
-    """Between two steps: nothing, a busy wait or a sleep of PAUSE_S."""
-    if kind == "spin":
-        end = time.perf_counter() + PAUSE_S
-        while time.perf_counter() < end:
-            pass
-    elif kind != "tight":
-        time.sleep(PAUSE_S)
+# What lies between two steps: (label, busy waiting?, seconds, garbage collector frozen?)
+PAUSES = (
+    ("nothing", True, 0.0, False),
+    ("busy 5 ms", True, 0.005, False),
+    ("busy 20 ms", True, 0.02, False),
+    ("busy 50 ms", True, PAUSE_S, False),
+    ("asleep 50 ms", False, PAUSE_S, False),
+    ("asleep, gc frozen", False, PAUSE_S, True),
+)
+
+
+def pause(busy: bool, seconds: float) -> None:
+    """Between two steps: `seconds` of busy waiting, or asleep."""
+    if not busy:
+        time.sleep(seconds)
+        return
+    end = time.perf_counter() + seconds
+    while time.perf_counter() < end:
+        pass
 
 
 def main() -> None:
@@ -71,21 +82,21 @@ def main() -> None:
     args = parser.parse_args()
     cal = Calibration.measure()
     print("the follower's step after a pause (ms)")
-    print("pause              p50     p90     p99  p99_mcal  load")
-    for kind in ("tight", "spin", "sleep", "sleep, gc frozen"):
+    print("between steps       p50     p90     p99  p99_mcal  load")
+    for label, busy, seconds, frozen in PAUSES:
         step = follower()
         for k in range(WARMUP):
             step(k)
-        if kind.endswith("frozen"):
+        if frozen:
             gc.freeze()
         times = []
         for k in range(WARMUP, WARMUP + args.steps):
-            pause(kind)
+            pause(busy, seconds)
             times.append(step(k))
         gc.unfreeze()
         q = statistics.quantiles(times, n=100)
         print(
-            f"{kind:16s}  {1e3 * q[49]:6.3f}  {1e3 * q[89]:6.3f}  {1e3 * q[98]:6.3f}  "
+            f"{label:17s}  {1e3 * q[49]:6.3f}  {1e3 * q[89]:6.3f}  {1e3 * q[98]:6.3f}  "
             f"{1e3 * cal.ratio(q[98]):8.1f}  {load()}",
             flush=True,
         )
