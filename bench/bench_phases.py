@@ -20,26 +20,17 @@ from collections import Counter
 from collections.abc import Callable
 from typing import Any
 
-import bench_vs_irsim
+from bench_vs_irsim import phalanx_scenario
 from calibration import Calibration, load
 
 import phalanx.runtime.batch as batch_module
 from phalanx.agents.perception import SonarGeometry
-from phalanx.core.config import Scenario
-from phalanx.core.config_files import CONFIG_ROOT, load_scenario, validate_data
-from phalanx.core.scenarios import grid_scenario
 from phalanx.runtime.batch import BatchRunner
 
 
 def runner_for(n: int, steps: int) -> BatchRunner:
     """`bench_vs_irsim.py`'s phalanx run of `n` robots, `steps` steps long."""
-    base = grid_scenario(load_scenario(CONFIG_ROOT / "scenarios" / "paper_wedge.toml"), n)
-    data = base.model_dump()
-    data["duration_s"] = steps / base.control_rate_hz
-    data["world"]["circles"] = [
-        {"x_m": x, "y_m": y, "radius_m": r} for x, y, r in bench_vs_irsim.circles(n)
-    ]
-    return BatchRunner(validate_data(Scenario, data, source="bench"))
+    return BatchRunner(phalanx_scenario(n, steps))
 
 
 def timed(spent: Counter[str], label: str, work: Callable[..., Any]) -> Callable[..., Any]:

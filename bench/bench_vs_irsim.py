@@ -27,6 +27,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import Any
 
 from calibration import Calibration, load
 
@@ -41,6 +42,21 @@ def circles(n: int) -> list[tuple[float, float, float]]:
     rows = -(-n // cols)
     xs = [-rows * SPACING_M + 4.0 * k for k in range(int((rows * SPACING_M + 40) / 4.0))]
     return [(x, 2.5, 0.3) for x in xs] + [(x, -cols * SPACING_M - 0.5, 0.3) for x in xs]
+
+
+def phalanx_scenario(n: int, steps: int) -> Any:
+    """The phalanx side's scenario for `n` robots and `steps` steps, as `PHALANX` builds
+    it in its fresh process (which imports phalanx alone, so it spells it out itself).
+    """
+    from phalanx.core.config import Scenario
+    from phalanx.core.config_files import CONFIG_ROOT, load_scenario, validate_data
+    from phalanx.core.scenarios import grid_scenario
+
+    base = grid_scenario(load_scenario(CONFIG_ROOT / "scenarios" / "paper_wedge.toml"), n)
+    data = base.model_dump()
+    data["duration_s"] = steps / base.control_rate_hz
+    data["world"]["circles"] = [{"x_m": x, "y_m": y, "radius_m": r} for x, y, r in circles(n)]
+    return validate_data(Scenario, data, source="bench")
 
 
 PHALANX = """

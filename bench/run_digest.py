@@ -16,12 +16,11 @@ from __future__ import annotations
 import hashlib
 
 import numpy as np
-from bench_vs_irsim import circles
+from bench_vs_irsim import phalanx_scenario
 
 from phalanx.core.config import Scenario
-from phalanx.core.config_files import CONFIG_ROOT, load_scenario, validate_data
+from phalanx.core.config_files import CONFIG_ROOT, load_scenario
 from phalanx.core.runlog import RunLog
-from phalanx.core.scenarios import grid_scenario
 from phalanx.runtime.batch import BatchRunner
 
 GRIDS = ((3, 600), (10, 400), (100, 100), (300, 30))  # (robots, steps)
@@ -36,18 +35,9 @@ FILES = (
 NAV_S = 80.0  # the navigation scenarios' first seconds
 
 
-def grid(n: int, steps: int) -> Scenario:
-    """`bench_vs_irsim.py`'s phalanx run of `n` robots, `steps` steps long."""
-    base = grid_scenario(load_scenario(CONFIG_ROOT / "scenarios" / "paper_wedge.toml"), n)
-    data = base.model_dump()
-    data["duration_s"] = steps / base.control_rate_hz
-    data["world"]["circles"] = [{"x_m": x, "y_m": y, "radius_m": r} for x, y, r in circles(n)]
-    return validate_data(Scenario, data, source="digest")
-
-
 def cases() -> dict[str, Scenario]:
     """Every run the digest covers, by name."""
-    runs = {f"grid{n}": grid(n, steps) for n, steps in GRIDS}
+    runs = {f"grid{n}": phalanx_scenario(n, steps) for n, steps in GRIDS}
     for name in FILES:
         scenario = load_scenario(CONFIG_ROOT / "scenarios" / f"{name}.toml")
         if name.startswith("nav"):
