@@ -122,8 +122,12 @@ def compile_sources() -> None:
         compileall.compile_dir(folder.resolve(), quiet=1)  # (it skips the symlinks)
 
 
-def run(code: str, args: list[object]) -> tuple[float, dict[str, float]]:
-    """(whole process wall s, what the child printed) of one fresh process."""
+def run(
+    code: str, args: list[object], *, env: dict[str, str] | None = None
+) -> tuple[float, dict[str, Any]]:
+    """(whole process wall s, what the child printed) of one fresh process running
+    `code` with `args` as JSON in its argv[1] (and `env` as its environment, if given).
+    """
     started = time.perf_counter()
     done = subprocess.run(
         [sys.executable, "-c", code, json.dumps(args)],
@@ -131,6 +135,7 @@ def run(code: str, args: list[object]) -> tuple[float, dict[str, float]]:
         capture_output=True,
         text=True,
         timeout=1800,
+        env=env,
     )
     whole = time.perf_counter() - started
     return whole, json.loads(done.stdout.strip().splitlines()[-1])

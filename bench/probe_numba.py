@@ -22,15 +22,14 @@ from __future__ import annotations
 
 import argparse
 import importlib.util
-import json
 import os
 import statistics
-import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
+from typing import Any
 
+from bench_vs_irsim import run
 from calibration import Calibration, load
 
 KERNEL = """
@@ -78,7 +77,7 @@ cx, cy = rng.uniform(-5.0, 5.0, discs), rng.uniform(-5.0, 5.0, discs)
 r = rng.uniform(0.2, 0.4, discs)
 out = np.empty(rays)
 t1b = time.perf_counter()
-sys.path.insert(0, sys.argv[1])
+sys.path.insert(0, json.loads(sys.argv[1])[0])
 import kernel
 t2 = time.perf_counter()
 kernel.nearest_hits(ox, oy, dx, dy, cx, cy, r, out)
@@ -105,20 +104,10 @@ print(json.dumps({
 """
 
 
-def run_child(folder: Path) -> tuple[float, dict[str, float]]:
+def run_child(folder: Path) -> tuple[float, dict[str, Any]]:
     """(whole process wall s, what it printed) of one fresh process using the kernel."""
     env = {**os.environ, "NUMBA_CACHE_DIR": str(folder / "cache")}
-    started = time.perf_counter()
-    done = subprocess.run(
-        [sys.executable, "-c", CHILD, str(folder)],
-        check=True,
-        capture_output=True,
-        text=True,
-        timeout=600,
-        env=env,
-    )
-    whole = time.perf_counter() - started
-    return whole, json.loads(done.stdout.strip().splitlines()[-1])
+    return run(CHILD, [str(folder)], env=env)
 
 
 def main() -> None:
