@@ -346,6 +346,7 @@ class Agent:
                 self.robot_id,
                 confirm_s=self.scenario.navigation.confirm_s,
                 widened=parts.plan != "scripted",
+                queued=parts.shape.queued,
             )
         waypoints = self.scenario.navigation.waypoints
         in_estop = stance.state == State.EMERGENCY_STOP

@@ -308,17 +308,29 @@ class Leadership:
         return self.leader_id
 
 
-def group_deadlock(live: Flags, leader_id: str, *, confirm_s: float, widened: bool = True) -> str:
+def group_deadlock(
+    live: Flags,
+    leader_id: str,
+    *,
+    confirm_s: float,
+    widened: bool = True,
+    queued: Mapping[str, str] | None = None,
+) -> str:
     """Why the group is in deadlock (rule of the paper, widened), or "" if it is not.
 
     Every robot blocked (the paper: "all the robots experience obstacles on their path at
     the same time"); or, `widened`, the leader blocked for `confirm_s` with no follower
     clear to take over (the paper: "the confusion in lending their leadership").
+
+    `queued` (the paper's rule alone): each robot whose slot is straight behind another's
+    (a column), with that robot. Its path is that robot's: when that robot is blocked, so
+    is it, though its sonar cannot see past it to what blocks it.
     """
     lead = live.get(leader_id)
     if lead is None or not lead.obstacle or lead.fsm_state not in _DEADLOCK_FROM:
         return ""
-    if all(f.obstacle for f in live.values()):
+    ahead = {} if widened else dict(queued or {})
+    if all(_blocked(r, live, ahead) for r in live):
         return f"every robot blocked ({', '.join(sorted(live))})"
     clear = [r for r, f in live.items() if r != leader_id and can_lead(f)]
     if widened and lead.blocked_s >= confirm_s - _EPS_S and lead.dead_end:
@@ -326,6 +338,20 @@ def group_deadlock(live: Flags, leader_id: str, *, confirm_s: float, widened: bo
     if widened and lead.blocked_s >= confirm_s - _EPS_S and not clear:
         return f"{leader_id} blocked for {lead.blocked_s:.1f} s and no robot clear"
     return ""
+
+
+def _blocked(robot: str, live: Flags, ahead: Mapping[str, str]) -> bool:
+    """Whether `robot` is blocked, or queues behind a robot that is (up its column)."""
+    seen = set()
+    while robot not in seen:
+        flags = live.get(robot)
+        if flags is not None and flags.obstacle:
+            return True
+        seen.add(robot)
+        if robot not in ahead:
+            return False
+        robot = ahead[robot]
+    return False
 
 
 def in_deadlock_escape(live: Flags, leader_id: str) -> bool:

@@ -76,7 +76,9 @@ def _behind(formation: Formation, robot_id: str, parent: str) -> bool:
 
 
 # What a shape derives from its slots once (dropped when it adopts new ones).
-_CACHED = ("offsets", "other_slots", "follower_slots", "trailing", "reach_m", "whole_reach_m")
+_CACHED = (
+    "offsets", "other_slots", "follower_slots", "trailing", "queued", "reach_m", "whole_reach_m",
+)  # fmt: skip
 
 
 class Shape:
@@ -137,6 +139,19 @@ class Shape:
             for r, parent in parents.items()
             if parent is not None and parent != self.robot_id and _behind(formation, r, parent)
         )
+
+    @cached_property
+    def queued(self) -> dict[str, str]:
+        """Each robot whose slot is straight behind its parent's on the follow tree with
+        this robot leading (a column), and that parent: the robot in its way.
+        """
+        formation = self.formation
+        parents = formation.reroot(self.robot_id)
+        return {
+            r: parent
+            for r, parent in parents.items()
+            if parent is not None and _behind(formation, r, parent)
+        }
 
     def behind_by_m(self, anchor_id: str) -> float | None:
         """How far this robot's slot is straight behind `anchor_id`'s (m), or None if it

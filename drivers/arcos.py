@@ -18,6 +18,15 @@ Motion must then be commanded again. E-stop: `estop()` and the robot's own E-sto
 button latch in the driver (status `estopped`, motion refused) until `connect()` resets
 it deliberately, whether or not the firmware latches it (AMRISim does not: it reports
 no E-stop afterwards and moves on the next command).
+
+Commands. VEL takes whole mm/s and RVEL whole deg/s: each command's rounding remainder is
+carried into the next (a yaw rate of 2.4 deg/s goes out as 2, 3, 2, 2, 3, ...), so over a
+few control periods the robot turns as asked, not up to half a degree a second off.
+
+Simulators (AMRISim, MobileSim: the CONFIG packet's serial number is "SIM"). The driver
+can put the robot at a true pose when it first connects (`place_at`, SIM_SET_POSE) and
+asks for the robot's true pose before every SIP (SIM_STAT), reported as the status's
+`truth`; their headings come in whole degrees, followed finer (`heading_step_deg`).
 """
 
 from __future__ import annotations
@@ -37,10 +46,19 @@ from phalanx.drivers.arcos_handshake import Connection, HandshakeOptions, Identi
 from phalanx.drivers.arcos_link import Link
 from phalanx.drivers.arcos_settings import ArcosSettings
 from phalanx.drivers.arcos_tracker import ArcosStats, SipTracker
-from phalanx.protocols.arcos import Cmd, FrameParser, RobotConfig, command, factors_for
+from phalanx.protocols.arcos import (
+    SIMSTAT_CONTINUOUS,
+    Cmd,
+    FrameParser,
+    RobotConfig,
+    command,
+    factors_for,
+    sim_set_pose,
+)
 
 __all__ = ["ArcosDriver", "ArcosSettings"]
 log = logging.getLogger("phalanx.arcos")
+SIMULATOR_SERIAL = "SIM"  # AMRISim's and MobileSim's CONFIG packet
 
 
 class ArcosDriver(Closing):
@@ -69,6 +87,8 @@ class ArcosDriver(Closing):
         self._pulse_s = settings.pulse_s
         self._link_fault = ""
         self._estop = ""  # why the E-stop latch holds ("" when it does not)
+        self._placed = False  # `place_at` done (once: a reconnect must not move the robot)
+        self._remainder = (0.0, 0.0)  # what rounding left out of the last VEL and RVEL
 
     # -- Driver protocol -------------------------------------------------------------
 
@@ -103,9 +123,8 @@ class ArcosDriver(Closing):
         """
         if not (math.isfinite(twist.v_mps) and math.isfinite(twist.omega_radps)):
             raise ValueError(f"non-finite velocity command {twist}")
-        v_mm = round(twist.v_mps * 1000.0 / self.readings.factors.vel_mmps)
-        w_deg = round(math.degrees(twist.omega_radps))
         with self._lock:
+            v_mm, w_deg = self._whole_units(twist)
             self._check_open()
             if self._link_fault or self._estop:
                 if v_mm == 0 and w_deg == 0:
@@ -117,6 +136,22 @@ class ArcosDriver(Closing):
                 )
             self._write(command(Cmd.VEL, v_mm))
             self._write(command(Cmd.RVEL, w_deg))
+
+    def _whole_units(self, twist: Twist2D) -> tuple[int, int]:
+        """(VEL mm/s, RVEL deg/s) for `twist`, each with the last command's rounding
+        remainder carried in; an axis asked for 0 gets 0 (and drops its remainder).
+        """
+        wanted = (
+            twist.v_mps * 1000.0 / self.readings.factors.vel_mmps,
+            math.degrees(twist.omega_radps),
+        )
+        out, left = [], []
+        for value, carried in zip(wanted, self._remainder, strict=True):
+            whole = round(value + carried) if value else 0
+            out.append(whole)
+            left.append(value + carried - whole if value else 0.0)
+        self._remainder = (left[0], left[1])
+        return out[0], out[1]
 
     def read_odometry(self) -> Odometry:
         """The pose integrated from SIPs since connect (odometry frame) and the twist.
@@ -245,7 +280,17 @@ class ArcosDriver(Closing):
         raise DriverUnavailable("; ".join(str(e) for e in errors))
 
     def _install(self, connection: Connection) -> None:
-        """Make `connection` the driver's link (lock held)."""
+        """Make `connection` the driver's link (lock held); DriverError if the settings
+        ask to place a robot that is no simulator.
+        """
+        simulator = connection.identity.serial == SIMULATOR_SERIAL
+        if self.settings.place_at is not None and not simulator:
+            connection.link.close()
+            raise DriverError(
+                f"place_at is for simulated robots, but the robot at {connection.address} "
+                f"is no simulator (CONFIG serial {connection.identity.serial!r}, not "
+                f"{SIMULATOR_SERIAL!r}): place a real robot by hand"
+            )
         if self._link is not None:
             self._link.close()
         self._link = connection.link
@@ -255,6 +300,8 @@ class ArcosDriver(Closing):
         self.robot_name, self.subtype = connection.identity.name, connection.identity.subtype
         self.readings.factors = factors_for(self.subtype)
         self.readings.config = connection.config
+        step_deg = self.settings.heading_step_deg or (1.0 if simulator else None)
+        self.readings.heading_step_rad = math.radians(step_deg) if step_deg else None
         self.readings.new_session()
         self._link_fault = ""
         self._last_sent_s = time.monotonic()
@@ -263,6 +310,13 @@ class ArcosDriver(Closing):
             self._dispatch(body)
         if connection.config is not None:
             self._adopt(connection.config)
+        if self.settings.simstat if self.settings.simstat is not None else simulator:
+            self._write(command(Cmd.SIM_STAT, SIMSTAT_CONTINUOUS))
+        if self.settings.place_at is not None and not self._placed:
+            x_m, y_m, heading_deg = self.settings.place_at
+            self._write(sim_set_pose(round(x_m * 1000.0), round(y_m * 1000.0), round(heading_deg)))
+            self._placed = True
+            log.info("placed the robot at %s (SIM_SET_POSE)", self.settings.place_at)
 
     def _adopt(self, config: RobotConfig) -> None:
         """The robot's watchdog sets the keep-alive; its (de)accelerations are raised to

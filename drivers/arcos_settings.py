@@ -6,6 +6,8 @@ from __future__ import annotations
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
+PLACE_MAX_M = 10_000.0  # a simulated robot is put no further out than this (m)
+
 
 def _is_tcp(address: str) -> bool:
     host, sep, port = address.rpartition(":")
@@ -36,9 +38,32 @@ class ArcosSettings(BaseModel):
     adopt_accelerations: bool = Field(
         default=True, description="raise the robot's (de)accelerations to the robot file's"
     )
+    # A simulator (AMRISim, MobileSim: its CONFIG packet's serial number is "SIM").
+    place_at: tuple[float, float, float] | None = Field(
+        default=None,
+        description="simulators only: (x m, y m, heading deg) in the simulator's frame, "
+        "where the robot is put (SIM_SET_POSE) when first connected",
+    )
+    simstat: bool | None = Field(
+        default=None,
+        description="ask for the robot's true pose (SIM_STAT); default: from a simulator",
+    )
+    heading_step_deg: float | None = Field(
+        default=None,
+        gt=0.0,
+        le=10.0,
+        description="the robot reports its heading in steps this coarse, followed finer "
+        "from its yaw rate; default: 1 for a simulator (whole degrees), else none",
+    )
 
     @model_validator(mode="after")
     def _one_link(self) -> ArcosSettings:
+        if self.place_at is not None:
+            x_m, y_m, heading_deg = self.place_at
+            if not (abs(x_m) <= PLACE_MAX_M and abs(y_m) <= PLACE_MAX_M):
+                raise ValueError(f"place_at: x and y within +-{PLACE_MAX_M:g} m, got {x_m}, {y_m}")
+            if not abs(heading_deg) <= 360.0:
+                raise ValueError(f"place_at: a heading within +-360 deg, got {heading_deg}")
         if (self.port is None) == (self.tcp is None):
             raise ValueError("give exactly one of port (serial device) or tcp (host:port)")
         for address in (self.tcp,) if self.tcp is not None else ():

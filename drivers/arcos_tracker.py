@@ -1,6 +1,12 @@
 """What a P3DX's packets say, for the `arcos` driver: SIPs into odometry, sonar, bumpers,
-battery and motor state; the CONFIG packet into the robot's own limits. No I/O and no
-lock: the driver calls it with its lock held.
+battery and motor state; the CONFIG packet into the robot's own limits; a simulator's
+SIMSTAT into the robot's true pose. No I/O and no lock: the driver calls it with its lock
+held.
+
+A simulator reports headings coarser than the protocol carries: AMRISim (and MobileSim)
+round the heading to a whole degree, in SIPs and SIMSTATs alike, which puts a slot 1 m
+away up to 9 mm off. `QuantisedHeading` follows such a heading finer, from the yaw rate
+the same packets report (see its docstring).
 """
 
 from __future__ import annotations
@@ -14,12 +20,15 @@ from phalanx.core.geometry import Pose2D, Twist2D, wrap_angle
 from phalanx.core.robot import Odometry, RobotStatus
 from phalanx.protocols.arcos import (
     CONFIG_PAC,
+    SIMSTAT,
     SIP_MOVING,
     SIP_STOPPED,
     ConvFactors,
     RobotConfig,
+    SimStat,
     Sip,
     decode_config,
+    decode_simstat,
     decode_sip,
     wrap_delta,
 )
@@ -43,15 +52,65 @@ class ArcosStats:
     loss_stop_s: float | None = None  # the STOP sent for it (None: the link was gone)
 
 
-class SipTracker:
-    """The robot's latest readings, from its SIPs and CONFIG packet."""
+class QuantisedHeading:
+    """A heading reported in steps of `step_rad`, followed finer than the steps.
 
-    def __init__(self, stats: ArcosStats) -> None:
+    Between reports the yaw rate is integrated (trapezoidal); when the report moves into
+    another step, the heading crossed that step's edge somewhere between the two reports
+    (at half-way on average), so it is put on the edge plus half the interval's turn;
+    either way it is held inside the step the report allows. Turning at the paper's
+    3 deg/s with 100 ms reports, that is within 0.15 deg of the truth, where the whole
+    degree alone is within 0.5. A heading that never crosses an edge keeps the value it
+    started with: the centre of its step.
+    """
+
+    def __init__(self, step_rad: float) -> None:
+        self.step_rad = step_rad
+        self._step: int | None = None  # the reported step, in steps
+        self._heading = 0.0  # unwrapped, rad
+        self._rate_radps = 0.0
+        self._t_s = 0.0
+
+    def update(self, reported_rad: float, rate_radps: float, t_s: float) -> float:
+        """The heading (rad, wrapped) at `t_s`, reported as `reported_rad` while turning
+        at `rate_radps`.
+        """
+        step = self.step_rad
+        k = round(reported_rad / step)
+        if self._step is None:
+            heading = k * step
+        else:
+            moved = 0.5 * (self._rate_radps + rate_radps) * max(0.0, t_s - self._t_s)
+            turn = round(wrap_angle((k - self._step) * step) / step)  # steps, the short way
+            if turn:  # crossed into step k through its nearer edge
+                edge = (self._step + turn - math.copysign(0.5, turn)) * step
+                heading = edge + 0.5 * moved
+            else:
+                heading = self._heading + moved
+            centre = self._step * step + turn * step
+            heading = min(max(heading, centre - 0.5 * step), centre + 0.5 * step)
+            k = self._step + turn
+        self._step, self._heading = k, heading
+        self._rate_radps, self._t_s = rate_radps, t_s
+        return wrap_angle(heading)
+
+
+class SipTracker:
+    """The robot's latest readings, from its SIPs, CONFIG packet and SIMSTATs.
+
+    `heading_step_rad`: the robot reports its heading in steps this coarse (None: as
+    fine as the protocol's unit), followed finer by `QuantisedHeading`.
+    """
+
+    def __init__(self, stats: ArcosStats, *, heading_step_rad: float | None = None) -> None:
         self.stats = stats
         self.factors = ConvFactors()  # set from the SYNC2 reply's subtype
         self.config: RobotConfig | None = None
         self.sip: Sip | None = None
         self.odometry: Odometry | None = None
+        self.truth: Odometry | None = None  # a simulator's true pose (SIMSTAT)
+        self.heading_step_rad = heading_step_rad
+        self._headings: tuple[QuantisedHeading, QuantisedHeading] | None = None
         self.sonar_m: tuple[float, ...] = (5.0,) * N_SONARS
         self.last_sip_s = time.monotonic()
         self._pose = Pose2D(0.0, 0.0, 0.0)
@@ -62,6 +121,8 @@ class SipTracker:
         """A new connection: position counters restart, the integrated pose carries on."""
         self._last_xy, self._th0 = None, None
         self.last_sip_s = time.monotonic()
+        step = self.heading_step_rad
+        self._headings = None if step is None else (QuantisedHeading(step), QuantisedHeading(step))
 
     def take(self, body: bytes, *, byte_time_s: float) -> Sip | None:
         """Account for one frame's body; the SIP if it was a good one.
@@ -79,6 +140,12 @@ class SipTracker:
             wire_s = (len(body) + FRAME_OVERHEAD_BYTES) * byte_time_s
             self._on_sip(sip, time.monotonic() - wire_s)
             return sip
+        if kind == SIMSTAT:
+            try:
+                self._on_simstat(decode_simstat(body), time.monotonic())
+            except ProtocolError:
+                self.stats.bad_sips += 1
+            return None
         if kind == CONFIG_PAC:
             try:
                 self.config = decode_config(body)
@@ -106,11 +173,16 @@ class SipTracker:
             estopped=sip.estopped or bool(estop),
             stalled=sip.left_stall or sip.right_stall,
             faults=faults,
+            truth=self.truth,
+            truth_source=self._simulator(),
         )
 
     def _on_sip(self, sip: Sip, measured_s: float) -> None:
         f = self.factors
+        w = self._yaw_rate(sip)
         th = wrap_angle(sip.th * f.angle_rad)
+        if self._headings is not None:
+            th = self._headings[0].update(th, w, measured_s)
         if self._last_xy is None or self._th0 is None:
             self._th0 = wrap_angle(th - self._pose.theta_rad)
             self._last_xy = (sip.x, sip.y)
@@ -125,10 +197,6 @@ class SipTracker:
             wrap_angle(th - self._th0),
         )
         v = (sip.left_vel + sip.right_vel) / 2.0 * f.vel_mmps / 1000.0
-        if sip.rot_vel_x10 is not None:  # the firmware's own yaw rate (ArRobot does the same)
-            w = math.radians(sip.rot_vel_x10 / 10.0)
-        else:
-            w = (sip.right_vel - sip.left_vel) / 2.0 * f.vel_mmps * f.diff
         self._pose = pose
         self.odometry = Odometry(pose, Twist2D(v, w), measured_s)
         ranges = list(self.sonar_m)
@@ -139,3 +207,33 @@ class SipTracker:
         self.sip = sip
         self.last_sip_s = time.monotonic()
         self.stats.sips += 1
+
+    def _simulator(self) -> str:
+        """The simulator's name, from its CONFIG packet ("" without a true pose)."""
+        if self.truth is None:
+            return ""
+        name = self.config.name if self.config is not None else ""
+        return f"{name or 'simulator'} SIMSTAT"
+
+    def _yaw_rate(self, sip: Sip) -> float:
+        """rad/s: the firmware's own yaw rate if it sends one (ArRobot prefers it too),
+        else from the wheel speeds.
+        """
+        f = self.factors
+        if sip.rot_vel_x10 is not None:
+            return math.radians(sip.rot_vel_x10 / 10.0)
+        return (sip.right_vel - sip.left_vel) / 2.0 * f.vel_mmps * f.diff
+
+    def _on_simstat(self, stat: SimStat, received_s: float) -> None:
+        """The true pose a simulator sent (mm, whole degrees), with the latest SIP's twist.
+
+        AMRISim truncates x and y towards zero: the middle of the millimetre they stand
+        for is half a millimetre further out. It sends a SIMSTAT just before each SIP.
+        """
+        twist = self.odometry.twist if self.odometry is not None else Twist2D(0.0, 0.0)
+        th = math.radians(stat.th_deg)
+        if self._headings is not None:
+            th = self._headings[1].update(th, twist.omega_radps, received_s)
+        x_mm = stat.x_mm + math.copysign(0.5, stat.x_mm) if stat.x_mm else 0.0
+        y_mm = stat.y_mm + math.copysign(0.5, stat.y_mm) if stat.y_mm else 0.0
+        self.truth = Odometry(Pose2D(x_mm / 1000.0, y_mm / 1000.0, th), twist, received_s)

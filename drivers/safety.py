@@ -17,7 +17,7 @@ import logging
 import math
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 from phalanx.core.errors import DriverError
 from phalanx.core.geometry import Twist2D
@@ -115,15 +115,7 @@ class SafeDriver(Closing):
         """The backend's status, with the latched E-stop folded in."""
         status = self.driver.read_status()
         if self._estopped and not status.estopped:
-            return RobotStatus(
-                sonar_ranges_m=status.sonar_ranges_m,
-                bumpers=status.bumpers,
-                battery_v=status.battery_v,
-                motors_enabled=False,
-                estopped=True,
-                stalled=status.stalled,
-                faults=status.faults,
-            )
+            return replace(status, motors_enabled=False, estopped=True)
         return status
 
     def stop(self) -> None:

@@ -29,26 +29,11 @@ from phalanx.simulator.kinematics import (
     integrate_arcs,
     limits_and_arcs_scalar,
 )
-from phalanx.simulator.pairs import close_pairs
+from phalanx.simulator.scene import SonarScene
 from phalanx.simulator.sensors import SimulatedSensors, camera_mounts
-from phalanx.simulator.sonar import (
-    SonarRing,
-    circle_hits_at,
-    per_unit,
-    ray_segment_hits,
-    rays_towards,
-    ring_rays,
-)
+from phalanx.simulator.sonar import SonarRing
 
 FloatArray = npt.NDArray[np.float64]
-
-
-# A disc further than this beyond the sonar's reach is left out of the cast: its echo
-# could only come back shorter than max range through noise of over 1 m (50 sigma and more).
-_CAST_MARGIN_M = 1.0
-_CAST_MARGIN_SIGMAS = 50.0
-# Rays x discs (or edges) worked out at once, to bound memory on large fleets.
-_CHUNK = 1 << 18
 
 
 class World:
@@ -80,6 +65,10 @@ class World:
         self._circles = np.array([(c.x_m, c.y_m, c.radius_m) for c in world.circles]).reshape(-1, 3)
         self._edges = polygon_edges(world)
         self.contacts = Contacts(world, self._circles, self._edges, self._ids)
+        self.scene = SonarScene(
+            self.ring, self._circles, self._edges, robot_radius_m=robot.radius_m,
+            sonar_std_m=noise.sonar_std_m, rng=self.rng,
+        )  # fmt: skip
         self.collisions = self.contacts.collisions  # every contact as it began
         self._sonar_cache: dict[int, FloatArray] = {}
         self._ranges: FloatArray | None = None  # every robot's, when cast in one pass
@@ -141,6 +130,19 @@ class World:
         self.bumped = app(self.bumped, False)
         if self.sensors is not None:
             self.sensors.add_robot(robot_id, pose.x_m, pose.y_m, pose.theta_rad)
+
+    def place(self, robot_id: str, pose: Pose2D, twist: Twist2D) -> None:
+        """Put a robot that moves on its own (a real robot, or one another simulator
+        moves) where it was observed, moving as it was: the world carries it along its
+        twist until it is placed again, so the other robots sense it and contacts count.
+        """
+        i = self._index[robot_id]
+        self.x[i], self.y[i], self.th[i] = pose.x_m, pose.y_m, pose.theta_rad
+        self.v[i] = self.v_cmd[i] = twist.v_mps
+        self.w[i] = self.w_cmd[i] = twist.omega_radps
+        self.odo[i] = (pose.x_m, pose.y_m, pose.theta_rad)
+        self._sonar_cache.clear()
+        self._ranges = None
 
     # --- motion ------------------------------------------------------------------------
 
@@ -339,7 +341,7 @@ class World:
         the same as sensing robot by robot in that order.
         """
         if self._ranges is None:
-            self._ranges = self._cast(np.arange(len(self._ids)))
+            self._ranges = self.scene.cast(self.x, self.y, self.th, np.arange(len(self._ids)))
         return self._ranges
 
     def _sonar(self, i: int) -> FloatArray:
@@ -347,76 +349,5 @@ class World:
             row: FloatArray = self._ranges[i]
             return row
         if i not in self._sonar_cache:
-            self._sonar_cache[i] = self._cast(np.array([i]))[0]
+            self._sonar_cache[i] = self.scene.cast(self.x, self.y, self.th, np.array([i]))[0]
         return self._sonar_cache[i]
-
-    def _cast(self, idx: npt.NDArray[np.intp]) -> FloatArray:
-        """Sonar ranges (len(idx), transducers) of robots `idx`, noise drawn in their order."""
-        ring = self.ring
-        rays = ring_rays(ring, self.x[idx], self.y[idx], self.th[idx])
-        owner, cx, cy, r = self._nearby_discs(idx)
-        # Only the rays that point towards a disc are tested against it.
-        x, y, th = self.x[idx][owner], self.y[idx][owner], self.th[idx][owner]
-        bearing = np.arctan2(cy - y, cx - x) - th
-        pair, ray = rays_towards(ring, bearing, np.hypot(cx - x, cy - y), r)
-        flat = owner[pair] * ring.angle_rad.size + ray
-        ox, oy, dx, dy = (a.ravel()[flat] for a in rays)
-        nearest = np.full(rays[0].size, np.inf)
-        np.minimum.at(nearest, flat, circle_hits_at(ox, oy, dx, dy, cx[pair], cy[pair], r[pair]))
-        hits = nearest.reshape(rays[0].shape)
-        if self._edges.ax.size:
-            hits = np.minimum(hits, self._edge_hits(rays))
-        ranges = per_unit(ring, hits)
-        if self.noise.sonar_std_m > 0.0:
-            ranges = ranges + self.rng.normal(0.0, self.noise.sonar_std_m, ranges.shape)
-        return np.asarray(np.clip(ranges, ring.min_range_m, ring.max_range_m), dtype=np.float64)
-
-    def _edge_hits(self, rays: tuple[FloatArray, ...]) -> FloatArray:
-        e = self._edges
-        ox, oy, dx, dy = (a.ravel() for a in rays)
-        out = np.empty(ox.size)
-        step = max(1, _CHUNK // e.ax.size)
-        for lo in range(0, ox.size, step):
-            part = slice(lo, lo + step)
-            out[part] = ray_segment_hits(
-                ox[part], oy[part], dx[part], dy[part], e.ax, e.ay, e.bx, e.by
-            )
-        return out.reshape(rays[0].shape)
-
-    def _nearby_discs(
-        self, idx: npt.NDArray[np.intp]
-    ) -> tuple[npt.NDArray[np.intp], FloatArray, FloatArray, FloatArray]:
-        """(row of idx, centre x, y, radius) of every disc the sonar of robots `idx` may
-        hear: the obstacle circles within reach, and every other robot
-        whose centre is within `reach` (the same test, pair by pair, as always).
-        """
-        radius = self.robot.radius_m
-        reach = self.ring.max_range_m + radius + 0.5
-        x, y = self.x[idx], self.y[idx]
-        rows, cx, cy, r = [], [], [], []
-        if len(self._circles):
-            circles = self._circles
-            horizon = (
-                self.ring.max_range_m
-                + self.ring.mount_m
-                + _CAST_MARGIN_M
-                + _CAST_MARGIN_SIGMAS * self.noise.sonar_std_m
-            )
-            d = np.hypot(x[:, None] - circles[:, 0], y[:, None] - circles[:, 1])
-            ri, k = np.nonzero(d - circles[:, 2] < horizon)
-            rows.append(ri)
-            cx.append(circles[k, 0])
-            cy.append(circles[k, 1])
-            r.append(circles[k, 2])
-        if idx.size == len(self._ids):
-            ri, j = close_pairs(self.x, self.y, reach)
-        else:
-            ri, j = np.nonzero(np.ones((idx.size, len(self._ids)), dtype=bool))
-            ri, j = ri[j != idx[ri]], j[j != idx[ri]]
-        near = np.hypot(self.x[j] - x[ri], self.y[j] - y[ri]) < reach
-        rows.append(ri[near])
-        cx.append(self.x[j[near]])
-        cy.append(self.y[j[near]])
-        r.append(np.full(int(near.sum()), radius))
-        cat = np.concatenate
-        return cat(rows), cat(cx), cat(cy), cat(r)

@@ -62,9 +62,9 @@ def _no_leaked_sessions() -> Iterator[None]:
 
 def _assert_same_follower_metrics(multi: dict[str, Any], single: dict[str, Any]) -> None:
     """A fleet run in processes (`metrics.json`) against the same scenario in process
-    (`run_metrics`): one deadlock reverse each, every follower's maximum errors in both
-    phases within 1e-6, the same saturation counts."""
-    assert multi["deadlock_reverses"] == single["deadlock_reverses"] == 1
+    (`run_metrics`): the same deadlock reverses (one at least), every follower's maximum
+    errors in both phases within 1e-6, the same saturation counts."""
+    assert multi["deadlock_reverses"] == single["deadlock_reverses"] >= 1
     # A step that went on without a peer's state (starved past the bounded peer wait on a
     # loaded machine) cannot reproduce the in-process run bit for bit.
     # Such a step moves its robot by what one step's dead reckoning of that state

@@ -27,7 +27,7 @@ import numpy.typing as npt
 
 from phalanx.core.geometry import Twist2D, wrap_angle
 from phalanx.core.rigid_body import rigid_body_target
-from phalanx.core.runlog import RobotTrace, RunLog
+from phalanx.core.runlog import ESTIMATE_CAVEAT, ESTIMATE_POSE, RobotTrace, RunLog
 from phalanx.core.shapes import ShapeBook, ShapeKey
 from phalanx.core.states import ROBOT_STATES
 
@@ -375,7 +375,8 @@ def run_metrics(log: RunLog) -> dict[str, Any]:
     """The whole `metrics.json` of a run."""
     followers = [r for r in log.formation.robot_ids if is_follower(log, r)]
     root = log.formation.root
-    metrics = {
+    sources = {rid: log.pose_source(rid) for rid in log.traces}
+    metrics: dict[str, Any] = {
         "scenario": log.scenario.name,
         "controller": log.scenario.controller.kind,
         "robots": len(log.traces),
@@ -385,6 +386,7 @@ def run_metrics(log: RunLog) -> dict[str, Any]:
         "wall_time_s": log.wall_time_s,
         "realtime_factor": log.scenario.duration_s / max(log.wall_time_s, 1e-9),
         "runtime": log.runtime,
+        "pose_source": sources,
         "followers": {f: follower_metrics(log, f) for f in followers},
         "leader": {
             "id": root,
@@ -402,6 +404,8 @@ def run_metrics(log: RunLog) -> dict[str, Any]:
             if e.target == "DEADLOCK_REVERSE"
         ),
     }
+    if ESTIMATE_POSE in sources.values():
+        metrics["pose_caveat"] = ESTIMATE_CAVEAT
     if log.scenario.leader_profile is None:
         metrics["navigation"] = navigation_metrics(log)
     if log.scenario.localisation.estimator:

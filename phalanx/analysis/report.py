@@ -16,6 +16,7 @@ from rich.console import Console
 from rich.table import Table
 
 from phalanx.core.config_files import CONFIG_ROOT, apply_overrides, load_scenario
+from phalanx.core.scenarios import signal_builder
 
 FORMATIONS = ("wedge", "inline", "collateral")
 CONTROLLERS = ("tracking", "switching", "icr", "ours")
@@ -29,9 +30,10 @@ NOISE = (
 )
 
 
-# The harder variant: the deadlock strikes during a 3 deg/s turn and the group backs
-# along the arc it came (the paper's ICR relation drops s_x, which matters only there).
-TURNING = ("deadlock.reverse_mode=retrace", "events.0.start_s=75")
+# The harder variant: the deadlock strikes during a 3 deg/s turn (the paper's signal
+# builder at 75 s, not the scenario's wall) and the group backs along the arc it came (the
+# paper's ICR relation drops s_x, which matters only there).
+TURNING = ("deadlock.reverse_mode=retrace", *signal_builder(75.0))
 
 
 @dataclass(frozen=True)

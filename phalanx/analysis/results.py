@@ -1,4 +1,5 @@
-"""A run's results folder: `metrics.json`, the paper's figures as PNGs, a Rerun `.rrd`.
+"""A run's results folder: `metrics.json`, the paper's figures as PNGs and the traces
+they are drawn from (`traces.npz`), a Rerun `.rrd`.
 
 `phalanx run` (in process) and `phalanx up` (one process per robot) both write it. A run
 of processes is also marked whole or not (`mark_results`): `complete`, and the
@@ -100,17 +101,47 @@ def write_recording(log: RunLog, path: Path, *, recording_id: str | None = None)
         tel.send_blueprint()
 
 
+TRACE_FIELDS = ("x_m", "y_m", "theta_rad", "v_mps", "omega_radps", "cmd_v_mps", "cmd_omega_radps")
+
+
+def write_traces(log: RunLog, path: Path) -> None:
+    """Every robot's recorded motion, one row per control step, as a compressed numpy
+    archive: `t_s`, then `<robot>/<field>` for each of TRACE_FIELDS (SI units) and
+    `<robot>/state` (its behaviour state's name).
+    """
+    arrays: dict[str, Any] = {"t_s": log.t_s}
+    for rid, trace in log.traces.items():
+        for name in TRACE_FIELDS:
+            arrays[f"{rid}/{name}"] = getattr(trace, name)
+        arrays[f"{rid}/state"] = np.array(trace.states, dtype=np.str_)
+    with path.open("wb") as out:
+        np.savez_compressed(out, **arrays)
+
+
+def read_traces(path: Path) -> dict[str, dict[str, Any]]:
+    """A `traces.npz` back: robot -> field -> array, and "" -> {"t_s": times}."""
+    with np.load(path, allow_pickle=False) as data:
+        out: dict[str, dict[str, Any]] = {"": {"t_s": data["t_s"]}}
+        for key in data.files:
+            rid, _, name = key.rpartition("/")
+            if rid:
+                out.setdefault(rid, {})[name] = data[key]
+    return out
+
+
 def write_results(
     log: RunLog, folder: Path, *, recording: bool = True, figures: bool = True
 ) -> dict[str, Any]:
-    """Write the results folder of `log` (without the PNG figures if not `figures`, and
-    without the recording if not `recording`); returns the metrics.
+    """Write the results folder of `log` (without the PNG figures and the traces they
+    are drawn from if not `figures`, and without the recording if not `recording`);
+    returns the metrics.
     """
     folder.mkdir(parents=True, exist_ok=True)
     metrics = run_metrics(log)
     write_metrics(metrics, folder / "metrics.json")
     if figures:
         write_figures(log, folder)
+        write_traces(log, folder / "traces.npz")
     if recording:
         write_recording(log, folder / "run.rrd")
     return metrics

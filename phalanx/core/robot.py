@@ -23,7 +23,12 @@ class Odometry:
 @quick_init
 @dataclass(frozen=True, slots=True)
 class RobotStatus:
-    """Everything a driver reads from a robot besides odometry."""
+    """Everything a driver reads from a robot besides odometry.
+
+    `truth`: where a simulator says the robot really is (its world frame, with the twist
+    and the time of the reading), for the run's record only: a simulated robot's driver
+    can report it (AMRISim's SIMSTAT), a real robot's cannot, and no agent steers by it.
+    """
 
     sonar_ranges_m: tuple[float, ...] = ()
     bumpers: tuple[bool, ...] = ()
@@ -32,3 +37,5 @@ class RobotStatus:
     estopped: bool = False
     stalled: bool = False
     faults: tuple[str, ...] = ()
+    truth: Odometry | None = None
+    truth_source: str = ""  # the simulator's name

@@ -17,6 +17,21 @@ from phalanx.core.geometry import Pose2D
 from phalanx.core.states import TransitionEvent
 
 FloatArray = npt.NDArray[np.float64]
+# Where a run's recorded poses come from (`RunLog.pose_sources`): phalanx's own world; a
+# simulator's true pose (`truth_source`); motion capture; the robot's own estimate, whose
+# errors (odometry drift) the formation errors measured on it cannot show.
+SIMULATED_POSE = "phalanx's simulated world (exact)"
+MOCAP_POSE = "motion capture (phalanx mocap)"
+ESTIMATE_POSE = "the robot's own estimate (odometry or its pose estimator)"
+ESTIMATE_CAVEAT = (
+    "errors of robots recorded from their own estimate are measured against what they "
+    "believed: odometry drift and estimation errors are not in them"
+)
+
+
+def truth_source(simulator: str) -> str:
+    """The pose source of a simulator's true poses (`simulator`: its name)."""
+    return f"simulator's true pose ({simulator})"
 
 
 @dataclass(frozen=True, slots=True)
@@ -102,3 +117,9 @@ class RunLog:
     accel_limited: dict[str, int]
     wall_time_s: float = 0.0
     runtime: dict[str, Any] = field(default_factory=dict)
+    # Where each robot's recorded poses come from (absent: SIMULATED_POSE).
+    pose_sources: dict[str, str] = field(default_factory=dict)
+
+    def pose_source(self, robot_id: str) -> str:
+        """Where robot `robot_id`'s recorded poses come from."""
+        return self.pose_sources.get(robot_id, SIMULATED_POSE)

@@ -137,6 +137,17 @@ def _fits(c: CircleObstacle, placed: list[CircleObstacle], field: ObstacleField)
     return clear_of_zones and all(gap(o) >= field.min_gap_m for o in placed)
 
 
+def signal_builder(start_s: float, *, robots: tuple[str, ...] = ()) -> list[str]:
+    """Overrides (`--set` strings) that block the group the paper's way instead of by a
+    paper scenario's wall: every sonar of `robots` (all: ()) reads 0.3 m for 2 s from
+    `start_s` (a scripted sensor event, as the paper's Simulink signal builder), with no
+    obstacle in the world. For runs cut short, and for blocking the group mid-turn.
+    """
+    event = f"kind = {toml_value('all_sonars_blocked')}, start_s = {toml_value(float(start_s))}"
+    event += f", duration_s = 2.0, range_m = 0.3, robots = {toml_value(list(robots))}"
+    return ["world.polygons=[]", f"events=[{{{event}}}]"]
+
+
 def resolve_world(world: WorldConfig) -> WorldConfig:
     """`world` with its seeded field (if any) turned into plain circles."""
     if world.field is None:

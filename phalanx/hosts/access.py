@@ -30,7 +30,7 @@ from phalanx.hosts.deployment import Deployment, LoadedDeployment, SecuritySetti
 from phalanx.hosts.pki import common_name
 from phalanx.wire.security import READS, AccessControl, AclPolicy, AclRule, TlsFiles
 
-ROBOT_TOPICS = ("state", "flags", "cmd", "event", "report", "scan")
+ROBOT_TOPICS = ("state", "flags", "cmd", "event", "report", "scan", "truth")
 WORLD_TOPICS = ("sense", "fix", "relative")
 EVERYTHING = (
     "put", "delete", "reply", "query", "liveliness_token", "declare_subscriber",

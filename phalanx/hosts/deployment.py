@@ -146,7 +146,11 @@ class RobotPlacement(Model):
 
 
 class WorldPlacement(Model):
-    """The simulated world's host, and where it writes results (on that host)."""
+    """The world process's host, and where it writes results (on that host). The world
+    simulates the robots on the sim driver and records every robot (those on real
+    drivers from their best pose source); a deployment without `[world]` runs it on its
+    first host.
+    """
 
     host: Name
     speed: float = Field(default=1.0, gt=0.0, le=1000.0)
@@ -188,6 +192,18 @@ class Deployment(Model):
     restart: RestartPolicy = RestartPolicy()
     telemetry: TelemetrySettings = TelemetrySettings()
     security: SecuritySettings | None = None
+
+    @model_validator(mode="before")
+    @classmethod
+    def _world_somewhere(cls, data: Any) -> Any:
+        """No `[world]`: the world (the run's record, at least) runs on the first host."""
+        if not isinstance(data, dict) or data.get("world") is not None:
+            return data
+        hosts = data.get("hosts")
+        first = hosts[0] if isinstance(hosts, list | tuple) and hosts else None
+        if isinstance(first, dict) and isinstance(first.get("name"), str):
+            return {**data, "world": {"host": first["name"]}}
+        return data
 
     @model_validator(mode="after")
     def _references(self) -> Self:

@@ -289,4 +289,6 @@ def world_argv(
     argv.append("--recording" if world.recording else "--no-recording")
     if spec.clock == "realtime" and run.epoch_unix is not None:
         argv += ["--epoch", f"{run.epoch_unix:.3f}"]
-    return argv
+    # robots on real drivers move on their own: the world records them, never moves them
+    real = [r.id for r in spec.robots if loaded.driver_of(r.id) != "sim"]
+    return argv + [arg for rid in real for arg in ("--observe", rid)]

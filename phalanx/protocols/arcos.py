@@ -57,10 +57,15 @@ class Cmd(IntEnum):
     VEL2 = 32
     BUMPSTALL = 44
     E_STOP = 55
+    # Simulators' own commands (MobileSim, AMRISim; ArCommands.h): a firmware ignores them.
+    SIM_SET_POSE = 224
+    SIM_STAT = 237
 
 
 SYNC0, SYNC1, SYNC2 = 0, 1, 2
 SIP_STOPPED, SIP_MOVING = 0x32, 0x33
+SIMSTAT = 0x62  # a simulator's report on itself and the robot's true pose
+SIMSTAT_CONTINUOUS = 2  # SIM_STAT's argument: a SIMSTAT before every SIP (0 stops, 1 once)
 __all__ = ["CONFIG_PAC", "RobotConfig", "decode_config", "encode_config"]  # re-exported
 
 
@@ -321,6 +326,57 @@ def decode_sip(body: bytes) -> Sip:
         battery_tail_dv=battery_tail,
         fault_flags=faults,
     )
+
+
+def sim_set_pose(x_mm: int, y_mm: int, th_deg: int) -> bytes:
+    """SIM_SET_POSE: move a simulated robot to a true pose (the simulator's frame; its
+    odometry is left as it is). An unused byte, then three 4-byte little-endian integers,
+    as ARIA's `ArSimUtil::setSimTruePose` sends it.
+    """
+    body = bytes((Cmd.SIM_SET_POSE, 0)) + struct.pack("<iii", x_mm, y_mm, th_deg)
+    return frame(body)
+
+
+@dataclass(frozen=True)
+class SimStat:
+    """A simulator's SIMSTAT packet: its loop's timing and the robot's true pose (mm and
+    whole degrees: AMRISim rounds the heading, and truncates x and y to the millimetre).
+    """
+
+    flags: int
+    sim_interval_ms: int  # simulated time one update takes
+    real_interval_ms: int  # the real time it should take
+    last_interval_ms: int  # the real time the last one took
+    x_mm: int
+    y_mm: int
+    th_deg: int
+
+
+_SIMSTAT_HEAD = struct.Struct("<xxIHHHiiii")  # two NULs, flags, 3 intervals, x y z th
+
+
+def encode_simstat(stat: SimStat) -> bytes:
+    """The frame of `stat` (simulator side), with AMRISim's tail of no GPS, no odometry
+    error: latitude, longitude, altitude 0, GPS -1, odometry errors 0.
+    """
+    body = bytes((SIMSTAT,)) + _SIMSTAT_HEAD.pack(
+        stat.flags, stat.sim_interval_ms, stat.real_interval_ms, stat.last_interval_ms,
+        stat.x_mm, stat.y_mm, 0, stat.th_deg,
+    )  # fmt: skip
+    return frame(body + struct.pack("<iiiiiii", 0, 0, 0, -1, 0, 0, 0))
+
+
+def decode_simstat(body: bytes) -> SimStat:
+    """Parse a SIMSTAT body (type byte first) as far as the true pose (AMRISim's
+    `EmulatePioneer::sendSIMSTAT`; later fields vary between versions); ProtocolError if
+    it is not one or ends before the pose.
+    """
+    if not body or body[0] != SIMSTAT:
+        raise ProtocolError(f"not a SIMSTAT packet: type {body[:1].hex() or 'none'}")
+    if len(body) < 1 + _SIMSTAT_HEAD.size:
+        raise ProtocolError(f"SIMSTAT too short: {len(body)} bytes")
+    flags, sim_ms, real_ms, last_ms, x, y, _z, th = _SIMSTAT_HEAD.unpack_from(body, 1)
+    return SimStat(flags, sim_ms, real_ms, last_ms, x, y, th)
 
 
 def wrap_delta(now: int, last: int) -> int:

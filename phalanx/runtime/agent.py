@@ -339,4 +339,5 @@ class AgentRuntime:
             step_p50_us=1e6 * times[len(times) // 2],
             step_p99_us=1e6 * times[min(len(times) - 1, round(0.99 * (len(times) - 1)))],
             telemetry_dropped=self.telemetry.dropped if self.telemetry else 0,
+            commands_sent=min(self.io.counters().get("commands_sent", 0), UINT32_MAX),
         )

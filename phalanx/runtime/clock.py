@@ -14,6 +14,9 @@ from typing import Protocol
 
 from phalanx.runtime.signals import Stoppable
 
+# A clock started this share of a period past a step still takes that step.
+FIRST_STEP_GRACE = 0.5
+
 
 @dataclass(frozen=True, slots=True)
 class Tick:
@@ -46,7 +49,10 @@ class EpochClock:
         if self._k is None:
             if self.epoch_s > time.time() and stop.wait(self.epoch_s - time.time()):
                 return None
-            self._k = max(0, math.ceil((time.time() - self.epoch_s) / self.dt_s))
+            # (a process that woke at the epoch is a hair past it: that is step 0, not a
+            # step to skip; one started later joins at the next step to come)
+            late = (time.time() - self.epoch_s) / self.dt_s
+            self._k = max(0, math.ceil(late - FIRST_STEP_GRACE))
         k = self._k
         if k >= self.steps or stop.is_set():
             return None

@@ -15,7 +15,9 @@ run's ticks take about 11 % less wall time; `bench/bench_lockstep.py` measures b
 
 from __future__ import annotations
 
+import contextlib
 import logging
+import math
 import os
 import signal
 import subprocess
@@ -26,6 +28,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from phalanx.core.config import Scenario
+from phalanx.runtime.amrisim import AmrisimCommand, amrisim_map, amrisim_ports
 from phalanx.runtime.exits import EXIT_FAILED, EXIT_FINISHED, agent_exit_reason, exit_reason
 from phalanx.runtime.signals import Stoppable, supervised_env
 from phalanx.wire.transport import LOWLATENCY_MAX_BYTES, free_tcp_port, loopback_endpoint
@@ -53,6 +56,7 @@ class UpOptions:
     recording_id: str = field(default_factory=lambda: str(uuid.uuid4()))
     telemetry_url: str | None = None  # stream live to a viewer as well
     pin: bool | None = None  # one CPU per process, round robin (None: in lockstep)
+    amrisim: AmrisimRun | None = None  # the robots are AMRISim's, not the world's
 
     @property
     def pinned(self) -> bool:
@@ -60,12 +64,25 @@ class UpOptions:
         return self.clock == "lockstep" if self.pin is None else self.pin
 
 
+@dataclass(frozen=True)
+class AmrisimRun:
+    """An AMRISim to start as the run's robots, and the X display it draws on."""
+
+    command: AmrisimCommand
+    display: str
+
+
 @dataclass
 class Child:
-    """A supervised process."""
+    """A supervised process: one of ours (`kind` agent, emulator or world), or a third
+    party's (`env` given: a simulator such as AMRISim, its output to `output`).
+    """
 
     name: str
     argv: list[str]
+    kind: str = "agent"
+    env: dict[str, str] | None = None
+    output: Path | None = None  # a third party's stdout and stderr (None: ours, inherited)
     process: subprocess.Popen[bytes] | None = None
     restarts: int = 0
     reported: bool = False
@@ -77,13 +94,30 @@ class Child:
         """Start (again), on its CPU if it has one."""
         self.reported = False
         self.started_at = time.monotonic()
-        self.process = subprocess.Popen(  # noqa: S603 - our own interpreter and CLI
-            self.argv, env=supervised_env()
-        )
+        if self.env is None:
+            self.process = subprocess.Popen(  # noqa: S603 - our own interpreter and CLI
+                self.argv, env=supervised_env()
+            )
+        else:
+            self.process = self._third_party(self.env)
         if self.cpu is not None:
             # (the interpreter has just started: its threads, Zenoh's among them, are
             # created later and inherit the main thread's CPU)
             pin_process(self.process.pid, self.cpu, self.name)
+
+    def _third_party(self, env: dict[str, str]) -> subprocess.Popen[bytes]:
+        """Start a program that is not ours: killed with `phalanx up` (it cannot watch
+        its parent itself), its output to a file.
+        """
+        from phalanx.runtime.amrisim import die_with_us
+
+        with contextlib.ExitStack() as files:
+            sink = files.enter_context(open(self.output, "ab")) if self.output else None
+            return subprocess.Popen(  # noqa: S603 - the user's own build of it
+                self.argv, env=env, stdin=subprocess.DEVNULL,
+                stdout=sink or subprocess.DEVNULL, stderr=sink or subprocess.DEVNULL,
+                preexec_fn=die_with_us,  # (no thread runs yet in `phalanx up`)
+            )  # fmt: skip
 
     def poll(self) -> int | None:
         """Exit code if it has ended."""
@@ -182,6 +216,18 @@ def plan(scenario_path: Path, scenario: Scenario, options: UpOptions) -> list[Ch
             agent_extra[entry.id] += [
                 "--driver", "arcos", "--arcos-tcp", f"127.0.0.1:{port}", "--epoch", f"{epoch:.3f}",
             ]  # fmt: skip
+    if options.amrisim is not None:
+        epoch = time.time() + options.startup_s
+        world += ["--epoch", f"{epoch:.3f}"]
+        world += [arg for entry in scenario.robots for arg in ("--observe", entry.id)]
+        emulators.append(_amrisim_child(scenario, options.amrisim, options.out))
+        ports = amrisim_ports(tuple(agent_extra), options.amrisim.command.base_port)
+        for entry in scenario.robots:
+            agent_extra[entry.id] += [
+                "--driver", "arcos", f'--driver-setting=tcp="127.0.0.1:{ports[entry.id]}"',
+                f"--driver-setting=place_at={_place_at(scenario, entry.id)}",
+                "--epoch", f"{epoch:.3f}",
+            ]  # fmt: skip
     children = [Child("world", world), *emulators]
     for entry in scenario.robots:
         agent = [
@@ -202,6 +248,22 @@ def plan(scenario_path: Path, scenario: Scenario, options: UpOptions) -> list[Ch
     if options.pinned:
         assign_cpus(children, usable_cpus())
     return children
+
+
+def _amrisim_child(scenario: Scenario, run: AmrisimRun, out: Path | None) -> Child:
+    """AMRISim with every robot of `scenario`, its map written first."""
+    command = run.command
+    command.map_path.parent.mkdir(parents=True, exist_ok=True)
+    command.map_path.write_text(amrisim_map(scenario), encoding="utf-8")
+    output = out / "amrisim.out" if out is not None else None
+    argv = command.argv(scenario)
+    return Child("amrisim", argv, kind="simulator", env=command.env(run.display), output=output)
+
+
+def _place_at(scenario: Scenario, robot_id: str) -> str:
+    """The robot's start pose as the arcos driver's `place_at` (TOML: m, m, deg)."""
+    pose = scenario.start_pose(robot_id)
+    return f"[{pose.x_m!r}, {pose.y_m!r}, {math.degrees(pose.theta_rad)!r}]"
 
 
 def _telemetry_args(options: UpOptions, name: str) -> list[str]:
@@ -295,6 +357,8 @@ def supervise(children: list[Child], options: UpOptions, stop: Stoppable) -> Out
                 break
             for agent in agents:
                 _check_agent(agent, options, problems, started)
+            if _robots_gone(agents, problems, started):
+                break
             time.sleep(0.1)
         else:
             why = "interrupted" if stop.is_set() else f"timed out after {options.timeout_s:g} s"
@@ -309,6 +373,20 @@ def supervise(children: list[Child], options: UpOptions, stop: Stoppable) -> Out
     return Outcome(EXIT_FAILED if problems else EXIT_FINISHED, world_code, problems)
 
 
+def _robots_gone(children: list[Child], problems: list[str], started: float) -> bool:
+    """Whether a simulator of the run's robots has ended (whatever its exit code, the
+    robots are gone with it: the run stops, its record kept as far as it went).
+    """
+    for child in children:
+        code = child.poll() if child.kind == "simulator" else None
+        if code is not None:
+            if code == 0:  # (a failure was reported with the other endings already)
+                problems.append(f"simulator {child.name}: ended after {_since(child, started)}")
+            log.error("the robots' simulator %s ended: stopping the fleet", child.name)
+            return True
+    return False
+
+
 def _since(child: Child, started: float) -> str:
     return f"{time.monotonic() - started:.1f} s"
 
@@ -321,7 +399,7 @@ def _check_agent(agent: Child, options: UpOptions, problems: list[str], started:
     if code == 0:
         return
     agent.exits.append(code)
-    problem = f"agent {agent.name}: {agent_exit_reason(code)} after {_since(agent, started)}"
+    problem = f"{agent.kind} {agent.name}: {agent_exit_reason(code)} after {_since(agent, started)}"
     log.error("%s", problem)
     if options.restart and agent.restarts < options.max_restarts:
         agent.restarts += 1

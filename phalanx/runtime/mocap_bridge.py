@@ -23,7 +23,7 @@ from phalanx.core.errors import DriverUnavailable
 from phalanx.core.geometry import Pose2D
 from phalanx.runtime.signals import Stoppable
 from phalanx.wire.keys import robot_key
-from phalanx.wire.messages import PoseFixMessage
+from phalanx.wire.positions import PoseFixMessage
 from phalanx.wire.transport import FleetSession
 
 log = logging.getLogger("phalanx.mocap")

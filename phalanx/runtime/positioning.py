@@ -26,13 +26,8 @@ from phalanx.core.fixes import PoseFix, RelativeFix
 from phalanx.core.localisation import CameraCalibration, MarkerSource
 from phalanx.drivers.markers import MarkerCamera, MarkerDetector
 from phalanx.wire.keys import robot_key
-from phalanx.wire.messages import (
-    FIX_FIELDS,
-    RELATIVE_FIELDS,
-    PoseFixMessage,
-    RelativeFixMessage,
-    SenseFrame,
-)
+from phalanx.wire.messages import FIX_FIELDS, RELATIVE_FIELDS, SenseFrame
+from phalanx.wire.positions import PoseFixMessage, RelativeFixMessage
 from phalanx.wire.transport import FleetSession
 
 log = logging.getLogger("phalanx.positioning")

@@ -13,6 +13,7 @@
 from __future__ import annotations
 
 import logging
+import math
 import time
 from dataclasses import replace
 from typing import Protocol
@@ -31,6 +32,7 @@ from phalanx.wire.bounds import FleetBounds
 from phalanx.wire.codec import DecodeStats
 from phalanx.wire.keys import robot_key
 from phalanx.wire.messages import RobotState, SenseFrame, VelocityCommand
+from phalanx.wire.positions import TruthMessage
 from phalanx.wire.transport import FleetSession
 
 log = logging.getLogger("phalanx.agent")
@@ -224,7 +226,12 @@ class WorldLink:
 
 
 class DriverIO:
-    """A robot on a driver, through the safety wrapper (limits, watchdog, E-stop)."""
+    """A robot on a driver, through the safety wrapper (limits, watchdog, E-stop).
+
+    Where the robot is simulated (AMRISim), its driver also reads where the simulator
+    says it really is: each new reading goes out on the robot's `truth` key, for the
+    run's record (never into the agent's observation).
+    """
 
     def __init__(
         self,
@@ -233,15 +240,24 @@ class DriverIO:
         *,
         origin: Pose2D,
         positioning: PositioningInbox | None = None,
+        robot_id: str = "",
+        fleet: str = "",
     ) -> None:
         self.driver, self.robot, self.origin = driver, robot, origin
         self.positioning = positioning
+        self.robot_id, self.fleet = robot_id, fleet
         self.driver_errors = 0
+        self.commands_sent = 0
+        self.truths_sent = 0
+        self._session: FleetSession | None = None
+        self._truth_s = -math.inf  # the newest truth sent (its driver's monotonic stamp)
 
     def attach(self, session: FleetSession) -> None:
         """The robot is on this computer's port or bus; its positioning fixes, if it
-        uses any, come over the fleet's session.
+        uses any, come over the fleet's session, and its true pose, if a simulator gives
+        one, goes out over it.
         """
+        self._session = session
         if self.positioning is not None:
             self.positioning.attach(session)
 
@@ -255,6 +271,8 @@ class DriverIO:
             log.warning("no reading from the robot at step %d: %s", tick.k, exc)
             return None
         pose = self.origin.compose(pose_now(odometry, time.monotonic()))
+        if status.truth is not None and status.truth.stamp_s > self._truth_s:
+            self._send_truth(status.truth, status.truth_source)
         if not status.sonar_ranges_m:
             # A backend without sonar (CAN drives) reports free space: it never blocks.
             free = (self.robot.sonar.max_range_m,) * len(self.robot.sonar.units)
@@ -264,6 +282,27 @@ class DriverIO:
             Odometry(pose, odometry.twist, tick.t_s), status, fixes=fixes, relative=relative
         )
 
+    def _send_truth(self, truth: Odometry, source: str) -> None:
+        """Publish a simulator's true pose, stamped in Unix time (a message that will
+        not validate, a pose out of the wire's bounds, is logged and skipped).
+        """
+        self._truth_s = truth.stamp_s
+        if self._session is None or not self.robot_id:
+            return
+        pose, twist = truth.pose, truth.twist
+        try:
+            message = TruthMessage(
+                robot_id=self.robot_id,
+                stamp_s=time.time() - (time.monotonic() - truth.stamp_s),
+                x_m=pose.x_m, y_m=pose.y_m, theta_rad=pose.theta_rad,
+                v_mps=twist.v_mps, omega_radps=twist.omega_radps, source=source[:32],
+            )  # fmt: skip
+            self._session.publish(robot_key(self.fleet, self.robot_id, "truth"), message)
+        except Exception as exc:  # the record's loss, never the robot's control
+            log.warning("true pose not sent: %s", exc)
+            return
+        self.truths_sent += 1
+
     def write(self, tick: Tick, command: Twist2D) -> None:
         """The command, through the safety wrapper."""
         try:
@@ -271,6 +310,8 @@ class DriverIO:
         except DriverError as exc:
             self.driver_errors += 1
             log.warning("command not sent at step %d: %s", tick.k, exc)
+            return
+        self.commands_sent += 1
 
     def halt(self) -> None:
         """Stop the robot (the wrapper keeps it stopped on close too), and its camera."""
@@ -291,5 +332,9 @@ class DriverIO:
         return None
 
     def counters(self) -> dict[str, int]:
-        """Readings and commands the driver failed."""
-        return {"driver_errors": self.driver_errors}
+        """Readings and commands the driver failed, commands it took, true poses sent."""
+        return {
+            "driver_errors": self.driver_errors,
+            "commands_sent": self.commands_sent,
+            "truths_sent": self.truths_sent,
+        }

@@ -10,6 +10,11 @@ other robots (`SenseFrame.peers`): an agent sends one message a tick and hears o
 whatever the fleet's size.
 Real time: the world integrates on the wall clock (optionally sped up) with the latest
 commands it has.
+
+Robots that move on their own (`WorldOptions.observed`: robots on real drivers, or in
+another simulator such as AMRISim) are not simulated: the world places them where the
+best source it hears says they are (`phalanx.runtime.observed`), sends them no frames,
+and records them from that source; the results name it per robot.
 """
 
 from __future__ import annotations
@@ -26,8 +31,9 @@ from phalanx.core.errors import ConfigError
 from phalanx.core.formation import scenario_formation
 from phalanx.core.geometry import ZERO_TWIST, Twist2D
 from phalanx.core.limits import KinematicLimits
-from phalanx.core.runlog import RobotTrace, RunLog
-from phalanx.core.states import State, TransitionEvent
+from phalanx.core.runlog import RunLog
+from phalanx.runtime.observed import observed_robots
+from phalanx.runtime.run_record import RunRecord, completeness
 from phalanx.runtime.signals import Stoppable
 from phalanx.runtime.world_frames import (
     Flat,
@@ -87,6 +93,7 @@ class WorldOptions:
     startup_timeout_s: float = 60.0
     report_timeout_s: float = 12.0  # (waited only while a report is missing)
     epoch_s: float | None = None  # real time: tick 0 at this Unix time (shared with agents)
+    observed: tuple[str, ...] = ()  # robots that move on their own: recorded, not simulated
 
 
 class WorldProcess:
@@ -106,9 +113,8 @@ class WorldProcess:
         self.formation = scenario_formation(scenario)
         self.bounds = FleetBounds.of(scenario, robot)
         self.ids = tuple(r.id for r in scenario.robots)
-        self.steps = round(scenario.duration_s * scenario.control_rate_hz)
-        self.t_s = np.arange(self.steps, dtype=np.float64) * scenario.dt_s
-        self.traces = {rid: RobotTrace.empty(self.steps) for rid in self.ids}
+        self.record = RunRecord(scenario, self.formation, self.ids)
+        self.steps = self.record.steps
         self.inbox = WorldInbox(self.ids)
         self.missed: dict[str, int] = dict.fromkeys(self.ids, 0)
         self.tick = 0
@@ -121,6 +127,12 @@ class WorldProcess:
         self._ahead_ticks = max(2, round(AHEAD_S / scenario.dt_s))
         if options.clock == "lockstep" and options.transport.lowlatency:
             self._check_frames_fit()
+        self.observed = observed_robots(
+            options.observed, self.ids, fleet=options.fleet, clock=options.clock,
+            epoch_s=options.epoch_s, bounds=self.bounds,
+        )  # fmt: skip
+        self.observed_ids = frozenset(self.observed.ids if self.observed else ())
+        self._observed_twist: dict[str, Twist2D] = {}
 
     def _check_frames_fit(self) -> None:
         """On the low-latency transport (messages up to LOWLATENCY_MAX_BYTES) refuse,
@@ -187,6 +199,8 @@ class WorldProcess:
             session.subscribe(key, model, handler, context=bounds)  # type: ignore[arg-type]
         session.watch_alive(alive_pattern(fleet), self._on_alive)
         session.serve_status(status_key(fleet, WORLD_ID), self._status)
+        if self.observed is not None:
+            self.observed.attach(session)
 
     def _too_far_ahead(self, tick: int, name: str, robot_id: str) -> bool:
         """Whether `tick` is beyond the window kept (then counted as refused)."""
@@ -228,15 +242,26 @@ class WorldProcess:
 
     def _on_alive(self, key: str, alive: bool) -> None:
         robot = key.rsplit("/", 1)[-1]
-        if robot not in self.traces:
+        if robot not in self.inbox.ids:
             return  # another process (a tool, the world itself) or no robot of this fleet
         with self.inbox.cond:
             (self.inbox.alive.add if alive else self.inbox.alive.discard)(robot)
             if not alive:
-                self.inbox.gone(robot, self.tick if self.started else None)
+                self.inbox.gone(robot, self._run_tick() if self.started else None)
             self.inbox.cond.notify_all()
         if not alive:
             log.warning("robot %s is gone (liveliness lost)", robot)
+
+    def _run_tick(self) -> int:
+        """The run's tick now: on the shared epoch's clock where there is one (a world
+        late on a loaded machine is behind it; a robot on its own clock is not), else
+        the world's own.
+        """
+        epoch = self.options.epoch_s
+        if epoch is None or self.options.clock != "realtime":
+            return self.tick
+        speed, dt_s = self.options.speed, self.scenario.dt_s
+        return max(self.tick, min(self.steps - 1, int((time.time() - epoch) * speed / dt_s)))
 
     def _status(self) -> dict[str, object]:
         stats = self.stats.as_dict() if self.stats is not None else {}
@@ -249,6 +274,7 @@ class WorldProcess:
             "dropped": stats.get("dropped", 0),
             "relinks": self._fabric.relinks if self._fabric is not None else 0,
             "decode": stats,
+            **(self.observed.counters() if self.observed is not None else {}),
         }
 
     def _await_agents(self, stop: Stoppable) -> None:
@@ -283,11 +309,18 @@ class WorldProcess:
         with self.inbox.cond:
             self.inbox.sent_at[k] = time.monotonic()
             self.inbox.sent_at.pop(k - 50, None)
+        self._place_observed(k)
         self.world.sense_all()  # every robot's sonar in one pass; each frame reads its row
         lockstep = self.options.clock == "lockstep"
         # (a state older than the window kept ahead is no news either)
         relay = self.inbox.relay(k, self._ahead_ticks) if lockstep else ()
         for rid in self.ids:
+            if rid in self.observed_ids:
+                # no frame: it senses for itself; its simulated positioning (motion
+                # capture, cameras) only once its true pose is known, which it measures
+                if self.observed is not None and self.observed.has_truth(rid):
+                    self._positioning(session, rid)
+                continue
             session.publish(
                 robot_key(self.options.fleet, rid, "sense"),
                 sense_frame(
@@ -303,8 +336,20 @@ class WorldProcess:
         if lockstep:
             self._await_states(k)
         commands = self._commands_for(k)
-        self._record(k, commands)
+        self.record.record(k, self.world, commands, self.telemetry)
         self.world.step(commands, self.scenario.dt_s)
+
+    def _place_observed(self, k: int) -> None:
+        """Put every observed robot where it is at tick `k`, moving as it does."""
+        if self.observed is None:
+            return
+        t_s = float(self.record.t_s[k])
+        for rid in self.observed.ids:
+            seen = self.observed.at(rid, t_s)
+            if seen is not None:
+                pose, twist = seen
+                self.world.place(rid, pose, twist)
+                self._observed_twist[rid] = twist
 
     def _await_states(self, k: int) -> None:
         for rid in self.inbox.await_states(k, self.options.tick_timeout_s):
@@ -319,7 +364,9 @@ class WorldProcess:
         for rid in self.ids:
             cmd = got.get(rid) if self.options.clock == "lockstep" else latest.get(rid)
             out[rid] = cmd if cmd is not None and rid in self.inbox.alive else ZERO_TWIST
-        return out
+        # (an observed robot goes on as it was seen going; in the record, its command is
+        # its own: it sends none to the world)
+        return out | self._observed_twist
 
     def _log_static(self) -> None:
         """Obstacles, the paper's bounds and the velocity limits, the layout."""
@@ -340,16 +387,6 @@ class WorldProcess:
         )
         self.telemetry.send_blueprint(self.ids)
 
-    def _record(self, k: int, commands: dict[str, Twist2D]) -> None:
-        for rid in self.ids:
-            pose, twist = self.world.truth(rid)
-            tr = self.traces[rid]
-            tr.x_m[k], tr.y_m[k], tr.theta_rad[k] = pose.x_m, pose.y_m, pose.theta_rad
-            tr.v_mps[k], tr.omega_radps[k] = twist.v_mps, twist.omega_radps
-            tr.cmd_v_mps[k], tr.cmd_omega_radps[k] = commands[rid].v_mps, commands[rid].omega_radps
-            if self.telemetry is not None:
-                self.telemetry.log_truth(rid, t_s=float(self.t_s[k]), pose=pose)
-
     def _finish(self, session: FleetSession) -> None:
         """The final frame, again to robots whose report is not in (`await_reports`)."""
         fleet, k, dt_s = self.options.fleet, self.tick, self.scenario.dt_s
@@ -359,24 +396,15 @@ class WorldProcess:
         )  # fmt: skip
 
     def _log(self) -> RunLog:
-        self._fill_states()
-        reports = self.inbox.reports
-        events: dict[str, list[TransitionEvent]] = {rid: [] for rid in self.ids}
-        for e in sorted(self.inbox.events, key=lambda e: e.t_s):
-            if e.robot_id in events:
-                events[e.robot_id].append(TransitionEvent(e.t_s, e.source, e.target, e.reason))
-        return RunLog(
-            scenario=self.scenario,
-            robot=self.robot,
-            formation=self.formation,
-            t_s=self.t_s,
-            traces=self.traces,
-            transitions=events,
-            collisions=list(self.world.collisions),
-            saturations={r: reports[r].saturations if r in reports else 0 for r in self.ids},
-            accel_limited={r: reports[r].accel_limited if r in reports else 0 for r in self.ids},
-            wall_time_s=self.wall_time_s,
+        return self.record.log(
+            self.robot,
+            states=self.inbox.states,
+            events=self.inbox.events,
+            reports=self.inbox.reports,
+            observed=self.observed,
+            world=self.world,
             runtime=self._runtime(),
+            wall_time_s=self.wall_time_s,
         )
 
     def _runtime(self) -> dict[str, object]:
@@ -387,6 +415,9 @@ class WorldProcess:
             np.quantile(response, [0.5, 0.99]).tolist() if response.size else [None, None]
         )
         expected = (self.tick + 1) * len(self.ids)
+        # (an observed robot's commands go to its driver: its agent's report counts them)
+        delivered = sum(r.commands_sent for rid, r in self.inbox.reports.items()
+                        if rid in self.observed_ids)  # fmt: skip
         return {
             "clock": self.options.clock,
             "period_s": period_s,
@@ -394,7 +425,7 @@ class WorldProcess:
             "response_p99_s": quantiles[1],
             "response_max_s": float(response.max()) if response.size else None,
             "commands_expected": expected,
-            "commands_received": int(response.size),
+            "commands_received": int(response.size) + delivered,
             "commands_late": int(np.count_nonzero(response > period_s)),
             "missed_deadlines": dict(self.missed),
             "overruns": self.overruns,
@@ -402,43 +433,12 @@ class WorldProcess:
             "leadership": [a.model_dump() for a in self.inbox.leaders],
             "world_decode": self.stats.as_dict() if self.stats is not None else {},
             "log_overflow": self.inbox.overflow,
-            **self._completeness(),
+            **completeness(
+                steps=self.steps,
+                ticks_run=self.ticks_run,
+                absent=self.absent,
+                lost=self.inbox.lost,
+                reports=self.inbox.reports,
+                ids=self.ids,
+            ),
         }
-
-    def _completeness(self) -> dict[str, object]:
-        """Whether the run is whole: every tick run, no robot gone, every report in."""
-        reasons = []
-        if self.ticks_run < self.steps:
-            reasons.append(f"the world ran {self.ticks_run} of {self.steps} ticks")
-        reasons += [f"robot {r} was not there at the start" for r in self.absent]
-        reasons += [f"robot {r} went away at tick {k}" for r, k in self.inbox.lost]
-        missing = sorted(set(self.ids) - set(self.inbox.reports))
-        if missing:
-            reasons.append(f"no report from {', '.join(missing)}")
-        return {
-            "ticks_run": self.ticks_run,
-            "lost": [{"robot": r, "tick": k} for r, k in self.inbox.lost],
-            "absent": list(self.absent),
-            "complete": not reasons,
-            "incomplete_reason": "; ".join(reasons),
-        }
-
-    def _fill_states(self) -> None:
-        root = self.formation.root
-        for rid in self.ids:
-            states, tr = self.inbox.states[rid], self.traces[rid]
-            last = None
-            for trace_list in (tr.states, tr.tracked, tr.leaders, tr.epochs, tr.formed):
-                trace_list.clear()
-            for k in range(self.steps):
-                last = states.get(k, last)
-                tr.states.append(last.fsm_state if last else str(State.HOLD))
-                tr.direction[k] = last.direction if last else 1
-                tr.tracked.append(last.leader_id if last else (self.formation.leader_of(rid) or ""))
-                tr.leaders.append(last.formation_leader_id or root if last else root)
-                tr.epochs.append(last.epoch if last else 0)
-                tr.formed.append(last.formed if last else True)
-                if last is not None:  # the pose it published (its estimate) and covariance
-                    tr.estimate[k] = (last.x_m, last.y_m, last.theta_rad)
-                    if last.cov:
-                        tr.cov[k] = last.cov

@@ -31,14 +31,13 @@ from phalanx.wire.messages import (
     ClockTick,
     LeaderAnnouncement,
     Message,
-    PoseFixMessage,
-    RelativeFixMessage,
     RobotFlags,
     RobotState,
     ScanMessage,
     SenseFrame,
     VelocityCommand,
 )
+from phalanx.wire.positions import PoseFixMessage, RelativeFixMessage, TruthMessage
 
 M = TypeVar("M", bound=Message)
 WireFormat = Literal["packed", "json"]
@@ -119,6 +118,7 @@ LAYOUTS: dict[type[Message], tuple[int, tuple[tuple[str, str], ...]]] = {
             ("step_p50_us", "d"),
             ("step_p99_us", "d"),
             ("telemetry_dropped", "I"),
+            ("commands_sent", "I"),
         ),
     ),
     # a robot's flags: the fields of its state that RobotFlags has, in the same order
@@ -169,6 +169,19 @@ LAYOUTS: dict[type[Message], tuple[int, tuple[tuple[str, str], ...]]] = {
             ("theta_rad", "d"),
             ("ranges_m", "D"),
             ("echo", "B"),
+        ),
+    ),
+    TruthMessage: (
+        12,
+        (
+            ("robot_id", "s"),
+            ("stamp_s", "d"),
+            ("x_m", "d"),
+            ("y_m", "d"),
+            ("theta_rad", "d"),
+            ("v_mps", "d"),
+            ("omega_radps", "d"),
+            ("source", "s"),
         ),
     ),
 }

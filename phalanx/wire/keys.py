@@ -11,6 +11,8 @@ robot/<id>/report   AgentReport at the end of a run
 robot/<id>/scan     ScanMessage: a navigating robot's sonar reading, for the fleet's map
 robot/<id>/fix      PoseFixMessage: an absolute pose fix (`phalanx mocap`, or the world
                     simulating motion capture for robots on drivers)
+robot/<id>/truth    TruthMessage: where a simulator says the robot is (the robot's agent,
+                    from its driver: AMRISim), for the run's record
 robot/<id>/relative RelativeFixMessage: another robot seen by this one's camera (the world
                     simulating it for robots on drivers)
 leader              LeaderAnnouncement (who leads, under which epoch)

@@ -45,7 +45,6 @@ from phalanx.wire.bounds import (
     StateName,
     Text,
     Tick,
-    UnixStamp,
     YawRate,
     _bounds,
 )
@@ -309,45 +308,6 @@ class SenseFrame(Message):
         return self
 
 
-class PoseFixMessage(Message):
-    """An absolute pose fix of robot `robot_id` on `.../robot/<id>/fix` (a motion-capture
-    bridge, `phalanx mocap`, or the world process simulating one for robots on drivers).
-
-    Pose in the fleet's world frame (m, rad), taken at `stamp_s` in Unix time (the
-    receiving agent turns it into fleet time with its epoch), with the source's standard
-    deviations (`std_m` on x and y, `std_rad` on the heading).
-    """
-
-    version: Literal[1] = 1
-    robot_id: RobotId
-    stamp_s: UnixStamp
-    x_m: float = Field(ge=-1e4, le=1e4)
-    y_m: float = Field(ge=-1e4, le=1e4)
-    theta_rad: float = Field(ge=-2 * math.pi, le=2 * math.pi)
-    std_m: float = Field(gt=0.0, le=10.0)
-    std_rad: float = Field(gt=0.0, le=math.pi)
-
-
-class RelativeFixMessage(Message):
-    """Robot `target_id` seen from robot `robot_id` on `.../robot/<id>/relative` (the world
-    process simulating the camera of a robot on a driver): range (m) and bearing (rad,
-    counter-clockwise from the robot's heading) of the target's centre and, when
-    `std_heading_rad` > 0, the target's heading relative to the robot's; taken at
-    `stamp_s` in Unix time.
-    """
-
-    version: Literal[1] = 1
-    robot_id: RobotId
-    target_id: RobotId
-    stamp_s: UnixStamp
-    range_m: float = Field(ge=0.0, le=100.0)
-    bearing_rad: float = Field(ge=-2 * math.pi, le=2 * math.pi)
-    heading_rad: float = Field(default=0.0, ge=-2 * math.pi, le=2 * math.pi)
-    std_range_m: float = Field(gt=0.0, le=10.0)
-    std_bearing_rad: float = Field(gt=0.0, le=math.pi)
-    std_heading_rad: float = Field(default=0.0, ge=0.0, le=math.pi)
-
-
 class ScanMessage(Message):
     """One sonar reading of robot `robot_id` for the fleet's shared map, on
     `.../robot/<id>/scan`: where it was taken (world frame, m and rad, at `stamp_s` on the
@@ -410,6 +370,7 @@ class AgentReport(Message):
     step_p50_us: Micros = 0.0  # control step: core, publish, telemetry
     step_p99_us: Micros = 0.0
     telemetry_dropped: Count = 0
+    commands_sent: Count = 0  # a robot on a driver: commands its driver took
 
 
 def check_pose_cov(cov: tuple[float, ...]) -> tuple[float, ...]:

@@ -15,10 +15,14 @@ from phalanx.core.errors import ProtocolError
 from phalanx.protocols.arcos import (
     Cmd,
     FrameParser,
+    SimStat,
     Sip,
     command,
+    decode_simstat,
     decode_sip,
+    encode_simstat,
     encode_sip,
+    sim_set_pose,
     vel2_arg,
     vel2_wheels,
 )
@@ -157,3 +161,36 @@ def test_a_sip_without_a_battery_voltage_reports_none() -> None:
     # Battery type 2 firmware reports a state of charge instead: 0 V is not a reading.
     sip = Sip(moving=False, x=0, y=0, th=0, left_vel=0, right_vel=0, battery_dv=0, stall_bumpers=0)
     assert decode_sip(encode_sip(sip)[3:-2]).battery_v is None
+
+
+def test_sim_set_pose_is_an_unused_byte_and_three_four_byte_integers() -> None:
+    """As ARIA's ArSimUtil::setSimTruePose writes it (and AMRISim reads it): the command,
+    a byte AMRISim ignores, then x, y (mm) and heading (deg), 4 bytes each, little-endian."""
+    frame = sim_set_pose(-1050, 1000, 12)
+    body = frame[3:-2]
+    assert frame[:3] == bytes((0xFA, 0xFB, len(body) + 2))
+    assert body[:2] == bytes((Cmd.SIM_SET_POSE, 0))
+    assert struct.unpack("<iii", body[2:]) == (-1050, 1000, 12)
+    assert list(FrameParser().feed(frame)) == [body]
+
+
+@given(
+    x=st.integers(-(2**31), 2**31 - 1),
+    y=st.integers(-(2**31), 2**31 - 1),
+    th=st.integers(-180, 180),
+    intervals=st.tuples(*(st.integers(0, 0xFFFF) for _ in range(3))),
+)
+def test_simstat_round_trips_as_far_as_the_true_pose(
+    x: int, y: int, th: int, intervals: tuple[int, int, int]
+) -> None:
+    stat = SimStat(0b100, *intervals, x_mm=x, y_mm=y, th_deg=th)
+    (body,) = FrameParser().feed(encode_simstat(stat))
+    assert decode_simstat(body) == stat
+
+
+def test_a_short_or_foreign_simstat_is_refused() -> None:
+    (body,) = FrameParser().feed(encode_simstat(SimStat(0, 100, 100, 100, 1, 2, 3)))
+    with pytest.raises(ProtocolError, match="too short"):
+        decode_simstat(body[:20])
+    with pytest.raises(ProtocolError, match="not a SIMSTAT"):
+        decode_simstat(bytes((0x32,)) + body[1:])

@@ -346,7 +346,7 @@ class DriverAgentUnderTest:
 
     def keys(self) -> dict[str, tuple[type[Message], str, Callable[[], list[bytes]]]]:
         """The positioning keys of a robot on a driver."""
-        from phalanx.wire.messages import PoseFixMessage, RelativeFixMessage
+        from phalanx.wire.positions import PoseFixMessage, RelativeFixMessage
 
         def valid_fix() -> list[Message]:
             stamp = self.EPOCH_S + self.k * self.scenario.dt_s

@@ -13,12 +13,14 @@ import pytest
 
 from phalanx.analysis.metrics import run_metrics
 from phalanx.core.config_files import CONFIG_ROOT, apply_overrides, load_scenario
+from phalanx.core.scenarios import signal_builder
 from phalanx.runtime.batch import run_batch
 
 pytestmark = [pytest.mark.integration, pytest.mark.drivers]
 WEDGE = CONFIG_ROOT / "scenarios" / "paper_wedge.toml"
 # 45 s of real time: the deadlock at 20 s, a 1.5 m reverse, forwards again.
-SHORT = ["duration_s=45", "events.0.start_s=20", "deadlock.safe_distance_m=1.5"]
+# (the paper's signal builder at 20 s: the scenario's wall is reached at about 97 s)
+SHORT = ["duration_s=45", *signal_builder(20.0), "deadlock.safe_distance_m=1.5"]
 # ARCOS quantises what the agents see and send (1 mm, 0.088 deg and 1 mm/s in SIPs; VEL in
 # mm/s, RVEL in whole deg/s) and runs on the wall clock of a shared machine; a SIP is up to
 # 100 ms old when a step reads it, which the agent dead-reckons away (and the emulator

@@ -15,6 +15,7 @@ import pytest
 
 from phalanx.analysis.metrics import run_metrics
 from phalanx.core.config_files import CONFIG_ROOT, apply_overrides, load_scenario
+from phalanx.core.scenarios import signal_builder
 from phalanx.runtime.batch import run_batch
 from phalanx.wire.keys import leader_key, robot_key, robots_key
 from phalanx.wire.messages import LeaderAnnouncement, RobotState
@@ -88,7 +89,7 @@ def test_up_reproduces_a_leadership_handover(tmp_path: Path) -> None:
     """The leader alone blocked (its sonars read 0.3 m at 8 s): every robot process hands
     the lead to r2 under epoch 1 on the same tick as the in-process run, and the group's
     transitions and errors agree."""
-    sets = ["duration_s=40", "events.0.start_s=8", 'events.0.robots=["r1"]']
+    sets = ["duration_s=40", *signal_builder(8.0, robots=("r1",))]
     out = tmp_path / "handover"
     proc = subprocess.run(
         [*CLI, "up", str(WEDGE), "--out", str(out), "--fleet", "hand", "--timeout", "120",

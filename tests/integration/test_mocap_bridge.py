@@ -14,7 +14,7 @@ import pytest
 
 from phalanx.core.config_files import CONFIG_ROOT
 from phalanx.wire.keys import robots_key
-from phalanx.wire.messages import PoseFixMessage
+from phalanx.wire.positions import PoseFixMessage
 from phalanx.wire.transport import TransportConfig, free_tcp_port, loopback_endpoint, open_session
 
 pytest.importorskip("motioncapture", reason="the mocap bridge needs the sensing extra")

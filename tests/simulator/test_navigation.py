@@ -17,7 +17,7 @@ from phalanx.core.config_files import CONFIG_ROOT, apply_overrides, load_scenari
 from phalanx.core.geometry import ZERO_TWIST, Vec2
 from phalanx.core.peers import PeerState
 from phalanx.core.runlog import RunLog
-from phalanx.core.scenarios import navigation_scenario
+from phalanx.core.scenarios import navigation_scenario, signal_builder
 from phalanx.core.states import State
 from phalanx.runtime.batch import BatchRunner, run_batch
 
@@ -28,7 +28,7 @@ def test_a_blocked_leader_hands_over_and_every_robot_agrees() -> None:
     # The paper's signal builder, for the leader alone: its sonars read 0.3 m at 10 s.
     scenario = apply_overrides(
         load_scenario(SCENARIOS / "paper_wedge.toml"),
-        ["duration_s=20", "events.0.start_s=10", 'events.0.robots=["r1"]'],
+        ["duration_s=20", *signal_builder(10.0, robots=("r1",))],
     )
     log = run_batch(scenario)
     k = len(log.t_s) - 1

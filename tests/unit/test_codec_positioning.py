@@ -18,7 +18,8 @@ from phalanx.runtime.positioning import (
     frame_relative,
 )
 from phalanx.wire.codec import DecodeStats, decode, encode
-from phalanx.wire.messages import PoseFixMessage, RelativeFixMessage, RobotState, SenseFrame
+from phalanx.wire.messages import RobotState, SenseFrame
+from phalanx.wire.positions import PoseFixMessage, RelativeFixMessage
 
 STATE = {
     "robot_id": "r2", "seq": 3, "stamp_s": 1.5, "x_m": 1.0, "y_m": 2.0, "theta_rad": 0.1,

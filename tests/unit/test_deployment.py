@@ -165,7 +165,6 @@ def test_a_launcher_joins_through_a_host_or_what_it_is_told(tmp_path: Path) -> N
         (HOSTS.replace("192.0.2.11", "192.0.2.10") + ROBOTS, "", "endpoints must be unique"),
         (HOSTS.replace('"p3dx-2"', '"p3dx-1"', 1) + ROBOTS, "", "host names must be unique"),
         (HOSTS + ROBOTS.replace("[world]\nhost", "[world]\nhots"), "", "did you mean 'host'"),
-        (HOSTS + ROBOTS.replace('[world]\nhost = "laptop"\n', ""), "", "no [world]"),
         (
             HOSTS + ROBOTS,
             'clock = "lockstep"\noverrides = ["robots.0.driver=\\"arcos\\""]',
@@ -246,6 +245,27 @@ def test_the_world_command_line_comes_from_the_deployment(tmp_path: Path) -> Non
     assert argv[argv.index("--out") + 1] == str(tmp_path / "out" / "run7")
     assert [a for a in argv if a.startswith("--set=")] == ["--set=seed=3", "--set=duration_s=20"]
     assert "--epoch" not in argv  # simulated robots share the world's clock
+
+
+def test_without_a_world_the_first_host_records_the_robots_on_drivers(tmp_path: Path) -> None:
+    """A lab's deployment: no simulated world, every robot on its P3DX. The world process
+    still runs (on the first host), simulating nobody: it records each robot from the
+    best pose source it hears, and writes the results.
+    """
+    body = ROBOTS.replace('[world]\nhost = "laptop"\n', "").replace(
+        'host = "p3dx-2"', 'host = "p3dx-2"\ndriver = "arcos"\nsettings = { tcp = "x:8101" }'
+    )
+    body = body.replace(
+        'host = "p3dx-1"', 'host = "p3dx-1"\ndriver = "arcos"\nsettings = { port = "/dev/p3dx" }'
+    )
+    loaded = load_deployment(_write(tmp_path, HOSTS + body))
+    assert loaded.spec.world is not None
+    assert loaded.spec.world.host == "laptop"
+    run = RunParameters("run8", epoch_unix=1_800_000_000.0)
+    argv = world_argv(loaded, run=run, out=tmp_path / "out", python="python3")
+    observed = [argv[i + 1] for i, a in enumerate(argv) if a == "--observe"]
+    assert observed == ["r1", "r2", "r3"]
+    assert argv[argv.index("--epoch") + 1] == "1800000000.000"
 
 
 def test_spawn_requests_carry_no_commands() -> None:

@@ -162,5 +162,21 @@ def test_deadlock_rule() -> None:
     assert "dead end" in group_deadlock(dead_end, "r1", confirm_s=0.2)
 
 
+def test_the_papers_rule_counts_a_column_queued_behind_a_blocked_robot() -> None:
+    """A wall across a column's path: only the leader's sonar sees it; the robots queued
+    behind it are blocked by it (their path is its), so the paper's rule holds."""
+    leader = {"r1": flags("r1", obstacle=True, blocked_s=0.1, clear=False)}
+    column = leader | {r: flags(r, clear=False) for r in ("r2", "r3")}
+    queued = {"r2": "r1", "r3": "r2"}
+    assert "every robot blocked" in group_deadlock(
+        column, "r1", confirm_s=0.2, widened=False, queued=queued
+    )
+    assert group_deadlock(column, "r1", confirm_s=0.2, widened=False) == ""  # no column
+    beside = {"r2": "r1"}  # r3 is not behind anyone: it must see the wall itself
+    assert group_deadlock(column, "r1", confirm_s=0.2, widened=False, queued=beside) == ""
+    loop = {"r2": "r3", "r3": "r2"}  # (a bad map never hangs it)
+    assert group_deadlock(column, "r1", confirm_s=0.2, widened=False, queued=loop) == ""
+
+
 def test_leader_key() -> None:
     assert leader_key("lab") == "phalanx/lab/leader"

@@ -100,13 +100,13 @@ def test_each_state_drives_its_robot_and_reaches_every_other_robot_once() -> Non
     assert world.missed == {"r1": 1, "r2": 1, "r3": 2}  # r3 at tick 2; all at tick 4
 
     assert VelocityCommand not in session.heard  # a robot's state is its command
-    trace = world.traces["r3"]
+    trace = world.record.traces["r3"]
     assert trace.cmd_v_mps[1] == 0.02  # its state's twist
     assert trace.cmd_omega_radps[1] == 0.003
     assert trace.cmd_v_mps[2] == 0.0  # no answer in time: it stood still
     assert late.v_mps == 0.03  # (and its late answer was not taken for a later tick)
     assert trace.cmd_v_mps[3] == 0.04
-    assert world.traces["r1"].cmd_v_mps[4] == 0.0
+    assert world.record.traces["r1"].cmd_v_mps[4] == 0.0
 
 
 def test_a_robot_gone_before_the_start_is_absent_from_the_results_and_one_gone_after_lost() -> None:
@@ -117,7 +117,7 @@ def test_a_robot_gone_before_the_start_is_absent_from_the_results_and_one_gone_a
     assert world.absent == ("r3",)
     world._tick(session, 0)  # type: ignore[arg-type]
     world._on_alive(alive_key(FLEET, "r2"), False)
-    done = world._completeness()
+    done = world._runtime()
     assert done["complete"] is False
     assert done["absent"] == ["r3"]
     assert done["lost"] == [{"robot": "r2", "tick": 0}]

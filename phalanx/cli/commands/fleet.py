@@ -15,10 +15,8 @@ import typer
 if TYPE_CHECKING:
     from phalanx.core.config import RobotParams, Scenario
     from phalanx.drivers.base import Driver
-    from phalanx.drivers.safety import SafeDriver
     from phalanx.runtime.signals import Stoppable
     from phalanx.telemetry.stream import Telemetry
-    from phalanx.wire.messages import AgentReport
     from phalanx.wire.transport import TransportConfig
 
 
@@ -201,12 +199,23 @@ def agent(
         "--can-interface": can_interface,
     }
     backend = _backend(driver, params, shortcuts=shortcuts, settings=driver_setting)
+    from phalanx.core.errors import DriverUnavailable
+    from phalanx.runtime.agent_process import AgentProcess, run_agent
+
+    process = AgentProcess(
+        robot_id=robot, fleet=fleet, transport=transport, clock=_clock(clock), epoch_s=epoch,
+        watchdog_s=watchdog, frame_timeout_s=frame_timeout, camera=camera,
+    )  # fmt: skip
     stop = _stop_on_signals()
     with _telemetry(recording_id, telemetry_file, telemetry_url, robot) as telemetry:
-        report, code = _run_agent(
-            robot, config, params, transport, fleet, clock, stop, telemetry, backend,
-            epoch, watchdog, frame_timeout, camera,
-        )  # fmt: skip
+        tel = telemetry if telemetry.sink.kind != "off" else None
+        try:
+            report, code = run_agent(
+                process, config, params, driver=backend, stop=stop, telemetry=tel
+            )
+        except DriverUnavailable as exc:
+            typer.echo(str(exc), err=True)
+            raise typer.Exit(2) from exc
     typer.echo(
         f"{robot}: {report.steps} steps, {report.saturations} saturations, "
         f"{report.dropped_messages} dropped messages"
@@ -234,83 +243,6 @@ def _telemetry(
     return Telemetry(
         recording_id=recording_id or "off", sink=sink, robot_id=robot_id, background=True
     )
-
-
-def _run_agent(
-    robot: str,
-    config: Scenario,
-    params: RobotParams,
-    transport: TransportConfig,
-    fleet: str,
-    clock: str,
-    stop: Stoppable,
-    telemetry: Telemetry,
-    backend: Driver | None,
-    epoch: float | None,
-    watchdog: float,
-    frame_timeout_s: float,
-    camera: str | None = None,
-) -> tuple[AgentReport, int]:
-    """Run the agent to its end: its report, and its exit code (`phalanx.runtime.exits`)."""
-    import time
-
-    from phalanx.runtime.agent import AgentRuntime, RuntimeOptions
-    from phalanx.runtime.exits import EXIT_FINISHED, EXIT_RUN_CUT_SHORT, EXIT_WORLD_LOST
-    from phalanx.runtime.robot_io import WorldLink
-    from phalanx.wire.bounds import FleetBounds
-
-    tel = telemetry if telemetry.sink.kind != "off" else None
-    if backend is None:  # a simulated robot: the world's frames are its ticks
-        options = RuntimeOptions(fleet=fleet, transport=transport, clock=_clock(clock))
-        bounds = FleetBounds.of(config, params)
-        ids = tuple(r.id for r in config.robots)
-        link = WorldLink(
-            fleet, robot, frame_timeout_s=frame_timeout_s, robot_ids=ids, bounds=bounds
-        )
-        runtime = AgentRuntime(robot, config, params, options, clock=link, io=link, telemetry=tel)
-        report = runtime.run(stop)
-        if link.world_lost:
-            return report, EXIT_WORLD_LOST
-        if link.ending == "cut_short":
-            return report, EXIT_RUN_CUT_SHORT
-        return report, EXIT_FINISHED
-    # A robot driver: the agent keeps its own clock; commands go through the safety layer.
-    from phalanx.core.limits import safety_limits
-    from phalanx.drivers.safety import SafeDriver
-    from phalanx.runtime.clock import EpochClock
-    from phalanx.runtime.robot_io import DriverIO
-
-    options = RuntimeOptions(fleet=fleet, transport=transport, clock="realtime")
-    safe = SafeDriver(backend, safety_limits(params, config.limits, watchdog_s=watchdog))
-    _connect_with_retry(safe, stop)
-    steps = round(config.duration_s / config.dt_s)
-    with safe:
-        ticks = EpochClock(epoch_s=epoch or time.time(), dt_s=config.dt_s, steps=steps)
-        from phalanx.runtime.positioning import PositioningInbox, open_camera
-
-        inbox = PositioningInbox(fleet, robot, epoch_s=ticks.epoch_s)
-        if camera is not None:
-            inbox.camera = open_camera(camera, robot, config, epoch_s=ticks.epoch_s)
-        io = DriverIO(safe, params, origin=config.start_pose(robot), positioning=inbox)
-        runtime = AgentRuntime(robot, config, params, options, clock=ticks, io=io, telemetry=tel)
-        return runtime.run(stop), 0
-
-
-def _connect_with_retry(driver: SafeDriver, stop: Stoppable, timeout_s: float = 15.0) -> None:
-    """Connect, retrying while the robot (or its emulator) comes up; exit 2 if it never does."""
-    import time
-
-    from phalanx.core.errors import DriverError
-
-    deadline = time.monotonic() + timeout_s
-    while True:
-        try:
-            driver.connect()
-            return
-        except DriverError as exc:
-            if time.monotonic() > deadline or stop.wait(0.5):
-                typer.echo(f"cannot reach the robot: {exc}", err=True)
-                raise typer.Exit(2) from exc
 
 
 # The documented shortcut options: each fills one field of one backend's settings.
@@ -407,8 +339,19 @@ def world(
     recording_id: RecordingIdOpt = None,
     telemetry_file: TelemetryFileOpt = None,
     telemetry_url: TelemetryUrlOpt = None,
+    observe: Annotated[
+        list[str] | None,
+        typer.Option(
+            "--observe",
+            help="A robot that moves on its own (a real driver, AMRISim): recorded from its "
+            "true pose, motion capture or its own estimate, not simulated (repeatable; "
+            "needs --clock realtime and --epoch).",
+        ),
+    ] = None,
 ) -> None:
-    """Run the simulated world for agents in other processes; write the results folder."""
+    """Run the world for agents in other processes: simulate the robots on the sim
+    driver, record the ones that move on their own; write the results folder.
+    """
     from phalanx.analysis.report import print_summary
     from phalanx.analysis.results import mark_results, write_results
     from phalanx.core.config_files import load_robot
@@ -420,8 +363,9 @@ def world(
         mode, listen, connect, (tls_ca, tls_cert, tls_key), lowlatency=lowlatency
     )
     options = WorldOptions(
-        fleet=fleet, transport=transport, clock=_clock(clock), speed=speed, epoch_s=epoch
-    )
+        fleet=fleet, transport=transport, clock=_clock(clock), speed=speed, epoch_s=epoch,
+        observed=tuple(observe or ()),
+    )  # fmt: skip
     with _telemetry(recording_id, telemetry_file, telemetry_url, None) as telemetry:
         tel = telemetry if telemetry.sink.kind != "off" else None
         process = WorldProcess(config, load_robot(config.robot), options, telemetry=tel)

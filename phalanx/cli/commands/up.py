@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import logging
 from pathlib import Path
 from typing import Annotated
@@ -47,13 +48,40 @@ def up(
             help="Pin each process to one CPU, round robin (default: in lockstep only).",
         ),
     ] = None,
+    robots: Annotated[
+        str,
+        typer.Option(
+            help="Who simulates the robots: phalanx (its world process) or amrisim (one "
+            "AMRISim with a P3DX per robot, driven through the arcos driver over TCP, as "
+            "real robots are).",
+        ),
+    ] = "phalanx",
+    amrisim: Annotated[
+        Path | None,
+        typer.Option(help="--robots amrisim: the AMRISim binary (default: $PHALANX_AMRISIM)."),
+    ] = None,
+    amrisim_odometry_error: Annotated[
+        str,
+        typer.Option(
+            help="--robots amrisim: AMRISim's odometry error model: none, random_init, "
+            "random_each_update or constant."
+        ),
+    ] = "none",
 ) -> None:
     """Start the world and one agent process per robot here; supervise; write results
     (marked incomplete, with the reason, when a process died or the world did not finish;
     the exit code is then 1).
     """
     from phalanx.analysis.results import mark_results
+    from phalanx.runtime.amrisim import (
+        AmrisimCommand,
+        Xvfb,
+        amrisim_binary,
+        free_port_run,
+        odometry_error,
+    )
     from phalanx.runtime.local_fleet import (
+        AmrisimRun,
         UpOptions,
         merge_recordings,
         plan,
@@ -82,10 +110,28 @@ def up(
     )
     if driver not in ("sim", "arcos"):
         raise typer.BadParameter(f"up runs sim or arcos robots, not {driver!r}")
-    if driver == "arcos" and options.clock == "lockstep":
-        typer.echo("arcos robots keep their own time: running with --clock realtime", err=True)
+    if robots not in ("phalanx", "amrisim"):
+        raise typer.BadParameter(f"expected phalanx or amrisim, got {robots!r}")
+    if robots == "amrisim" and driver != "sim":
+        raise typer.BadParameter("--robots amrisim drives AMRISim's robots: leave --driver out")
+    if (driver == "arcos" or robots == "amrisim") and options.clock == "lockstep":
+        typer.echo(
+            "robots on a driver keep their own time: running with --clock realtime", err=True
+        )
         options.clock = "realtime"
-    outcome = supervise(plan(scenario, config, options), options, _stop_on_signals())
+    with contextlib.ExitStack() as stack:
+        if robots == "amrisim":
+            display = stack.enter_context(Xvfb()).display
+            command = AmrisimCommand(
+                binary=amrisim_binary(amrisim),
+                map_path=out / "amrisim.map",
+                log_path=out / "amrisim.log",
+                base_port=free_port_run(len(config.robots)),
+                odometry_error=odometry_error(amrisim_odometry_error),
+            )
+            options.amrisim = AmrisimRun(command, display)
+            typer.echo(f"AMRISim: {command.binary} (its log: {command.log_path})", err=True)
+        outcome = supervise(plan(scenario, config, options), options, _stop_on_signals())
     parts = sorted(telemetry_dir(out).glob("*.rrd")) if recording else []
     if parts and merge_recordings(parts, out / "run.rrd"):
         typer.echo(f"recording: {out / 'run.rrd'} ({len(parts)} processes merged)")

@@ -1,0 +1,183 @@
+"""Robots that move on their own, recorded rather than simulated.
+
+Real robots, or robots another simulator moves (AMRISim): the world process places them
+where they were seen, tick by tick, and writes the run's record from the best pose
+source it hears of each:
+
+1. a simulator's true pose (`robot/<id>/truth`, which the robot's agent passes on from
+   its driver: AMRISim's SIMSTAT);
+2. motion capture (`robot/<id>/fix` from `phalanx mocap`): an external measurement, with
+   the system's own noise and latency;
+3. else the robot's own estimate, as it published it in its state: odometry (or its
+   pose estimator), whose drift the formation errors then do not show.
+
+Samples are kept in fleet time (the run's epoch taken off their Unix stamps). The live
+pose at a tick is the newest sample carried forward along its twist; the record is
+interpolated between the samples on either side of each tick once the run is over, so a
+sample that arrived late still counts.
+"""
+
+from __future__ import annotations
+
+import bisect
+import math
+import threading
+from dataclasses import dataclass, field
+from typing import Final
+
+import numpy as np
+
+from phalanx.core.errors import ConfigError
+from phalanx.core.geometry import Pose2D, Twist2D, dead_reckon, wrap_angle
+from phalanx.core.runlog import ESTIMATE_POSE, MOCAP_POSE, FloatArray, truth_source
+from phalanx.wire.bounds import FleetBounds
+from phalanx.wire.keys import robots_key
+from phalanx.wire.positions import PoseFixMessage, TruthMessage
+from phalanx.wire.transport import FleetSession
+
+# A pose is carried forward along its twist at most this long (s): past it, the robot is
+# taken to stand where it was last seen (a source that stopped sending).
+CARRY_MAX_S: Final = 0.5
+# At most this many samples a second are kept of one robot (a flood is dropped, counted).
+MAX_RATE_HZ: Final = 200.0
+
+
+@dataclass
+class Track:
+    """One robot's pose samples in fleet time, in time order: t, x, y, theta, v, omega."""
+
+    source: str = ""
+    rows: list[tuple[float, float, float, float, float, float]] = field(default_factory=list)
+    dropped: int = 0  # out of order, or beyond MAX_RATE_HZ
+
+    def add(self, row: tuple[float, float, float, float, float, float], capacity: int) -> None:
+        """Keep `row` if it is newer than the last and there is room."""
+        if (self.rows and row[0] <= self.rows[-1][0]) or len(self.rows) >= capacity:
+            self.dropped += 1
+            return
+        self.rows.append(row)
+
+    def at(self, t_s: float) -> tuple[Pose2D, Twist2D] | None:
+        """The newest sample not after `t_s` carried forward to it (None: none yet)."""
+        i = bisect.bisect_right(self.rows, t_s, key=lambda r: r[0])
+        if i == 0:
+            return None
+        t, x, y, th, v, w = self.rows[i - 1]
+        twist = Twist2D(v, w)
+        return dead_reckon(Pose2D(x, y, th), twist, t_s - t, CARRY_MAX_S), twist
+
+    def resampled(self, t_s: FloatArray) -> tuple[FloatArray, ...] | None:
+        """x, y, theta, v, omega at every time of `t_s`: interpolated between the samples
+        on either side, held before the first and after the last (None: no sample).
+        """
+        if not self.rows:
+            return None
+        t, x, y, th, v, w = (np.asarray(c, dtype=np.float64) for c in zip(*self.rows, strict=True))
+        heading = np.unwrap(th)
+        out = [np.interp(t_s, t, c) for c in (x, y, heading, v, w)]
+        out[2] = (out[2] + math.pi) % (2 * math.pi) - math.pi
+        return tuple(out)
+
+
+class ObservedRobots:
+    """What the world hears of the robots it records (`ids`); thread-safe (Zenoh's
+    callbacks add, the world's loop reads).
+    """
+
+    def __init__(
+        self, ids: tuple[str, ...], *, fleet: str, epoch_s: float, bounds: FleetBounds
+    ) -> None:
+        self.ids, self.fleet, self.epoch_s, self.bounds = ids, fleet, epoch_s, bounds
+        self.tracks = {rid: Track() for rid in ids}
+        self.truths = {rid: Track() for rid in ids}  # kept apart: the better source
+        self._capacity = int(MAX_RATE_HZ * (bounds.t_max_s + 60.0))
+        self._lock = threading.Lock()
+
+    def attach(self, session: FleetSession) -> None:
+        """Hear the robots' true poses and motion-capture fixes."""
+        truth, fix = robots_key(self.fleet, "truth"), robots_key(self.fleet, "fix")
+        session.subscribe(truth, TruthMessage, self._on_truth, context=self.bounds)
+        session.subscribe(fix, PoseFixMessage, self._on_fix, context=self.bounds)
+
+    def _on_truth(self, _key: str, m: TruthMessage) -> None:
+        if m.robot_id not in self.truths:
+            return
+        row = (m.stamp_s - self.epoch_s, m.x_m, m.y_m, wrap_angle(m.theta_rad), m.v_mps,
+               m.omega_radps)  # fmt: skip
+        with self._lock:
+            track = self.truths[m.robot_id]
+            track.source = track.source or truth_source(m.source)
+            track.add(row, self._capacity)
+
+    def _on_fix(self, _key: str, m: PoseFixMessage) -> None:
+        # (once a robot's true pose is heard, the world simulates its motion capture from
+        # it and publishes on this key itself: only a robot without one takes fixes)
+        if m.robot_id not in self.tracks:
+            return
+        with self._lock:
+            if self.truths[m.robot_id].rows:
+                return
+            track = self.tracks[m.robot_id]
+            track.source = MOCAP_POSE
+            track.add((m.stamp_s - self.epoch_s, m.x_m, m.y_m, m.theta_rad, 0.0, 0.0),
+                      self._capacity)  # fmt: skip
+
+    def has_truth(self, robot_id: str) -> bool:
+        """Whether a simulator's true pose of the robot has been heard."""
+        with self._lock:
+            return bool(self.truths[robot_id].rows)
+
+    def at(self, robot_id: str, t_s: float) -> tuple[Pose2D, Twist2D] | None:
+        """Where the robot is at fleet time `t_s`, from the best source heard (None:
+        nothing heard yet: the world leaves it where it is).
+        """
+        with self._lock:
+            truth = self.truths[robot_id]
+            return (truth if truth.rows else self.tracks[robot_id]).at(t_s)
+
+    def record(self, robot_id: str, t_s: FloatArray) -> tuple[str, tuple[FloatArray, ...] | None]:
+        """The pose source named for the record, and the robot's x, y, theta, v, omega at
+        every tick (None: nothing heard: the record takes its own estimate).
+        """
+        with self._lock:
+            for track in (self.truths[robot_id], self.tracks[robot_id]):
+                rows = track.resampled(t_s)
+                if rows is not None:
+                    return track.source, rows
+        return ESTIMATE_POSE, None
+
+    def counters(self) -> dict[str, int]:
+        """Samples kept and dropped, over every robot."""
+        with self._lock:
+            tracks = [*self.truths.values(), *self.tracks.values()]
+            return {
+                "pose_samples": sum(len(t.rows) for t in tracks),
+                "pose_samples_dropped": sum(t.dropped for t in tracks),
+            }
+
+
+def observed_robots(
+    observed: tuple[str, ...],
+    ids: tuple[str, ...],
+    *,
+    fleet: str,
+    clock: str,
+    epoch_s: float | None,
+    bounds: FleetBounds,
+) -> ObservedRobots | None:
+    """The robots of `ids` to record rather than simulate (None: every robot is
+    simulated); ConfigError for a robot not in the scenario, or without the wall clock
+    and epoch they keep.
+    """
+    if not observed:
+        return None
+    unknown = sorted(set(observed) - set(ids))
+    if unknown:
+        raise ConfigError(f"robots to observe {unknown} are not in the scenario")
+    if clock != "realtime" or epoch_s is None:
+        raise ConfigError(
+            "robots that move on their own keep the wall clock: observing them needs "
+            "--clock realtime and the run's --epoch"
+        )
+    chosen = tuple(r for r in ids if r in observed)
+    return ObservedRobots(chosen, fleet=fleet, epoch_s=epoch_s, bounds=bounds)

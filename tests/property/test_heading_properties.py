@@ -1,0 +1,71 @@
+"""`QuantisedHeading`: a heading a simulator reports in whole degrees (AMRISim), followed
+finer from the yaw rate it reports with it. Whatever the rates, the estimate stays in the
+step the report allows; turning at a steady rate, once it has crossed a step's edge it is
+within half an interval's turn of the truth, where the whole degree alone is within 0.5."""
+
+from __future__ import annotations
+
+import math
+
+from hypothesis import given
+from hypothesis import strategies as st
+
+from phalanx.core.geometry import wrap_angle
+from phalanx.drivers.arcos_tracker import QuantisedHeading
+
+STEP = math.radians(1.0)
+intervals = st.lists(st.floats(0.05, 0.15), min_size=5, max_size=80)
+
+
+def _reported(heading: float) -> float:
+    """What AMRISim sends: the heading rounded to a whole step, wrapped."""
+    return wrap_angle(round(wrap_angle(heading) / STEP) * STEP)
+
+
+def _error(a: float, b: float) -> float:
+    return abs(wrap_angle(a - b))
+
+
+@given(
+    start=st.floats(-math.pi, math.pi),
+    rate=st.floats(-math.radians(20.0), math.radians(20.0)),
+    dts=intervals,
+)
+def test_turning_steadily_it_is_within_half_an_intervals_turn(
+    start: float, rate: float, dts: list[float]
+) -> None:
+    follower = QuantisedHeading(STEP)
+    t, heading, crossed = 0.0, start, False
+    first = _reported(heading)
+    follower.update(first, rate, t)
+    for dt in dts:
+        t, heading = t + dt, heading + rate * dt
+        got = follower.update(_reported(heading), rate, t)
+        assert _error(got, _reported(heading)) <= STEP / 2 + 1e-9  # in the reported step
+        crossed = crossed or _reported(heading) != first
+        if crossed:
+            assert _error(got, heading) <= abs(rate) * max(dts) / 2 + 1e-9
+        else:
+            assert _error(got, heading) <= STEP / 2 + 1e-9
+
+
+@given(
+    start=st.floats(-math.pi, math.pi),
+    steps=st.lists(
+        st.tuples(st.floats(0.05, 0.15), st.floats(-1.0, 1.0), st.floats(-1.0, 1.0)),
+        min_size=1,
+        max_size=60,
+    ),
+)
+def test_whatever_the_rates_it_stays_in_the_reported_step(
+    start: float, steps: list[tuple[float, float, float]]
+) -> None:
+    """The true rate and the one reported may disagree (odometry errors, a rate rounded
+    to whole degrees): the report still bounds the estimate."""
+    follower = QuantisedHeading(STEP)
+    t, heading = 0.0, start
+    follower.update(_reported(heading), 0.0, t)
+    for dt, true_rate, told_rate in steps:
+        t, heading = t + dt, heading + true_rate * dt
+        got = follower.update(_reported(heading), told_rate, t)
+        assert _error(got, _reported(heading)) <= STEP / 2 + 1e-9
