@@ -43,13 +43,14 @@ from phalanx.agents.leadership import Flags, Leadership, LeadershipChange, group
 from phalanx.agents.masking import MaskInputs, SlotMasks
 from phalanx.agents.parts import Parts
 from phalanx.agents.sensing import STANDSTILL_MPS, ContactGuard, Sensing, Stance, way_clear
-from phalanx.core.config import RobotParams, Scenario
+from phalanx.core.config import Scenario
 from phalanx.core.formation import Formation
 from phalanx.core.geometry import Pose2D, Twist2D, wrap_angle
 from phalanx.core.limits import run_limits
 from phalanx.core.mapfile import GridMap
 from phalanx.core.peers import PeerFlags, PeerState, Scan
 from phalanx.core.robot import Odometry, RobotStatus
+from phalanx.core.robot_params import RobotParams
 from phalanx.core.states import OUT_OF_FORMATION, State, TransitionEvent
 
 __all__ = ["Agent", "Observation", "StepOutput"]

@@ -31,11 +31,12 @@ from phalanx.agents.route import RoutePlanner
 from phalanx.agents.sensing import Senses
 from phalanx.agents.shape import Shape
 from phalanx.agents.trail import Trail
-from phalanx.core.config import RobotParams, Scenario
+from phalanx.core.config import Scenario
 from phalanx.core.formation import Formation
 from phalanx.core.geometry import Pose2D, Vec2
 from phalanx.core.limits import KinematicLimits
 from phalanx.core.mapfile import GridMap
+from phalanx.core.robot_params import RobotParams
 from phalanx.core.shapes import NOMINAL_KEY, ShapeBook, ShapeKey
 from phalanx.core.states import State
 

@@ -22,8 +22,8 @@ from functools import cached_property
 import numpy as np
 import numpy.typing as npt
 
-from phalanx.core.config import RobotParams
 from phalanx.core.geometry import Vec2
+from phalanx.core.robot_params import RobotParams
 
 FloatArray = npt.NDArray[np.float64]
 BoolArray = npt.NDArray[np.bool_]

@@ -27,7 +27,7 @@ from phalanx.core.config_files import validate_data
 from phalanx.core.errors import ConfigError, DriverUnavailable
 
 if TYPE_CHECKING:
-    from phalanx.core.config import RobotParams
+    from phalanx.core.robot_params import RobotParams
     from phalanx.drivers.base import Driver
 
 

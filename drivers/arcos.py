@@ -37,11 +37,11 @@ import math
 import threading
 import time
 
-from phalanx.core.config import RobotParams
 from phalanx.core.errors import DriverError, DriverTimeout, DriverUnavailable
 from phalanx.core.geometry import Twist2D
 from phalanx.core.lifecycle import Closing
 from phalanx.core.robot import Odometry, RobotStatus
+from phalanx.core.robot_params import RobotParams
 from phalanx.drivers.arcos_handshake import Connection, HandshakeOptions, Identity, open_connection
 from phalanx.drivers.arcos_link import Link
 from phalanx.drivers.arcos_settings import ArcosSettings

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 from phalanx.core.errors import ProtocolError
 from phalanx.core.geometry import Pose2D, Twist2D, wrap_angle
-from phalanx.core.robot import Odometry, RobotStatus
+from phalanx.core.robot import Odometry, RobotStatus, TruePose
 from phalanx.protocols.arcos import (
     CONFIG_PAC,
     SIMSTAT,
@@ -34,6 +34,12 @@ from phalanx.protocols.arcos import (
 )
 
 N_SONARS = 16
+# A chord driven this long, turning at most this much along it, gives a heading (from
+# positions in whole or half millimetres: within 0.1 deg).
+CHORD_M = 0.5
+CHORD_TURN_RAD = math.radians(10.0)
+# Slower than this (m/s), a robot is taken to stand: its chords are too short to tell.
+MOVING_MPS = 0.02
 FRAME_OVERHEAD_BYTES = 5  # FA FB, the length byte, the two checksum bytes
 
 
@@ -60,8 +66,12 @@ class QuantisedHeading:
     (at half-way on average), so it is put on the edge plus half the interval's turn;
     either way it is held inside the step the report allows. Turning at the paper's
     3 deg/s with 100 ms reports, that is within 0.15 deg of the truth, where the whole
-    degree alone is within 0.5. A heading that never crosses an edge keeps the value it
-    started with: the centre of its step.
+    degree alone is within 0.5.
+
+    Positions come finer (a millimetre, or half of one): given them, every CHORD_M of a
+    drive that turns little along it, the heading is put on the chord's direction (a
+    wheeled robot goes where it heads), which is the heading half-way along the arc:
+    within 0.1 deg, also on a long straight reverse, where no edge is crossed.
     """
 
     def __init__(self, step_rad: float) -> None:
@@ -70,10 +80,20 @@ class QuantisedHeading:
         self._heading = 0.0  # unwrapped, rad
         self._rate_radps = 0.0
         self._t_s = 0.0
+        self._anchor: tuple[float, float, float, int] | None = None  # x, y, heading, way
 
-    def update(self, reported_rad: float, rate_radps: float, t_s: float) -> float:
+    def update(
+        self,
+        reported_rad: float,
+        rate_radps: float,
+        t_s: float,
+        *,
+        position: tuple[float, float] | None = None,
+        way: int = 0,
+    ) -> float:
         """The heading (rad, wrapped) at `t_s`, reported as `reported_rad` while turning
-        at `rate_radps`.
+        at `rate_radps`; `position` (m, in the heading's frame) and `way` (+1 driving
+        forwards, -1 backwards, 0 standing) let chords correct it.
         """
         step = self.step_rad
         k = round(reported_rad / step)
@@ -87,12 +107,33 @@ class QuantisedHeading:
                 heading = edge + 0.5 * moved
             else:
                 heading = self._heading + moved
+            if position is not None:
+                heading = self._by_chord(heading, position, way)
             centre = self._step * step + turn * step
             heading = min(max(heading, centre - 0.5 * step), centre + 0.5 * step)
             k = self._step + turn
         self._step, self._heading = k, heading
         self._rate_radps, self._t_s = rate_radps, t_s
         return wrap_angle(heading)
+
+    def _by_chord(self, heading: float, position: tuple[float, float], way: int) -> float:
+        """`heading`, put on the direction of the chord driven since the last anchor if
+        it is long enough and little turned (the anchor moves on either way).
+        """
+        x, y = position
+        anchor = self._anchor
+        if way == 0 or anchor is None or anchor[3] != way:
+            self._anchor = (x, y, heading, way) if way else None
+            return heading
+        ax, ay, anchor_heading, _ = anchor
+        if math.hypot(x - ax, y - ay) < CHORD_M:
+            return heading
+        turned = heading - anchor_heading
+        if abs(turned) <= CHORD_TURN_RAD:
+            course = math.atan2(y - ay, x - ax) + (0.0 if way > 0 else math.pi)
+            heading += wrap_angle(course + 0.5 * turned - heading)
+        self._anchor = (x, y, heading, way)
+        return heading
 
 
 class SipTracker:
@@ -108,7 +149,8 @@ class SipTracker:
         self.config: RobotConfig | None = None
         self.sip: Sip | None = None
         self.odometry: Odometry | None = None
-        self.truth: Odometry | None = None  # a simulator's true pose (SIMSTAT)
+        self.truth: TruePose | None = None  # a simulator's true pose (SIMSTAT)
+        self._sim_ms, self._real_ms = 0, 0  # its updates' simulated and real times
         self.heading_step_rad = heading_step_rad
         self._headings: tuple[QuantisedHeading, QuantisedHeading] | None = None
         self.sonar_m: tuple[float, ...] = (5.0,) * N_SONARS
@@ -116,10 +158,12 @@ class SipTracker:
         self._pose = Pose2D(0.0, 0.0, 0.0)
         self._last_xy: tuple[int, int] | None = None
         self._th0: float | None = None
+        self._raw = (0.0, 0.0)  # the position in the robot's own frame, unwrapped (m)
 
     def new_session(self) -> None:
         """A new connection: position counters restart, the integrated pose carries on."""
         self._last_xy, self._th0 = None, None
+        self._raw = (0.0, 0.0)
         self.last_sip_s = time.monotonic()
         step = self.heading_step_rad
         self._headings = None if step is None else (QuantisedHeading(step), QuantisedHeading(step))
@@ -174,21 +218,23 @@ class SipTracker:
             stalled=sip.left_stall or sip.right_stall,
             faults=faults,
             truth=self.truth,
-            truth_source=self._simulator(),
         )
 
     def _on_sip(self, sip: Sip, measured_s: float) -> None:
         f = self.factors
         w = self._yaw_rate(sip)
+        v = (sip.left_vel + sip.right_vel) / 2.0 * f.vel_mmps / 1000.0
+        last_xy = self._last_xy or (sip.x, sip.y)
+        dx_mm = wrap_delta(sip.x, last_xy[0]) * f.dist_mm
+        dy_mm = wrap_delta(sip.y, last_xy[1]) * f.dist_mm
+        self._last_xy = (sip.x, sip.y)
+        # (in the robot's own frame, where its heading is: positions for the chords)
+        self._raw = (self._raw[0] + dx_mm / 1000.0, self._raw[1] + dy_mm / 1000.0)
         th = wrap_angle(sip.th * f.angle_rad)
         if self._headings is not None:
-            th = self._headings[0].update(th, w, measured_s)
-        if self._last_xy is None or self._th0 is None:
+            th = self._headings[0].update(th, w, measured_s, position=self._raw, way=_way(v))
+        if self._th0 is None:
             self._th0 = wrap_angle(th - self._pose.theta_rad)
-            self._last_xy = (sip.x, sip.y)
-        dx_mm = wrap_delta(sip.x, self._last_xy[0]) * f.dist_mm
-        dy_mm = wrap_delta(sip.y, self._last_xy[1]) * f.dist_mm
-        self._last_xy = (sip.x, sip.y)
         # ARCOS integrates x, y in its own frame; ours starts at the first SIP's pose.
         c, s = math.cos(-self._th0), math.sin(-self._th0)
         pose = Pose2D(
@@ -196,7 +242,6 @@ class SipTracker:
             self._pose.y_m + (s * dx_mm + c * dy_mm) / 1000.0,
             wrap_angle(th - self._th0),
         )
-        v = (sip.left_vel + sip.right_vel) / 2.0 * f.vel_mmps / 1000.0
         self._pose = pose
         self.odometry = Odometry(pose, Twist2D(v, w), measured_s)
         ranges = list(self.sonar_m)
@@ -207,13 +252,6 @@ class SipTracker:
         self.sip = sip
         self.last_sip_s = time.monotonic()
         self.stats.sips += 1
-
-    def _simulator(self) -> str:
-        """The simulator's name, from its CONFIG packet ("" without a true pose)."""
-        if self.truth is None:
-            return ""
-        name = self.config.name if self.config is not None else ""
-        return f"{name or 'simulator'} SIMSTAT"
 
     def _yaw_rate(self, sip: Sip) -> float:
         """rad/s: the firmware's own yaw rate if it sends one (ArRobot prefers it too),
@@ -231,9 +269,27 @@ class SipTracker:
         for is half a millimetre further out. It sends a SIMSTAT just before each SIP.
         """
         twist = self.odometry.twist if self.odometry is not None else Twist2D(0.0, 0.0)
-        th = math.radians(stat.th_deg)
-        if self._headings is not None:
-            th = self._headings[1].update(th, twist.omega_radps, received_s)
         x_mm = stat.x_mm + math.copysign(0.5, stat.x_mm) if stat.x_mm else 0.0
         y_mm = stat.y_mm + math.copysign(0.5, stat.y_mm) if stat.y_mm else 0.0
-        self.truth = Odometry(Pose2D(x_mm / 1000.0, y_mm / 1000.0, th), twist, received_s)
+        th = math.radians(stat.th_deg)
+        if self._headings is not None:
+            th = self._headings[1].update(
+                th, twist.omega_radps, received_s, position=(x_mm / 1000.0, y_mm / 1000.0),
+                way=_way(twist.v_mps),
+            )  # fmt: skip
+        if stat.last_interval_ms > 0:  # (its clock: simulated against real time, per update)
+            self._sim_ms += stat.sim_interval_ms
+            self._real_ms += stat.last_interval_ms
+        name = self.config.name if self.config is not None and self.config.name else "simulator"
+        self.truth = TruePose(
+            Odometry(Pose2D(x_mm / 1000.0, y_mm / 1000.0, th), twist, received_s),
+            source=f"{name} SIMSTAT",
+            clock_rate=self._sim_ms / self._real_ms if self._real_ms else 1.0,
+        )
+
+
+def _way(v_mps: float) -> int:
+    """+1 driving forwards, -1 backwards, 0 standing (or nearly)."""
+    if abs(v_mps) < MOVING_MPS:
+        return 0
+    return 1 if v_mps > 0.0 else -1

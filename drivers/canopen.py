@@ -27,11 +27,11 @@ from dataclasses import dataclass, field
 import canopen
 from pydantic import BaseModel, ConfigDict, Field
 
-from phalanx.core.config import RobotParams
 from phalanx.core.errors import DriverError, DriverTimeout, DriverUnavailable
 from phalanx.core.geometry import Pose2D, Twist2D, integrate_unicycle
 from phalanx.core.lifecycle import Closing
 from phalanx.core.robot import Odometry, RobotStatus
+from phalanx.core.robot_params import RobotParams
 from phalanx.protocols.cia402 import Cw, drive_od
 
 log = logging.getLogger("phalanx.canopen")

@@ -11,11 +11,11 @@ from __future__ import annotations
 import threading
 import time
 
-from phalanx.core.config import RobotParams
 from phalanx.core.errors import DriverError
 from phalanx.core.geometry import Pose2D, Twist2D
 from phalanx.core.motion import Body
 from phalanx.core.robot import Odometry, RobotStatus
+from phalanx.core.robot_params import RobotParams
 
 
 class SimDriver:

@@ -20,11 +20,11 @@ import time
 from collections import deque
 from dataclasses import dataclass, field
 
-from phalanx.core.config import RobotParams
 from phalanx.core.geometry import Pose2D, Twist2D
 from phalanx.core.lifecycle import Closing
 from phalanx.core.localisation import OdometryErrors
 from phalanx.core.motion import Body, BodyState
+from phalanx.core.robot_params import RobotParams
 from phalanx.protocols.arcos import (
     SYNC0,
     SYNC1,

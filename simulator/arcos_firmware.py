@@ -19,8 +19,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, replace
 
-from phalanx.core.config import RobotParams
 from phalanx.core.geometry import Pose2D, Twist2D, wrap_angle
+from phalanx.core.robot_params import RobotParams
 
 MOVE_DONE_MM = 1.0  # a MOVE is done this close to its end
 HEAD_DONE_DEG = 0.2  # a HEAD/DHEAD is done this close to its heading

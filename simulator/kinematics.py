@@ -16,7 +16,7 @@ import math
 import numpy as np
 import numpy.typing as npt
 
-from phalanx.core.config import RobotParams
+from phalanx.core.robot_params import RobotParams
 
 FloatArray = npt.NDArray[np.float64]
 _SMALL_OMEGA_RADPS = 1e-9

@@ -17,7 +17,7 @@ from functools import cached_property
 import numpy as np
 import numpy.typing as npt
 
-from phalanx.core.config import SonarParams
+from phalanx.core.robot_params import SonarParams
 
 FloatArray = npt.NDArray[np.float64]
 # How much wider than the exact cone a disc's candidate rays are taken (rad, m).

@@ -11,16 +11,19 @@ robots within sonar range (found through a uniform grid once the fleet is large)
 from __future__ import annotations
 
 import math
+from collections import deque
 from collections.abc import Mapping, Sequence
+from typing import Generic, TypeVar
 
 import numpy as np
 import numpy.typing as npt
 
-from phalanx.core.config import NoiseConfig, RobotParams, Scenario, SensorEvent, WorldConfig
+from phalanx.core.config import NoiseConfig, Scenario, SensorEvent, WorldConfig
 from phalanx.core.fixes import PoseFix, RelativeFix
 from phalanx.core.geometry import Pose2D, Twist2D, Vec2
 from phalanx.core.localisation import LocalisationConfig
 from phalanx.core.robot import Odometry, RobotStatus
+from phalanx.core.robot_params import RobotParams
 from phalanx.core.scenarios import resolve_world
 from phalanx.simulator.contacts import Contacts, polygon_edges
 from phalanx.simulator.kinematics import (
@@ -34,6 +37,25 @@ from phalanx.simulator.sensors import SimulatedSensors, camera_mounts
 from phalanx.simulator.sonar import SonarRing
 
 FloatArray = npt.NDArray[np.float64]
+T = TypeVar("T")
+
+
+class Delay(Generic[T]):
+    """A value `ticks` steps late: `push` one each step, get back the one pushed `ticks`
+    steps before; before there was one, `initial` (None: the first value pushed).
+    """
+
+    def __init__(self, ticks: int, initial: T | None = None) -> None:
+        self._values: deque[T] = deque(maxlen=ticks + 1)
+        if initial is not None:
+            self._values.extend([initial] * ticks)
+
+    def push(self, value: T) -> T:
+        """Take this step's value; the one of `ticks` steps ago."""
+        if not self._values:
+            self._values.extend([value] * (self._values.maxlen or 1))
+        self._values.append(value)
+        return self._values[0]
 
 
 class World:
@@ -73,6 +95,9 @@ class World:
         self._sonar_cache: dict[int, FloatArray] = {}
         self._ranges: FloatArray | None = None  # every robot's, when cast in one pass
         self.sensors: SimulatedSensors | None = None  # positioning sensors, if simulated
+        # (a firmware's lateness, in control periods of `world.command_delay_s` & co.)
+        self._commands: Delay[dict[str, Twist2D]] | None = None
+        self._readings: Delay[FloatArray] | None = None
         if localisation is not None:
             self._attach_sensors(localisation, dict(mounts_rad or {}), seed)
 
@@ -105,6 +130,10 @@ class World:
         )
         for entry in scenario.robots:
             world.add_robot(entry.id, scenario.start_pose(entry.id))
+        late = (world.config.command_delay_s, world.config.sonar_delay_s)
+        commands, readings = (round(delay_s / scenario.dt_s) for delay_s in late)
+        world._commands = Delay(commands, initial={}) if commands else None
+        world._readings = Delay(readings) if readings else None
         return world
 
     @property
@@ -147,7 +176,11 @@ class World:
     # --- motion ------------------------------------------------------------------------
 
     def step(self, commands: Mapping[str, Twist2D], dt_s: float) -> None:
-        """Advance `dt_s`: robots chase their commands within limits, in sub-steps."""
+        """Advance `dt_s`: robots chase their commands within limits, in sub-steps (the
+        commands of `world.command_delay_s` ago, when the robots' firmware is late).
+        """
+        if self._commands is not None:
+            commands = self._commands.push(dict(commands))
         for rid, cmd in commands.items():
             i = self._index[rid]
             self.v_cmd[i], self.w_cmd[i] = cmd.v_mps, cmd.omega_radps
@@ -341,12 +374,16 @@ class World:
         the same as sensing robot by robot in that order.
         """
         if self._ranges is None:
-            self._ranges = self.scene.cast(self.x, self.y, self.th, np.arange(len(self._ids)))
+            ranges = self.scene.cast(self.x, self.y, self.th, np.arange(len(self._ids)))
+            if self._readings is not None:  # the firmware's reading of a while ago
+                ranges = self._readings.push(ranges)
+            self._ranges = ranges
         return self._ranges
 
     def _sonar(self, i: int) -> FloatArray:
-        if self._ranges is not None:
-            row: FloatArray = self._ranges[i]
+        if self._ranges is not None or self._readings is not None:
+            # (a late firmware's readings come from the ring cast for all every step)
+            row: FloatArray = self.sense_all()[i]
             return row
         if i not in self._sonar_cache:
             self._sonar_cache[i] = self.scene.cast(self.x, self.y, self.th, np.array([i]))[0]

@@ -36,6 +36,11 @@ BoolArray = npt.NDArray[np.bool_]
 
 # The backward-phase bounds phalanx holds its formation to with perfect sensing (the
 # paper reports +-2 %, +-0.8 % and +-1.3 for its own): the worst of each error series.
+# A step of the leader's commanded twist in one control step at least this large starts
+# a transient of the rigid-formation target (`steady_forward_mask`): its script's segment
+# changes, not its steering's corrections.
+TWIST_STEP_RADPS = math.radians(1.0)
+TWIST_STEP_MPS = 0.05
 CORE_BOUNDS: dict[str, float] = {"linear_pct": 0.5, "angular_pct": 0.3, "orientation_deg": 0.5}
 
 
@@ -207,17 +212,35 @@ def phase_masks(log: RunLog) -> tuple[BoolArray, BoolArray]:
     settling time).
     """
     direction = leader_direction(log)
-    t = log.t_s
-    switch_t = np.zeros_like(t)
-    last = 0.0
-    for k in range(1, len(t)):
-        if direction[k] != direction[k - 1]:
-            last = float(t[k])
-        switch_t[k] = last
-    settled = t - switch_t >= log.scenario.settle_s
-    forward = settled & (direction > 0) & (t >= log.scenario.initial_settle_s)
+    switched = np.concatenate(([False], direction[1:] != direction[:-1]))
+    settled = _settled(log, switched)
+    forward = settled & (direction > 0) & (log.t_s >= log.scenario.initial_settle_s)
     backward = settled & (direction < 0)
     return forward, backward
+
+
+def _settled(log: RunLog, switched: BoolArray) -> BoolArray:
+    """The steps `settle_s` or more after the last switch (none before the first)."""
+    t = log.t_s
+    switch_t = np.maximum.accumulate(np.where(switched, t, 0.0))
+    return np.asarray(t - switch_t >= log.scenario.settle_s, dtype=bool)
+
+
+def steady_forward_mask(log: RunLog, forward: BoolArray) -> BoolArray:
+    """`forward`, less `settle_s` after each step of a scripted leader's twist.
+
+    The paper's leader drives piecewise constant twists: when its yaw rate steps, the
+    heading a rigid formation gives a follower jumps with it (by beta = atan2(w s_x,
+    v - w s_y): 18 deg for the wedge's slots when it steps from 0 to 3 deg/s), which no
+    robot on wheels follows at once. The forward phase counts those transients; this
+    one measures the formation once each has passed.
+    """
+    lead = log.traces[log.formation.root]
+    v, w = lead.cmd_v_mps, lead.cmd_omega_radps
+    stepped = (np.abs(np.diff(w, prepend=w[:1])) > TWIST_STEP_RADPS) | (
+        np.abs(np.diff(v, prepend=v[:1])) > TWIST_STEP_MPS
+    )
+    return forward & _settled(log, stepped)
 
 
 def leader_direction(log: RunLog) -> npt.NDArray[np.int8]:
@@ -248,15 +271,19 @@ def follower_metrics(log: RunLog, follower: str) -> dict[str, Any]:
     series = error_series(log, follower)
     forward, backward = phase_masks(log)
     l_d, phi_d = log.formation.polar_of(follower, leader)
-    return {
+    dt_s = log.scenario.dt_s
+    out = {
         "leader": leader,
         "l_d_m": l_d,
         "phi_d_deg": math.degrees(phi_d),
-        "forward": asdict(_phase(series, forward, log.scenario.dt_s)),
-        "backward": asdict(_phase(series, backward, log.scenario.dt_s)),
+        "forward": asdict(_phase(series, forward, dt_s)),
+        "backward": asdict(_phase(series, backward, dt_s)),
         "saturations": log.saturations[follower],
         "accel_limited": log.accel_limited[follower],
     }
+    if log.scenario.leader_profile is not None:
+        out["forward_steady"] = asdict(_phase(series, steady_forward_mask(log, forward), dt_s))
+    return out
 
 
 # States in which a robot is off its slot on purpose, or the shape is being turned about:

@@ -1,4 +1,4 @@
-"""Configuration models (pydantic v2) for robots and scenarios.
+"""Configuration models (pydantic v2) for scenarios (robots' own: `robot_params`).
 
 Every model forbids unknown keys and is frozen. `phalanx.core.config_files` reads them
 from TOML files, with errors naming the file, the field path and a misspelt key's fix.
@@ -32,75 +32,6 @@ class Model(BaseModel):
     """
 
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
-
-
-# --- robot parameter files (configs/robots/*.toml) ------------------------------------
-
-
-class SonarUnit(Model):
-    """One sonar transducer: position (m) and heading (deg) in the robot's body frame."""
-
-    x_m: float
-    y_m: float
-    heading_deg: float
-
-
-class SonarParams(Model):
-    """The sonar ring."""
-
-    max_range_m: PositiveFloat = 5.0
-    min_range_m: NonNegativeFloat = 0.1
-    beam_width_deg: PositiveFloat = 15.0
-    rays_per_beam: int = Field(default=3, ge=1, le=15)
-    units: tuple[SonarUnit, ...] = Field(max_length=64)
-
-
-class RobotParams(Model):
-    """Kinematic and physical parameters of a differential-drive robot (SI units)."""
-
-    name: str
-    track_width_m: PositiveFloat
-    wheel_radius_m: PositiveFloat
-    radius_m: PositiveFloat
-    v_max_mps: PositiveFloat
-    omega_max_degps: PositiveFloat
-    wheel_v_max_mps: PositiveFloat
-    accel_mps2: PositiveFloat
-    decel_mps2: PositiveFloat
-    rot_accel_degps2: PositiveFloat
-    sonar: SonarParams
-    # Below this the agent stops the robot (LOW_BATTERY) until it is charged; none: no check.
-    battery_low_v: PositiveFloat | None = None
-    # How hard the robot may brake when it must stop now (HOLD: its leader is gone), rather
-    # than the comfortable `decel_mps2`/`rot_accel_degps2`; none: the comfortable ones.
-    emergency_decel_mps2: PositiveFloat | None = None
-    emergency_rot_decel_degps2: PositiveFloat | None = None
-
-    @model_validator(mode="after")
-    def _emergency_is_harder(self) -> Self:
-        if self.emergency_decel_mps2 is not None and self.emergency_decel_mps2 < self.decel_mps2:
-            raise ValueError("emergency_decel_mps2 must be at least decel_mps2")
-        rot = self.emergency_rot_decel_degps2
-        if rot is not None and rot < self.rot_accel_degps2:
-            raise ValueError("emergency_rot_decel_degps2 must be at least rot_accel_degps2")
-        return self
-
-    @property
-    def omega_max_radps(self) -> float:
-        """Yaw-rate limit, rad/s."""
-        return math.radians(self.omega_max_degps)
-
-    @property
-    def rot_accel_radps2(self) -> float:
-        """Yaw acceleration limit, rad/s^2."""
-        return math.radians(self.rot_accel_degps2)
-
-    @property
-    def emergency_decel(self) -> tuple[float, float]:
-        """The emergency braking limits: (m/s^2, rad/s^2)."""
-        decel = self.emergency_decel_mps2 or self.decel_mps2
-        rot = self.emergency_rot_decel_degps2 or self.rot_accel_degps2
-        return decel, math.radians(rot)
 
 
 # --- scenario files (configs/scenarios/*.toml) -----------------------------------------
@@ -372,6 +303,11 @@ class WorldConfig(Model):
     polygons: tuple[PolygonObstacle, ...] = Field(default=(), max_length=MAX_ITEMS)
     field: ObstacleField | None = None
     substeps: int = Field(default=4, ge=1, le=100)
+    # A robot's firmware acts on a command, and reports its sonar, a little late (AMRISim's
+    # P3DX: 0.1 s and 0.2 s, docs/ROBOTS.md): the simulated robots too, by these (in whole
+    # control periods). 0: at once, an ideal robot.
+    command_delay_s: float = Field(default=0.0, ge=0.0, le=2.0)
+    sonar_delay_s: float = Field(default=0.0, ge=0.0, le=2.0)
 
 
 class NoiseConfig(Model):

@@ -19,10 +19,11 @@ from typing import Any, TypeVar
 
 from pydantic import BaseModel, ValidationError
 
-from phalanx.core.config import RobotParams, Scenario
+from phalanx.core.config import Scenario
 from phalanx.core.errors import ConfigError
 from phalanx.core.formation import scenario_formation
 from phalanx.core.mapfile import GridMap, load_map
+from phalanx.core.robot_params import RobotParams
 
 CONFIG_ROOT = Path(__file__).resolve().parents[2] / "configs"
 ROBOTS_DIR = CONFIG_ROOT / "robots"

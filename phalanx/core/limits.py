@@ -7,7 +7,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from phalanx.core.config import LimitsOverride, RobotParams
+from phalanx.core.config import LimitsOverride
+from phalanx.core.robot_params import RobotParams
 
 
 @dataclass(frozen=True, slots=True)

@@ -11,8 +11,8 @@ import math
 import threading
 from dataclasses import dataclass
 
-from phalanx.core.config import RobotParams
 from phalanx.core.geometry import Pose2D, Twist2D, integrate_unicycle
+from phalanx.core.robot_params import RobotParams
 
 
 def _towards(current: float, target: float, max_step: float) -> float:

@@ -20,14 +20,27 @@ class Odometry:
     stamp_s: float
 
 
+@dataclass(frozen=True, slots=True)
+class TruePose:
+    """Where a simulator says the robot really is: `odometry` (its world frame, with the
+    twist and the time of the reading), which simulator (`source`), and how fast its clock
+    runs (`clock_rate`: simulated seconds a real second, 1 when it keeps real time; AMRISim
+    loses a few ms each 100 ms update on a busy machine).
+    """
+
+    odometry: Odometry
+    source: str
+    clock_rate: float = 1.0
+
+
 @quick_init
 @dataclass(frozen=True, slots=True)
 class RobotStatus:
     """Everything a driver reads from a robot besides odometry.
 
-    `truth`: where a simulator says the robot really is (its world frame, with the twist
-    and the time of the reading), for the run's record only: a simulated robot's driver
-    can report it (AMRISim's SIMSTAT), a real robot's cannot, and no agent steers by it.
+    `truth`: where a simulator says the robot really is, for the run's record only: a
+    simulated robot's driver can report it (AMRISim's SIMSTAT), a real robot's cannot,
+    and no agent steers by it.
     """
 
     sonar_ranges_m: tuple[float, ...] = ()
@@ -37,5 +50,4 @@ class RobotStatus:
     estopped: bool = False
     stalled: bool = False
     faults: tuple[str, ...] = ()
-    truth: Odometry | None = None
-    truth_source: str = ""  # the simulator's name
+    truth: TruePose | None = None

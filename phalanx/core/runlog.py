@@ -11,9 +11,10 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from phalanx.core.config import RobotParams, Scenario
+from phalanx.core.config import Scenario
 from phalanx.core.formation import Formation
 from phalanx.core.geometry import Pose2D
+from phalanx.core.robot_params import RobotParams
 from phalanx.core.states import TransitionEvent
 
 FloatArray = npt.NDArray[np.float64]

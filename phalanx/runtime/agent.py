@@ -22,10 +22,11 @@ from dataclasses import dataclass
 from typing import Literal
 
 from phalanx.agents.agent import Agent, Observation, StepOutput
-from phalanx.core.config import RobotParams, Scenario
+from phalanx.core.config import Scenario
 from phalanx.core.formation import Formation, scenario_formation
 from phalanx.core.peers import PeerState
 from phalanx.core.rigid_body import live_errors
+from phalanx.core.robot_params import RobotParams
 from phalanx.runtime.clock import Clock, Tick
 from phalanx.runtime.peers import FlagsThrottle, PeerInbox, ScanInbox
 from phalanx.runtime.robot_io import RobotIO

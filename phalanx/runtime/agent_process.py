@@ -10,9 +10,10 @@ import time
 from dataclasses import dataclass
 from typing import Literal
 
-from phalanx.core.config import RobotParams, Scenario
+from phalanx.core.config import Scenario
 from phalanx.core.errors import DriverError, DriverUnavailable
 from phalanx.core.limits import safety_limits
+from phalanx.core.robot_params import RobotParams
 from phalanx.drivers.base import Driver
 from phalanx.drivers.safety import SafeDriver
 from phalanx.runtime.agent import AgentRuntime, RuntimeOptions
@@ -72,8 +73,9 @@ def run_agent(
             inbox.camera = open_camera(process.camera, rid, scenario, epoch_s=epoch_s)
         origin = scenario.start_pose(rid)
         io = DriverIO(
-            safe, robot, origin=origin, positioning=inbox, robot_id=rid, fleet=process.fleet
-        )
+            safe, robot, origin=origin, positioning=inbox, robot_id=rid, fleet=process.fleet,
+            epoch_s=epoch_s,
+        )  # fmt: skip
         runtime = AgentRuntime(
             rid, scenario, robot, options, clock=ticks, io=io, telemetry=telemetry
         )

@@ -16,9 +16,9 @@ import threading
 import time
 from collections.abc import Callable
 
-from phalanx.core.config import RobotParams
 from phalanx.core.geometry import Pose2D, Twist2D, dead_reckon
 from phalanx.core.motion import Body, BodyState
+from phalanx.core.robot_params import RobotParams
 from phalanx.wire.keys import robot_key
 from phalanx.wire.messages import SenseFrame, VelocityCommand
 from phalanx.wire.transport import FleetSession, TransportConfig, open_session

@@ -26,11 +26,12 @@ from phalanx.agents.agent import Agent, Observation, StepOutput
 from phalanx.agents.control.spacing import near_radius_m, near_sets
 from phalanx.agents.masking import SlotMasks, mask_readings
 from phalanx.agents.perception import SonarGeometry
-from phalanx.core.config import RobotParams, Scenario
+from phalanx.core.config import Scenario
 from phalanx.core.config_files import load_robot, prior_map
 from phalanx.core.formation import Formation, scenario_formation
 from phalanx.core.geometry import Twist2D
 from phalanx.core.peers import PeerState, Scan
+from phalanx.core.robot_params import RobotParams
 from phalanx.core.runlog import RobotTrace, RunLog
 from phalanx.core.states import TransitionEvent
 from phalanx.simulator.world import World

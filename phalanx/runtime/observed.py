@@ -66,17 +66,56 @@ class Track:
         twist = Twist2D(v, w)
         return dead_reckon(Pose2D(x, y, th), twist, t_s - t, CARRY_MAX_S), twist
 
-    def resampled(self, t_s: FloatArray) -> tuple[FloatArray, ...] | None:
+    def resampled(
+        self, t_s: FloatArray, *, along_path: bool = False
+    ) -> tuple[FloatArray, ...] | None:
         """x, y, theta, v, omega at every time of `t_s`: interpolated between the samples
         on either side, held before the first and after the last (None: no sample).
+        `along_path`: headings from the path's direction where it says more (`path_headings`).
         """
         if not self.rows:
             return None
         t, x, y, th, v, w = (np.asarray(c, dtype=np.float64) for c in zip(*self.rows, strict=True))
         heading = np.unwrap(th)
+        if along_path:
+            heading = path_headings(x, y, heading, v)
         out = [np.interp(t_s, t, c) for c in (x, y, heading, v, w)]
         out[2] = (out[2] + math.pi) % (2 * math.pi) - math.pi
         return tuple(out)
+
+
+# A heading is read off the path over this much of it, centred on the sample, where the
+# robot turns at most PATH_TURN_RAD along it (AMRISim's positions in millimetres, its
+# headings in whole degrees: the least-squares line through 0.5 m of millimetre positions
+# is within 0.05 deg of the tangent).
+PATH_SPAN_M = 0.5
+PATH_TURN_RAD = math.radians(10.0)
+MOVING_MPS = 0.02
+
+
+def path_headings(x: FloatArray, y: FloatArray, heading: FloatArray, v: FloatArray) -> FloatArray:
+    """`heading` (unwrapped), replaced where the robot drives on a path it turns little
+    along by the direction of the least-squares line through PATH_SPAN_M of the path
+    centred on each sample (turned round where it reverses): a robot on wheels goes where
+    it heads, and the line's direction is the tangent at its middle on a steady arc.
+    """
+    s = np.concatenate(([0.0], np.cumsum(np.hypot(np.diff(x), np.diff(y)))))
+    lo = np.searchsorted(s, s - 0.5 * PATH_SPAN_M, side="left")
+    hi = np.searchsorted(s, s + 0.5 * PATH_SPAN_M, side="right")
+    sums = [np.concatenate(([0.0], np.cumsum(c))) for c in (x, y, x * x, y * y, x * y)]
+    n = (hi - lo).astype(np.float64)
+    sx, sy, sxx, syy, sxy = (c[hi] - c[lo] for c in sums)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        cxx, cyy, cxy = sxx - sx * sx / n, syy - sy * sy / n, sxy - sx * sy / n
+    axis = 0.5 * np.arctan2(2.0 * cxy, cxx - cyy)  # the line's direction, either way
+    turn = np.array(
+        [np.ptp(heading[a:b]) if b > a else np.inf for a, b in zip(lo, hi, strict=True)]
+    )
+    whole = (s - 0.5 * PATH_SPAN_M >= 0.0) & (s + 0.5 * PATH_SPAN_M <= s[-1])
+    usable = whole & (np.abs(v) >= MOVING_MPS) & (turn <= PATH_TURN_RAD) & np.isfinite(axis)
+    # the line's direction nearest the heading (a line has two; reversing heads opposite)
+    along = axis + math.pi * np.round((heading - axis) / math.pi)
+    return np.where(usable, along, heading)
 
 
 class ObservedRobots:
@@ -90,6 +129,7 @@ class ObservedRobots:
         self.ids, self.fleet, self.epoch_s, self.bounds = ids, fleet, epoch_s, bounds
         self.tracks = {rid: Track() for rid in ids}
         self.truths = {rid: Track() for rid in ids}  # kept apart: the better source
+        self.clock_rates: dict[str, float] = {}  # a simulator's clock, as it last said
         self._capacity = int(MAX_RATE_HZ * (bounds.t_max_s + 60.0))
         self._lock = threading.Lock()
 
@@ -108,6 +148,7 @@ class ObservedRobots:
             track = self.truths[m.robot_id]
             track.source = track.source or truth_source(m.source)
             track.add(row, self._capacity)
+            self.clock_rates[m.robot_id] = m.clock_rate
 
     def _on_fix(self, _key: str, m: PoseFixMessage) -> None:
         # (once a robot's true pose is heard, the world simulates its motion capture from
@@ -140,19 +181,24 @@ class ObservedRobots:
         every tick (None: nothing heard: the record takes its own estimate).
         """
         with self._lock:
-            for track in (self.truths[robot_id], self.tracks[robot_id]):
-                rows = track.resampled(t_s)
-                if rows is not None:
-                    return track.source, rows
+            truth = self.truths[robot_id].resampled(t_s, along_path=True)
+            if truth is not None:
+                return self.truths[robot_id].source, truth
+            rows = self.tracks[robot_id].resampled(t_s)
+            if rows is not None:
+                return self.tracks[robot_id].source, rows
         return ESTIMATE_POSE, None
 
-    def counters(self) -> dict[str, int]:
-        """Samples kept and dropped, over every robot."""
+    def counters(self) -> dict[str, object]:
+        """Samples kept and dropped, over every robot, and how fast the simulators'
+        clocks ran by each robot's (1: real time).
+        """
         with self._lock:
             tracks = [*self.truths.values(), *self.tracks.values()]
             return {
                 "pose_samples": sum(len(t.rows) for t in tracks),
                 "pose_samples_dropped": sum(t.dropped for t in tracks),
+                "simulator_clock_rate": dict(self.clock_rates),
             }
 
 

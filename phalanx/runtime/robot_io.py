@@ -19,10 +19,10 @@ from dataclasses import replace
 from typing import Protocol
 
 from phalanx.agents.inputs import Observation
-from phalanx.core.config import RobotParams
 from phalanx.core.errors import DriverError
-from phalanx.core.geometry import Pose2D, Twist2D, dead_reckon
-from phalanx.core.robot import Odometry, RobotStatus
+from phalanx.core.geometry import Pose2D, Twist2D, integrate_unicycle
+from phalanx.core.robot import Odometry, RobotStatus, TruePose
+from phalanx.core.robot_params import RobotParams
 from phalanx.drivers.safety import SafeDriver
 from phalanx.runtime.clock import Tick
 from phalanx.runtime.frames import Ending, FrameBox, FrameGate
@@ -83,15 +83,18 @@ class RobotIO(Protocol):
         ...
 
 
-def pose_now(odometry: Odometry, now_s: float) -> Pose2D:
-    """The odometry pose carried forward along its twist from its stamp to `now_s`.
+def pose_at(odometry: Odometry, at_s: float) -> Pose2D:
+    """The odometry pose carried along its twist from its stamp to `at_s`, forwards or
+    back (a reading newer than the instant), by at most MAX_ODOMETRY_AGE_S.
 
     Without this a follower steers from where it was at the last SIP, not where it is:
     a lag that depends on the phase between its SIP cycle and its control clock, and
     shows as a steady slot error of several millimetres at the paper's speeds.
     """
-    age_s = now_s - odometry.stamp_s
-    return dead_reckon(odometry.pose, odometry.twist, age_s, MAX_ODOMETRY_AGE_S)
+    age_s = max(-MAX_ODOMETRY_AGE_S, min(MAX_ODOMETRY_AGE_S, at_s - odometry.stamp_s))
+    if age_s == 0.0:
+        return odometry.pose
+    return integrate_unicycle(odometry.pose, odometry.twist, age_s)
 
 
 class WorldLink:
@@ -228,6 +231,10 @@ class WorldLink:
 class DriverIO:
     """A robot on a driver, through the safety wrapper (limits, watchdog, E-stop).
 
+    Odometry is carried to the instant the step stands for (`epoch_s` + its fleet
+    time): a step a loaded machine ran late still describes the robot at its tick, as
+    the state it publishes says (its peers predict it from that stamp).
+
     Where the robot is simulated (AMRISim), its driver also reads where the simulator
     says it really is: each new reading goes out on the robot's `truth` key, for the
     run's record (never into the agent's observation).
@@ -242,8 +249,10 @@ class DriverIO:
         positioning: PositioningInbox | None = None,
         robot_id: str = "",
         fleet: str = "",
+        epoch_s: float | None = None,
     ) -> None:
         self.driver, self.robot, self.origin = driver, robot, origin
+        self.epoch_s = epoch_s  # Unix time of step 0 (None: a step stands for its reading)
         self.positioning = positioning
         self.robot_id, self.fleet = robot_id, fleet
         self.driver_errors = 0
@@ -270,9 +279,9 @@ class DriverIO:
             self.driver_errors += 1
             log.warning("no reading from the robot at step %d: %s", tick.k, exc)
             return None
-        pose = self.origin.compose(pose_now(odometry, time.monotonic()))
-        if status.truth is not None and status.truth.stamp_s > self._truth_s:
-            self._send_truth(status.truth, status.truth_source)
+        pose = self.origin.compose(pose_at(odometry, self._instant(tick)))
+        if status.truth is not None and status.truth.odometry.stamp_s > self._truth_s:
+            self._send_truth(status.truth)
         if not status.sonar_ranges_m:
             # A backend without sonar (CAN drives) reports free space: it never blocks.
             free = (self.robot.sonar.max_range_m,) * len(self.robot.sonar.units)
@@ -282,20 +291,29 @@ class DriverIO:
             Odometry(pose, odometry.twist, tick.t_s), status, fixes=fixes, relative=relative
         )
 
-    def _send_truth(self, truth: Odometry, source: str) -> None:
+    def _instant(self, tick: Tick) -> float:
+        """The monotonic time step `tick` stands for (now, without an epoch)."""
+        now = time.monotonic()
+        if self.epoch_s is None:
+            return now
+        return now - (time.time() - (self.epoch_s + tick.t_s))
+
+    def _send_truth(self, truth: TruePose) -> None:
         """Publish a simulator's true pose, stamped in Unix time (a message that will
         not validate, a pose out of the wire's bounds, is logged and skipped).
         """
-        self._truth_s = truth.stamp_s
+        reading = truth.odometry
+        self._truth_s = reading.stamp_s
         if self._session is None or not self.robot_id:
             return
-        pose, twist = truth.pose, truth.twist
+        pose, twist = reading.pose, reading.twist
         try:
             message = TruthMessage(
                 robot_id=self.robot_id,
-                stamp_s=time.time() - (time.monotonic() - truth.stamp_s),
+                stamp_s=time.time() - (time.monotonic() - reading.stamp_s),
                 x_m=pose.x_m, y_m=pose.y_m, theta_rad=pose.theta_rad,
-                v_mps=twist.v_mps, omega_radps=twist.omega_radps, source=source[:32],
+                v_mps=twist.v_mps, omega_radps=twist.omega_radps, source=truth.source[:32],
+                clock_rate=truth.clock_rate,
             )  # fmt: skip
             self._session.publish(robot_key(self.fleet, self.robot_id, "truth"), message)
         except Exception as exc:  # the record's loss, never the robot's control

@@ -11,9 +11,10 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
-from phalanx.core.config import RobotParams, Scenario
+from phalanx.core.config import Scenario
 from phalanx.core.formation import Formation
 from phalanx.core.geometry import Twist2D
+from phalanx.core.robot_params import RobotParams
 from phalanx.core.runlog import SIMULATED_POSE, FloatArray, RobotTrace, RunLog
 from phalanx.core.states import State, TransitionEvent
 from phalanx.runtime.observed import ObservedRobots
@@ -116,8 +117,8 @@ class RunRecord:
 
     def _take_observed(self, observed: ObservedRobots, published: Published) -> dict[str, str]:
         """The robots that move on their own, from their best pose source interpolated
-        at the ticks (heard of by no source: what they published, their own estimate);
-        the source of each.
+        at the ticks (heard of by no source: what they published, their own estimate),
+        with the commands they published; the source of each.
         """
         sources = {}
         for rid in observed.ids:
@@ -126,7 +127,7 @@ class RunRecord:
             if rows is None:
                 rows = (*tr.estimate.T, *published[rid])
             tr.x_m, tr.y_m, tr.theta_rad, tr.v_mps, tr.omega_radps = (np.array(r) for r in rows)
-            tr.cmd_v_mps, tr.cmd_omega_radps = tr.v_mps.copy(), tr.omega_radps.copy()
+            tr.cmd_v_mps, tr.cmd_omega_radps = published[rid]
             sources[rid] = source
         return sources
 

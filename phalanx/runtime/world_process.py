@@ -26,11 +26,12 @@ from typing import Any, Literal
 
 import numpy as np
 
-from phalanx.core.config import RobotParams, Scenario
+from phalanx.core.config import Scenario
 from phalanx.core.errors import ConfigError
 from phalanx.core.formation import scenario_formation
 from phalanx.core.geometry import ZERO_TWIST, Twist2D
 from phalanx.core.limits import KinematicLimits
+from phalanx.core.robot_params import RobotParams
 from phalanx.core.runlog import RunLog
 from phalanx.runtime.observed import observed_robots
 from phalanx.runtime.run_record import RunRecord, completeness
@@ -433,6 +434,7 @@ class WorldProcess:
             "leadership": [a.model_dump() for a in self.inbox.leaders],
             "world_decode": self.stats.as_dict() if self.stats is not None else {},
             "log_overflow": self.inbox.overflow,
+            **(self.observed.counters() if self.observed is not None else {}),
             **completeness(
                 steps=self.steps,
                 ticks_run=self.ticks_run,

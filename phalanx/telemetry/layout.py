@@ -14,9 +14,9 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from phalanx.core.config import SonarParams
 from phalanx.core.geometry import Pose2D, Twist2D
 from phalanx.core.rigid_body import LiveErrors
+from phalanx.core.robot_params import SonarParams
 from phalanx.telemetry.uncertainty import ellipse, position_std_m, send_ellipses
 
 FloatArray = npt.NDArray[np.float64]

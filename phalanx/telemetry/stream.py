@@ -30,9 +30,9 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from phalanx.core.config import SonarParams
 from phalanx.core.geometry import Pose2D, Twist2D
 from phalanx.core.lifecycle import Closing
+from phalanx.core.robot_params import SonarParams
 from phalanx.telemetry.layout import (
     StepRow,
     Tracking,

@@ -15,8 +15,9 @@ from typing import Annotated, Final
 
 from pydantic import AfterValidator, Field, ValidationInfo
 
-from phalanx.core.config import MAX_CONTROL_RATE_HZ, MAX_DURATION_S, RobotParams, Scenario
+from phalanx.core.config import MAX_CONTROL_RATE_HZ, MAX_DURATION_S, Scenario
 from phalanx.core.peers import EPOCH_MAX, SEQ_MAX
+from phalanx.core.robot_params import RobotParams
 from phalanx.core.shapes import SHAPE_NAMES
 from phalanx.core.states import State
 

@@ -181,6 +181,7 @@ LAYOUTS: dict[type[Message], tuple[int, tuple[tuple[str, str], ...]]] = {
             ("theta_rad", "d"),
             ("v_mps", "d"),
             ("omega_radps", "d"),
+            ("clock_rate", "d"),
             ("source", "s"),
         ),
     ),

@@ -41,7 +41,8 @@ class TruthMessage(Message):
 
     Pose in the fleet's world frame (m, rad) with the robot's twist, taken at `stamp_s` in
     Unix time (the recorder turns it into fleet time with the run's epoch); `source` names
-    the simulator.
+    the simulator, `clock_rate` is how fast its clock has run (simulated seconds a real
+    second, since the robot connected).
     """
 
     version: Literal[1] = 1
@@ -53,6 +54,7 @@ class TruthMessage(Message):
     v_mps: Speed
     omega_radps: YawRate
     source: str = Field(max_length=32, pattern=r"^[A-Za-z0-9 ._-]*$")
+    clock_rate: float = Field(default=1.0, ge=0.0, le=100.0)  # simulated s a real s
 
 
 class RelativeFixMessage(Message):

@@ -10,10 +10,10 @@ from collections.abc import Callable, Iterator
 import can
 import pytest
 
-from phalanx.core.config import RobotParams
 from phalanx.core.config_files import load_robot
 from phalanx.core.errors import DriverError, DriverUnavailable
 from phalanx.core.geometry import Twist2D
+from phalanx.core.robot_params import RobotParams
 from phalanx.drivers.canopen import CanopenDriver, CanopenSettings
 from phalanx.protocols.cia402 import SW_OPERATION_ENABLED, SW_SWITCH_ON_DISABLED, Cw
 from phalanx.simulator.cia402 import SimulatedDiffDrive, next_state

@@ -407,7 +407,9 @@ class WorldUnderTest:
     """The world process of the wedge: it takes payloads, ticks, and writes its log (in
     lockstep; in real time, the only world that hears commands)."""
 
-    def __init__(self, clock: str = "lockstep") -> None:
+    EPOCH_S = 1_800_000_000.0
+
+    def __init__(self, clock: str = "lockstep", *, observed: tuple[str, ...] = ()) -> None:
         from phalanx.runtime.world_process import WorldOptions, WorldProcess
         from phalanx.wire.transport import TransportConfig
 
@@ -416,6 +418,7 @@ class WorldUnderTest:
         options = WorldOptions(
             fleet=FLEET, transport=TransportConfig(), tick_timeout_s=0.0,
             clock=clock,  # type: ignore[arg-type]
+            observed=observed, epoch_s=self.EPOCH_S if observed else None,
         )  # fmt: skip
         self.world = WorldProcess(scenario, self.robot, options)
         self.session = LoopbackSession()
@@ -453,7 +456,19 @@ class WorldUnderTest:
         def both(message: Message) -> Callable[[], list[Message]]:
             return lambda: [message]
 
+        from phalanx.wire.positions import PoseFixMessage, TruthMessage
+
+        truth = TruthMessage(
+            robot_id="r2", stamp_s=self.EPOCH_S + t, x_m=0.1 * t, y_m=0.7, theta_rad=0.0,
+            v_mps=0.1, omega_radps=0.0, source="AMRISim SIMSTAT",
+        )  # fmt: skip
+        fix = PoseFixMessage(
+            robot_id="r3", stamp_s=self.EPOCH_S + t, x_m=0.1 * t, y_m=-0.7, theta_rad=0.0,
+            std_m=0.002, std_rad=0.002,
+        )  # fmt: skip
         return {
+            "world/truth": (TruthMessage, robot_key(FLEET, "r2", "truth"), both(truth)),
+            "world/fix": (PoseFixMessage, robot_key(FLEET, "r3", "fix"), both(fix)),
             "world/cmd": (VelocityCommand, robot_key(FLEET, "r2", "cmd"), both(cmd)),
             "world/state": (RobotState, robot_key(FLEET, "r2", "state"), both(state)),
             "world/event": (AgentEvent, robot_key(FLEET, "r2", "event"), both(event)),

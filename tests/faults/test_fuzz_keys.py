@@ -17,6 +17,7 @@ import zlib
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 from receivers import (
     AgentUnderTest,
@@ -28,10 +29,13 @@ from receivers import (
     sweep,
 )
 
+from phalanx.core.runlog import ESTIMATE_POSE, SIMULATED_POSE
+
 FUZZ_EXAMPLES = int(os.environ.get("PHALANX_FUZZ_EXAMPLES", "150"))
 AGENT_KEYS = ("agent/flags", "agent/state", "agent/sense", "agent/leader")
 POSITIONING_KEYS = ("agent/fix", "agent/relative")
 WORLD_KEYS = ("world/cmd", "world/state", "world/event", "world/report", "world/leader")
+OBSERVING_KEYS = ("world/truth", "world/fix")
 DAEMON_KEYS = ("daemon/spawn", "daemon/stop", "daemon/status")
 LAUNCHER_KEYS = ("launcher/state", "launcher/log", "launcher/reply")
 
@@ -88,6 +92,22 @@ def test_no_payload_crashes_the_world_or_spoils_its_results(key: str) -> None:
     assert sweep(world, key, check_every=100)
     assert campaign(world, key, FUZZ_EXAMPLES, seed=zlib.crc32(key.encode()), check_every=50)
     assert world.session.stats.dropped > 0
+
+
+@pytest.mark.parametrize("key", OBSERVING_KEYS)
+def test_no_pose_of_a_robot_on_a_driver_crashes_the_world_or_spoils_its_record(key: str) -> None:
+    """The world records robots that move on their own from what it hears of them: a
+    simulator's true pose, motion capture."""
+    world = WorldUnderTest(clock="realtime", observed=("r2", "r3"))
+    assert sweep(world, key, check_every=100)
+    assert campaign(world, key, FUZZ_EXAMPLES, seed=zlib.crc32(key.encode()), check_every=50)
+    assert world.session.stats.dropped > 0
+    log = world.world._log()
+    heard = "r2" if key == "world/truth" else "r3"
+    assert log.pose_sources[heard] not in (SIMULATED_POSE, ESTIMATE_POSE)
+    trace = log.traces[heard]  # every pose it took is finite and within the arena
+    assert np.isfinite(trace.x_m).all()
+    assert (np.abs(trace.x_m) <= 1e4).all()
 
 
 @pytest.mark.parametrize("key", DAEMON_KEYS)

@@ -155,3 +155,27 @@ def test_never_ends_inside_an_obstacle(v: float, w: float, y0: float) -> None:
         assert math.hypot(pose.x_m - 1.0, pose.y_m) >= 0.4 + ROBOT.radius_m - 1e-9
         assert pose.x_m <= 2.0 - ROBOT.radius_m + 1e-9 or not (-3.0 < pose.y_m < 3.0)
     assert np.isfinite(world.x).all()
+
+
+def test_a_late_firmware_acts_on_commands_and_reports_its_sonar_late() -> None:
+    """`world.command_delay_s` and `sonar_delay_s` (AMRISim's P3DX: about 0.1 s and 0.2 s):
+    a robot starts on a command a tick late, and its sonar tells where it was two ticks
+    ago."""
+    from phalanx.core.config_files import CONFIG_ROOT, apply_overrides, load_scenario
+
+    base = apply_overrides(  # r1 1 m short of the scenario's wall
+        load_scenario(CONFIG_ROOT / "scenarios" / "paper_collateral.toml"),
+        ["robots.0.start.x_m=11.0", "robots.0.start.y_m=5.73"], source="test",
+    )  # fmt: skip
+    late = apply_overrides(
+        base, ["world.command_delay_s=0.1", "world.sonar_delay_s=0.2"], source="test"
+    )
+    ideal, firmware = World.for_scenario(base, ROBOT), World.for_scenario(late, ROBOT)
+    ahead = []
+    for world in (ideal, firmware):
+        for _ in range(3):  # r1 towards the wall
+            world.sense_all()
+            world.step({"r1": Twist2D(0.3, 0.0)}, 0.1)
+        ahead.append(world.status("r1").sonar_ranges_m[3])
+    assert ideal.truth("r1")[0].x_m > firmware.truth("r1")[0].x_m + 0.005  # one tick less
+    assert ahead[1] > ahead[0]  # an older reading: further from the wall

@@ -104,3 +104,31 @@ def test_a_missing_binary_or_mode_says_what_to_give(
     with pytest.raises(ConfigError, match="random_init"):
         odometry_error("sometimes")
     assert odometry_error("none") == "none"
+
+
+def test_up_without_amrisim_says_how_to_get_it(tmp_path: Path) -> None:
+    """The one command on a machine without AMRISim: one clear message, exit 2, nothing
+    started (no process is left: the fixture checks)."""
+    import os
+    import subprocess
+    import sys
+
+    env = {k: v for k, v in os.environ.items() if k != "PHALANX_AMRISIM"}
+    argv = [sys.executable, "-m", "phalanx", "up", str(SCENARIOS / "paper_wedge.toml"),
+            "--robots", "amrisim", "--out", str(tmp_path / "out")]  # fmt: skip
+    missing = subprocess.run(argv, env=env, capture_output=True, text=True, timeout=60, check=False)
+    assert missing.returncode == 2
+    assert "PHALANX_AMRISIM" in missing.stderr
+    assert "docs/INTEROP.md" in missing.stderr
+    wrong = subprocess.run(
+        [*argv, "--amrisim", str(tmp_path / "AMRISim")],
+        env=env, capture_output=True, text=True, timeout=60, check=False,
+    )  # fmt: skip
+    assert wrong.returncode == 2
+    assert "no such executable" in wrong.stderr
+    mode = subprocess.run(
+        [*argv, "--amrisim-odometry-error", "often"],
+        env=env, capture_output=True, text=True, timeout=60, check=False,
+    )  # fmt: skip
+    assert mode.returncode == 2
+    assert "random_each_update" in mode.stderr

@@ -103,7 +103,7 @@ def test_a_scenario_bounds_the_resources_it_may_ask_for() -> None:
 
 
 def test_emergency_braking_is_never_softer_than_the_comfortable_one() -> None:
-    from phalanx.core.config import RobotParams
+    from phalanx.core.robot_params import RobotParams
 
     p3dx = load_robot("p3dx").model_dump()
     with pytest.raises(ValidationError, match="emergency_decel_mps2"):

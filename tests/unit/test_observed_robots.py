@@ -15,7 +15,7 @@ from phalanx.core.config_files import CONFIG_ROOT, load_robot, load_scenario
 from phalanx.core.geometry import Pose2D, Twist2D
 from phalanx.core.runlog import ESTIMATE_POSE, MOCAP_POSE, truth_source
 from phalanx.runtime.clock import EpochClock
-from phalanx.runtime.observed import ObservedRobots, Track
+from phalanx.runtime.observed import ObservedRobots, Track, path_headings
 from phalanx.runtime.run_record import completeness
 from phalanx.simulator.world import World
 from phalanx.wire.bounds import FleetBounds
@@ -133,3 +133,17 @@ class _Never:
     def wait(self, timeout: float | None = None) -> bool:
         time.sleep(timeout or 0.0)
         return False
+
+
+def test_headings_read_off_the_path_where_a_simulator_gives_whole_degrees() -> None:
+    """AMRISim reports whole degrees but millimetre positions: a reverse heading 0.3 deg
+    (reported 0) is read off its path to within 0.03 deg; a turn on the spot is left as
+    it was reported."""
+    n, v, heading = 300, -0.15, math.radians(0.3)
+    travel = v * 0.1 * np.arange(n)
+    x = np.trunc((10.0 + travel * math.cos(heading)) * 1000.0) / 1000.0
+    y = np.trunc((5.0 + travel * math.sin(heading)) * 1000.0) / 1000.0
+    read = path_headings(x, y, np.zeros(n), np.full(n, v))
+    assert np.degrees(read[20:-20]) == pytest.approx(0.3, abs=0.03)  # (0.25 m each side)
+    spin = np.linspace(0.0, 1.0, n)
+    assert np.array_equal(path_headings(np.zeros(n), np.zeros(n), spin, np.zeros(n)), spin)

@@ -18,10 +18,10 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from phalanx.core.config import SonarParams
 from phalanx.core.config_files import load_robot
 from phalanx.core.geometry import Pose2D, Twist2D, Vec2
 from phalanx.core.rigid_body import LiveErrors
+from phalanx.core.robot_params import SonarParams
 from phalanx.telemetry.layout import sonar_segments
 from phalanx.telemetry.sinks import TELEMETRY_NICE, TelemetrySink
 from phalanx.telemetry.stream import Telemetry

@@ -13,7 +13,8 @@ from typing import TYPE_CHECKING, Annotated, Literal
 import typer
 
 if TYPE_CHECKING:
-    from phalanx.core.config import RobotParams, Scenario
+    from phalanx.core.config import Scenario
+    from phalanx.core.robot_params import RobotParams
     from phalanx.drivers.base import Driver
     from phalanx.runtime.signals import Stoppable
     from phalanx.telemetry.stream import Telemetry

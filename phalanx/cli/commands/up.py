@@ -115,19 +115,18 @@ def up(
     if robots == "amrisim" and driver != "sim":
         raise typer.BadParameter("--robots amrisim drives AMRISim's robots: leave --driver out")
     if (driver == "arcos" or robots == "amrisim") and options.clock == "lockstep":
-        typer.echo(
-            "robots on a driver keep their own time: running with --clock realtime", err=True
-        )
+        typer.echo("robots on drivers keep their own time: running with --clock realtime", err=True)
         options.clock = "realtime"
     with contextlib.ExitStack() as stack:
         if robots == "amrisim":
+            mode, binary = odometry_error(amrisim_odometry_error), amrisim_binary(amrisim)
             display = stack.enter_context(Xvfb()).display
             command = AmrisimCommand(
-                binary=amrisim_binary(amrisim),
+                binary=binary,
                 map_path=out / "amrisim.map",
                 log_path=out / "amrisim.log",
                 base_port=free_port_run(len(config.robots)),
-                odometry_error=odometry_error(amrisim_odometry_error),
+                odometry_error=mode,
             )
             options.amrisim = AmrisimRun(command, display)
             typer.echo(f"AMRISim: {command.binary} (its log: {command.log_path})", err=True)

@@ -1,0 +1,127 @@
+"""The paper's wedge on three AMRISim P3DXs (firmware nobody here wrote), through the one
+command a user runs: `phalanx up SCENARIO --robots amrisim`. Each robot's agent drives its
+P3DX through the `arcos` driver over TCP, as it would a real one; the world process only
+records, from AMRISim's true poses. The run must be whole, its commands must have reached
+the robots, and the wedge must back out of its wall inside the bounds of perfect sensing.
+
+Skipped unless PHALANX_AMRISIM gives the binary (docs/INTEROP.md)."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from phalanx.analysis.results import read_traces
+from phalanx.core.config_files import CONFIG_ROOT, load_scenario
+from phalanx.runtime.amrisim import AmrisimCommand, Xvfb, amrisim_map, free_port_run
+from phalanx.wire.transport import free_tcp_port
+
+pytestmark = [pytest.mark.integration, pytest.mark.drivers]
+WEDGE = CONFIG_ROOT / "scenarios" / "paper_wedge.toml"
+# 60 s: the wall (the scenario's V, moved in) met at about 20 s, a 1.5 m reverse, on to the
+# wall again and a second reverse before the end.
+SHORT = [
+    "duration_s=60",
+    "deadlock.safe_distance_m=1.5",
+    "world.polygons=[{vertices_m = [[4.0, 0.0], [2.6, 1.4], [2.7, 1.4], [4.1, 0.0], "
+    "[2.7, -1.4], [2.6, -1.4]]}]",
+]
+# The targets of perfect sensing (docs/RESULTS.md), on AMRISim's true poses.
+BACKWARD = {"linear_pct": 0.5, "angular_pct": 0.3, "orientation_deg": 0.5}
+
+
+def _amrisim() -> Path:
+    value = os.environ.get("PHALANX_AMRISIM")
+    if not value:
+        pytest.skip("PHALANX_AMRISIM is not set: give the AMRISim binary (docs/INTEROP.md)")
+    if shutil.which("Xvfb") is None:
+        pytest.skip("AMRISim needs an X display: install xvfb (apt-get install xvfb)")
+    return Path(value)
+
+
+@pytest.mark.timeout(300)
+def test_the_wedge_backs_out_of_its_wall_in_formation_on_amrisim(tmp_path: Path) -> None:
+    binary = _amrisim()
+    out = tmp_path / "amrisim"
+    sets = [arg for s in SHORT for arg in ("--set", s)]
+    proc = subprocess.run(
+        [sys.executable, "-m", "phalanx", "up", str(WEDGE), "--robots", "amrisim",
+         "--amrisim", str(binary), "--out", str(out), "--no-recording", "--timeout", "200",
+         *sets],
+        capture_output=True, text=True, timeout=260, check=False,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["complete"], metrics["incomplete_reason"]
+    assert set(metrics["pose_source"].values()) == {"simulator's true pose (AMRISim SIMSTAT)"}
+    runtime = metrics["runtime"]
+    assert runtime["commands_received"] == runtime["commands_expected"] == 3 * 600
+    assert all(a["steps"] == 600 for a in runtime["agents"].values()), runtime["agents"]
+    assert metrics["deadlock_reverses"] >= 1
+    assert metrics["collisions"] == []
+    for rid in ("r2", "r3"):
+        backward = metrics["followers"][rid]["backward"]
+        assert backward["samples"] > 40, backward
+        for key, bound in BACKWARD.items():
+            assert backward[key]["max"] < bound, (rid, key, backward[key])
+    traces = read_traces(out / "traces.npz")
+    moved = np.hypot(np.diff(traces["r1"]["x_m"]), np.diff(traces["r1"]["y_m"])).sum()
+    assert moved > 5.0  # it drove (4 m out, 1.5 m back, on, back): not a robot standing still
+    assert (out / "fig5_trajectories.png").stat().st_size > 10_000
+    assert "Loading map data" in (out / "amrisim.log").read_text(errors="replace")
+
+
+@pytest.mark.timeout(300)
+def test_a_lab_deployment_without_a_world_writes_its_results(tmp_path: Path) -> None:
+    """configs/deployments/amrisim.toml: a host per robot, each robot on the arcos driver,
+    no [world] (a lab's layout), launched with `phalanx launch --local` against a running
+    AMRISim. The world process runs on the first host and simulates nothing: it records
+    the robots from their true poses and writes the results folder."""
+    binary = _amrisim()
+    scenario = load_scenario(WEDGE)
+    base = free_port_run(3)
+    command = AmrisimCommand(binary, tmp_path / "amrisim.map", tmp_path / "amrisim.log", base)
+    command.map_path.write_text(amrisim_map(scenario))
+    example = (CONFIG_ROOT / "deployments" / "amrisim.toml").read_text()
+    text = example.replace("../scenarios/paper_wedge.toml", str(WEDGE))
+    for i in range(3):
+        text = text.replace(f"127.0.0.1:810{i + 1}", f"127.0.0.1:{base + i}")
+    for i in range(4):
+        text = text.replace(f"port = 746{i + 1}", f"port = {free_tcp_port()}")
+    deployment = tmp_path / "amrisim.toml"
+    deployment.write_text(text)
+    with Xvfb() as display:
+        simulator = subprocess.Popen(
+            command.argv(scenario), env=command.env(display.display), start_new_session=True,
+            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+        )  # fmt: skip
+        try:
+            proc = subprocess.run(
+                [sys.executable, "-m", "phalanx", "launch", str(deployment), "--local",
+                 "--run-id", "lab1", "--no-table", "--set", "duration_s=25"],
+                cwd=tmp_path, capture_output=True, text=True, timeout=240, check=False,
+            )  # fmt: skip
+        finally:
+            simulator.kill()
+            simulator.wait(10.0)
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-2000:]
+    results = tmp_path / "results" / "deployments" / "lab1"
+    metrics = json.loads((results / "metrics.json").read_text())
+    assert metrics["complete"], metrics["incomplete_reason"]
+    assert set(metrics["pose_source"].values()) == {"simulator's true pose (AMRISim SIMSTAT)"}
+    runtime = metrics["runtime"]
+    assert runtime["commands_received"] == runtime["commands_expected"] == 3 * 250
+    start = scenario.start_pose("r2")
+    traces = read_traces(results / "traces.npz")
+    # placed at its start pose (SIM_SET_POSE), then off into the wedge
+    assert (traces["r2"]["x_m"][0], traces["r2"]["y_m"][0]) == pytest.approx(
+        (start.x_m, start.y_m), abs=0.02
+    )
+    assert traces["r1"]["x_m"][-1] > 3.0
