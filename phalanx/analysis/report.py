@@ -261,9 +261,14 @@ NOTES = [
     "- **icr** (eq. 7 alone) is a geometric feed-forward: it gives each follower the "
     "twist a rigid body would have, but has no feedback on the slot error, so the "
     "followers' start offsets never decay and heading errors integrate into position "
-    "errors; it is meant to be switched in for the reverse phase only, as the paper does.",
+    "errors; it is meant to be switched in for the reverse phase only, as the paper does. "
+    "In the wedge and the line its followers are nowhere near their slots by the time "
+    "the leader meets the wall, so they are not blocked with it: the group never "
+    "deadlocks (no backward phase: n/a), and the leader, avoidance being off in the "
+    "paper's runs, drives into the wall (the collision).",
     "- **reverse while turning** rows: the deadlock is triggered at t = 75 s, in the "
-    "middle of a 3 deg/s turn, and the leader retraces the arc it came along "
+    "middle of a 3 deg/s turn, by the paper's signal builder (every sonar reads 0.3 m "
+    "for 2 s; no wall), and the leader retraces the arc it came along "
     '(`deadlock.reverse_mode = "retrace"`). The paper\'s ICR relation drops the '
     "along-track slot term, which only matters while the formation turns; the paper's "
     "switching strategy breaks the shape there (in the inline formation the chain backs "

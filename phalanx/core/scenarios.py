@@ -18,6 +18,7 @@ from phalanx.core.config import (
     PolygonObstacle,
     RobotEntry,
     Scenario,
+    SensorEvent,
     SlotConfig,
     StartPose,
     WorldConfig,
@@ -137,15 +138,23 @@ def _fits(c: CircleObstacle, placed: list[CircleObstacle], field: ObstacleField)
     return clear_of_zones and all(gap(o) >= field.min_gap_m for o in placed)
 
 
-def signal_builder(start_s: float, *, robots: tuple[str, ...] = ()) -> list[str]:
+def signal_builder(
+    start_s: float, *, robots: tuple[str, ...] = (), keep: tuple[SensorEvent, ...] = ()
+) -> list[str]:
     """Overrides (`--set` strings) that block the group the paper's way instead of by a
     paper scenario's wall: every sonar of `robots` (all: ()) reads 0.3 m for 2 s from
     `start_s` (a scripted sensor event, as the paper's Simulink signal builder), with no
-    obstacle in the world. For runs cut short, and for blocking the group mid-turn.
+    obstacle in the world, beside the scenario's events to `keep`. For runs cut short,
+    for blocking the group mid-turn, and for studies of something else than the wall.
     """
-    event = f"kind = {toml_value('all_sonars_blocked')}, start_s = {toml_value(float(start_s))}"
-    event += f", duration_s = 2.0, range_m = 0.3, robots = {toml_value(list(robots))}"
-    return ["world.polygons=[]", f"events=[{{{event}}}]"]
+    block = SensorEvent(start_s=start_s, duration_s=2.0, robots=robots, range_m=0.3)
+    events = ", ".join(_inline(e.model_dump(mode="json")) for e in (*keep, block))
+    return ["world.polygons=[]", f"events=[{events}]"]
+
+
+def _inline(table: dict[str, Any]) -> str:
+    """A TOML inline table."""
+    return "{" + ", ".join(f"{k} = {toml_value(v)}" for k, v in table.items()) + "}"
 
 
 def resolve_world(world: WorldConfig) -> WorldConfig:

@@ -15,13 +15,9 @@ from phalanx.wire.bounds import RobotId, Speed, UnixStamp, YawRate
 from phalanx.wire.messages import Message
 
 
-class PoseFixMessage(Message):
-    """An absolute pose fix of robot `robot_id` on `.../robot/<id>/fix` (a motion-capture
-    bridge, `phalanx mocap`, or the world process simulating one for robots on drivers).
-
-    Pose in the fleet's world frame (m, rad), taken at `stamp_s` in Unix time (the
-    receiving agent turns it into fleet time with its epoch), with the source's standard
-    deviations (`std_m` on x and y, `std_rad` on the heading).
+class StampedPose(Message):
+    """Robot `robot_id`'s pose in the fleet's world frame (m, rad), taken at `stamp_s` in
+    Unix time: what a pose fix and a simulator's true pose both say.
     """
 
     version: Literal[1] = 1
@@ -30,11 +26,22 @@ class PoseFixMessage(Message):
     x_m: float = Field(ge=-1e4, le=1e4)
     y_m: float = Field(ge=-1e4, le=1e4)
     theta_rad: float = Field(ge=-2 * math.pi, le=2 * math.pi)
+
+
+class PoseFixMessage(StampedPose):
+    """An absolute pose fix of robot `robot_id` on `.../robot/<id>/fix` (a motion-capture
+    bridge, `phalanx mocap`, or the world process simulating one for robots on drivers).
+
+    Pose in the fleet's world frame (m, rad), taken at `stamp_s` in Unix time (the
+    receiving agent turns it into fleet time with its epoch), with the source's standard
+    deviations (`std_m` on x and y, `std_rad` on the heading).
+    """
+
     std_m: float = Field(gt=0.0, le=10.0)
     std_rad: float = Field(gt=0.0, le=math.pi)
 
 
-class TruthMessage(Message):
+class TruthMessage(StampedPose):
     """Where a simulator says robot `robot_id` really is, on `.../robot/<id>/truth`: the
     robot's agent passes on what its driver reads from the simulator (AMRISim's SIMSTAT),
     for the run's record. No agent steers by it.
@@ -45,12 +52,6 @@ class TruthMessage(Message):
     second, since the robot connected).
     """
 
-    version: Literal[1] = 1
-    robot_id: RobotId
-    stamp_s: UnixStamp
-    x_m: float = Field(ge=-1e4, le=1e4)
-    y_m: float = Field(ge=-1e4, le=1e4)
-    theta_rad: float = Field(ge=-2 * math.pi, le=2 * math.pi)
     v_mps: Speed
     omega_radps: YawRate
     source: str = Field(max_length=32, pattern=r"^[A-Za-z0-9 ._-]*$")
