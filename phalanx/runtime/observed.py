@@ -22,6 +22,7 @@ from __future__ import annotations
 import bisect
 import math
 import threading
+import time
 from dataclasses import dataclass, field
 from typing import Final
 
@@ -38,8 +39,12 @@ from phalanx.wire.transport import FleetSession
 # A pose is carried forward along its twist at most this long (s): past it, the robot is
 # taken to stand where it was last seen (a source that stopped sending).
 CARRY_MAX_S: Final = 0.5
-# At most this many samples a second are kept of one robot (a flood is dropped, counted).
+# At most this many samples a second are kept of one robot (a flood is dropped, counted),
+# and only those stamped within this long (s) before now or this long after (clocks in
+# step: docs/DEPLOYMENT.md), so that a stamp far out cannot shut the later ones out.
 MAX_RATE_HZ: Final = 200.0
+MAX_AGE_S: Final = 10.0
+MAX_AHEAD_S: Final = 1.0
 
 
 @dataclass
@@ -50,9 +55,16 @@ class Track:
     rows: list[tuple[float, float, float, float, float, float]] = field(default_factory=list)
     dropped: int = 0  # out of order, or beyond MAX_RATE_HZ
 
-    def add(self, row: tuple[float, float, float, float, float, float], capacity: int) -> None:
-        """Keep `row` if it is newer than the last and there is room."""
-        if (self.rows and row[0] <= self.rows[-1][0]) or len(self.rows) >= capacity:
+    def add(
+        self, row: tuple[float, float, float, float, float, float], capacity: int, now_s: float
+    ) -> None:
+        """Keep `row` if it is stamped near `now_s` (fleet time), after the last by the
+        rate's interval at least, and there is room.
+        """
+        t = row[0]
+        timely = now_s - MAX_AGE_S <= t <= now_s + MAX_AHEAD_S
+        later = not self.rows or t >= self.rows[-1][0] + 1.0 / MAX_RATE_HZ
+        if not (timely and later) or len(self.rows) >= capacity:
             self.dropped += 1
             return
         self.rows.append(row)
@@ -147,7 +159,7 @@ class ObservedRobots:
         with self._lock:
             track = self.truths[m.robot_id]
             track.source = track.source or truth_source(m.source)
-            track.add(row, self._capacity)
+            track.add(row, self._capacity, self._now_s())
             self.clock_rates[m.robot_id] = m.clock_rate
 
     def _on_fix(self, _key: str, m: PoseFixMessage) -> None:
@@ -160,8 +172,12 @@ class ObservedRobots:
                 return
             track = self.tracks[m.robot_id]
             track.source = MOCAP_POSE
-            track.add((m.stamp_s - self.epoch_s, m.x_m, m.y_m, m.theta_rad, 0.0, 0.0),
-                      self._capacity)  # fmt: skip
+            row = (m.stamp_s - self.epoch_s, m.x_m, m.y_m, m.theta_rad, 0.0, 0.0)
+            track.add(row, self._capacity, self._now_s())
+
+    def _now_s(self) -> float:
+        """Fleet time now."""
+        return time.time() - self.epoch_s
 
     def has_truth(self, robot_id: str) -> bool:
         """Whether a simulator's true pose of the robot has been heard."""

@@ -13,6 +13,7 @@ import fnmatch
 import json
 import math
 import threading
+import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -407,14 +408,13 @@ class WorldUnderTest:
     """The world process of the wedge: it takes payloads, ticks, and writes its log (in
     lockstep; in real time, the only world that hears commands)."""
 
-    EPOCH_S = 1_800_000_000.0
-
     def __init__(self, clock: str = "lockstep", *, observed: tuple[str, ...] = ()) -> None:
         from phalanx.runtime.world_process import WorldOptions, WorldProcess
         from phalanx.wire.transport import TransportConfig
 
         scenario = apply_overrides(load_scenario(WEDGE), ["duration_s=600"])
         self.robot = load_robot(scenario.robot)
+        self.EPOCH_S = time.time()  # (a robot's poses are kept only if stamped near now)
         options = WorldOptions(
             fleet=FLEET, transport=TransportConfig(), tick_timeout_s=0.0,
             clock=clock,  # type: ignore[arg-type]
@@ -459,11 +459,11 @@ class WorldUnderTest:
         from phalanx.wire.positions import PoseFixMessage, TruthMessage
 
         truth = TruthMessage(
-            robot_id="r2", stamp_s=self.EPOCH_S + t, x_m=0.1 * t, y_m=0.7, theta_rad=0.0,
+            robot_id="r2", stamp_s=time.time(), x_m=0.1 * t, y_m=0.7, theta_rad=0.0,
             v_mps=0.1, omega_radps=0.0, source="AMRISim SIMSTAT",
         )  # fmt: skip
         fix = PoseFixMessage(
-            robot_id="r3", stamp_s=self.EPOCH_S + t, x_m=0.1 * t, y_m=-0.7, theta_rad=0.0,
+            robot_id="r3", stamp_s=time.time(), x_m=0.1 * t, y_m=-0.7, theta_rad=0.0,
             std_m=0.002, std_rad=0.002,
         )  # fmt: skip
         return {

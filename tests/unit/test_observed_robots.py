@@ -23,7 +23,7 @@ from phalanx.wire.messages import AgentReport
 from phalanx.wire.positions import PoseFixMessage, TruthMessage
 
 SCENARIOS = CONFIG_ROOT / "scenarios"
-EPOCH = 1_800_000_000.0
+EPOCH = time.time()  # (samples are kept only near now)
 BOUNDS = FleetBounds(frozenset({"r1", "r2"}), 2.0, 5.0, t_max_s=60.0, dt_s=0.1, ticks=600)
 
 
@@ -37,8 +37,10 @@ def _truth(rid: str, t_s: float, x: float, *, theta: float = 0.0, v: float = 0.2
 def test_a_track_interpolates_between_samples_and_holds_past_its_ends() -> None:
     track = Track()
     for t, x in ((0.05, 0.0), (0.15, 0.02), (0.25, 0.04)):
-        track.add((t, x, 0.0, 0.0, 0.2, 0.0), capacity=10)
-    track.add((0.2, 9.9, 0.0, 0.0, 0.0, 0.0), capacity=10)  # older than the last: dropped
+        track.add((t, x, 0.0, 0.0, 0.2, 0.0), capacity=10, now_s=0.5)
+    track.add(
+        (0.2, 9.9, 0.0, 0.0, 0.0, 0.0), capacity=10, now_s=0.5
+    )  # older than the last: dropped
     assert track.dropped == 1
     rows = track.resampled(np.array([0.0, 0.1, 0.2, 0.5]))
     assert rows is not None
@@ -51,8 +53,8 @@ def test_a_track_interpolates_between_samples_and_holds_past_its_ends() -> None:
 
 def test_headings_interpolate_the_short_way_round() -> None:
     track = Track()
-    track.add((0.0, 0.0, 0.0, math.radians(179.0), 0.0, 0.0), capacity=10)
-    track.add((1.0, 0.0, 0.0, math.radians(-179.0), 0.0, 0.0), capacity=10)
+    track.add((0.0, 0.0, 0.0, math.radians(179.0), 0.0, 0.0), capacity=10, now_s=0.5)
+    track.add((1.0, 0.0, 0.0, math.radians(-179.0), 0.0, 0.0), capacity=10, now_s=0.5)
     rows = track.resampled(np.array([0.5]))
     assert rows is not None
     assert abs(math.degrees(float(rows[2][0]))) == pytest.approx(180.0)
