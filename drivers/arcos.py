@@ -124,7 +124,7 @@ class ArcosDriver(Closing):
         if not (math.isfinite(twist.v_mps) and math.isfinite(twist.omega_radps)):
             raise ValueError(f"non-finite velocity command {twist}")
         with self._lock:
-            v_mm, w_deg = self._whole_units(twist)
+            v_mm, w_deg, remainder = self._whole_units(twist)
             self._check_open()
             if self._link_fault or self._estop:
                 if v_mm == 0 and w_deg == 0:
@@ -136,10 +136,12 @@ class ArcosDriver(Closing):
                 )
             self._write(command(Cmd.VEL, v_mm))
             self._write(command(Cmd.RVEL, w_deg))
+            self._remainder = remainder
 
-    def _whole_units(self, twist: Twist2D) -> tuple[int, int]:
+    def _whole_units(self, twist: Twist2D) -> tuple[int, int, tuple[float, float]]:
         """(VEL mm/s, RVEL deg/s) for `twist`, each with the last command's rounding
-        remainder carried in; an axis asked for 0 gets 0 (and drops its remainder).
+        remainder carried in (an axis asked for 0 gets 0 and drops it), and what this
+        command's rounding leaves, to carry once it is sent.
         """
         wanted = (
             twist.v_mps * 1000.0 / self.readings.factors.vel_mmps,
@@ -150,8 +152,7 @@ class ArcosDriver(Closing):
             whole = round(value + carried) if value else 0
             out.append(whole)
             left.append(value + carried - whole if value else 0.0)
-        self._remainder = (left[0], left[1])
-        return out[0], out[1]
+        return out[0], out[1], (left[0], left[1])
 
     def read_odometry(self) -> Odometry:
         """The pose integrated from SIPs since connect (odometry frame) and the twist.

@@ -1,8 +1,8 @@
 """The interop tier: phalanx's ARCOS code against software nobody here wrote, AMRISim (the
 robot side, MobileSim's successor) and ARIA clients (AriaCoda's examples and our own
-`aria_motion_check.cpp`). Both are built by hand from their public sources
-(docs/INTEROP.md); the tier runs only when environment variables give them, and skips
-with the reason otherwise (CI builds neither):
+`aria_motion_check.cpp`), both built from their public sources (docs/INTEROP.md). The
+tier runs when environment variables give them (CI's `.ci/run` sets them to the build it
+is given), and skips with the reason otherwise:
 
 - PHALANX_AMRISIM: the AMRISim binary (its resources are read from its directory);
   it runs headless under an Xvfb that the fixture starts (Debian: apt-get install xvfb).
@@ -13,6 +13,7 @@ with the reason otherwise (CI builds neither):
 from __future__ import annotations
 
 import contextlib
+import itertools
 import math
 import os
 import re
@@ -30,7 +31,16 @@ from pathlib import Path
 import pytest
 
 from phalanx.drivers.arcos_tracker import ArcosStats, SipTracker
-from phalanx.protocols.arcos import SYNC2, FrameParser, factors_for, frame, parse_sync2
+from phalanx.protocols.arcos import (
+    SIP_MOVING,
+    SIP_STOPPED,
+    SYNC2,
+    Cmd,
+    FrameParser,
+    factors_for,
+    frame,
+    parse_sync2,
+)
 from phalanx.wire.transport import free_tcp_port
 
 HERE = Path(__file__).resolve().parent
@@ -199,11 +209,11 @@ class Aria:
 
     root: Path
     examples: Path
+    libs: Path  # where the loader finds libAria under its soname
 
     @property
     def env(self) -> dict[str, str]:
-        lib = str(self.root / "lib")
-        return {**os.environ, "ARIA": str(self.root), "LD_LIBRARY_PATH": lib}
+        return {**os.environ, "ARIA": str(self.root), "LD_LIBRARY_PATH": str(self.libs)}
 
     def run(self, program: Path, port: int, timeout_s: float = 150.0) -> str:
         """Run an ARIA client against 127.0.0.1:`port`; its whole output."""
@@ -215,13 +225,21 @@ class Aria:
 
 
 @pytest.fixture(scope="session")
-def aria() -> Aria:
-    """AriaCoda, from PHALANX_ARIA_EXAMPLES."""
+def aria(tmp_path_factory: pytest.TempPathFactory) -> Aria:
+    """AriaCoda, from PHALANX_ARIA_EXAMPLES.
+
+    ARIA's programs load `libAria.so.3` (its soname); a copied tree may hold that name as
+    a broken link or a text file naming `libAria.so`, so the loader is pointed at a link
+    of our own to the library itself.
+    """
     examples = _given("PHALANX_ARIA_EXAMPLES", "AriaCoda's built examples/ directory")
     root = examples.resolve().parent
-    if not (root / "lib" / "libAria.so").exists():
-        pytest.skip(f"no {root / 'lib' / 'libAria.so'}: build AriaCoda first (docs/INTEROP.md)")
-    return Aria(root, examples)
+    library = root / "lib" / "libAria.so"
+    if not library.exists():
+        pytest.skip(f"no {library}: build AriaCoda first (docs/INTEROP.md)")
+    libs = tmp_path_factory.mktemp("aria-libs")
+    (libs / "libAria.so.3").symlink_to(library.resolve())
+    return Aria(root, examples, libs)
 
 
 @pytest.fixture(scope="session")
@@ -233,8 +251,8 @@ def aria_motion_check(aria: Aria, tmp_path_factory: pytest.TempPathFactory) -> P
     binary = tmp_path_factory.mktemp("aria") / "aria_motion_check"
     subprocess.run(
         [compiler, "-std=c++14", "-O1", f"-I{aria.root / 'include'}",
-         str(HERE / "aria_motion_check.cpp"), f"-L{aria.root / 'lib'}", "-lAria",
-         "-lpthread", "-ldl", "-lrt", "-o", str(binary)],
+         str(HERE / "aria_motion_check.cpp"), f"-L{aria.libs}",
+         str(aria.root / "lib" / "libAria.so"), "-lpthread", "-ldl", "-lrt", "-o", str(binary)],
         check=True, capture_output=True, timeout=300,
     )  # fmt: skip
     return binary
@@ -243,36 +261,53 @@ def aria_motion_check(aria: Aria, tmp_path_factory: pytest.TempPathFactory) -> P
 # -- recording what an ARIA client sends, and sending it again -------------------------
 
 
+@dataclass(frozen=True)
+class Sent:
+    """One frame an ARIA client sent: when (s since it connected), in which of the robot's
+    cycles (how many SIPs the robot had sent before it) and its body."""
+
+    at_s: float
+    cycle: int
+    body: bytes
+
+
 @dataclass
 class Recording:
-    """Every frame an ARIA client sent (seconds since it connected, body), and its output."""
+    """Every frame an ARIA client sent, and its output."""
 
-    frames: list[tuple[float, bytes]]
+    frames: list[Sent]
     output: str
 
 
 def record(aria: Aria, program: Path, port: int) -> Recording:
-    """Run `program` against 127.0.0.1:`port` through a proxy that timestamps its frames."""
+    """Run `program` against 127.0.0.1:`port` through a proxy that notes, for each frame
+    the program sends, its time and the robot's cycle (SIPs relayed to the program so far).
+    """
     server = socket.create_server(("127.0.0.1", 0))
-    frames: list[tuple[float, bytes]] = []
+    frames: list[Sent] = []
+    sips = [0]  # written by the robot's relay only
 
-    def relay(src: socket.socket, dst: socket.socket, parser: FrameParser | None) -> None:
-        t0 = time.monotonic()
+    def from_robot(src: socket.socket, dst: socket.socket) -> None:
+        parser = FrameParser()
         while data := _recv(src):
-            if parser is not None:
-                now = time.monotonic() - t0
-                frames.extend((now, body) for body in parser.feed(data))
+            sips[0] += sum(body[0] in (SIP_STOPPED, SIP_MOVING) for body in parser.feed(data))
             dst.sendall(data)
-        with contextlib.suppress(OSError):  # wakes the other relay's recv, sends the FIN
-            dst.shutdown(socket.SHUT_RDWR)
-        dst.close()
+        _finish(dst)
+
+    def from_client(src: socket.socket, dst: socket.socket) -> None:
+        parser, t0 = FrameParser(), time.monotonic()
+        while data := _recv(src):
+            now = time.monotonic() - t0
+            frames.extend(Sent(now, sips[0], body) for body in parser.feed(data))
+            dst.sendall(data)
+        _finish(dst)
 
     def serve() -> None:
         client, _ = server.accept()
         upstream = socket.create_connection(("127.0.0.1", port))
         threads = [
-            threading.Thread(target=relay, args=(client, upstream, FrameParser())),
-            threading.Thread(target=relay, args=(upstream, client, None)),
+            threading.Thread(target=from_client, args=(client, upstream)),
+            threading.Thread(target=from_robot, args=(upstream, client)),
         ]
         for t in threads:
             t.start()
@@ -294,43 +329,126 @@ def _recv(sock: socket.socket) -> bytes:
         return b""
 
 
-def replay(frames: list[tuple[float, bytes]], port: int) -> tuple[float, float, float]:
-    """Send `frames` to 127.0.0.1:`port` at their recorded times (up to the final CLOSE);
-    the robot's end pose as its SIPs tell it, in the frame of its first SIP (mm, mm, deg),
-    read as the driver reads it (`SipTracker`).
-    """
-    tracker = SipTracker(ArcosStats())
-    parser = FrameParser()
-    sock = socket.create_connection(("127.0.0.1", port))
-    sock.settimeout(0.005)
-    t0 = time.monotonic()
+def _finish(dst: socket.socket) -> None:
+    with contextlib.suppress(OSError):  # wakes the other relay's recv, sends the FIN
+        dst.shutdown(socket.SHUT_RDWR)
+    dst.close()
 
-    def drain() -> None:
+
+SETTLE_CYCLES = 10  # after the stream, 1 s of the robot's own time to come to rest
+SIP_WAIT_S = 10.0  # a robot silent this long has stopped: the replay fails, never hangs
+
+
+@dataclass(frozen=True)
+class Reading:
+    """One SIP as the driver reads it: the pose in the frame of the robot's first SIP
+    (mm, mm, deg) and the speeds it reports (mm/s, deg/s)."""
+
+    x_mm: float
+    y_mm: float
+    th_deg: float
+    v_mmps: float
+    w_degps: float
+
+
+@dataclass(frozen=True)
+class Replayed:
+    """What a robot made of a replayed stream: one reading per SIP, in its own cycles."""
+
+    sent: list[Sent]  # the frames it was sent, in order, in their cycles
+    track: list[Reading]  # track[k - 1]: its SIP number k
+
+    @property
+    def pose(self) -> tuple[float, float, float]:
+        """Where its SIPs say it ended (mm, mm, deg)."""
+        end = self.track[-1]
+        return end.x_mm, end.y_mm, end.th_deg
+
+
+class _Client:
+    """The client side of a replay: one connection, its SIPs read as the driver reads them."""
+
+    def __init__(self, port: int) -> None:
+        self.sock = socket.create_connection(("127.0.0.1", port))
+        self.parser = FrameParser()
+        self.tracker = SipTracker(ArcosStats())
+        self.track: list[Reading] = []
+        self.t0 = time.monotonic()
+
+    def read(self, timeout_s: float) -> None:
+        self.sock.settimeout(max(timeout_s, 0.001))
         try:
-            data = sock.recv(65536)
+            data = self.sock.recv(65536)
         except TimeoutError:
             return
-        for body in parser.feed(data):
+        if not data:
+            pytest.fail(f"the robot closed the replay's connection after {len(self.track)} SIPs")
+        for body in self.parser.feed(data):
             if body[0] == SYNC2 and len(body) > 3:
-                tracker.factors = factors_for(parse_sync2(body)[2])
-            else:
-                tracker.take(body, byte_time_s=0.0)
+                self.tracker.factors = factors_for(parse_sync2(body)[2])
+            elif self.tracker.take(body, byte_time_s=0.0) is not None:
+                self.track.append(_reading(self.tracker))
 
+    def until_sip(self, count: int) -> None:
+        """Read until the robot's SIP number `count` has come."""
+        deadline = time.monotonic() + SIP_WAIT_S
+        while len(self.track) < count:
+            left = deadline - time.monotonic()
+            if left <= 0:
+                pytest.fail(
+                    f"no SIP for {SIP_WAIT_S} s: {len(self.track)} of {count}, {self.parser.stats}"
+                )
+            self.read(min(left, 0.05))
+
+    def until_time(self, at_s: float) -> None:
+        """Read until `at_s` seconds after connecting."""
+        while (left := self.t0 + at_s - time.monotonic()) > 0:
+            self.read(min(left, 0.05))
+
+    def close(self) -> None:
+        self.sock.close()
+
+
+def _reading(tracker: SipTracker) -> Reading:
+    odometry = tracker.odometry
+    assert odometry is not None  # set by the SIP just taken
+    pose, twist = odometry.pose, odometry.twist
+    return Reading(
+        pose.x_m * 1000.0, pose.y_m * 1000.0, math.degrees(pose.theta_rad),
+        twist.v_mps * 1000.0, math.degrees(twist.omega_radps),
+    )  # fmt: skip
+
+
+def replay(frames: list[Sent], port: int) -> Replayed:
+    """Send `frames` to 127.0.0.1:`port`, each in its cycle: right after the robot's SIP
+    number `cycle` (the handshake, before any SIP, at its recorded time), up to the final
+    CLOSE; then 1 s of the robot's cycles to settle. Its SIPs, read all along, are the
+    robot's own account of each of its cycles (AMRISim's, the very SIPs its
+    `--log-movement-sent` logs).
+
+    Paced by the robot's own SIPs, not by our clock: a loaded machine stretches a robot's
+    cycles (AMRISim's simulation steps a fixed 100 ms each, however late they run), and a
+    replay on our clock would give two robots the same command after different amounts
+    of their own time.
+    """
+    client = _Client(port)
     try:
-        for at_s, body in frames:
-            if body[0] == 2 and at_s > 1.0:  # CLOSE (after the sync's SYNC2): the end
-                break
-            while time.monotonic() - t0 < at_s:
-                drain()
-            sock.sendall(frame(body))
-        settle = time.monotonic() + 1.0
-        while time.monotonic() < settle:
-            drain()
+        stream = list(itertools.takewhile(lambda s: not _closes(s), frames))
+        for sent in stream:
+            if sent.cycle == 0:
+                client.until_time(sent.at_s)
+            else:
+                client.until_sip(sent.cycle)
+            client.sock.sendall(frame(sent.body))
+        client.until_sip(max((s.cycle for s in stream), default=0) + SETTLE_CYCLES)
     finally:
-        sock.close()
-    assert tracker.odometry is not None, f"no SIP came back from port {port}: {parser.stats}"
-    pose = tracker.odometry.pose
-    return pose.x_m * 1000.0, pose.y_m * 1000.0, math.degrees(pose.theta_rad)
+        client.close()
+    return Replayed(stream, client.track)
+
+
+def _closes(sent: Sent) -> bool:
+    """CLOSE, the stream's end (it shares its number with SYNC2, sent before any SIP)."""
+    return sent.body[0] == Cmd.CLOSE and sent.cycle > 0
 
 
 @pytest.fixture
@@ -340,6 +458,6 @@ def recorder() -> Callable[[Aria, Path, int], Recording]:
 
 
 @pytest.fixture
-def replayer() -> Callable[[list[tuple[float, bytes]], int], tuple[float, float, float]]:
+def replayer() -> Callable[[list[Sent], int], Replayed]:
     """`replay(frames, port)`."""
     return replay

@@ -88,10 +88,11 @@ def test_odometry_equals_what_amrisim_logged_sending(amrisim: Amrisim) -> None:
     got = (pose.x_m * 1000.0, pose.y_m * 1000.0, math.degrees(pose.theta_rad))
     report(f"driver odometry {got}; AMRISim's last SIP {(x_mm, y_mm, th_deg)}")
     assert math.hypot(x_mm, y_mm) > 800.0  # it went somewhere
-    # A position count is 0.485 mm (p3dx); a heading count 0.088 deg of a whole degree.
+    # A position count is 0.485 mm (p3dx). AMRISim reports whole degrees; the driver
+    # follows them finer from the yaw rate, always inside the degree reported.
     assert got[0] == pytest.approx(x_mm, abs=1.0)
     assert got[1] == pytest.approx(y_mm, abs=1.0)
-    assert got[2] == pytest.approx(th_deg, abs=0.1)
+    assert got[2] == pytest.approx(th_deg, abs=0.5 + 1e-9)  # + a float's rounding
 
 
 def test_an_estop_amrisim_forgets_is_held_by_the_driver(amrisim: Amrisim) -> None:
