@@ -38,6 +38,10 @@ N_SONARS = 16
 # positions in whole or half millimetres: within 0.1 deg).
 CHORD_M = 0.5
 CHORD_TURN_RAD = math.radians(10.0)
+# A chord's correction is eased in over about this long (s), not put in at once: a
+# heading that jumps moves every slot behind the robot sideways at once (0.2 deg: 7 mm
+# two metres back), and a follower chases that jump.
+CHORD_EASE_S = 1.0
 # Slower than this (m/s), a robot is taken to stand: its chords are too short to tell.
 MOVING_MPS = 0.02
 FRAME_OVERHEAD_BYTES = 5  # FA FB, the length byte, the two checksum bytes
@@ -69,9 +73,10 @@ class QuantisedHeading:
     degree alone is within 0.5.
 
     Positions come finer (a millimetre, or half of one): given them, every CHORD_M of a
-    drive that turns little along it, the heading is put on the chord's direction (a
-    wheeled robot goes where it heads), which is the heading half-way along the arc:
-    within 0.1 deg, also on a long straight reverse, where no edge is crossed.
+    drive that turns little along it, the heading is set right by the chord's direction
+    (a wheeled robot goes where it heads), which is the heading half-way along the arc:
+    within 0.1 deg, also on a long straight reverse, where no edge is crossed. That
+    correction is eased in (CHORD_EASE_S), so the heading never jumps by it.
     """
 
     def __init__(self, step_rad: float) -> None:
@@ -81,6 +86,7 @@ class QuantisedHeading:
         self._rate_radps = 0.0
         self._t_s = 0.0
         self._anchor: tuple[float, float, float, int] | None = None  # x, y, heading, way
+        self._easing = 0.0  # rad of chord correction still to put in
 
     def update(
         self,
@@ -100,40 +106,47 @@ class QuantisedHeading:
         if self._step is None:
             heading = k * step
         else:
-            moved = 0.5 * (self._rate_radps + rate_radps) * max(0.0, t_s - self._t_s)
+            dt_s = max(0.0, t_s - self._t_s)
+            moved = 0.5 * (self._rate_radps + rate_radps) * dt_s
             turn = round(wrap_angle((k - self._step) * step) / step)  # steps, the short way
             if turn:  # crossed into step k through its nearer edge
                 edge = (self._step + turn - math.copysign(0.5, turn)) * step
-                heading = edge + 0.5 * moved
+                heading, self._easing = edge + 0.5 * moved, 0.0
             else:
                 heading = self._heading + moved
             if position is not None:
-                heading = self._by_chord(heading, position, way)
+                self._easing += self._by_chord(heading + self._easing, position, way)
+            eased = self._easing * min(1.0, dt_s / CHORD_EASE_S)
+            heading, self._easing = heading + eased, self._easing - eased
             centre = self._step * step + turn * step
-            heading = min(max(heading, centre - 0.5 * step), centre + 0.5 * step)
+            held = min(max(heading, centre - 0.5 * step), centre + 0.5 * step)
+            if held != heading:  # the report overrules the chords
+                heading, self._easing = held, 0.0
             k = self._step + turn
         self._step, self._heading = k, heading
         self._rate_radps, self._t_s = rate_radps, t_s
         return wrap_angle(heading)
 
     def _by_chord(self, heading: float, position: tuple[float, float], way: int) -> float:
-        """`heading`, put on the direction of the chord driven since the last anchor if
-        it is long enough and little turned (the anchor moves on either way).
+        """What `heading` is off by (rad), from the direction of the chord driven since
+        the last anchor if it is long enough and little turned, else 0 (the anchor moves
+        on either way).
         """
         x, y = position
         anchor = self._anchor
         if way == 0 or anchor is None or anchor[3] != way:
             self._anchor = (x, y, heading, way) if way else None
-            return heading
+            return 0.0
         ax, ay, anchor_heading, _ = anchor
         if math.hypot(x - ax, y - ay) < CHORD_M:
-            return heading
+            return 0.0
         turned = heading - anchor_heading
+        off = 0.0
         if abs(turned) <= CHORD_TURN_RAD:
             course = math.atan2(y - ay, x - ax) + (0.0 if way > 0 else math.pi)
-            heading += wrap_angle(course + 0.5 * turned - heading)
-        self._anchor = (x, y, heading, way)
-        return heading
+            off = wrap_angle(course + 0.5 * turned - heading)
+        self._anchor = (x, y, heading + off, way)
+        return off
 
 
 class SipTracker:
