@@ -109,9 +109,11 @@ class QuantisedHeading:
             dt_s = max(0.0, t_s - self._t_s)
             moved = 0.5 * (self._rate_radps + rate_radps) * dt_s
             turn = round(wrap_angle((k - self._step) * step) / step)  # steps, the short way
-            if turn:  # crossed into step k through its nearer edge
+            if turn:  # crossed into step k through its nearer edge: put on it at once
                 edge = (self._step + turn - math.copysign(0.5, turn)) * step
-                heading, self._easing = edge + 0.5 * moved, 0.0
+                heading = edge + 0.5 * moved
+                self._shift_anchor(heading - (self._heading + moved + self._easing))
+                self._easing = 0.0
             else:
                 heading = self._heading + moved
             if position is not None:
@@ -121,11 +123,20 @@ class QuantisedHeading:
             centre = self._step * step + turn * step
             held = min(max(heading, centre - 0.5 * step), centre + 0.5 * step)
             if held != heading:  # the report overrules the chords
+                self._shift_anchor(held - (heading + self._easing))
                 heading, self._easing = held, 0.0
             k = self._step + turn
         self._step, self._heading = k, heading
         self._rate_radps, self._t_s = rate_radps, t_s
         return wrap_angle(heading)
+
+    def _shift_anchor(self, by_rad: float) -> None:
+        """The estimate jumped by `by_rad`: so does the anchor's heading, which the next
+        chord's turn is measured from.
+        """
+        if self._anchor is not None:
+            x, y, heading, way = self._anchor
+            self._anchor = (x, y, heading + by_rad, way)
 
     def _by_chord(self, heading: float, position: tuple[float, float], way: int) -> float:
         """What `heading` is off by (rad), from the direction of the chord driven since

@@ -11,7 +11,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from phalanx.core.geometry import wrap_angle
-from phalanx.drivers.arcos_tracker import QuantisedHeading
+from phalanx.drivers.arcos_tracker import CHORD_EASE_S, QuantisedHeading
 
 STEP = math.radians(1.0)
 intervals = st.lists(st.floats(0.05, 0.15), min_size=5, max_size=80)
@@ -94,3 +94,27 @@ def test_driving_on_a_chord_puts_the_heading_on_its_direction(
         seen = (round(x * 2000) / 2000, round(y * 2000) / 2000)
         got = follower.update(_reported(heading), rate, t, position=seen, way=way)
     assert _error(got, heading) < math.radians(0.1)
+
+
+@given(
+    start=st.floats(-math.pi, math.pi),
+    way=st.sampled_from((1, -1)),
+    speed=st.floats(0.05, 0.5),
+)
+def test_a_chords_correction_is_eased_in_not_jumped(start: float, way: int, speed: float) -> None:
+    """Driving straight, the estimate starts up to half a step off and the chords set it
+    right: a little every report (a heading that jumps moves every slot behind the robot
+    sideways at once), and all of it within a few CHORD_EASE_S."""
+    follower = QuantisedHeading(STEP)
+    t, x, y, dt = 0.0, 0.0, 0.0, 0.1
+    last = follower.update(_reported(start), 0.0, t, position=(x, y), way=way)
+    for _ in range(300):  # 30 s
+        t += dt
+        x += way * speed * dt * math.cos(start)
+        y += way * speed * dt * math.sin(start)
+        seen = (round(x * 2000) / 2000, round(y * 2000) / 2000)
+        got = follower.update(_reported(start), 0.0, t, position=seen, way=way)
+        # off by at most half a step, the chord within 0.1 deg: a tenth of that a report
+        assert _error(got, last) <= (STEP / 2 + math.radians(0.1)) * dt / CHORD_EASE_S
+        last = got
+    assert _error(got, start) < math.radians(0.1)
