@@ -23,13 +23,14 @@ from phalanx.wire.messages import AgentReport
 from phalanx.wire.positions import PoseFixMessage, TruthMessage
 
 SCENARIOS = CONFIG_ROOT / "scenarios"
-EPOCH = time.time()  # (samples are kept only near now)
 BOUNDS = FleetBounds(frozenset({"r1", "r2"}), 2.0, 5.0, t_max_s=60.0, dt_s=0.1, ticks=600)
 
 
-def _truth(rid: str, t_s: float, x: float, *, theta: float = 0.0, v: float = 0.2) -> TruthMessage:
+def _truth(
+    rid: str, epoch_s: float, t_s: float, x: float, *, theta: float = 0.0, v: float = 0.2
+) -> TruthMessage:
     return TruthMessage(
-        robot_id=rid, stamp_s=EPOCH + t_s, x_m=x, y_m=1.0, theta_rad=theta, v_mps=v,
+        robot_id=rid, stamp_s=epoch_s + t_s, x_m=x, y_m=1.0, theta_rad=theta, v_mps=v,
         omega_radps=0.0, source="AMRISim SIMSTAT",
     )  # fmt: skip
 
@@ -61,23 +62,24 @@ def test_headings_interpolate_the_short_way_round() -> None:
 
 
 def test_the_best_source_wins_and_is_named() -> None:
-    observed = ObservedRobots(("r1", "r2"), fleet="f", epoch_s=EPOCH, bounds=BOUNDS)
+    epoch = time.time()  # (samples are kept only if stamped near now)
+    observed = ObservedRobots(("r1", "r2"), fleet="f", epoch_s=epoch, bounds=BOUNDS)
     fix = PoseFixMessage(
-        robot_id="r2", stamp_s=EPOCH + 0.1, x_m=3.0, y_m=4.0, theta_rad=0.5, std_m=0.002,
+        robot_id="r2", stamp_s=epoch + 0.1, x_m=3.0, y_m=4.0, theta_rad=0.5, std_m=0.002,
         std_rad=0.002,
     )  # fmt: skip
     observed._on_fix("", fix)
     observed._on_fix("", fix.model_copy(update={"robot_id": "r1"}))
     for k in range(5):
-        observed._on_truth("", _truth("r1", 0.1 * k, 0.02 * k))
-    observed._on_fix("", fix.model_copy(update={"robot_id": "r1", "stamp_s": EPOCH + 1.0}))
+        observed._on_truth("", _truth("r1", epoch, 0.1 * k, 0.02 * k))
+    observed._on_fix("", fix.model_copy(update={"robot_id": "r1", "stamp_s": epoch + 1.0}))
     t_s = np.arange(5) * 0.1
     source, rows = observed.record("r1", t_s)
     assert source == truth_source("AMRISim SIMSTAT")
     assert rows is not None
     assert rows[0] == pytest.approx(0.02 * np.arange(5))
     assert observed.record("r2", t_s)[0] == MOCAP_POSE
-    nobody = ObservedRobots(("r1",), fleet="f", epoch_s=EPOCH, bounds=BOUNDS)
+    nobody = ObservedRobots(("r1",), fleet="f", epoch_s=epoch, bounds=BOUNDS)
     assert nobody.record("r1", t_s) == (ESTIMATE_POSE, None)
     assert observed.has_truth("r1")
     assert not observed.has_truth("r2")
