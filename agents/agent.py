@@ -115,8 +115,9 @@ class Agent:
             latency_s=2.0 * self.dt_s,
         )
         self.leadership = Leadership(
-            robot_id, formation, scenario.leadership, timeout_s=scenario.leader_timeout_s
-        )
+            robot_id, formation, scenario.leadership, timeout_s=scenario.leader_timeout_s,
+            joining=joining,
+        )  # fmt: skip
         self.parts = Parts(robot_id, scenario, robot, formation, self.limits, prior_map)
         self.fsm: StateMachine[StackContext] = behaviour_machine(self._initial_state(joining))
         self.parent_id = formation.leader_of(robot_id)

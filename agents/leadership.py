@@ -4,12 +4,23 @@ the same control step) and so reaches the same decision on its own; nothing is n
 
 The rules:
 
-1. **Epochs.** Every robot holds `(leader, epoch)`, starting at `(formation root, 0)`. It
-   adopts a peer's pair when that is newer: a higher epoch, or the same epoch with a
-   leader earlier in the formation's order (two robots that decided on different flags
-   converge in one step). A lower epoch is ignored, so a late or replayed message can
-   never hand leadership back. Epochs only grow (and saturate at the top of their
-   32-bit range, `phalanx.core.peers.next_epoch`).
+1. **Epochs.** Every robot holds `(leader, epoch)`, starting at `(formation root, 0)`.
+   Epochs only grow, by one a change (saturating at the top of their 32-bit range,
+   `phalanx.core.peers.next_epoch`); a lower epoch is ignored, so a late or replayed
+   message can never hand leadership back. A peer's pair is adopted only when the fleet
+   stands behind it (`Leadership.verdict`), never on one robot's word:
+   - the next epoch, naming the leader rules 2 or 3 would choose from this robot's own
+     view: the current leader gone from it, or handing over (its flags call for it, or
+     themselves name the new pair) to the best robot that can take over;
+   - or a pair held by more than half the live robots (a robot that missed a change
+     catches up);
+   - or, within `timeout_s + loss_grace_s` of a change, the same epoch held by as many
+     robots, claimed by the leader it names for itself, that leader better by rule 4
+     than this robot's (two robots that decided on different flags converge).
+   Anything else is refused and kept in `refusals` for the runtime to count: a stolen
+   robot identity can stop its own robot, not move the lead. A restarted robot
+   (`joining`) takes, for `timeout_s` after it first hears the fleet, the pair most of
+   the other robots hold.
 2. **Handover.** When the leader's flags say its path has been blocked for `confirm_s`,
    not every robot is blocked (that is the deadlock, the leader's to handle), nor is
    the leader in a dead end (its route leads back: a new leader would face the same),
@@ -28,6 +39,7 @@ The rules:
 
 from __future__ import annotations
 
+from collections import Counter, deque
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from functools import cached_property
@@ -86,6 +98,9 @@ _CANDIDATE_STATES = frozenset({State.FORMATION_TRACK, State.FORMATION_REVERSE})
 # A deadlock is a leader stuck while going forwards (its flags then say what lies ahead).
 _DEADLOCK_FROM = _HANDING_STATES | {State.EMERGENCY_STOP}
 _BUSY_STATES = OUT_OF_FORMATION | {State.HOLD}
+# Refused claims kept for the runtime to count (a step's worth; the batch runner reads none).
+REFUSALS_KEPT = 64
+Claim = tuple[int, str]  # (epoch, leader)
 
 
 @dataclass(frozen=True, slots=True)
@@ -105,6 +120,23 @@ def newer(a: tuple[int, str], b: tuple[int, str], formation: Formation) -> bool:
     if a[1] not in rank:
         return False
     return (a[0], -rank[a[1]]) > (b[0], -rank.get(b[1], len(rank)))
+
+
+@dataclass(frozen=True, slots=True)
+class RefusedClaim:
+    """A peer's `(epoch, leader)` claim not adopted: whose flags (stamped when, s) said
+    what, and why it was refused.
+    """
+
+    robot_id: str
+    epoch: int
+    leader_id: str
+    stamp_s: float
+    why: str
+
+    def describe(self) -> str:
+        """One line for a log or a counter's last error."""
+        return f"{self.robot_id} claims {self.leader_id} under epoch {self.epoch}: {self.why}"
 
 
 class LiveFlags(dict[str, FlagsView]):
@@ -128,6 +160,14 @@ class LiveFlags(dict[str, FlagsView]):
         claims = [(f.epoch, f.formation_leader_id) for f in self.values()]
         valid = [c for c in claims if c[1] in rank]
         return max(valid, key=lambda c: (c[0], -rank[c[1]])) if valid else None
+
+    @cached_property
+    def claims(self) -> Counter[Claim]:
+        """How many robots heard name each `(epoch, leader)` (leaders of the formation)."""
+        rank = self.formation.rank
+        return Counter(
+            (f.epoch, f.formation_leader_id) for f in self.values() if f.formation_leader_id in rank
+        )
 
     @cached_property
     def all_blocked(self) -> bool:
@@ -178,6 +218,19 @@ def can_lead(flags: FlagsView) -> bool:
     return flags.clear and flags.formed and flags.fsm_state in _CANDIDATE_STATES
 
 
+def successor(formation: Formation, live: Flags, gone: str, robot_id: str) -> str | None:
+    """Rule 3's choice when leader `gone` is lost, as robot `robot_id` sees it: the best
+    live robot but `gone`, not joining (`robot_id` itself counts, heard or not).
+    """
+    alive = {r: f for r, f in live.items() if r != gone and f.fsm_state != State.JOIN}
+    return best(formation, alive, () if robot_id in alive else (robot_id,))
+
+
+def taker(formation: Formation, live: Flags, leader: str) -> str | None:
+    """Rule 2's choice to take over from `leader`: the best follower that can lead."""
+    return best(formation, {r: f for r, f in live.items() if r != leader and can_lead(f)})
+
+
 class Leadership:
     """One robot's view of the leadership, updated from every robot's flags."""
 
@@ -188,6 +241,7 @@ class Leadership:
         config: LeadershipConfig,
         *,
         timeout_s: float,
+        joining: bool = False,
     ) -> None:
         self.robot_id = robot_id
         self.formation = formation
@@ -198,6 +252,11 @@ class Leadership:
         self.since_s = 0.0
         self.leader_heard_s = 0.0
         self.changes: list[LeadershipChange] = []
+        self.joining = joining  # restarted: takes the pair most of the fleet holds
+        self.join_heard_s: float | None = None  # when a joining robot first heard another
+        self.refused = 0  # peers' flags whose claim was refused, so far
+        self.refusals: deque[RefusedClaim] = deque(maxlen=REFUSALS_KEPT)  # newest, for a runtime
+        self._counted: dict[str, float] = {}  # robot -> stamp of its flags last refused
         self._paths: dict[tuple[str, str], tuple[str, ...]] = {}
 
     @property
@@ -243,10 +302,118 @@ class Leadership:
         return not self.is_leader and self.leader_id not in live
 
     def _adopt(self, live: LiveFlags, t_s: float) -> LeadershipChange | None:
-        newest = live.newest
-        if newest is None or not newer(newest, (self.epoch, self.leader_id), self.formation):
+        """Adopt the best claim the fleet stands behind (rule 1); count the others."""
+        if self.joining:
+            return self._join(live, t_s)
+        mine = (self.epoch, self.leader_id)
+        claims = live.claims
+        if len(claims) == 1 and mine in claims:
+            return None  # everyone agrees: the common case, O(1)
+        taken: list[tuple[Claim, str]] = []
+        for claim in claims:
+            if claim != mine:
+                adopt, why = self.verdict(claim, live, t_s)
+                if adopt:
+                    taken.append((claim, why))
+                elif why:
+                    self._refuse(claim, why, live)
+        if not taken:
             return None
-        return self._set(newest[1], newest[0], t_s, "newer epoch heard")
+        rank = self.formation.rank
+
+        def order(taken: tuple[Claim, str]) -> tuple[int, int, int]:
+            (epoch, leader), _ = taken  # the newest epoch, then the most held, then rank
+            return (epoch, self._votes((epoch, leader), live)[0], -rank[leader])
+
+        (epoch, leader), why = max(taken, key=order)
+        return self._set(leader, epoch, t_s, why)
+
+    def verdict(self, claim: Claim, live: LiveFlags, t_s: float) -> tuple[bool, str]:
+        """Whether to adopt a peer's `claim` (rule 1), and why; refused with no reason:
+        old news, or a split still settling.
+        """
+        epoch, leader = claim
+        held, voters = self._votes(claim, live)
+        if epoch < self.epoch:
+            return False, ""
+        if 2 * held > voters:
+            return True, f"held by {held} of {voters} live robots"
+        if epoch == self.epoch:
+            return self._split(claim, held, live, t_s)
+        if epoch != next_epoch(self.epoch):
+            return False, f"epoch {epoch} jumps from {self.epoch}"
+        why = self._unjustified(leader, epoch, live)
+        return (False, why) if why else (True, f"epoch {epoch}: {leader} is the rule's choice")
+
+    def _split(self, claim: Claim, held: int, live: LiveFlags, t_s: float) -> tuple[bool, str]:
+        """A claim at this robot's epoch naming another leader: two robots that decided
+        on different flags. Within `timeout_s + loss_grace_s` of the change, a leader that
+        claims the lead itself, held by as many robots as this robot's and better than it
+        by rule 4 (the two compared on their flags as heard: every robot compares alike),
+        is adopted; later only a majority moves the lead.
+        """
+        epoch, leader = claim
+        if t_s - self.since_s > self.timeout_s + self.config.loss_grace_s + _EPS_S:
+            return False, f"epoch {epoch} is {self.leader_id}'s"
+        flags = live.get(leader)
+        if flags is None or (flags.epoch, flags.formation_leader_id) != claim:
+            return False, ""  # (a robot a step behind the two claimants: no vote of its own)
+        pair = {r: f for r, f in live.items() if r in (leader, self.leader_id)}
+        unheard = () if self.leader_id in pair else (self.leader_id,)
+        better = best(self.formation, pair, unheard) == leader
+        mine = (self.epoch, self.leader_id)
+        return better and held >= self._votes(mine, live)[0], ""
+
+    def _unjustified(self, leader: str, epoch: int, live: LiveFlags) -> str:
+        """Why the rule would not pass the lead to `leader` now ("" if it would)."""
+        lead = live.get(self.leader_id)
+        if lead is None:
+            choice = successor(self.formation, live, self.leader_id, self.robot_id)
+            gone = f"{self.leader_id} is gone"
+        else:
+            handing = (lead.epoch, lead.formation_leader_id) == (epoch, leader)
+            if not handing and not self._calls_for_handover(lead, live):
+                return f"{self.leader_id} leads and is not handing over"
+            choice = taker(self.formation, live, self.leader_id)
+            gone = f"{self.leader_id} hands over"
+        return "" if leader == choice else f"{gone}: the rule picks {choice}, not {leader}"
+
+    def _votes(self, claim: Claim, live: LiveFlags) -> tuple[int, int]:
+        """How many live robots hold `claim` (this one by its current pair, not by its
+        flags, which may be a step old), of how many.
+        """
+        own = live.get(self.robot_id)
+        held = live.claims[claim] + (claim == (self.epoch, self.leader_id))
+        if own is not None and (own.epoch, own.formation_leader_id) == claim:
+            held -= 1
+        return held, len(live) + (own is None)
+
+    def _join(self, live: LiveFlags, t_s: float) -> LeadershipChange | None:
+        """A restarted robot: the pair most of the other live robots hold (ties: newer)."""
+        others = live.claims.copy()
+        own = live.get(self.robot_id)
+        if own is not None:
+            others[(own.epoch, own.formation_leader_id)] -= 1
+        others = +others
+        if not others:
+            return None
+        if self.join_heard_s is None:
+            self.join_heard_s = t_s
+        self.joining = t_s - self.join_heard_s < self.timeout_s
+        rank = self.formation.rank
+        claim = max(others, key=lambda c: (others[c], c[0], -rank[c[1]]))
+        if claim == (self.epoch, self.leader_id):
+            return None
+        return self._set(claim[1], claim[0], t_s, "the fleet's leader, heard on joining")
+
+    def _refuse(self, claim: Claim, why: str, live: LiveFlags) -> None:
+        """Keep (once per message) the flags that made `claim` for the runtime to count."""
+        for robot, flags in live.items():
+            said = (flags.epoch, flags.formation_leader_id) == claim
+            if said and robot != self.robot_id and self._counted.get(robot) != flags.stamp_s:
+                self._counted[robot] = flags.stamp_s
+                self.refused += 1
+                self.refusals.append(RefusedClaim(robot, claim[0], claim[1], flags.stamp_s, why))
 
     def _set(self, leader: str, epoch: int, t_s: float, reason: str) -> LeadershipChange:
         change = LeadershipChange(t_s, self.leader_id, leader, epoch, reason)
@@ -261,29 +428,32 @@ class Leadership:
         silent_s = t_s - self.leader_heard_s
         if silent_s <= self.timeout_s + self.config.loss_grace_s + _EPS_S:
             return None
-        alive = {r: f for r, f in live.items() if r != self.leader_id and f.fsm_state != State.JOIN}
-        others = () if self.robot_id in alive else (self.robot_id,)
-        chosen = best(self.formation, alive, others)
+        chosen = successor(self.formation, live, self.leader_id, self.robot_id)
         if chosen is None:
             return None
         why = f"leader {self.leader_id} silent for {silent_s:.1f} s"
         return self._set(chosen, next_epoch(self.epoch), t_s, why)
 
+    def _calls_for_handover(self, lead: FlagsView, live: LiveFlags) -> bool:
+        """Whether the leader's flags call for rule 2 (its tenure aside)."""
+        return (
+            self.config.handover
+            and lead.obstacle
+            and lead.blocked_s >= self.config.confirm_s - _EPS_S
+            and lead.fsm_state in _HANDING_STATES
+            and not lead.dead_end
+            and not live.all_blocked
+        )
+
     def _handover(self, live: LiveFlags, t_s: float) -> LeadershipChange | None:
         lead = live.get(self.leader_id)
         if (
-            not self.config.handover
-            or lead is None
-            or not lead.obstacle
-            or lead.blocked_s < self.config.confirm_s - _EPS_S
-            or lead.fsm_state not in _HANDING_STATES
-            or lead.dead_end
+            lead is None
             or t_s - self.since_s < self.config.min_tenure_s - _EPS_S
-            or live.all_blocked
+            or not self._calls_for_handover(lead, live)
         ):
             return None
-        clear = {r: f for r, f in live.items() if r != self.leader_id and can_lead(f)}
-        chosen = best(self.formation, clear)
+        chosen = taker(self.formation, live, self.leader_id)
         if chosen is None:
             return None
         why = f"{self.leader_id} blocked for {lead.blocked_s:.1f} s, {chosen} clear"

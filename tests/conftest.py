@@ -40,6 +40,16 @@ def _alive(pid: int) -> bool:
     return state != "Z"
 
 
+@pytest.fixture(autouse=True, scope="session")
+def _state_in_a_temporary_folder(tmp_path_factory: pytest.TempPathFactory) -> Iterator[None]:
+    """Host daemons keep what they served in a state folder: the tests' go to a temporary
+    one, never the home folder of whoever runs them (child processes inherit it)."""
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setenv("XDG_STATE_HOME", str(tmp_path_factory.mktemp("state")))
+        patch.delenv("STATE_DIRECTORY", raising=False)
+        yield
+
+
 @pytest.fixture(autouse=True)
 def _no_leaked_processes() -> Iterator[None]:
     before = _children()

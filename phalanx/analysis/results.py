@@ -4,22 +4,34 @@ they are drawn from (`traces.npz`), a Rerun `.rrd`.
 `phalanx run` (in process) and `phalanx up` (one process per robot) both write it. A run
 of processes is also marked whole or not (`mark_results`): `complete`, and the
 `incomplete_reason` (a process died, the world did not run every tick); when the world
-itself died, `metrics.json` holds that mark alone, beside what survived (the recording
+itself died, `metrics.json` holds what its last checkpoint computed (`write_checkpoint`:
+the errors up to then) or, with none, that mark alone, beside what survived (the recording
 parts, merged into `run.rrd`).
+
+Every file is written whole or not at all: into a temporary file in the same folder,
+then renamed over the old one (`atomic_write`). A write that fails (a full disk, a folder
+that cannot be written) raises `ResultsNotWritten`, naming the folder and the files kept;
+a `metrics.json` already there stays as it was.
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
+import os
+import shutil
+import tempfile
 import uuid
+from collections.abc import Callable, Iterable
 from pathlib import Path
-from typing import Any
+from typing import IO, Any
 
 import numpy as np
 
-from phalanx.analysis.figures import write_figures
+from phalanx.analysis.figures import FIGURES, write_figures
 from phalanx.analysis.metrics import error_series, is_follower, run_metrics
+from phalanx.core.errors import PhalanxError
 from phalanx.core.limits import KinematicLimits
 from phalanx.core.runlog import RunLog
 from phalanx.core.scenarios import resolve_world
@@ -36,13 +48,93 @@ def _finite(value: Any) -> Any:
     return value
 
 
+RESULT_FILES = ("metrics.json", "traces.npz", "run.rrd", *FIGURES)
+
+
+class ResultsNotWritten(PhalanxError, OSError):
+    """A results file could not be written (a full disk, a folder that cannot be written):
+    the message names the folder, what failed and the files the folder keeps.
+    """
+
+    def __init__(self, folder: Path, what: str, cause: OSError) -> None:
+        self.folder, self.what, self.cause = folder, what, cause
+        self.kept = kept_files(folder)
+        kept = ", ".join(self.kept) if self.kept else "nothing"
+        why = cause.strerror or str(cause)
+        super().__init__(f"could not write {what} to {folder}: {why} (kept there: {kept})")
+
+
+def kept_files(folder: Path) -> list[str]:
+    """What `folder` holds of a run's results: each results file that holds something
+    (`metrics.json (2.1 KiB)`), and the recording parts in its sub-folders (`telemetry/
+    (4 parts, 290.3 KiB)`: the processes' own, which `phalanx up` merges).
+    """
+    out = []
+    for name in RESULT_FILES:
+        with contextlib.suppress(OSError):
+            size = (folder / name).stat().st_size
+            if size > 0:
+                out.append(f"{name} ({size / 1024:.1f} KiB)")
+    with contextlib.suppress(OSError):
+        for sub in sorted(p for p in folder.iterdir() if p.is_dir() and not p.name.startswith(".")):
+            sizes = [part.stat().st_size for part in sub.glob("*.rrd")]
+            if sizes:
+                out.append(f"{sub.name}/ ({len(sizes)} parts, {sum(sizes) / 1024:.1f} KiB)")
+    return out
+
+
+def atomic_write(path: Path, write: Callable[[IO[bytes]], object]) -> None:
+    """Write `path` whole or not at all: `write` fills a temporary file in the same folder,
+    which is flushed to disk and renamed over `path`. On any failure the temporary file
+    is removed and `path` is left as it was. The file gets the umask's mode, as with a
+    plain open.
+    """
+    partial = path.with_name(f".{path.name}.{os.getpid()}.{uuid.uuid4().hex[:8]}.tmp")
+    fd = os.open(partial, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
+    try:
+        with os.fdopen(fd, "wb") as out:
+            write(out)
+            out.flush()
+            os.fsync(out.fileno())  # (a full disk can surface only here)
+        os.replace(partial, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            partial.unlink()
+        raise
+
+
+def _guarded(folder: Path, what: str, write: Callable[[], object]) -> None:
+    """Run `write`; an OSError becomes ResultsNotWritten for `what` in `folder`."""
+    try:
+        write()
+    except ResultsNotWritten:
+        raise
+    except OSError as exc:
+        raise ResultsNotWritten(folder, what, exc) from exc
+
+
 def write_metrics(metrics: dict[str, Any], path: Path) -> None:
-    """Write metrics as JSON (NaN as null)."""
-    path.write_text(json.dumps(_finite(metrics), indent=2) + "\n", encoding="utf-8")
+    """Write metrics as JSON (NaN as null), atomically."""
+    text = json.dumps(_finite(metrics), indent=2) + "\n"
+    atomic_write(path, lambda out: out.write(text.encode("utf-8")))
 
 
 def write_recording(log: RunLog, path: Path, *, recording_id: str | None = None) -> None:
-    """Log the whole run to an `.rrd` file in columns (world, every robot, transitions)."""
+    """Log the whole run to an `.rrd` file in columns (world, every robot, transitions);
+    written under a temporary name and renamed once the recording is closed.
+    """
+    partial = path.with_name(f".{path.name}.tmp")
+    try:
+        _record(log, partial, recording_id=recording_id)
+        if partial.stat().st_size == 0:  # (the SDK logs a failed write; it does not raise)
+            raise OSError(28, "the recording came out empty", str(path))
+        os.replace(partial, path)
+    finally:
+        with contextlib.suppress(OSError):
+            partial.unlink()
+
+
+def _record(log: RunLog, path: Path, *, recording_id: str | None) -> None:
     from phalanx.telemetry.sinks import TelemetrySink
     from phalanx.telemetry.stream import PAPER_ANGULAR_BOUND_PCT, PAPER_LINEAR_BOUND_PCT, Telemetry
 
@@ -114,8 +206,7 @@ def write_traces(log: RunLog, path: Path) -> None:
         for name in TRACE_FIELDS:
             arrays[f"{rid}/{name}"] = getattr(trace, name)
         arrays[f"{rid}/state"] = np.array(trace.states, dtype=np.str_)
-    with path.open("wb") as out:
-        np.savez_compressed(out, **arrays)
+    atomic_write(path, lambda out: np.savez_compressed(out, **arrays))
 
 
 def read_traces(path: Path) -> dict[str, dict[str, Any]]:
@@ -129,42 +220,85 @@ def read_traces(path: Path) -> dict[str, dict[str, Any]]:
     return out
 
 
+def write_figures_atomically(log: RunLog, folder: Path) -> None:
+    """The paper's figures, drawn into a temporary folder beside `folder`'s and moved
+    in one by one: a figure is there whole or not at all.
+    """
+    drafts = Path(tempfile.mkdtemp(dir=folder, prefix=".figures."))
+    try:
+        for path in write_figures(log, drafts):
+            os.replace(path, folder / path.name)
+    finally:
+        shutil.rmtree(drafts, ignore_errors=True)
+
+
 def write_results(
     log: RunLog, folder: Path, *, recording: bool = True, figures: bool = True
 ) -> dict[str, Any]:
     """Write the results folder of `log` (without the PNG figures and the traces they
     are drawn from if not `figures`, and without the recording if not `recording`);
-    returns the metrics.
+    returns the metrics. The metrics first (the smallest and the most wanted), each file
+    atomically; a write that fails raises ResultsNotWritten.
     """
-    folder.mkdir(parents=True, exist_ok=True)
+    _guarded(folder, "the results folder", lambda: folder.mkdir(parents=True, exist_ok=True))
     metrics = run_metrics(log)
-    write_metrics(metrics, folder / "metrics.json")
+    _guarded(folder, "metrics.json", lambda: write_metrics(metrics, folder / "metrics.json"))
     if figures:
-        write_figures(log, folder)
-        write_traces(log, folder / "traces.npz")
+        _guarded(folder, "traces.npz", lambda: write_traces(log, folder / "traces.npz"))
+        _guarded(folder, "the figures", lambda: write_figures_atomically(log, folder))
     if recording:
-        write_recording(log, folder / "run.rrd")
+        _guarded(folder, "run.rrd", lambda: write_recording(log, folder / "run.rrd"))
     return metrics
 
 
-def mark_results(folder: Path, *, problems: list[str]) -> dict[str, Any]:
+def write_checkpoint(log: RunLog, folder: Path) -> None:
+    """What a run still going has produced so far (`log`: its first ticks): `metrics.json`
+    marked incomplete and `traces.npz`, each atomically, so that a world that dies leaves
+    the errors up to its last checkpoint. Raises ResultsNotWritten.
+    """
+    _guarded(folder, "the results folder", lambda: folder.mkdir(parents=True, exist_ok=True))
+    metrics = run_metrics(log)
+    metrics["complete"] = False
+    so_far = log.runtime.get("incomplete_reason") or f"{len(log.t_s)} ticks run"
+    metrics["incomplete_reason"] = f"a checkpoint of a run still going: {so_far}"
+    _guarded(folder, "metrics.json", lambda: write_metrics(metrics, folder / "metrics.json"))
+    _guarded(folder, "traces.npz", lambda: write_traces(log, folder / "traces.npz"))
+
+
+def mark_results(
+    folder: Path, *, problems: Iterable[str], since_unix: float | None = None
+) -> dict[str, Any]:
     """Mark the results folder of a run of processes complete or not, with the reasons
     (`problems`: the supervisor's, and the world's own in `runtime`); returns the metrics.
 
-    Writes `metrics.json` with the mark alone if the world wrote none (it died).
+    Writes `metrics.json` with the mark alone if the world wrote none (it died before
+    its first checkpoint), or only one older than `since_unix` (an earlier run's).
+    Raises ResultsNotWritten if the mark cannot be written.
     """
-    folder.mkdir(parents=True, exist_ok=True)
-    path = folder / "metrics.json"
-    try:
-        metrics: dict[str, Any] = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, ValueError):
-        metrics = {}
-        problems = [*problems, "the world wrote no metrics (it died before the run's end)"]
-    runtime = metrics.get("runtime")
     reasons = list(problems)
+    _guarded(folder, "the results folder", lambda: folder.mkdir(parents=True, exist_ok=True))
+    path = folder / "metrics.json"
+    metrics = _read_metrics(path, since_unix)
+    if metrics is None:
+        metrics = {}
+        reasons.append("the world wrote no metrics (it died before the run's end)")
+    runtime = metrics.get("runtime")
     if isinstance(runtime, dict) and runtime.get("incomplete_reason"):
         reasons.append(str(runtime["incomplete_reason"]))
     metrics["complete"] = not reasons
     metrics["incomplete_reason"] = "; ".join(reasons)
-    write_metrics(metrics, path)
+    _guarded(folder, "metrics.json", lambda: write_metrics(metrics, path))
     return metrics
+
+
+def _read_metrics(path: Path, since_unix: float | None) -> dict[str, Any] | None:
+    """`metrics.json` as a dict (None: absent, unreadable, not an object, or older than
+    `since_unix`).
+    """
+    try:
+        if since_unix is not None and path.stat().st_mtime < since_unix:
+            return None
+        metrics = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
+    return metrics if isinstance(metrics, dict) else None

@@ -7,9 +7,11 @@ from TOML files, with errors naming the file, the field path and a misspelt key'
 from __future__ import annotations
 
 import math
+import re
+from pathlib import PurePath
 from typing import Annotated, Literal, Self
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field, model_validator
 
 from phalanx.core.geometry import Pose2D
 from phalanx.core.localisation import LocalisationConfig
@@ -24,6 +26,60 @@ MAX_DURATION_S = 86_400.0  # a day of fleet time
 MAX_CONTROL_RATE_HZ = 100.0
 MAX_ROBOT_STEPS = 10_000_000  # robots x control steps of one run: about 1 GB of traces
 MAX_ITEMS = 10_000  # obstacles, vertices, events, waypoints, profile segments
+MAX_NAME_CHARS = 128
+MAX_PATH_CHARS = 4096  # PATH_MAX on Linux
+# The largest TOML integer (a signed 64-bit one); numpy's generators take any non-negative.
+MAX_SEED = 2**63 - 1
+
+_NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.-]*")
+_CONTROL = re.compile(r"[\x00-\x1f\x7f]")
+
+
+def check_name(value: str) -> str:
+    """`value` if it is a name that can be one component of a path (`results/<name>-ours`):
+    1-128 letters, digits, `_`, `-`, `.`, not starting with `-` or `.` (so never `.`,
+    `..`, a hidden file or an option); ValueError otherwise.
+    """
+    if len(value) > MAX_NAME_CHARS or not _NAME.fullmatch(value):
+        raise ValueError(
+            f"expected a name: 1-{MAX_NAME_CHARS} letters, digits, '_', '-' or '.', not "
+            f"starting with '-' or '.', and no path; got {value[:80]!r}"
+        )
+    return value
+
+
+def check_path(value: str) -> str:
+    """`value` if it can be a file's path (no control characters, at most 4096 characters)."""
+    if len(value) > MAX_PATH_CHARS or _CONTROL.search(value):
+        raise ValueError(
+            f"expected a file's path: at most {MAX_PATH_CHARS} characters, no control "
+            f"characters; got {value[:80]!r}"
+        )
+    return value
+
+
+def check_robot_file(value: str) -> str:
+    """`value` if it names a robot parameter file: a robot's name (a file under
+    `configs/robots/`, see `check_name`) or a path with its own `.toml` extension.
+    """
+    if PurePath(check_path(value)).suffix == ".toml":
+        return value
+    try:
+        return check_name(value)
+    except ValueError:
+        raise ValueError(
+            "expected a robot's name (letters, digits, '_', '-', '.': the file "
+            f"configs/robots/<name>.toml) or the path of a .toml file; got {value[:80]!r}"
+        ) from None
+
+
+# Names that become part of a path or a key; a path a file names; random seeds.
+Name = Annotated[str, AfterValidator(check_name)]
+FilePath = Annotated[str, AfterValidator(check_path)]
+RobotFile = Annotated[str, AfterValidator(check_robot_file)]
+Seed = Annotated[int, Field(ge=0, le=MAX_SEED)]
+# A robot's id: a Zenoh key's chunk (`robot/<id>/state`) and a certificate's common name.
+RobotId = Annotated[str, Field(pattern=r"^[A-Za-z0-9_-]{1,32}$")]
 
 
 class Model(BaseModel):
@@ -73,8 +129,8 @@ class SlotConfig(Model):
     (phi counter-clockwise from that robot's heading, 180 = directly behind).
     """
 
-    robot: str
-    follows: str | None = None
+    robot: RobotId
+    follows: RobotId | None = None
     x_m: float | None = None
     y_m: float | None = None
     l_m: PositiveFloat | None = None
@@ -122,7 +178,7 @@ DriverKind = Annotated[str, Field(pattern=r"^[a-z][a-z0-9_]{0,31}$")]
 class RobotEntry(Model):
     """One robot of the scenario."""
 
-    id: str = Field(pattern=r"^[A-Za-z0-9_-]{1,32}$")
+    id: RobotId
     start: StartPose = StartPose()
     driver: DriverKind = "sim"
 
@@ -204,7 +260,7 @@ class NavigationConfig(Model):
     reactive: bool = True
     column_path: bool = True
     reshape: bool = True
-    prior_map: str = Field(default="", max_length=4096)
+    prior_map: FilePath = ""
     waypoints: tuple[tuple[float, float], ...] = Field(default=(), max_length=MAX_ITEMS)
     goal_tolerance_m: PositiveFloat = 0.5
     cruise_mps: PositiveFloat = 0.2
@@ -251,7 +307,7 @@ class SensorEvent(Model):
     kind: Literal["all_sonars_blocked", "bumper", "markers_hidden"] = "all_sonars_blocked"
     start_s: NonNegativeFloat
     duration_s: PositiveFloat
-    robots: tuple[str, ...] = Field(default=(), max_length=MAX_ROBOTS)
+    robots: tuple[RobotId, ...] = Field(default=(), max_length=MAX_ROBOTS)
     range_m: PositiveFloat = 0.3
 
 
@@ -276,7 +332,7 @@ class ObstacleField(Model):
     `min_gap_m` from each other; placement gives up after `count * 50` tries.
     """
 
-    seed: int = 0
+    seed: Seed = 0
     count: int = Field(default=20, ge=0, le=10_000)
     radius_min_m: PositiveFloat = 0.2
     radius_max_m: PositiveFloat = 0.5
@@ -325,13 +381,13 @@ class Scenario(Model):
     `navigation.waypoints`, otherwise it wanders.
     """
 
-    name: str
+    name: Name
     description: str = ""
-    robot: str = "p3dx"
+    robot: RobotFile = "p3dx"
     duration_s: float = Field(default=200.0, gt=0.0, le=MAX_DURATION_S)
     control_rate_hz: float = Field(default=10.0, ge=0.1, le=MAX_CONTROL_RATE_HZ)
     comm_delay_s: NonNegativeFloat = 0.1
-    seed: int = 0
+    seed: Seed = 0
     limits: LimitsOverride = LimitsOverride()
     controller: ControllerConfig = ControllerConfig()
     formation: FormationConfig

@@ -19,7 +19,7 @@ from typing import Any, TypeVar
 
 from pydantic import BaseModel, ValidationError
 
-from phalanx.core.config import Scenario
+from phalanx.core.config import Scenario, check_robot_file
 from phalanx.core.errors import ConfigError
 from phalanx.core.formation import scenario_formation
 from phalanx.core.mapfile import GridMap, load_map
@@ -29,6 +29,10 @@ CONFIG_ROOT = Path(__file__).resolve().parents[2] / "configs"
 ROBOTS_DIR = CONFIG_ROOT / "robots"
 # A scenario of MAX_ROBOTS robots is about 100 kB of TOML; anything much bigger is not one.
 MAX_FILE_BYTES = 4 * 1024 * 1024
+# Tables and arrays in tables and arrays: the deepest file in configs/ nests 6 levels;
+# past this a file is not a configuration (and a parser's recursion would run out).
+MAX_DEPTH = 32
+_TOO_DEEP = f"nested too deeply: tables or arrays more than {MAX_DEPTH} levels deep"
 
 M = TypeVar("M", bound=BaseModel)
 
@@ -78,9 +82,11 @@ def validate_file(model: type[M], path: Path) -> M:
     text = read_text(path)
     try:
         data = json.loads(text) if path.suffix == ".json" else tomllib.loads(text)
+    except RecursionError as exc:
+        raise ConfigError(f"{path}: {_TOO_DEEP}") from exc
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{path}: not valid TOML: {exc}") from exc
-    except (json.JSONDecodeError, RecursionError) as exc:
+    except json.JSONDecodeError as exc:
         raise ConfigError(f"{path}: not valid JSON: {exc}") from exc
     if not isinstance(data, dict):
         raise ConfigError(f"{path}: expected a table at the top level")
@@ -98,6 +104,8 @@ def read_text(path: Path, *, limit: int = MAX_FILE_BYTES) -> str:
         raise ConfigError(f"{path}: is a directory, not a file") from exc
     except OSError as exc:
         raise ConfigError(f"{path}: cannot be read: {exc.strerror or exc}") from exc
+    except ValueError as exc:  # a NUL in the path
+        raise ConfigError(f"{str(path)!r}: not a file's path: {exc}") from exc
     if len(raw) > limit:
         raise ConfigError(
             f"{path}: larger than {limit // (1024 * 1024)} MiB: not a configuration file"
@@ -112,6 +120,8 @@ def read_text(path: Path, *, limit: int = MAX_FILE_BYTES) -> str:
 
 def validate_data(model: type[M], data: Mapping[str, Any], *, source: str) -> M:
     """Validate a mapping into `model`, or raise ConfigError naming source and fields."""
+    if _deeper_than(data, MAX_DEPTH):
+        raise ConfigError(f"{source}: {_TOO_DEEP}")
     try:
         return model.model_validate(data)
     except ValidationError as exc:
@@ -119,12 +129,38 @@ def validate_data(model: type[M], data: Mapping[str, Any], *, source: str) -> M:
         raise ConfigError(f"{source}: invalid {model.__name__}:\n  " + "\n  ".join(lines)) from exc
 
 
-def load_robot(name_or_path: str | Path) -> RobotParams:
-    """Load a robot parameter file by name (configs/robots/NAME.toml) or path."""
+def _deeper_than(data: Any, limit: int) -> bool:
+    """Whether tables and arrays in `data` nest more than `limit` levels (no recursion)."""
+    stack: list[tuple[Any, int]] = [(data, 0)]
+    while stack:
+        node, depth = stack.pop()
+        if depth > limit:
+            return True
+        if isinstance(node, Mapping):
+            stack += [(child, depth + 1) for child in node.values()]
+        elif isinstance(node, list | tuple):
+            stack += [(child, depth + 1) for child in node]
+    return False
+
+
+def robot_file(name_or_path: str | Path) -> Path:
+    """The robot parameter file a scenario's `robot` names: a robot's name is the file
+    `configs/robots/NAME.toml`, a path with its own `.toml` extension is that file; any
+    other value (`/etc/passwd`) is a ConfigError.
+    """
+    try:
+        check_robot_file(str(name_or_path))
+    except ValueError as exc:
+        raise ConfigError(f"robot: {exc}") from None
     path = Path(name_or_path)
-    if path.suffix != ".toml":
-        path = ROBOTS_DIR / f"{name_or_path}.toml"
-    return validate_file(RobotParams, path)
+    return path if path.suffix == ".toml" else ROBOTS_DIR / f"{path}.toml"
+
+
+def load_robot(name_or_path: str | Path) -> RobotParams:
+    """Load a robot parameter file by name (configs/robots/NAME.toml) or by a path of
+    its own `.toml` file (`robot_file`).
+    """
+    return validate_file(RobotParams, robot_file(name_or_path))
 
 
 def load_scenario(path: str | Path) -> Scenario:
@@ -164,7 +200,11 @@ def apply_overrides(
             raise ConfigError(
                 f"{where}: --set {assignment!r}: expected PATH=VALUE, e.g. duration_s=60"
             )
-        _set_path(data, path.strip().split("."), parse_value(text.strip()), assignment, where)
+        try:
+            value = parse_value(text.strip())
+        except ConfigError as exc:
+            raise ConfigError(f"{where}: --set {path.strip()}: {exc}") from None
+        _set_path(data, path.strip().split("."), value, assignment, where)
     label = f"{where} with --set {' '.join(assignments)}"
     result = validate_data(Scenario, data, source=label)
     check_formation(result, source=label)
@@ -180,6 +220,8 @@ def parse_value(text: str) -> Any:
     """
     try:
         return tomllib.loads(f"v = {text}")["v"]
+    except RecursionError as exc:
+        raise ConfigError(f"value {text[:40]!r}: {_TOO_DEEP}") from exc
     except tomllib.TOMLDecodeError:
         return text
 

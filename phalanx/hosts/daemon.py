@@ -7,7 +7,9 @@ copy of the deployment assigns to its host: the agents of those robots and, if t
 runs here, the world. Command lines are built from the deployment; a request names the
 deployment and carries a run id, an epoch and scenario overrides, all checked first
 (`phalanx.hosts.request_checks`). A malformed or refused request is answered with the
-reason and counted; it never ends the daemon.
+reason and counted; it never ends the daemon. A secured daemon remembers the signed
+requests it served in its state folder (`default_state_dir`), so that one sent again is
+refused after a restart too (`phalanx.hosts.request_auth`).
 
 Children (`phalanx.hosts.children`) run in their own session (process group), with their
 output piped: every line is kept (last error, shown by `status`), echoed to the daemon's
@@ -23,6 +25,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import os
 import signal
 import subprocess
 import sys
@@ -49,6 +52,7 @@ from phalanx.hosts.protocol import (
 from phalanx.hosts.request_auth import RequestVerifier
 from phalanx.hosts.request_checks import RequestChecks, validation_summary
 from phalanx.hosts.wiring import RunParameters, agent_argv, secured_host_transport, world_argv
+from phalanx.runtime.exits import EXIT_INCOMPLETE
 from phalanx.runtime.local_fleet import GRACE_S
 from phalanx.runtime.signals import Stoppable
 from phalanx.wire.keys import alive_pattern, host_key, log_key
@@ -68,6 +72,18 @@ class DaemonOptions:
     echo: bool = True  # copy children's output to the daemon's log
     grace_s: float = GRACE_S
     tick_s: float = 0.05
+    state_dir: Path | None = None  # what must outlive the daemon; None: default_state_dir
+
+
+def default_state_dir(fleet: str, host: str) -> Path:
+    """Where a host's daemon keeps what must survive a restart (the requests it served):
+    `phalanx/<fleet>/<host>` under systemd's `StateDirectory=` (`$STATE_DIRECTORY`), else
+    under `$XDG_STATE_HOME`, else under `~/.local/state`.
+    """
+    systemd = os.environ.get("STATE_DIRECTORY", "").split(":")[0]
+    xdg = os.environ.get("XDG_STATE_HOME", "")
+    base = Path(systemd or xdg or Path.home() / ".local" / "state")
+    return base / "phalanx" / fleet / host
 
 
 class HostDaemon:
@@ -81,12 +97,7 @@ class HostDaemon:
         self.spec = loaded.spec
         self.options = options or DaemonOptions()
         self.checks = RequestChecks(loaded, name)
-        security = security_of(self.spec)
-        self.verifier = (
-            RequestVerifier(ca_path(loaded), security.operators, security.request_window_s)
-            if self.spec.secured
-            else None
-        )
+        self.verifier = _verifier(loaded, name, self.options) if self.spec.secured else None
         self.children: dict[str, ManagedChild] = {}
         self.run_id: str | None = None
         self.requests = 0
@@ -314,9 +325,9 @@ class HostDaemon:
         if child.state == "stopping":
             child.state = "stopped"
             return
-        if code == 0:
-            child.state = "finished"
-            log.info("host %s: %s finished", self.name, child.name)
+        if code == 0 or (child.kind == "world" and code == EXIT_INCOMPLETE):
+            child.state = "finished"  # (exit 5: a run its results mark incomplete, saying why)
+            log.info("host %s: %s finished (exit %d)", self.name, child.name, code)
             return
         child.crashes += 1
         child.join_output(0.5)  # its last words are the likely reason
@@ -417,7 +428,17 @@ class HostDaemon:
             children=tuple(c.status() for c in self.children.values()),
             requests=self.requests,
             refused=self.refused,
+            replays=self.verifier.replays if self.verifier is not None else 0,
         )
+
+
+def _verifier(loaded: LoadedDeployment, host: str, options: DaemonOptions) -> RequestVerifier:
+    """A secured daemon's check of its requests, its served ones kept in its state folder."""
+    security = security_of(loaded.spec)
+    state = options.state_dir or default_state_dir(loaded.spec.fleet, host)
+    return RequestVerifier(
+        ca_path(loaded), security.operators, security.request_window_s, state=state
+    )
 
 
 def _payload(query: Any) -> bytes:

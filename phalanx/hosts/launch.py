@@ -6,6 +6,10 @@ then follows the run: the hosts' status queryables (process states, restarts, la
 errors), the robots' own state messages (behaviour state, leader, publication rate) and
 the children's output (log lines the daemons publish). It ends when every process has
 ended, on its timeout, or on Ctrl-C, and then asks every host to stop what is left.
+
+Its exit code is `phalanx.runtime.exits`': 0 only when the world's results say the run
+is complete (the world exits 5 when they do not, 6 when it could not write them), 1
+when a process died or a host was lost, or on a timeout or Ctrl-C. Each is named.
 """
 
 from __future__ import annotations
@@ -18,7 +22,8 @@ from phalanx.core.config_files import apply_overrides
 from phalanx.hosts.deployment import LoadedDeployment, needs_epoch
 from phalanx.hosts.fleet_client import FleetClient, FleetWatch
 from phalanx.hosts.fleet_output import Output, fleet_rows, scenario_ticks
-from phalanx.hosts.protocol import ACTIVE_STATES, HostStatus
+from phalanx.hosts.protocol import ACTIVE_STATES, ChildStatus, HostStatus
+from phalanx.runtime.exits import EXIT_FAILED, EXIT_FINISHED, EXIT_INCOMPLETE, EXIT_RESULTS_LOST
 from phalanx.runtime.signals import Stoppable
 from phalanx.wire.transport import TransportConfig
 
@@ -45,6 +50,7 @@ class _Run:
     world_done_at: float | None = None
     statuses: dict[str, HostStatus | None] = field(default_factory=dict)
     results: list[str] = field(default_factory=list)
+    incomplete: str | None = None  # why the world's results say the run is incomplete
     hosts_lost: set[str] = field(default_factory=set)  # hosts whose daemon is out of sight
 
 
@@ -87,7 +93,10 @@ def launch(
         problems += deaths(run.statuses)
         for problem in problems:
             output.event(f"ended unexpectedly: {problem}")
-    return 1 if problems and code == 0 else code
+        if code == EXIT_INCOMPLETE:
+            why = run.incomplete or "see incomplete_reason in metrics.json on the world's host"
+            output.event(f"the run is incomplete: {why}")
+    return EXIT_FAILED if problems and code in (EXIT_FINISHED, EXIT_INCOMPLETE) else code
 
 
 def deaths(statuses: dict[str, HostStatus | None]) -> list[str]:
@@ -163,20 +172,29 @@ def _default_timeout_s(loaded: LoadedDeployment) -> float:
 
 def _finished(run: _Run, loaded: LoadedDeployment, options: LaunchOptions) -> int | None:
     children = [c for s in run.statuses.values() if s is not None for c in s.children]
-    if any(c.state == "failed" for c in children if c.kind == "world"):
-        return 1
     world = [c for c in children if c.kind == "world"]
+    if world and world[0].state == "failed":
+        return world_code(world[0])
     if world and world[0].state in ("finished", "stopped"):
         run.world_done_at = run.world_done_at or time.monotonic()
         late = time.monotonic() - run.world_done_at > options.finish_grace_s
         if late or not any(c.state in ACTIVE_STATES for c in children):
-            return 0 if world[0].state == "finished" else 1
+            return world_code(world[0])
         return None
     if loaded.spec.world is not None or not children:
         return None
     if any(c.state in ACTIVE_STATES for c in children):
         return None
     return 1 if any(c.state == "failed" for c in children) else 0
+
+
+def world_code(world: ChildStatus) -> int:
+    """The launch's exit code from its ended world: finished with a complete run (0) or
+    an incomplete one (5); its results not written (6); anything else (1).
+    """
+    if world.state == "finished":
+        return EXIT_INCOMPLETE if world.exit_code == EXIT_INCOMPLETE else EXIT_FINISHED
+    return EXIT_RESULTS_LOST if world.exit_code == EXIT_RESULTS_LOST else EXIT_FAILED
 
 
 def _stop_everything(client: FleetClient, options: LaunchOptions, output: Output) -> None:
@@ -198,4 +216,6 @@ def _drain_logs(watch: FleetWatch, output: Output, run: _Run) -> None:
         if line.child == "world" and line.line.startswith("results: "):
             folder = line.line.removeprefix("results: ")
             run.results.append(f"results on host {line.host}: {folder}")
+        if line.child == "world" and line.line.startswith("incomplete run: "):
+            run.incomplete = line.line.removeprefix("incomplete run: ")
         output.log(line)

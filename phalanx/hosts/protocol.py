@@ -108,7 +108,8 @@ class HostStatus(Wire):
     world: bool = False  # the world runs here
     children: tuple[ChildStatus, ...] = ()
     requests: int = 0
-    refused: int = 0
+    refused: int = 0  # every request refused, for any reason
+    replays: int = 0  # of those, requests served before (a secured fleet's replay record)
 
 
 class HostReply(Wire):

@@ -177,6 +177,7 @@ class AgentRuntime:
             "state": state.fsm_state if state else self.agent.state_name,
             "leader": state.formation_leader_id if state else self.formation.root,
             "epoch": state.epoch if state else 0,
+            "leader_claims_refused": self.agent.leadership.refused,
             "late_peer_steps": self.inbox.late_steps,
             "scans_heard": self.scans.heard,
             "flags_skipped": self.flags_out.skipped,
@@ -209,6 +210,7 @@ class AgentRuntime:
             observation = dataclasses.replace(observation, scans=observation.scans + heard)
         started = time.perf_counter()
         out = self.agent.step(observation, peers, tick.t_s, None if self.lockstep else flags)
+        self._count_refusals()
         if self._stale(began, tick):
             self.inbox.keep_own(out.state, out.flags)
         else:
@@ -228,6 +230,22 @@ class AgentRuntime:
         if not self.lockstep:
             self.inbox.follow(self.watched)  # the leader may have changed: hear the new path
         return out
+
+    def _count_refusals(self) -> None:
+        """Count the peers' leadership claims the agent refused where a user looks (the
+        session's `rejected` counters, under the message that carried them), and log them.
+        """
+        refusals = self.agent.leadership.refusals
+        kind = "RobotState" if self.lockstep else "RobotFlags"
+        while refusals:
+            claim = refusals.popleft()
+            text = f"{kind} of {claim.robot_id}: {claim.describe()}"
+            if self._session is not None:
+                self._session.stats.count("rejected", kind, text)
+            refused = self.agent.leadership.refused
+            if refused <= 10 or refused % 1000 == 0:
+                log.warning("%s: leadership claim refused (%d so far): %s", self.robot_id,
+                            refused, text)  # fmt: skip
 
     def _stale(self, began: float, tick: Tick) -> bool:
         """Whether this real-time step took so long (the process was frozen, or starved)

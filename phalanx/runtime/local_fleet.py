@@ -5,7 +5,8 @@ a client, so the world routes the agents' states to each other (multicast scouti
 stays off; nothing is configured by hand). A crashed agent is reported and, with
 `restart`, started again. Everything is stopped on the way out: SIGTERM first, SIGKILL
 after a grace period. The outcome says whether the run ended as asked (the world
-finished, no process died on its own) and, if not, which process ended how.
+finished, no process died on its own) and, if not, which process ended how; a world that
+finished a run its results mark incomplete (exit 5) ended as asked: the results say why.
 
 In lockstep every process is pinned to one CPU, round robin over the CPUs this one may
 use (the world on the first): a tick wakes every process in turn, and a process that
@@ -29,7 +30,12 @@ from pathlib import Path
 
 from phalanx.core.config import Scenario
 from phalanx.runtime.amrisim import AmrisimCommand, amrisim_map, amrisim_ports
-from phalanx.runtime.exits import EXIT_FAILED, EXIT_FINISHED, agent_exit_reason, exit_reason
+from phalanx.runtime.exits import (
+    EXIT_FAILED,
+    EXIT_FINISHED,
+    EXIT_INCOMPLETE,
+    agent_exit_reason,
+)
 from phalanx.runtime.signals import Stoppable, supervised_env
 from phalanx.wire.transport import LOWLATENCY_MAX_BYTES, free_tcp_port, loopback_endpoint
 
@@ -281,24 +287,39 @@ def telemetry_dir(out: Path) -> Path:
 
 
 def merge_recordings(parts: list[Path], target: Path, timeout_s: float = 120.0) -> bool:
-    """Merge the processes' .rrd files into one (the same recording id: one recording).
+    """Merge the processes' .rrd files into one (the same recording id: one recording),
+    under a temporary name renamed to `target` once whole (a failed merge, a full disk,
+    leaves `target` as it was).
 
     A part without a footer (its process was killed) is merged as far as it goes.
     """
     from phalanx.telemetry.sinks import rerun_executable
 
     command = [rerun_executable(), "rrd", "merge", "--continue-on-error"]
+    partial = target.with_name(f".{target.name}.tmp")
     try:
         subprocess.run(  # noqa: S603 - rerun's own CLI, our paths
-            [*command, "-o", str(target), *map(str, parts)],
+            [*command, "-o", str(partial), *map(str, parts)],
             check=True,
             capture_output=True,
             timeout=timeout_s,
         )
+        os.replace(partial, target)
     except (OSError, subprocess.SubprocessError) as exc:
-        log.error("could not merge the recording parts into %s: %s", target, exc)
+        log.error("could not merge the recording parts into %s: %s", target, _why(exc))
         return False
+    finally:
+        with contextlib.suppress(OSError):
+            partial.unlink()
     return True
+
+
+def _why(exc: OSError | subprocess.SubprocessError) -> str:
+    """An error in a line: a failed command by its own last words."""
+    if isinstance(exc, subprocess.CalledProcessError) and exc.stderr:
+        lines = exc.stderr.decode("utf-8", "replace").strip().splitlines()
+        return f"rerun exit {exc.returncode}: {lines[-1][:300] if lines else ''}"
+    return str(exc)
 
 
 def start_viewer(port: int | None = None) -> str:
@@ -366,8 +387,9 @@ def supervise(children: list[Child], options: UpOptions, stop: Stoppable) -> Out
             problems.append(why)
     finally:
         stop_all(children)
-    if world_code is not None and world_code != 0:
-        problems.insert(0, f"world: {exit_reason(world_code)} after {_since(world, started)}")
+    if world_code is not None and world_code not in (EXIT_FINISHED, EXIT_INCOMPLETE):
+        why = agent_exit_reason(world_code)
+        problems.insert(0, f"world: {why} after {_since(world, started)}")
     if problems:
         log.error("the run did not end as asked: %s", "; ".join(problems))
     return Outcome(EXIT_FAILED if problems else EXIT_FINISHED, world_code, problems)

@@ -38,8 +38,10 @@ EPS_S = 1e-6
 # offsets in real time).
 REVIVE_AFTER_S = 1.0
 # An epoch grows by one per leadership change: a claim this far above the highest heard
-# is no peer's (a fleet would need years of handovers), and is refused and counted
-# rather than adopted by every robot (the top of the range would then stick for good).
+# is no peer's (a fleet would need years of handovers), and its message is refused and
+# counted (the top of the range would otherwise stick as the highest heard). A claim
+# within it is the leadership rule's to adopt or refuse (`phalanx.agents.leadership`:
+# only the next epoch, to the rule's pick, or what most live robots hold).
 EPOCH_WINDOW = 2**16
 # Flags (or states) held per robot between two steps before the oldest are dropped (one
 # arrives per robot and control period; the ring absorbs a late step).
@@ -138,9 +140,17 @@ class PeerInbox:
             return
         capacity = RING_PER_ROBOT * len(self.formation.robot_ids)
         self._flag_ring = session.subscribe_polled(
-            robots_key(self.fleet, "flags"), RobotFlags, capacity, context=self.bounds
-        )
+            robots_key(self.fleet, "flags"), RobotFlags, capacity, context=self.bounds,
+            rate_hz=self._rate_hz,
+        )  # fmt: skip
         self.follow(watched)
+
+    @property
+    def _rate_hz(self) -> float | None:
+        """How often one robot publishes on one key (real time only: the rings are for
+        agents on their own clock): a flood beyond a few times that is dropped and counted.
+        """
+        return None if self.bounds is None else 1.0 / self.bounds.dt_s
 
     def follow(self, watched: tuple[str, ...]) -> None:
         """Subscribe to the states of the robots in `watched` not yet heard."""
@@ -151,7 +161,7 @@ class PeerInbox:
                 self._subscribed.add(peer)
                 key = robot_key(self.fleet, peer, "state")
                 ring = self._session.subscribe_polled(
-                    key, RobotState, RING_PER_ROBOT, context=self.bounds
+                    key, RobotState, RING_PER_ROBOT, context=self.bounds, rate_hz=self._rate_hz
                 )
                 self._state_rings.append(ring)
 

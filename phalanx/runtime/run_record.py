@@ -2,11 +2,12 @@
 tick (where the world has it, and the command it moved by), then, once the run is over,
 what the robots published (their behaviour states, whom they tracked, their estimates),
 the robots that move on their own from their best pose source, and whether the run is
-whole.
+whole. While the run goes on, `head` copies the ticks run so far for a checkpoint.
 """
 
 from __future__ import annotations
 
+import copy
 from collections.abc import Mapping, Sequence
 
 import numpy as np
@@ -33,6 +34,13 @@ class RunRecord:
         self.steps = round(scenario.duration_s * scenario.control_rate_hz)
         self.t_s = np.arange(self.steps, dtype=np.float64) * scenario.dt_s
         self.traces = {rid: RobotTrace.empty(self.steps) for rid in ids}
+
+    def head(self, ticks: int) -> RunRecord:
+        """A copy of the first `ticks` ticks (a checkpoint's: this record goes on)."""
+        part = copy.copy(self)
+        part.steps, part.t_s = ticks, self.t_s[:ticks].copy()
+        part.traces = {rid: copy.deepcopy(tr.truncated(ticks)) for rid, tr in self.traces.items()}
+        return part
 
     def record(
         self, k: int, world: World, commands: Mapping[str, Twist2D], telemetry: Telemetry | None

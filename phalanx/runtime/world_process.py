@@ -15,12 +15,21 @@ Robots that move on their own (`WorldOptions.observed`: robots on real drivers, 
 another simulator such as AMRISim) are not simulated: the world places them where the
 best source it hears says they are (`phalanx.runtime.observed`), sends them no frames,
 and records them from that source; the results name it per robot.
+
+Checkpoints: every `checkpoint_every_s` of wall time (longer if a checkpoint costs more
+than CHECKPOINT_SHARE of the time between them) the world hands the log of the ticks run
+so far to its `checkpoint` on a thread of its own (the CLI writes `metrics.json` and
+`traces.npz` from it, marked incomplete; a tick is never late for it), so that a world
+killed mid-run leaves the errors up to then. A checkpoint that fails (a full disk) is
+logged once and tried again at the next one; the run goes on.
 """
 
 from __future__ import annotations
 
 import logging
+import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, Literal
 
@@ -80,6 +89,10 @@ AHEAD_S = 2.0
 # deaf robot waits before it re-opens its session, and the 2 s that takes at most.
 FINAL_RESEND_S = 1.0
 REPORT_GRACE_S = 10.0
+# A checkpoint takes at most this share of the world's wall time (a fleet whose record
+# costs more to compute is checkpointed less often).
+CHECKPOINT_SHARE = 0.02
+CHECKPOINT_JOIN_S = 60.0
 
 
 @dataclass
@@ -95,6 +108,7 @@ class WorldOptions:
     report_timeout_s: float = 12.0  # (waited only while a report is missing)
     epoch_s: float | None = None  # real time: tick 0 at this Unix time (shared with agents)
     observed: tuple[str, ...] = ()  # robots that move on their own: recorded, not simulated
+    checkpoint_every_s: float = 2.0  # wall time between checkpoints (at the least)
 
 
 class WorldProcess:
@@ -107,9 +121,16 @@ class WorldProcess:
         options: WorldOptions,
         *,
         telemetry: Telemetry | None = None,
+        checkpoint: Callable[[RunLog], None] | None = None,
     ) -> None:
         self.scenario, self.robot, self.options = scenario, robot, options
         self.telemetry = telemetry
+        self.checkpoint = checkpoint  # takes the log so far; may raise OSError
+        self.checkpoints = 0  # written
+        self.checkpoint_failures = 0
+        self._checkpoint_failing = False
+        self._next_checkpoint = 0.0  # (monotonic)
+        self._checkpointer: threading.Thread | None = None
         self.world = World.for_scenario(scenario, robot)
         self.formation = scenario_formation(scenario)
         self.bounds = FleetBounds.of(scenario, robot)
@@ -164,10 +185,12 @@ class WorldProcess:
                 stop.wait(max(0.0, epoch - time.time()))
             started = time.perf_counter()
             next_tick = time.monotonic()
+            self._next_checkpoint = next_tick + self.options.checkpoint_every_s
             for k in range(self.steps):
                 if stop.is_set():
                     break
                 self._tick(session, k)
+                self._maybe_checkpoint(started)
                 if self.options.clock == "realtime":
                     next_tick += period_s
                     slack = next_tick - time.monotonic()
@@ -176,6 +199,7 @@ class WorldProcess:
                         next_tick = time.monotonic()  # do not try to catch up in a burst
                     time.sleep(max(0.0, slack))
             self.wall_time_s = time.perf_counter() - started
+            self._last_checkpoint_done()
             self._finish(session)
         return self._log()
 
@@ -188,16 +212,22 @@ class WorldProcess:
         fleet, bounds = self.options.fleet, self.bounds
         self._fabric = session
         session.declare_alive(alive_key(fleet, WORLD_ID))
+        # In real time a robot's state and command come once a period: a flood beyond a few
+        # times that is dropped and counted (in lockstep the world sets the pace itself).
+        realtime = self.options.clock == "realtime"
+        periodic = self.options.speed / self.scenario.dt_s if realtime else None
         subscriptions = [
-            (robots_key(fleet, "state"), RobotState, self._on_state),
-            (robots_key(fleet, "event"), AgentEvent, self._on_event),
-            (robots_key(fleet, "report"), AgentReport, self._on_report),
-            (leader_key(fleet), LeaderAnnouncement, self._on_leader),
+            (robots_key(fleet, "state"), RobotState, self._on_state, periodic),
+            (robots_key(fleet, "event"), AgentEvent, self._on_event, None),
+            (robots_key(fleet, "report"), AgentReport, self._on_report, None),
+            (leader_key(fleet), LeaderAnnouncement, self._on_leader, None),
         ]
-        if self.options.clock == "realtime":  # (in lockstep a robot's state is its command)
-            subscriptions.append((robots_key(fleet, "cmd"), VelocityCommand, self._on_command))
-        for key, model, handler in subscriptions:
-            session.subscribe(key, model, handler, context=bounds)  # type: ignore[arg-type]
+        if realtime:  # (in lockstep a robot's state is its command)
+            subscriptions.append(
+                (robots_key(fleet, "cmd"), VelocityCommand, self._on_command, periodic)
+            )
+        for key, model, handler, rate_hz in subscriptions:
+            session.subscribe(key, model, handler, context=bounds, rate_hz=rate_hz)  # type: ignore[arg-type]
         session.watch_alive(alive_pattern(fleet), self._on_alive)
         session.serve_status(status_key(fleet, WORLD_ID), self._status)
         if self.observed is not None:
@@ -234,7 +264,9 @@ class WorldProcess:
 
     def _on_leader(self, _key: str, announcement: LeaderAnnouncement) -> None:
         with self.inbox.cond:
-            self.inbox.keep(self.inbox.leaders, announcement)
+            why = self.inbox.leaders.propose(announcement, time.monotonic())
+        if why and self.stats is not None:
+            self.stats.count("rejected", "LeaderAnnouncement", f"LeaderAnnouncement: {why}")
 
     def _on_report(self, _key: str, report: AgentReport) -> None:
         with self.inbox.cond:
@@ -396,6 +428,67 @@ class WorldProcess:
             timeout_s=self.options.report_timeout_s, every_s=FINAL_RESEND_S, grace_s=REPORT_GRACE_S,
         )  # fmt: skip
 
+    def _maybe_checkpoint(self, started: float) -> None:
+        """Hand the log so far to `checkpoint` if one is due (see the module's docstring):
+        copied here, written on a thread of its own so that a tick is never late for it.
+        """
+        busy = self._checkpointer is not None and self._checkpointer.is_alive()
+        if self.checkpoint is None or busy or time.monotonic() < self._next_checkpoint:
+            return
+        if self.ticks_run < 1:
+            return
+        so_far = self._log_so_far(time.perf_counter() - started)
+        self._checkpointer = threading.Thread(
+            target=self._write_checkpoint, args=(self.checkpoint, so_far, self.tick),
+            name="checkpoint", daemon=True,
+        )  # fmt: skip
+        self._checkpointer.start()
+
+    def _write_checkpoint(self, write: Callable[[RunLog], None], so_far: RunLog, tick: int) -> None:
+        began = time.monotonic()
+        try:
+            write(so_far)
+        except OSError as exc:
+            self.checkpoint_failures += 1
+            if not self._checkpoint_failing:  # (once, until one is written again)
+                log.error("checkpoint at tick %d not written (the run goes on): %s", tick, exc)
+            self._checkpoint_failing = True
+        except Exception as exc:  # a checkpoint's bug must not end the run it records
+            self.checkpoint_failures += 1
+            log.error("checkpoint at tick %d failed (the run goes on): %r", tick, exc)
+        else:
+            if self._checkpoint_failing:
+                log.info("checkpoint written again at tick %d", tick)
+            self.checkpoints += 1
+            self._checkpoint_failing = False
+        cost_s = time.monotonic() - began
+        every_s = max(self.options.checkpoint_every_s, cost_s / CHECKPOINT_SHARE)
+        self._next_checkpoint = time.monotonic() + every_s
+
+    def _last_checkpoint_done(self) -> None:
+        """Wait (bounded) for a checkpoint still being written: the final results follow."""
+        if self._checkpointer is not None:
+            self._checkpointer.join(CHECKPOINT_JOIN_S)
+            if self._checkpointer.is_alive():
+                log.error("a checkpoint still writing after %.0f s", CHECKPOINT_JOIN_S)
+
+    def _log_so_far(self, wall_time_s: float) -> RunLog:
+        """The log of the ticks run so far, from copies (the Zenoh threads go on filing)."""
+        with self.inbox.cond:
+            states = {rid: dict(got) for rid, got in self.inbox.states.items()}
+            events, reports = list(self.inbox.events), dict(self.inbox.reports)
+            runtime = self._runtime()
+        return self.record.head(self.ticks_run).log(
+            self.robot,
+            states=states,
+            events=events,
+            reports=reports,
+            observed=self.observed,
+            world=self.world,
+            runtime=runtime,
+            wall_time_s=wall_time_s,
+        )
+
     def _log(self) -> RunLog:
         return self.record.log(
             self.robot,
@@ -431,7 +524,8 @@ class WorldProcess:
             "missed_deadlines": dict(self.missed),
             "overruns": self.overruns,
             "agents": {rid: r.model_dump() for rid, r in self.inbox.reports.items()},
-            "leadership": [a.model_dump() for a in self.inbox.leaders],
+            "leadership": [a.model_dump() for a in self.inbox.leaders.settle()],
+            "leadership_refused": self.inbox.leaders.refused,
             "world_decode": self.stats.as_dict() if self.stats is not None else {},
             "log_overflow": self.inbox.overflow,
             **(self.observed.counters() if self.observed is not None else {}),

@@ -324,8 +324,10 @@ class DecodeStats:
     """Every payload a process was sent and did not act on, by message kind: malformed
     (including values outside the receiver's bounds), of an unknown version, refused by
     the receiver (`rejected`: on another robot's key), lost in a full ring before it was
-    decoded (`ring_dropped`), or valid but its handler failed (`handler_errors`: a bug,
-    counted so it never takes the process down); and the last failure's reason.
+    decoded (`ring_dropped`), over its sender's rate on a rate-limited subscription
+    (`rate_limited`, also before decoding), or valid but its handler failed
+    (`handler_errors`: a bug, counted so it never takes the process down); and the last
+    failure's reason.
     """
 
     ok: Counter[str] = field(default_factory=Counter)
@@ -333,6 +335,7 @@ class DecodeStats:
     unknown_version: Counter[str] = field(default_factory=Counter)
     rejected: Counter[str] = field(default_factory=Counter)
     ring_dropped: Counter[str] = field(default_factory=Counter)
+    rate_limited: Counter[str] = field(default_factory=Counter)
     handler_errors: Counter[str] = field(default_factory=Counter)  # a bug: should stay 0
     last_error: str = ""
 
@@ -344,6 +347,7 @@ class DecodeStats:
             self.unknown_version,
             self.rejected,
             self.ring_dropped,
+            self.rate_limited,
             self.handler_errors,
         )
         return sum(sum(c.values()) for c in counters)
@@ -356,6 +360,7 @@ class DecodeStats:
             "unknown_version": dict(self.unknown_version),
             "rejected": dict(self.rejected),
             "ring_dropped": dict(self.ring_dropped),
+            "rate_limited": dict(self.rate_limited),
             "handler_errors": dict(self.handler_errors),
             "dropped": self.dropped,
             "last_error": self.last_error,

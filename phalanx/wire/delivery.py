@@ -1,23 +1,94 @@
-"""What arrives on a fleet session, on its way to the code that owns it: decoded totally
-and checked (`deliver`), or held raw in a bounded ring until its owner drains it
-(`Polled`), and the last few values per robot (`History`). Every payload is either handed
-on or counted in the session's `DecodeStats`.
+"""What arrives on a fleet session, on its way to the code that owns it: held to its
+sender's rate (`KeyBuckets`), decoded totally and checked (`deliver`), or held raw in a
+bounded ring until its owner drains it (`Polled`), and the last few values per robot
+(`History`). Every payload is either handed on or counted in the session's `DecodeStats`.
 """
 
 from __future__ import annotations
 
 import logging
+import math
 import threading
+import time
 from collections import deque
 from collections.abc import Callable
 from typing import Any, Generic, TypeVar
 
+from phalanx.wire.bounds import FleetBounds
 from phalanx.wire.codec import DecodeStats, decode
 from phalanx.wire.keys import robot_of
 from phalanx.wire.messages import Message
 
 log = logging.getLogger("phalanx.transport")
 M = TypeVar("M", bound=Message)
+# A rate-limited subscription takes from each key this many times the rate its sender
+# publishes at, in bursts of up to BURST messages (a late batch after a stall); the rest
+# is dropped before it is decoded, and counted (`DecodeStats.rate_limited`).
+RATE_HEADROOM = 4.0
+BURST = 8
+# Keys with a bucket of their own, at most; a key beyond them, or of a robot outside
+# the receiver's fleet (refused when decoded anyway), shares the OTHERS bucket.
+MAX_KEYS = 1024
+OTHERS = ""
+IDLE_S = 10.0  # a key silent this long gives up its bucket to a new one
+
+
+class KeyBuckets:
+    """A token bucket per key (thread-safe): `admit(key)` says whether a message on
+    `key` is within `RATE_HEADROOM` x `rate_hz` (messages a second its sender publishes),
+    so that a flood on one key cannot crowd the others out of a ring or a Zenoh thread.
+    `bounds`: the keys of robots outside this fleet share one bucket.
+    """
+
+    def __init__(
+        self,
+        rate_hz: float,
+        *,
+        bounds: FleetBounds | None = None,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        if not (math.isfinite(rate_hz) and rate_hz > 0.0):
+            raise ValueError(f"a rate limit needs a positive rate, not {rate_hz} Hz")
+        self.refill_hz = RATE_HEADROOM * rate_hz
+        self._members = bounds.robot_ids if bounds is not None else None
+        self._clock = clock
+        self._lock = threading.Lock()
+        self._buckets: dict[str, tuple[float, float]] = {}  # key -> (tokens, when)
+
+    def admit(self, key: str) -> bool:
+        """Whether a message arriving now on `key` is within its sender's rate (if so,
+        it takes a token).
+        """
+        now = self._clock()
+        with self._lock:
+            slot = self._slot(key, now)
+            tokens, then = self._buckets.get(slot, (float(BURST), now))
+            tokens = min(float(BURST), tokens + max(0.0, now - then) * self.refill_hz)
+            admitted = tokens >= 1.0
+            self._buckets[slot] = (tokens - 1.0 if admitted else tokens, now)
+            return admitted
+
+    def _slot(self, key: str, now: float) -> str:
+        """The bucket `key` draws on: its own, or OTHERS."""
+        if key in self._buckets:
+            return key
+        if self._members is not None and robot_of(key) not in self._members:
+            return OTHERS
+        if len(self._buckets) >= MAX_KEYS:
+            idle = [k for k, (_t, then) in self._buckets.items() if now - then > IDLE_S]
+            for gone in idle:
+                del self._buckets[gone]
+            if len(self._buckets) >= MAX_KEYS:
+                return OTHERS
+        return key
+
+
+def over_rate(limit: KeyBuckets | None, key: str, stats: DecodeStats, name: str) -> bool:
+    """Whether to drop a message of kind `name` on `key`: over `limit` (then counted)."""
+    if limit is None or limit.admit(key):
+        return False
+    stats.rate_limited[name] += 1
+    return True
 
 
 class History:
@@ -48,21 +119,32 @@ class Polled(Generic[M]):
     """A subscription whose payloads wait in a ring of `capacity` until `drain` (see
     `FleetSession.subscribe_polled`). Zenoh's callback only appends the raw payload (no
     decoding on its thread); when the ring is full the oldest payload is dropped and
-    counted (`DecodeStats.ring_dropped`).
+    counted (`DecodeStats.ring_dropped`). With a `limit`, a payload over its key's rate
+    never enters the ring (counted: `DecodeStats.rate_limited`).
     """
 
     def __init__(
-        self, model: type[M], stats: DecodeStats, capacity: int, context: Any = None
+        self,
+        model: type[M],
+        stats: DecodeStats,
+        capacity: int,
+        context: Any = None,
+        *,
+        limit: KeyBuckets | None = None,
     ) -> None:
         self._model = model
         self._stats = stats
         self._context = context
+        self._limit = limit
         self._ring: deque[tuple[str, bytes]] = deque(maxlen=capacity)
         self._lock = threading.Lock()
 
     def put(self, sample: Any) -> None:
         """Zenoh's side: keep the sample's key and payload (the oldest goes if full)."""
-        item = (str(sample.key_expr), sample.payload.to_bytes())
+        key = str(sample.key_expr)
+        if over_rate(self._limit, key, self._stats, self._model.__name__):
+            return
+        item = (key, sample.payload.to_bytes())
         with self._lock:
             if len(self._ring) == self._ring.maxlen:
                 self._stats.ring_dropped[self._model.__name__] += 1

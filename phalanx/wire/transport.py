@@ -25,8 +25,9 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from phalanx.core.errors import TransportError
 from phalanx.core.lifecycle import Closing
+from phalanx.wire.bounds import FleetBounds
 from phalanx.wire.codec import DecodeStats, encode
-from phalanx.wire.delivery import Polled, deliver
+from phalanx.wire.delivery import KeyBuckets, Polled, deliver, over_rate
 from phalanx.wire.messages import Message
 from phalanx.wire.security import AccessControl, TlsFiles, apply_security
 
@@ -207,30 +208,44 @@ class FleetSession(Closing):
         on_message: Callable[[str, M], None],
         *,
         context: Any = None,
+        rate_hz: float | None = None,
     ) -> None:
         """Call `on_message(key, value)` for every valid message; count the rest.
 
         `context` (a `FleetBounds`) holds every message against what this process knows
-        of its fleet. `on_message` runs on a Zenoh thread: it must be quick and must not
-        call Zenoh.
+        of its fleet. `rate_hz`: how many messages a second one sender publishes on one
+        key; a key is then held to a few times that (`phalanx.wire.delivery.KeyBuckets`),
+        the rest dropped before decoding and counted (None: no limit, as in lockstep,
+        where the world sets the pace). `on_message` runs on a Zenoh thread: it must be
+        quick and must not call Zenoh.
         """
-        stats = self.stats
+        stats, name = self.stats, model.__name__
+        limit = _limit(rate_hz, context)
 
         def callback(sample: Any) -> None:
-            key, payload = str(sample.key_expr), sample.payload.to_bytes()
-            deliver(key, payload, model, stats, on_message, context)
+            key = str(sample.key_expr)
+            if not over_rate(limit, key, stats, name):
+                deliver(key, sample.payload.to_bytes(), model, stats, on_message, context)
 
         self._declare(lambda session: session.declare_subscriber(key_expr, callback))
 
     def subscribe_polled(
-        self, key_expr: str, model: type[M], capacity: int, *, context: Any = None
+        self,
+        key_expr: str,
+        model: type[M],
+        capacity: int,
+        *,
+        context: Any = None,
+        rate_hz: float | None = None,
     ) -> Polled[M]:
         """Hold arriving payloads in a ring of `capacity` (the oldest dropped, and
         counted, when full) until the owner drains and decodes them on its own thread:
         Zenoh's thread only appends bytes (under a microsecond of Python per message),
         which is what a subscription every robot hears from every robot needs.
+        `rate_hz` as for `subscribe`: a flood on one key cannot push the others' messages
+        out of the ring.
         """
-        ring = Polled(model, self.stats, capacity, context)
+        ring = Polled(model, self.stats, capacity, context, limit=_limit(rate_hz, context))
         self._declare(lambda session: session.declare_subscriber(key_expr, ring.put))
         return ring
 
@@ -356,6 +371,14 @@ class FleetSession(Closing):
         _close_quietly(self._session, entities, strict=True)
         with _registry_lock:
             _open_sessions.discard(id(self))
+
+
+def _limit(rate_hz: float | None, context: Any) -> KeyBuckets | None:
+    """The per-key rate limit of a subscription (None: none)."""
+    if rate_hz is None:
+        return None
+    bounds = context if isinstance(context, FleetBounds) else None
+    return KeyBuckets(rate_hz, bounds=bounds)
 
 
 def _close_quietly(session: Any, entities: list[Any], *, strict: bool = False) -> None:

@@ -112,7 +112,8 @@ def test_no_handover_within_the_tenure() -> None:
 
 def test_a_late_message_cannot_flip_leadership_back() -> None:
     view = views(WEDGE)["r3"]
-    view.update({"r2": flags("r2", formation_leader_id="r2", epoch=2)}, 10.0)
+    moved = {r: flags(r, formation_leader_id="r2", epoch=2) for r in ("r1", "r2")}
+    view.update(moved, 10.0)  # (held by two of three: a robot that missed a change catches up)
     assert (view.leader_id, view.epoch) == ("r2", 2)
     late = {"r1": flags("r1", formation_leader_id="r1", epoch=1, fsm_state=State.NAVIGATE)}
     assert view.update(late | {"r2": flags("r2", formation_leader_id="r2", epoch=2)}, 10.1) is None

@@ -8,15 +8,18 @@ import difflib
 import logging
 from collections.abc import Mapping
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated, Literal
+from typing import TYPE_CHECKING, Annotated, Literal, NoReturn
 
 import typer
 
 if TYPE_CHECKING:
+    from phalanx.analysis.results import ResultsNotWritten
     from phalanx.core.config import Scenario
     from phalanx.core.robot_params import RobotParams
+    from phalanx.core.runlog import RunLog
     from phalanx.drivers.base import Driver
     from phalanx.runtime.signals import Stoppable
+    from phalanx.runtime.world_process import WorldProcess
     from phalanx.telemetry.stream import Telemetry
     from phalanx.wire.transport import TransportConfig
 
@@ -351,11 +354,13 @@ def world(
     ] = None,
 ) -> None:
     """Run the world for agents in other processes: simulate the robots on the sim
-    driver, record the ones that move on their own; write the results folder.
+    driver, record the ones that move on their own; write the results folder (and, while
+    the run goes on, a checkpoint of it every few seconds). Exit code 0 for a complete
+    run, 5 for one its results mark incomplete, 6 if the results could not be written.
     """
-    from phalanx.analysis.report import print_summary
-    from phalanx.analysis.results import mark_results, write_results
+    from phalanx.analysis.results import ResultsNotWritten, write_checkpoint
     from phalanx.core.config_files import load_robot
+    from phalanx.runtime.exits import EXIT_INCOMPLETE
     from phalanx.runtime.world_process import WorldOptions, WorldProcess
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s world %(levelname)s %(message)s")
@@ -367,20 +372,47 @@ def world(
         fleet=fleet, transport=transport, clock=_clock(clock), speed=speed, epoch_s=epoch,
         observed=tuple(observe or ()),
     )  # fmt: skip
+    folder = out or Path("results") / f"{config.name}-{config.controller.kind}-up"
     with _telemetry(recording_id, telemetry_file, telemetry_url, None) as telemetry:
         tel = telemetry if telemetry.sink.kind != "off" else None
-        process = WorldProcess(config, load_robot(config.robot), options, telemetry=tel)
+        process = WorldProcess(
+            config, load_robot(config.robot), options, telemetry=tel,
+            checkpoint=lambda so_far: write_checkpoint(so_far, folder),
+        )  # fmt: skip
         run_log = process.run(_stop_on_signals())
-    folder = out or Path("results") / f"{config.name}-{config.controller.kind}-up"
+    try:
+        complete = _write_world_results(process, run_log, folder, recording=recording)
+    except ResultsNotWritten as exc:
+        _results_lost(exc)
+    typer.echo(f"results: {folder}")
+    if not complete:
+        raise typer.Exit(EXIT_INCOMPLETE)
+
+
+def _write_world_results(
+    process: WorldProcess, run_log: RunLog, folder: Path, *, recording: bool
+) -> bool:
+    """The world's results folder, its summary printed; whether the run is complete."""
+    from phalanx.analysis.report import print_summary
+    from phalanx.analysis.results import mark_results, write_results
+
     metrics = write_results(run_log, folder, recording=recording)
     marked = mark_results(folder, problems=[])
-    metrics_missed = {r: n for r, n in process.missed.items() if n}
     print_summary(metrics)
-    if metrics_missed:
-        typer.echo(f"missed tick deadlines: {metrics_missed}")
+    missed = {r: n for r, n in process.missed.items() if n}
+    if missed:
+        typer.echo(f"missed tick deadlines: {missed}")
     if not marked["complete"]:
         typer.echo(f"incomplete run: {marked['incomplete_reason']}")
-    typer.echo(f"results: {folder}")
+    return bool(marked["complete"])
+
+
+def _results_lost(exc: ResultsNotWritten) -> NoReturn:
+    """One message for results that could not be written (a full disk), and exit 6."""
+    from phalanx.runtime.exits import EXIT_RESULTS_LOST
+
+    typer.echo(f"error: {exc}", err=True)
+    raise typer.Exit(EXIT_RESULTS_LOST) from exc
 
 
 def register(app: typer.Typer) -> None:

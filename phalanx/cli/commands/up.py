@@ -4,8 +4,9 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import time
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 
@@ -15,9 +16,13 @@ from phalanx.cli.commands.fleet import (
     ScenarioArg,
     SetOpt,
     _clock,
+    _results_lost,
     _scenario,
     _stop_on_signals,
 )
+
+if TYPE_CHECKING:
+    from phalanx.runtime.local_fleet import Outcome
 
 
 def up(
@@ -68,11 +73,15 @@ def up(
         ),
     ] = "none",
 ) -> None:
-    """Start the world and one agent process per robot here; supervise; write results
-    (marked incomplete, with the reason, when a process died or the world did not finish;
-    the exit code is then 1).
+    """Start the world and one agent process per robot here; supervise; write results,
+    marked complete or not (`complete` in metrics.json) with the reason.
+
+    Exit code: 0 only for a complete run; 1 when a process died or the run was stopped
+    (timeout, Ctrl-C); 2 for bad input; 5 when every process ended as asked but the
+    results mark the run incomplete (a robot out of the world's sight, a report that never
+    came); 6 when the results could not be written (a full disk). Each names why.
     """
-    from phalanx.analysis.results import mark_results
+    from phalanx.analysis.results import ResultsNotWritten, mark_results
     from phalanx.runtime.amrisim import (
         AmrisimCommand,
         Xvfb,
@@ -91,6 +100,7 @@ def up(
     )
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s up %(levelname)s %(message)s")
+    started_unix = time.time()  # (a metrics.json older than this is an earlier run's)
     config = _scenario(scenario, set_)
     out = out or Path("results") / f"{config.name}-{config.controller.kind}-up"
     if viewer and telemetry_url is None:
@@ -134,10 +144,26 @@ def up(
     parts = sorted(telemetry_dir(out).glob("*.rrd")) if recording else []
     if parts and merge_recordings(parts, out / "run.rrd"):
         typer.echo(f"recording: {out / 'run.rrd'} ({len(parts)} processes merged)")
-    metrics = mark_results(out, problems=outcome.problems)
+    try:
+        metrics = mark_results(out, problems=outcome.problems, since_unix=started_unix)
+    except ResultsNotWritten as exc:
+        _results_lost(exc)
     if not metrics.get("complete", False):
         typer.echo(f"results (incomplete: {metrics['incomplete_reason']}): {out}", err=True)
-    raise typer.Exit(outcome.code)
+    raise typer.Exit(exit_code(outcome, metrics))
+
+
+def exit_code(outcome: Outcome, metrics: dict[str, Any]) -> int:
+    """`phalanx up`'s exit code: the results not written (by the world), a process's
+    death or a stop, an incomplete run by its metrics, or 0.
+    """
+    from phalanx.runtime.exits import EXIT_FINISHED, EXIT_INCOMPLETE, EXIT_RESULTS_LOST
+
+    if outcome.world_code == EXIT_RESULTS_LOST:
+        return EXIT_RESULTS_LOST
+    if outcome.code != EXIT_FINISHED:
+        return outcome.code
+    return EXIT_FINISHED if metrics.get("complete") is True else EXIT_INCOMPLETE
 
 
 def register(app: typer.Typer) -> None:
