@@ -60,7 +60,9 @@ class _Bytes:
 @dataclass
 class LoopbackSession:
     """What a process declares on its session, served in-process: `inject` hands a
-    payload to every subscription whose key expression matches."""
+    payload to every subscription whose key expression matches. Rate limits are not
+    applied: every payload reaches the decoder (tests/faults/test_flood_limit.py tests
+    the limits on real sessions)."""
 
     stats: DecodeStats = field(default_factory=DecodeStats)
     subscriptions: list[tuple[str, Callable[[str, bytes], None]]] = field(default_factory=list)
@@ -68,7 +70,13 @@ class LoopbackSession:
     relinks: int = 0  # (never re-opened: nothing to lose)
 
     def subscribe(
-        self, key_expr: str, model: type, on_message: Callable[..., None], *, context: Any = None
+        self,
+        key_expr: str,
+        model: type,
+        on_message: Callable[..., None],
+        *,
+        context: Any = None,
+        rate_hz: float | None = None,
     ) -> None:
         def handler(key: str, payload: bytes) -> None:
             deliver(key, payload, model, self.stats, on_message, context)
@@ -76,7 +84,13 @@ class LoopbackSession:
         self.subscriptions.append((key_expr, handler))
 
     def subscribe_polled(
-        self, key_expr: str, model: type, capacity: int, *, context: Any = None
+        self,
+        key_expr: str,
+        model: type,
+        capacity: int,
+        *,
+        context: Any = None,
+        rate_hz: float | None = None,
     ) -> Polled[Any]:
         ring: Polled[Any] = Polled(model, self.stats, capacity, context)
 
@@ -198,7 +212,6 @@ class AgentUnderTest:
             "agent/flags": (RobotFlags, robot_key(FLEET, "r1", "flags"), self._valid_flags),
             "agent/state": (RobotState, robot_key(FLEET, "r1", "state"), self._valid_state),
             "agent/sense": (SenseFrame, robot_key(FLEET, "r2", "sense"), self._valid_frame),
-            "agent/leader": (LeaderAnnouncement, leader_key(FLEET), self._valid_leader),
             "agent/scan": (ScanMessage, robot_key(FLEET, "r1", "scan"), self._valid_scan),
         }
 
@@ -262,9 +275,6 @@ class AgentUnderTest:
 
     def _valid_frame(self) -> list[Message]:
         return [self._frame(self.k + 1), self._frame(self.k + 2)]
-
-    def _valid_leader(self) -> list[Message]:
-        return [LeaderAnnouncement(leader_id="r1", epoch=0, stamp_s=self.t_s, previous_id="")]
 
     def inject(self, key: str, payload: bytes) -> None:
         """A payload arrives on `key`."""
