@@ -48,7 +48,7 @@ from typing import Protocol
 from phalanx.core.config import LeadershipConfig
 from phalanx.core.formation import Formation
 from phalanx.core.peers import next_epoch
-from phalanx.core.states import DEADLOCK_STATES, OUT_OF_FORMATION, State
+from phalanx.core.states import OUT_OF_FORMATION, State
 
 
 class FlagsView(Protocol):
@@ -522,9 +522,3 @@ def _blocked(robot: str, live: Flags, ahead: Mapping[str, str]) -> bool:
             return False
         robot = ahead[robot]
     return False
-
-
-def in_deadlock_escape(live: Flags, leader_id: str) -> bool:
-    """Whether the leader's flags show it backing off or turning away."""
-    lead = live.get(leader_id)
-    return lead is not None and lead.fsm_state in DEADLOCK_STATES

@@ -280,11 +280,6 @@ class DeadlockReverse(Behaviour):
         self._entered_s = 0.0
         self._realigned_s = -math.inf  # when the turn back was done
 
-    @property
-    def backed_off(self) -> bool:
-        """Backed off the safe distance, or along all the ground it knows."""
-        return self.reversed_m >= self.deadlock.safe_distance_m or self.path_used_up
-
     def enter(self, moment: Moment) -> None:
         """A new deadlock at this waypoint: count it, start from standing."""
         self._entered_s = self._realigned_s = moment.t_s

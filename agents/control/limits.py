@@ -16,11 +16,6 @@ from phalanx.core.limits import KinematicLimits
 _EPS = 1e-12
 
 
-def saturation_scale(command: Twist2D, limits: KinematicLimits) -> float:
-    """The factor in (0, 1] that brings `command` inside every velocity bound."""
-    return _scale(command.v_mps, command.omega_radps, limits)
-
-
 def _scale(v: float, w: float, limits: KinematicLimits) -> float:
     half_track_w = 0.5 * limits.track_width_m * abs(w)
     ratios = (

@@ -29,10 +29,6 @@ class TransportError(PhalanxError):
     """The Zenoh fabric could not be opened or used."""
 
 
-class MessageError(PhalanxError):
-    """A wire payload is malformed or of an unknown version."""
-
-
 class DeploymentError(PhalanxError):
     """A fleet could not be deployed: a host is missing or disagrees on the deployment."""
 

@@ -16,7 +16,6 @@ import dataclasses
 import functools
 import logging
 import time
-from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Literal
@@ -51,7 +50,6 @@ ClockMode = Literal["lockstep", "realtime"]
 # Unchanged flags go out at least this often (and three times per leader timeout).
 FLAGS_HEARTBEAT_S = 0.2
 REPORT_FLUSH_S = 2.0  # how long the final report waits for telemetry to go out
-ANNOUNCEMENTS_KEPT = 100  # the newest leadership announcements heard (a record, not used)
 
 
 @dataclass
@@ -92,7 +90,6 @@ class AgentRuntime:
         self.flags_out = FlagsThrottle(min(FLAGS_HEARTBEAT_S, scenario.leader_timeout_s / 3))
         self.step_times_s: list[float] = []
         self.steps = 0
-        self.announcements: deque[LeaderAnnouncement] = deque(maxlen=ANNOUNCEMENTS_KEPT)
         self.unsent = 0  # own messages that could not be encoded or sent (logged)
         self.stale_steps = 0  # real-time steps too late to send (a frozen process)
         self.last: StepOutput | None = None
@@ -149,9 +146,6 @@ class AgentRuntime:
         self.io.attach(session)
         self.inbox.attach(session, self.watched)
         self.scans.attach(session, self.bounds)
-        session.subscribe(
-            leader_key(fleet), LeaderAnnouncement, self._on_announcement, context=self.bounds
-        )
         session.watch_alive(alive_pattern(fleet), self._on_alive)
         session.serve_status(status_key(fleet, rid), self._status)
 
@@ -161,9 +155,6 @@ class AgentRuntime:
         """
         heard = [t for t in (self.io.heard_s(), self.inbox.heard_s) if t is not None]
         return max(heard, default=None)
-
-    def _on_announcement(self, _key: str, message: LeaderAnnouncement) -> None:
-        self.announcements.append(message)  # a record: the flags carry the decision
 
     def _on_alive(self, key: str, alive: bool) -> None:
         self.inbox.on_alive(key.rsplit("/", 1)[-1], alive)

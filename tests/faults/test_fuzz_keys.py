@@ -32,7 +32,7 @@ from receivers import (
 from phalanx.core.runlog import ESTIMATE_POSE, SIMULATED_POSE
 
 FUZZ_EXAMPLES = int(os.environ.get("PHALANX_FUZZ_EXAMPLES", "150"))
-AGENT_KEYS = ("agent/flags", "agent/state", "agent/sense", "agent/leader")
+AGENT_KEYS = ("agent/flags", "agent/state", "agent/sense")
 POSITIONING_KEYS = ("agent/fix", "agent/relative")
 WORLD_KEYS = ("world/cmd", "world/state", "world/event", "world/report", "world/leader")
 OBSERVING_KEYS = ("world/truth", "world/fix")
