@@ -1,7 +1,7 @@
-"""PNG figures of a run, the counterparts of the paper's figures 4a, 4b, 5, 6 and 7.
+"""PNG figures of a run, the counterparts of the paper's figures 4b, 5, 6 and 7 (its
+figure 4a, the state machine, is drawn by `phalanx fsm`: `phalanx.analysis.fsm_picture`).
 
-fig4a: the behaviour state machine (`state_machine`, drawn by `phalanx fsm`); fig4b:
-behaviour state over time, with who led; fig5: trajectories (and obstacles) with the
+fig4b: behaviour state over time, with who led; fig5: trajectories (and obstacles) with the
 reverse phase marked; fig6: linear and angular separations against their desired
 values; fig7: velocity profiles against the run's limits; and the dead-end escape
 (`deadend_escape`: the way in and back out, and the errors while reversing).
@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import Any
 
 import matplotlib as mpl
 
@@ -25,9 +24,8 @@ import matplotlib.pyplot as plt
 import numpy as np
 from matplotlib.axes import Axes
 from matplotlib.figure import Figure
-from matplotlib.patches import Circle, FancyBboxPatch, Polygon
+from matplotlib.patches import Circle, Polygon
 
-from phalanx.agents.fsm import ANY_STATE, StateMachine
 from phalanx.analysis.metrics import (
     error_series,
     is_follower,
@@ -47,7 +45,7 @@ from phalanx.analysis.plotting import (
 from phalanx.core.limits import KinematicLimits
 from phalanx.core.runlog import RunLog
 from phalanx.core.scenarios import resolve_world
-from phalanx.core.states import ROBOT_STATES, State
+from phalanx.core.states import State
 
 
 def _followers(log: RunLog) -> list[str]:
@@ -306,115 +304,6 @@ def deadend_escape(log: RunLog) -> Figure:
     ax_err.legend(fontsize=7, loc="upper right")
     fig.tight_layout()
     return fig
-
-
-# Where each state sits in the drawing of the state machine (x, y): the navigation
-# layer on top, safety and shared states in the middle, the formation layer below.
-FSM_LAYOUT: dict[str, tuple[float, float]] = {
-    ANY_STATE: (0.0, 2.0),
-    State.WANDER: (1.0, 3.2),
-    State.NAVIGATE: (3.0, 3.2),
-    State.ARRIVED: (5.0, 3.2),
-    State.DEADLOCK_REVERSE: (7.0, 3.2),
-    State.DEADLOCK_TURN: (9.0, 3.2),
-    State.RESHAPE: (3.0, 4.4),
-    State.STUCK: (11.0, 2.0),
-    State.EMERGENCY_STOP: (3.0, 1.8),
-    State.JOIN: (6.0, 1.5),
-    State.AVOID: (9.0, 1.0),
-    State.HOLD: (1.0, 0.0),
-    State.FORMATION_TRACK: (4.5, 0.0),
-    State.FORMATION_REVERSE: (8.0, 0.0),
-    State.ESTOPPED: (2.0, -1.4),
-    State.FAULT: (4.5, -1.4),
-    State.STALLED: (7.0, -1.4),
-    State.LOW_BATTERY: (9.5, -1.4),
-}
-BOX_HALF = (0.6, 0.3)  # half width and height of a state's box, plot units
-LAYER_COLOURS = {
-    "navigation": "#dbe9f6",
-    "formation": "#e3f2d9",
-    "shared": "#f6ecd9",
-    "robot": "#f3dede",
-}
-_FORMATION_ROW = {State.FORMATION_TRACK, State.FORMATION_REVERSE, State.HOLD}
-_SHARED_ROW = {State.JOIN, ANY_STATE}
-
-
-def state_machine(machine: StateMachine[Any], *, title: str = "") -> Figure:
-    """Figure 4a: the behaviour state machine, states as boxes (blue: navigation layer,
-    green: formation layer, sand: shared, red: the robot's own stops), every transition
-    as an arrow labelled with its priority (the arbitration: higher wins); a dotted arrow
-    marks the initial state.
-    """
-    fig, ax = plt.subplots(figsize=(16, 10.5))
-    names = list(dict.fromkeys([*FSM_LAYOUT, *machine.states]))
-    pos = {n: FSM_LAYOUT.get(n, (12.0, 3.0 - i * 0.8)) for i, n in enumerate(names)}
-    used = {tr.source for tr in machine.transitions} | {tr.target for tr in machine.transitions}
-    for name in names:
-        if name in used or name == machine.initial:
-            _state_box(ax, name, pos[name])
-    pairs: dict[tuple[str, str], list[int]] = {}
-    for tr in machine.transitions:
-        pairs.setdefault((tr.source, tr.target), []).append(tr.priority)
-    for (source, target), priorities in sorted(pairs.items()):
-        _arrow(ax, pos[source], pos[target], "/".join(str(p) for p in sorted(set(priorities))))
-    x0, y0 = pos[machine.initial]
-    ax.annotate("", xy=(x0 - 0.55, y0), xytext=(x0 - 1.2, y0 - 0.6),
-                arrowprops={"arrowstyle": "->", "ls": ":", "lw": 1.2})  # fmt: skip
-    ax.set(xlim=(-1.2, 12.4), ylim=(-2.1, 3.9), title=title or "behaviour state machine")
-    ax.axis("off")
-    fig.tight_layout()
-    return fig
-
-
-def _state_box(ax: Axes, name: str, xy: tuple[float, float]) -> None:
-    layer = (
-        "formation" if name in _FORMATION_ROW else "shared" if name in _SHARED_ROW
-        else "robot" if name in ROBOT_STATES else "navigation"
-    )  # fmt: skip
-    label = "any state" if name == ANY_STATE else name.replace("_", "\n", 1)
-    x, y = xy
-    ax.add_patch(FancyBboxPatch((x - 0.55, y - 0.25), 1.1, 0.5, boxstyle="round,pad=0.05",
-                                fc=LAYER_COLOURS[layer], ec="k", lw=1.0, zorder=2))  # fmt: skip
-    ax.text(x, y, label, ha="center", va="center", fontsize=8, zorder=3)
-
-
-def _on_box(a: tuple[float, float], b: tuple[float, float]) -> tuple[float, float]:
-    """Where the line from box centre `a` towards `b` leaves `a`'s box."""
-    dx, dy = b[0] - a[0], b[1] - a[1]
-    scale = min(
-        BOX_HALF[0] / abs(dx) if dx else math.inf, BOX_HALF[1] / abs(dy) if dy else math.inf
-    )
-    return a[0] + dx * scale, a[1] + dy * scale
-
-
-def _arrow(ax: Axes, a: tuple[float, float], b: tuple[float, float], label: str) -> None:
-    bend = 0.18 if a[0] <= b[0] else -0.18
-    start, end = _on_box(a, b), _on_box(b, a)
-    ax.annotate(
-        "",
-        xy=end,
-        xytext=start,
-        arrowprops={"arrowstyle": "-|>", "lw": 0.6, "color": "0.35", "shrinkA": 0,
-                    "shrinkB": 1, "mutation_scale": 9, "connectionstyle": f"arc3,rad={bend}"},
-        zorder=1,
-    )  # fmt: skip
-    # arc3 bends the line through a point offset by `rad` times its length, sideways:
-    # the curve's middle is half that way off the straight line's middle.
-    dx, dy = end[0] - start[0], end[1] - start[1]
-    lx, ly = (start[0] + end[0]) / 2 + bend * dy / 2, (start[1] + end[1]) / 2 - bend * dx / 2
-    ax.text(lx, ly, label, fontsize=6, color="0.15", ha="center", va="center",
-            bbox={"fc": "white", "ec": "none", "pad": 0.5, "alpha": 0.8}, zorder=4)  # fmt: skip
-
-
-def save_state_machine(machine: StateMachine[Any], path: Path) -> Path:
-    """Draw `machine` (figure 4a) into a PNG at `path`."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig = state_machine(machine)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
 
 
 FIGURES = {
