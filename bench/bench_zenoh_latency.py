@@ -9,15 +9,17 @@ both read from CLOCK_MONOTONIC, one clock for every process on this machine. Bes
 it, the hop alone (state received - state stamped): the rest is the follower's step.
 
 Two topologies: every process a Zenoh client of one router (as `phalanx up` runs), and
-peers connected directly (each listens on its own loopback port and connects to the
-others). Scouting is off in both. Two transports: Zenoh's default, and its low-latency
-one (a put written to the link from the calling thread), which `phalanx up` runs its
-processes on (`--lowlatency`). A row whose robots do not all start within READY_S, or
-do not all report, is printed as failed (each robot's error on stderr), its processes
-killed, and the benchmark goes on.
+peers connected directly (each listens on its own endpoint and connects to the others).
+Scouting is off in both. Two transports: Zenoh's default, and its low-latency one (a put
+written to the link from the calling thread), which `phalanx up` runs its processes on
+(`--lowlatency`). Two links: TCP on loopback, and Unix-domain sockets in a directory
+only this user can open, which `phalanx up` runs on (`--link unixsock`); with both, a
+last table gives each row's Unix-socket figures over the same row's on TCP. A row whose
+robots do not all start within READY_S, or do not all report, is printed as failed (each
+robot's error on stderr), its processes killed, and the benchmark goes on.
 
     .venv/bin/python bench/bench_zenoh_latency.py [--robots 3 10 30] [--seconds 10]
-        [--topology router peer] [--transport default lowlatency]
+        [--topology router peer] [--transport default lowlatency] [--link tcp unixsock]
 """
 
 from __future__ import annotations
@@ -27,8 +29,10 @@ import multiprocessing as mp
 import queue
 import random
 import statistics
+import tempfile
 import time
-from typing import Any
+from pathlib import Path
+from typing import Any, NamedTuple
 
 from calibration import Calibration, load
 
@@ -41,7 +45,13 @@ from phalanx.core.robot import Odometry, RobotStatus
 from phalanx.core.scenarios import grid_scenario
 from phalanx.wire.keys import robot_key
 from phalanx.wire.messages import RobotState, VelocityCommand
-from phalanx.wire.transport import TransportConfig, free_tcp_port, loopback_endpoint, open_session
+from phalanx.wire.transport import (
+    TransportConfig,
+    free_tcp_port,
+    loopback_endpoint,
+    open_session,
+    unix_socket_endpoint,
+)
 
 RATE_HZ = 20.0
 WARMUP_S = 1.0  # connection set-up and first-call costs are not steady state
@@ -125,15 +135,22 @@ def robot(cfg: TransportConfig, rid: str, n: int, seconds: float, ready: Any, ou
     out.put(latencies)
 
 
+def _endpoint(folder: Path | None, name: str) -> str:
+    """A TCP loopback endpoint (no folder), or a Unix-domain socket `name` in `folder`."""
+    if folder is None:
+        return loopback_endpoint(free_tcp_port())
+    return unix_socket_endpoint(folder / f"{name}.sock")
+
+
 def _configs(
-    n: int, topology: str, lowlatency: bool
+    n: int, topology: str, lowlatency: bool, folder: Path | None
 ) -> tuple[TransportConfig | None, list[TransportConfig]]:
     if topology == "router":
-        endpoint = loopback_endpoint(free_tcp_port())
+        endpoint = _endpoint(folder, "router")
         client = TransportConfig(mode="client", connect=(endpoint,), lowlatency=lowlatency)
         router = TransportConfig(mode="router", listen=(endpoint,), lowlatency=lowlatency)
         return router, [client] * n
-    eps = [loopback_endpoint(free_tcp_port()) for _ in range(n)]
+    eps = [_endpoint(folder, f"g{i}") for i in range(n)]
     # Peer i connects to every earlier peer: a full mesh with one link per pair.
     return None, [
         TransportConfig(
@@ -144,10 +161,20 @@ def _configs(
 
 
 def measure(
-    n: int, seconds: float, topology: str, lowlatency: bool = False
+    n: int, seconds: float, topology: str, lowlatency: bool = False, link: str = "tcp"
 ) -> list[tuple[float, float]]:
-    """Every follower command's latency and its hop's (s), in an `n`-robot fleet."""
-    router_cfg, cfgs = _configs(n, topology, lowlatency)
+    """Every follower command's latency and its hop's (s), in an `n`-robot fleet; `link`
+    tcp (loopback) or unixsock (sockets in a new directory of mode 0700).
+    """
+    with tempfile.TemporaryDirectory(prefix="phalanx-bench-") as folder:  # (mode 0700)
+        here = Path(folder) if link == "unixsock" else None
+        return _measure(n, seconds, _configs(n, topology, lowlatency, here))
+
+
+def _measure(
+    n: int, seconds: float, configs: tuple[TransportConfig | None, list[TransportConfig]]
+) -> list[tuple[float, float]]:
+    router_cfg, cfgs = configs
     ctx = mp.get_context("spawn")
     ready = ctx.Barrier(n)
     out = ctx.Queue()
@@ -159,7 +186,7 @@ def measure(
     try:
         for p in procs:
             p.start()
-        results = []
+        results: list[list[tuple[float, float]]] = []
         give_up = time.monotonic() + READY_S + seconds + 60.0
         while len(results) < n:
             try:
@@ -189,35 +216,74 @@ def main() -> None:
     parser.add_argument(
         "--transport", nargs="+", default=["default"], choices=["default", "lowlatency"]
     )
+    parser.add_argument("--link", nargs="+", default=["tcp"], choices=["tcp", "unixsock"])
     args = parser.parse_args()
     cal = Calibration.measure()
-    print(f"leader state -> follower command over Zenoh, {RATE_HZ:.0f} Hz per robot, loopback")
+    print(f"leader state -> follower command over Zenoh, {RATE_HZ:.0f} Hz per robot, one host")
     print(
-        "topology  transport   robots  samples  p50_ms  p90_ms  p99_ms  max_ms  p99_mcal"
-        "  hop_p50_ms  hop_p99_ms  load"
+        "link      topology  transport   robots  samples  p50_ms  p90_ms  p99_ms  max_ms"
+        "  p99_mcal  hop_p50_ms  hop_p99_ms  load"
     )
+    rows: dict[Row, tuple[float, float]] = {}
     for transport in args.transport:
         for topology in args.topology:
             for n in args.robots:
-                _row(n, args.seconds, topology, transport, cal)
+                for link in args.link:
+                    row = Row(link, topology, transport, n)
+                    figures = _row(row, args.seconds, cal)
+                    if figures is not None:
+                        rows[row] = figures
     Calibration.measure()
+    _ratios(rows)
 
 
-def _row(n: int, seconds: float, topology: str, transport: str, cal: Calibration) -> None:
+class Row(NamedTuple):
+    """One row of the table: what was measured."""
+
+    link: str
+    topology: str
+    transport: str
+    robots: int
+
+
+def _row(row: Row, seconds: float, cal: Calibration) -> tuple[float, float] | None:
+    """Measure and print `row`; its p50 and p99 (s), None if it failed."""
+    name = f"{row.link:8s}  {row.topology:8s}  {row.transport:10s}  {row.robots:6d}"
     try:
-        pairs = measure(n, seconds, topology, transport == "lowlatency")
+        lowlatency = row.transport == "lowlatency"
+        pairs = measure(row.robots, seconds, row.topology, lowlatency, row.link)
     except RowFailed as failed:  # (each robot's own error is on stderr)
-        print(f"{topology:8s}  {transport:10s}  {n:6d}  failed: {failed}", flush=True)
-        return
+        print(f"{name}  failed: {failed}", flush=True)
+        return None
     lat = sorted(total for total, _ in pairs)
     q = statistics.quantiles(lat, n=100)
     hop = statistics.quantiles([h for _, h in pairs], n=100)
     print(
-        f"{topology:8s}  {transport:10s}  {n:6d}  {len(lat):7d}  {1e3 * q[49]:6.3f}  "
+        f"{name}  {len(lat):7d}  {1e3 * q[49]:6.3f}  "
         f"{1e3 * q[89]:6.3f}  {1e3 * q[98]:6.3f}  {1e3 * lat[-1]:6.3f}  "
         f"{1e3 * cal.ratio(q[98]):8.1f}  {1e3 * hop[49]:10.3f}  {1e3 * hop[98]:10.3f}  {load()}",
         flush=True,
     )
+    return q[49], q[98]
+
+
+def _ratios(rows: dict[Row, tuple[float, float]]) -> None:
+    """Each row's p50 and p99 on Unix-domain sockets over the same row's on TCP, where
+    both ran.
+    """
+    pairs = [
+        (row, figures, rows[row._replace(link="tcp")])
+        for row, figures in rows.items()
+        if row.link == "unixsock" and row._replace(link="tcp") in rows
+    ]
+    if not pairs:
+        return
+    print("unixsock / tcp, same run:\ntopology  transport   robots  p50_ratio  p99_ratio")
+    for row, (p50, p99), (tcp_p50, tcp_p99) in pairs:
+        print(
+            f"{row.topology:8s}  {row.transport:10s}  {row.robots:6d}  "
+            f"{p50 / tcp_p50:9.3f}  {p99 / tcp_p99:9.3f}"
+        )
 
 
 if __name__ == "__main__":

@@ -1,12 +1,18 @@
 """`phalanx up`: the world and one agent process per robot on this machine, supervised.
 
-The world runs a Zenoh router on a free loopback port and every agent connects to it as
-a client, so the world routes the agents' states to each other (multicast scouting
-stays off; nothing is configured by hand). A crashed agent is reported and, with
-`restart`, started again. Everything is stopped on the way out: SIGTERM first, SIGKILL
-after a grace period. The outcome says whether the run ended as asked (the world
-finished, no process died on its own) and, if not, which process ended how; a world that
-finished a run its results mark incomplete (exit 5) ended as asked: the results say why.
+The world runs a Zenoh router and every agent connects to it as a client, so the world
+routes the agents' states to each other (multicast scouting stays off; nothing is
+configured by hand). The router listens on one Unix-domain socket and nowhere else (no
+TCP port), in a directory made for the run with mode 0700 and removed after it
+(`private_fabric`): a process of another user cannot reach the socket, so it can neither
+join the fleet nor publish on it; every process `up` starts (world, agents, emulators)
+connects there.
+
+A crashed agent is reported and, with `restart`, started again. Everything is stopped
+on the way out: SIGTERM first, SIGKILL after a grace period. The outcome says whether
+the run ended as asked (the world finished, no process died on its own) and, if not,
+which process ended how; a world that finished a run its results mark incomplete
+(exit 5) ended as asked: the results say why.
 
 In lockstep every process is pinned to one CPU, round robin over the CPUs this one may
 use (the world on the first): a tick wakes every process in turn, and a process that
@@ -20,15 +26,20 @@ import contextlib
 import logging
 import math
 import os
+import shutil
 import signal
+import stat
 import subprocess
 import sys
+import tempfile
 import time
 import uuid
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from phalanx.core.config import Scenario
+from phalanx.core.errors import TransportError
 from phalanx.runtime.amrisim import AmrisimCommand, amrisim_map, amrisim_ports
 from phalanx.runtime.exits import (
     EXIT_FAILED,
@@ -37,10 +48,20 @@ from phalanx.runtime.exits import (
     agent_exit_reason,
 )
 from phalanx.runtime.signals import Stoppable, supervised_env
-from phalanx.wire.transport import LOWLATENCY_MAX_BYTES, free_tcp_port, loopback_endpoint
+from phalanx.wire.transport import (
+    LOWLATENCY_MAX_BYTES,
+    SOCKET_PATH_MAX_BYTES,
+    free_tcp_port,
+    unix_socket_endpoint,
+)
 
 log = logging.getLogger("phalanx.up")
 GRACE_S = 5.0
+FABRIC_PREFIX = "phalanx-fleet-"  # + tempfile's 8 random characters
+SOCKET_NAME = "zenoh.sock"
+# `plan` without an endpoint: command lines to look at. A fleet started with them cannot
+# open anything (no directory can exist under /dev/null), rather than an open one.
+UNMADE_ENDPOINT = unix_socket_endpoint(Path("/dev/null") / SOCKET_NAME)
 
 
 @dataclass
@@ -183,9 +204,71 @@ def _frames_fit_lowlatency(scenario: Scenario) -> bool:
     return lockstep_frame_bytes(world, ids, scenario.dt_s) <= LOWLATENCY_MAX_BYTES
 
 
-def plan(scenario_path: Path, scenario: Scenario, options: UpOptions) -> list[Child]:
-    """The world and agent command lines."""
-    endpoint = loopback_endpoint(free_tcp_port())
+@contextlib.contextmanager
+def private_fabric() -> Iterator[str]:
+    """The Zenoh endpoint of one run: a Unix-domain socket in a directory made for it,
+    mode 0700, under $XDG_RUNTIME_DIR when that is this user's own, else the temporary
+    folder; the directory and all in it removed on the way out.
+
+    Only this user (and root) can open the directory, so only their processes can
+    connect to the socket. A TransportError if no private directory could be made.
+    """
+    folder = _private_dir()
+    try:
+        yield unix_socket_endpoint(folder / SOCKET_NAME)
+    finally:
+        shutil.rmtree(folder, ignore_errors=True)
+
+
+def _private_dir() -> Path:
+    """A new directory only this user can open, whose socket path fits an address."""
+    tail = Path(FABRIC_PREFIX + "x" * 8) / SOCKET_NAME
+    for parent in _socket_parents():
+        if len(os.fsencode(parent / tail)) > SOCKET_PATH_MAX_BYTES:
+            continue
+        try:
+            folder = Path(tempfile.mkdtemp(prefix=FABRIC_PREFIX, dir=parent))  # 0700, new
+        except OSError as exc:  # (gone, read-only, full)
+            log.warning("cannot make the fleet's directory in %s: %s", parent, exc)
+            continue
+        if _private(folder):
+            return folder
+        shutil.rmtree(folder, ignore_errors=True)
+    raise TransportError(
+        "cannot make a private directory for the fleet's socket (tried "
+        f"{', '.join(map(str, _socket_parents()))}; a socket path holds at most "
+        f"{SOCKET_PATH_MAX_BYTES} bytes): set TMPDIR to a short local folder"
+    )
+
+
+def _socket_parents() -> list[Path]:
+    """Where the run's directory may go: the user's runtime directory if it is theirs
+    alone, the temporary folder, /tmp.
+    """
+    runtime = os.environ.get("XDG_RUNTIME_DIR", "")
+    parents = [Path(runtime)] if runtime and _private(Path(runtime)) else []
+    return [*parents, Path(tempfile.gettempdir()), Path("/tmp")]  # noqa: S108 - a last resort
+
+
+def _private(folder: Path) -> bool:
+    """Whether `folder` is a real directory (not a link) of this user that no one else
+    may open.
+    """
+    try:
+        info = folder.lstat()
+    except OSError:
+        return False
+    mine = info.st_uid == os.geteuid()
+    return stat.S_ISDIR(info.st_mode) and mine and info.st_mode & 0o077 == 0
+
+
+def plan(
+    scenario_path: Path, scenario: Scenario, options: UpOptions, *, endpoint: str = UNMADE_ENDPOINT
+) -> list[Child]:
+    """The world and agent command lines: the world listening on `endpoint` alone (from
+    `private_fabric`), every other process connecting there (by default a socket that
+    cannot be made: command lines to look at, not to run).
+    """
     # Every process on this machine: Zenoh's low-latency transport (see TransportConfig),
     # if its messages carry the fleet's lockstep frames.
     common = ["--fleet", options.fleet, "--clock", options.clock]

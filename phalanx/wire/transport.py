@@ -15,10 +15,12 @@ from __future__ import annotations
 import contextlib
 import json
 import logging
+import os
 import socket
 import threading
 import time
 from collections.abc import Callable, Iterable
+from pathlib import Path
 from typing import Any, Literal, TypeVar
 
 from pydantic import BaseModel, ConfigDict, Field
@@ -40,6 +42,9 @@ MAX_STATUS_BYTES = 1024 * 1024
 # The largest payload sent on a low-latency session: under Zenoh's 64 KiB batch with room
 # for its headers (a fleet's messages are a few hundred bytes; a status reply a few KiB).
 LOWLATENCY_MAX_BYTES = 60_000
+# A Unix-domain socket's path holds at most this many bytes (Linux's address has room for
+# 108 with the terminating NUL, macOS's for 104: the smaller counts).
+SOCKET_PATH_MAX_BYTES = 103
 RELINK_OPEN_S = 2.0  # how long `FleetSession.relink` waits for a new session's handshake
 M = TypeVar("M", bound=Message)
 _open_sessions: set[int] = set()
@@ -48,7 +53,9 @@ _log_initialised = False
 
 
 class TransportConfig(BaseModel):
-    """How a process joins the fabric. Endpoints like `tcp/127.0.0.1:7447`."""
+    """How a process joins the fabric. Endpoints like `tcp/127.0.0.1:7447`, or
+    `unixsock-stream/<path>` for processes on one machine (see `unix_socket_endpoint`).
+    """
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
@@ -119,6 +126,22 @@ def free_tcp_port() -> int:
 def loopback_endpoint(port: int) -> str:
     """`tcp/127.0.0.1:<port>`."""
     return f"tcp/127.0.0.1:{port}"
+
+
+def unix_socket_endpoint(path: Path) -> str:
+    """`unixsock-stream/<path>`: a Zenoh link over the Unix-domain socket at `path`.
+
+    Who may connect is whoever the file system lets reach `path`: put it in a directory
+    only its user can open. `path` must be absolute and at most `SOCKET_PATH_MAX_BYTES`
+    long (a TransportError otherwise).
+    """
+    size = len(os.fsencode(path))
+    if not path.is_absolute() or size > SOCKET_PATH_MAX_BYTES:
+        raise TransportError(
+            f"a Unix-domain socket needs an absolute path of at most "
+            f"{SOCKET_PATH_MAX_BYTES} bytes, not {str(path)!r} ({size} bytes)"
+        )
+    return f"unixsock-stream/{path}"
 
 
 def open_session_count() -> int:

@@ -74,7 +74,9 @@ def up(
     ] = "none",
 ) -> None:
     """Start the world and one agent process per robot here; supervise; write results,
-    marked complete or not (`complete` in metrics.json) with the reason.
+    marked complete or not (`complete` in metrics.json) with the reason. The processes
+    talk over a Unix-domain socket in a directory only this user can open, made for the
+    run and removed after it: no other user's process can join the fleet.
 
     Exit code: 0 only for a complete run; 1 when a process died or the run was stopped
     (timeout, Ctrl-C); 2 for bad input; 5 when every process ended as asked but the
@@ -94,6 +96,7 @@ def up(
         UpOptions,
         merge_recordings,
         plan,
+        private_fabric,
         start_viewer,
         supervise,
         telemetry_dir,
@@ -140,7 +143,10 @@ def up(
             )
             options.amrisim = AmrisimRun(command, display)
             typer.echo(f"AMRISim: {command.binary} (its log: {command.log_path})", err=True)
-        outcome = supervise(plan(scenario, config, options), options, _stop_on_signals())
+        endpoint = stack.enter_context(private_fabric())  # (only this user can join)
+        logging.getLogger("phalanx.up").info("the fleet's Zenoh endpoint: %s", endpoint)
+        children = plan(scenario, config, options, endpoint=endpoint)
+        outcome = supervise(children, options, _stop_on_signals())
     parts = sorted(telemetry_dir(out).glob("*.rrd")) if recording else []
     if parts and merge_recordings(parts, out / "run.rrd"):
         typer.echo(f"recording: {out / 'run.rrd'} ({len(parts)} processes merged)")
