@@ -33,7 +33,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests" / "faults"))
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "lab"))
 from fleetlab import CLI, WEDGE, Fleet, child_running, running_fleet, wait_for
 
 from phalanx.wire.codec import encode

@@ -2,7 +2,7 @@
 boundary sweep (every field at each boundary value of its type) and then `--per-key`
 hostile payloads from hypothesis strategies built from the wire models (random,
 truncated, bit-flipped, schema-shaped extreme and perturbed), each into the real
-receiving code (`tests/faults/receivers.py`: the agent in real time and in lockstep, the
+receiving code (`lab/receivers.py`: the agent in real time and in lockstep, the
 world, a host daemon, the launcher), each followed by a step of that process; its
 commands held to the run's limits, its log, metrics and status written, every few.
 
@@ -27,7 +27,7 @@ from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests" / "faults"))
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "lab"))
 
 KEYS = [
     ("realtime", "agent/flags"),

@@ -40,7 +40,7 @@ from calibration import Calibration
 
 from phalanx.core.config_files import CONFIG_ROOT
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests" / "multihost"))
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "lab"))
 import netlab
 from netlab import NetLab, unavailable
 

@@ -7,7 +7,7 @@ cable pulled and plugged back: the far end sees silence, not a reset). Needs roo
 iproute2; `unavailable()` says why a machine cannot. Used by tests/multihost and
 bench/bench_multihost.py.
 
-`python tests/multihost/netlab.py observe --fleet F --connect EP` prints, one JSON object per
+`python lab/netlab.py observe --fleet F --connect EP` prints, one JSON object per
 line, what a fleet's world and robots publish (sense frames, states, liveliness), each
 stamped with CLOCK_MONOTONIC, which every namespace of a machine shares.
 """

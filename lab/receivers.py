@@ -660,7 +660,7 @@ def sweep(receiver: Any, key: str, *, check_every: int = 200) -> int:
 
 
 def campaign(receiver: Any, key: str, n: int, *, seed: int, check_every: int = 200) -> int:
-    """`n` hostile payloads (`tests/faults/wirefuzz.py`) on `key` of `receiver`, each
+    """`n` hostile payloads (`lab/wirefuzz.py`) on `key` of `receiver`, each
     followed by a step of it, checked every `check_every`; how many were sent. Raises on
     the first crash or unsafe command (the failing payload in the message)."""
     from hypothesis import HealthCheck, given, settings
