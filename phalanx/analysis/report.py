@@ -94,6 +94,15 @@ def _cell(value: float, bound: float | None) -> str:
     return text
 
 
+def number(value: float | None) -> str:
+    """A measured value for a table: 3 significant digits, "-" where there was nothing
+    to measure (NaN, None: a phase the run never had, such as a reverse).
+    """
+    if value is None or math.isnan(value):
+        return "-"
+    return f"{value:.3g}"
+
+
 def print_summary(metrics: dict[str, Any]) -> None:
     """A terminal table of one run's errors per follower and phase."""
     table = Table(title=f"{metrics['scenario']} / {metrics['controller']}")
@@ -115,7 +124,7 @@ def print_summary(metrics: dict[str, Any]) -> None:
                 rid,
                 phase,
                 *(
-                    f"{p[k]['max']:.3g}"
+                    number(p[k]["max"])
                     for k in (
                         "linear_pct",
                         "angular_pct",
@@ -135,8 +144,8 @@ def print_summary(metrics: dict[str, Any]) -> None:
     )
     for rid, est in metrics.get("estimation", {}).get("robots", {}).items():
         console.print(
-            f"{rid} estimate: max error {est['position_m']['max']:.3g} m, "
-            f"{est['heading_deg']['max']:.3g} deg; NEES in its 95 % band "
+            f"{rid} estimate: max error {number(est['position_m']['max'])} m, "
+            f"{number(est['heading_deg']['max'])} deg; NEES in its 95 % band "
             f"{100 * est['nees_in_band']:.0f} % of steps"
         )
     nav = metrics.get("navigation")
@@ -150,7 +159,7 @@ def print_summary(metrics: dict[str, Any]) -> None:
         console.print(
             f"{reached}; leadership changes: {nav['leadership_changes']}; time in "
             f"avoidance episodes {100 * nav['episode_share']:.0f} %; calm linear error "
-            f"mean {calm['mean']:.3g} % max {calm['max']:.3g} %"
+            f"mean {number(calm['mean'])} % max {number(calm['max'])} %"
             + (f"; STUCK: {nav['stuck_reason']}" if nav["stuck"] else "")
         )
 

@@ -2,7 +2,8 @@
 
 A mistake in what the user gave (a configuration or deployment file, a `--set` value, a
 file that is not TOML or not text) ends a command with one message naming the file, the
-field and the fix, and exit code 2; `--debug` shows the traceback as well.
+field and the fix, and exit code 2; `--debug` shows the traceback as well. How the
+command line presents itself (verbs by task, help as written) is `phalanx.cli.style`.
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ from typing import Annotated
 import typer
 
 from phalanx.cli import commands
+from phalanx.cli.style import PhalanxGroup, use_everywhere
 
 EXIT_USAGE = 2  # the user's input is wrong (click's own code for usage errors)
 EXIT_FAILED = 1  # the command ran and failed
@@ -24,8 +26,11 @@ app = typer.Typer(
     name="phalanx",
     help="Tightly coupled formations of differential-drive robots, forwards and backwards.",
     no_args_is_help=True,
-    add_completion=False,
+    add_completion=True,
     pretty_exceptions_enable=False,
+    rich_markup_mode=None,
+    cls=PhalanxGroup,
+    context_settings={"help_option_names": ["-h", "--help"]},
 )
 _options = {"debug": False}
 
@@ -44,6 +49,7 @@ def _register_commands() -> None:
     for info in sorted(pkgutil.iter_modules(commands.__path__), key=lambda m: m.name):
         module = importlib.import_module(f"phalanx.cli.commands.{info.name}")
         module.register(app)
+    use_everywhere(app)
 
 
 _register_commands()

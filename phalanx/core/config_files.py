@@ -167,9 +167,30 @@ def load_scenario(path: str | Path) -> Scenario:
     """Load a scenario file (TOML; JSON is accepted for generated scenarios); its
     formation is resolved too, so a follow cycle is reported here, naming the file.
     """
-    scenario = validate_file(Scenario, Path(path))
+    try:
+        scenario = validate_file(Scenario, Path(path))
+    except ConfigError as exc:
+        if _is_robot_file(Path(path)):
+            raise ConfigError(
+                f"{path}: this is a robot file (one robot model's parameters, as in "
+                "configs/robots/), not a scenario: give a scenario file (as in "
+                'configs/scenarios/), which names its robot with robot = "p3dx"'
+            ) from exc
+        raise
     check_formation(scenario, source=str(path))
     return scenario
+
+
+def _is_robot_file(path: Path) -> bool:
+    """Whether a file that is not a valid scenario holds a robot's parameters instead:
+    a TOML table whose keys are all robot fields (more than its `name`).
+    """
+    try:
+        data = tomllib.loads(read_text(path))
+    except (ConfigError, tomllib.TOMLDecodeError, RecursionError):
+        return False
+    keys = set(data) - {"name"}
+    return bool(keys) and keys <= set(RobotParams.model_fields)
 
 
 def check_formation(scenario: Scenario, *, source: str) -> None:

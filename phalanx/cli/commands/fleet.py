@@ -79,11 +79,11 @@ def _transport(
     *,
     lowlatency: bool = False,
 ) -> TransportConfig:
+    from phalanx.cli.style import choice
     from phalanx.wire.security import TlsFiles
     from phalanx.wire.transport import TransportConfig
 
-    if mode not in ("peer", "client", "router"):
-        raise typer.BadParameter(f"expected peer, client or router, got {mode!r}")
+    choice(mode, ("peer", "client", "router"), option="--mode")
     files = None
     if any(tls):
         ca, cert, key = tls
@@ -108,11 +108,10 @@ def _stop_on_signals() -> Stoppable:
 
 
 def _clock(value: str) -> Literal["lockstep", "realtime"]:
-    if value == "lockstep":
-        return "lockstep"
-    if value == "realtime":
-        return "realtime"
-    raise typer.BadParameter(f"expected lockstep or realtime, got {value!r}")
+    from phalanx.cli.style import choice
+
+    choice(value, ("lockstep", "realtime"), option="--clock")
+    return "lockstep" if value == "lockstep" else "realtime"
 
 
 def agent(

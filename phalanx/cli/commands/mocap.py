@@ -9,11 +9,26 @@ from typing import Annotated
 
 import typer
 
+from phalanx.cli.style import choice
+
+# The backends of libmotioncapture (the `motioncapture` package); a build may lack some.
+MOCAP_SYSTEMS = (
+    "optitrack",
+    "optitrack_closed_source",
+    "vicon",
+    "qualisys",
+    "nokov",
+    "vrpn",
+    "motionanalysis",
+    "fzmotion",
+    "mock",
+)
+
 
 def mocap(
     scenario: Annotated[Path, typer.Argument(help="Scenario file: robots, [localisation.mocap].")],
     system: Annotated[
-        str, typer.Option(help="motioncapture backend: optitrack, vicon, qualisys, vrpn, mock.")
+        str, typer.Option(help=f"motioncapture backend: {', '.join(MOCAP_SYSTEMS)}.")
     ] = "optitrack",
     host: Annotated[str | None, typer.Option(help="The mocap server's address.")] = None,
     setting: Annotated[
@@ -46,6 +61,7 @@ def mocap(
     from phalanx.runtime.signals import stop_on_signals
     from phalanx.wire.transport import TransportConfig, open_session
 
+    choice(system, MOCAP_SYSTEMS, option="--system")
     logging.basicConfig(level=logging.INFO, format="%(asctime)s mocap %(levelname)s %(message)s")
     config = load_scenario(scenario)
     source = config.localisation.mocap or MocapSource()
@@ -75,7 +91,10 @@ def mocap(
         with open_session(transport) as session:
             bridge.run(session, stop, duration_s=duration)
     except DriverError as exc:
-        typer.echo(f"mocap: {exc}", err=True)
+        why = str(exc)
+        if "Unknown motion capture type" in why:  # (libmotioncapture's own words)
+            why = f"--system {system}: this build of the motioncapture library lacks it"
+        typer.echo(f"mocap: {why}", err=True)
         raise typer.Exit(2) from exc
     s = bridge.stats
     typer.echo(

@@ -4,10 +4,11 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, get_args
 
 import typer
 
+from phalanx.cli.style import choice
 from phalanx.core.config import ControllerKind
 
 ScenarioArg = Annotated[
@@ -51,11 +52,9 @@ def run(
 
 
 def _controller(name: str) -> ControllerKind:
-    valid: tuple[ControllerKind, ...] = ("tracking", "switching", "icr", "ours")
-    for kind in valid:
-        if kind == name:
-            return kind
-    raise typer.BadParameter(f"expected one of {', '.join(valid)}, got {name!r}")
+    valid: tuple[ControllerKind, ...] = get_args(ControllerKind)
+    choice(name, valid, option="--controller")
+    return next(kind for kind in valid if kind == name)
 
 
 def _progress_bar() -> Callable[[int, int], None]:

@@ -5,7 +5,7 @@ on Dask, locally or on a cluster; resumable; one table, and docs/RESULTS.md's se
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, get_args
 
 import typer
 
@@ -42,11 +42,13 @@ def sweep(
 
     from phalanx.analysis import sweep as sw
     from phalanx.analysis.report import SWEEP_BEGIN, SWEEP_END, with_section
+    from phalanx.core.config import ControllerKind
+    from phalanx.core.scenarios import Course, Shape
 
-    family = family or ["field"]
-    shape = shape or ["wedge", "inline", "collateral"]
+    family = _choices(family or ["field"], get_args(Course), option="--family")
+    shape = _choices(shape or list(get_args(Shape)), get_args(Shape), option="--shape")
     robots = robots or [3]
-    controller = controller or ["ours"]
+    controller = _choices(controller or ["ours"], get_args(ControllerKind), option="--controller")
     try:
         overrides = [_assignment(a) for a in set_ or []]
         todo = sw.jobs(
@@ -83,6 +85,13 @@ def sweep(
             with_section(text, section, begin=SWEEP_BEGIN, end=SWEEP_END), encoding="utf-8"
         )
         typer.echo(f"wrote {path}")
+
+
+def _choices(values: list[str], valid: tuple[str, ...], *, option: str) -> list[str]:
+    """`values`, each checked against `valid` (a usage error names `option` and them)."""
+    from phalanx.cli.style import choice
+
+    return [choice(value, valid, option=option) for value in values]
 
 
 def _assignment(text: str) -> tuple[str, object]:

@@ -20,6 +20,7 @@ from phalanx.cli.commands.fleet import (
     _scenario,
     _stop_on_signals,
 )
+from phalanx.cli.style import choice
 
 if TYPE_CHECKING:
     from phalanx.runtime.local_fleet import Outcome
@@ -102,11 +103,14 @@ def up(
         telemetry_dir,
     )
 
+    choice(driver, ("sim", "arcos"), option="--driver")
+    choice(robots, ("phalanx", "amrisim"), option="--robots")
     logging.basicConfig(level=logging.INFO, format="%(asctime)s up %(levelname)s %(message)s")
     started_unix = time.time()  # (a metrics.json older than this is an earlier run's)
     config = _scenario(scenario, set_)
     out = out or Path("results") / f"{config.name}-{config.controller.kind}-up"
     if viewer and telemetry_url is None:
+        _need_display()
         telemetry_url = start_viewer()
     options = UpOptions(
         fleet=fleet,
@@ -121,10 +125,6 @@ def up(
         driver=driver,
         pin=pin,
     )
-    if driver not in ("sim", "arcos"):
-        raise typer.BadParameter(f"up runs sim or arcos robots, not {driver!r}")
-    if robots not in ("phalanx", "amrisim"):
-        raise typer.BadParameter(f"expected phalanx or amrisim, got {robots!r}")
     if robots == "amrisim" and driver != "sim":
         raise typer.BadParameter("--robots amrisim drives AMRISim's robots: leave --driver out")
     if (driver == "arcos" or robots == "amrisim") and options.clock == "lockstep":
@@ -157,6 +157,19 @@ def up(
     if not metrics.get("complete", False):
         typer.echo(f"results (incomplete: {metrics['incomplete_reason']}): {out}", err=True)
     raise typer.Exit(exit_code(outcome, metrics))
+
+
+def _need_display() -> None:
+    """Exit 2 with the way out when `--viewer` cannot open a window here."""
+    from phalanx.cli.commands.view import has_display
+
+    if not has_display():
+        typer.echo(
+            "error: --viewer: no display here (neither DISPLAY nor WAYLAND_DISPLAY is set): "
+            "start `phalanx view --web` and give its --telemetry-url instead",
+            err=True,
+        )
+        raise typer.Exit(2)
 
 
 def exit_code(outcome: Outcome, metrics: dict[str, Any]) -> int:

@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import os
 import signal
 import subprocess
+import sys
 from pathlib import Path
 from typing import Annotated
 
@@ -31,6 +33,15 @@ def rerun_command(
     return argv + [str(r) for r in recordings]
 
 
+def has_display() -> bool:
+    """Whether a window can open here: on Linux (and other X11/Wayland systems) only
+    with DISPLAY or WAYLAND_DISPLAY set; macOS and Windows always have a desktop.
+    """
+    if sys.platform in ("darwin", "win32"):
+        return True
+    return bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
+
+
 def view(
     recordings: Annotated[
         list[Path] | None, typer.Argument(help=".rrd files to open (none: wait for live data).")
@@ -52,6 +63,13 @@ def view(
     for path in recordings or []:
         if not path.exists():
             raise typer.BadParameter(f"{path}: no such recording")
+    if not web and not has_display():
+        typer.echo(
+            "error: no display here (neither DISPLAY nor WAYLAND_DISPLAY is set), so no "
+            "viewer window can open: add --web to serve the viewer to a browser instead",
+            err=True,
+        )
+        raise typer.Exit(2)
     argv = rerun_command(
         list(recordings or []),
         web=web,
