@@ -1,6 +1,6 @@
-"""What phalanx logs to Rerun, and how it is laid out: the blueprint, and per-step rows
-turned into columns (one `send_columns` per entity for a batch of steps costs a fraction
-of one `log` per entity per step; see docs/PERFORMANCE.md).
+"""What phalanx logs to Rerun: per-step rows turned into columns (one `send_columns` per
+entity for a batch of steps costs a fraction of one `log` per entity per step; see
+docs/PERFORMANCE.md). How it is laid out in the viewer is `phalanx.telemetry.blueprint`.
 """
 
 from __future__ import annotations
@@ -17,6 +17,7 @@ import numpy.typing as npt
 from phalanx.core.geometry import Pose2D, Twist2D
 from phalanx.core.rigid_body import LiveErrors
 from phalanx.core.robot_params import SonarParams
+from phalanx.telemetry.blueprint import TRUTH_COLOUR
 from phalanx.telemetry.uncertainty import ellipse, position_std_m, send_ellipses
 
 FloatArray = npt.NDArray[np.float64]
@@ -204,92 +205,8 @@ def _resolved(rows: Sequence[StepRow]) -> list[tuple[StepRow, LiveErrors]]:
 def send_truth_rows(rec: Any, robot_id: str, rows: Sequence[TruthRow]) -> None:
     """Ground-truth positions of one robot for a batch of steps."""
     xy = np.array([(r.x_m, r.y_m) for r in rows], dtype=np.float64)
-    points = _rr().Points2D.columns(
-        positions=xy, radii=np.full(len(rows), 0.05), colors=np.zeros((len(rows), 3), np.uint8)
-    )
+    colours = np.tile(np.array(TRUTH_COLOUR, np.uint8), (len(rows), 1))
+    points = _rr().Points2D.columns(positions=xy, radii=np.full(len(rows), 0.05), colors=colours)
     rec.send_columns(
         f"world/truth/{robot_id}", indexes=_indexes([r.t_s for r in rows]), columns=points
-    )
-
-
-def make_blueprint(
-    robot_ids: Sequence[str], *, extent_m: tuple[float, float, float, float] | None = None
-) -> Any:
-    """Map of the fleet, error and velocity series, state log: figures 4b-7 live.
-
-    `extent_m` (x_min, x_max, y_min, y_max) frames the map; without it the viewer fits it.
-    """
-    import rerun.blueprint as rrb
-
-    bounds = None
-    if extent_m is not None:
-        x0, x1, y0, y1 = extent_m
-        bounds = rrb.VisualBounds2D(x_range=(x0, x1), y_range=(y0, y1))
-    whole_run = rrb.TimeAxis(
-        view_range=rrb.TimeRange(
-            start=rrb.TimeRangeBoundary.infinite(), end=rrb.TimeRangeBoundary.infinite()
-        )
-    )
-
-    def series(
-        name: str, paths: Sequence[str], bounds: Sequence[str], y_range: tuple[float, float] | None
-    ) -> Any:
-        contents = [f"robots/{rid}/{p}" for rid in robot_ids for p in paths]
-        return rrb.TimeSeriesView(
-            name=name,
-            origin="/",
-            contents=[*contents, *bounds],
-            axis_x=whole_run,
-            axis_y=rrb.ScalarAxis(range=y_range) if y_range else None,
-        )
-
-    # The error axes stop a little above the paper's bounds (the start offsets are tens of
-    # per cent and would flatten everything else); zoom out in the viewer to see them.
-    errors = rrb.Tabs(
-        series(
-            "separation errors (%)",
-            ["errors/linear_pct", "errors/angular_pct"],
-            ["bounds/errors/**"],
-            (0.0, 3.0),
-        ),
-        series("orientation error (deg)", ["errors/orientation_deg"], [], (0.0, 3.0)),
-    )
-    states = rrb.Tabs(
-        rrb.StateTimelineView(
-            name="behaviour states",
-            origin="/",
-            contents=[f"robots/{rid}/state" for rid in robot_ids],
-            time_view=whole_run,
-        ),
-        rrb.TextLogView(
-            name="transitions", origin="/", contents=[f"robots/{rid}/fsm" for rid in robot_ids]
-        ),
-    )
-    return rrb.Blueprint(
-        rrb.Horizontal(
-            rrb.Spatial2DView(
-                name="fleet map",
-                origin="/",
-                contents=["world/**", "robots/**"],
-                visual_bounds=bounds,
-            ),
-            rrb.Vertical(
-                errors,
-                series(
-                    "linear velocity (m/s)",
-                    ["cmd/v_mps", "measured/v_mps"],
-                    ["bounds/velocity/v_max_mps", "bounds/velocity/v_min_mps"],
-                    None,
-                ),
-                series(
-                    "yaw rate (deg/s)",
-                    ["cmd/omega_degps", "measured/omega_degps"],
-                    ["bounds/velocity/omega_max_degps", "bounds/velocity/omega_min_degps"],
-                    None,
-                ),
-                states,
-            ),
-            column_shares=[3, 2],
-        ),
-        collapse_panels=True,
     )

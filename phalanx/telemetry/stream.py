@@ -14,10 +14,12 @@ Entity layout (units and frames in the names):
     robots/<id>/fsm                      state transitions (text log)
     robots/<id>/state                    behaviour state over time (the paper's figure 4b)
     bounds/...                           the paper's error bounds and the velocity limits
+    frames/map_y_up                      the map view's frame: the world mirrored in y
 Timelines: `sim_time` (s) and `step`.
 
 Entries reach the sinks through the bounded outbox of `phalanx.telemetry.sinks`, so
-logging never blocks a control step.
+logging never blocks a control step. The layout (`phalanx.telemetry.blueprint`) draws the
+map y up and each robot in one colour across every view.
 """
 
 from __future__ import annotations
@@ -33,11 +35,12 @@ import numpy.typing as npt
 from phalanx.core.geometry import Pose2D, Twist2D
 from phalanx.core.lifecycle import Closing
 from phalanx.core.robot_params import SonarParams
+from phalanx.telemetry.blueprint import MAP_FRAME_ENTITY, make_blueprint, map_frame_transform
 from phalanx.telemetry.layout import (
+    POSE_RADIUS_M,
     StepRow,
     Tracking,
     TruthRow,
-    make_blueprint,
     send_step_rows,
     send_truth_rows,
 )
@@ -47,6 +50,7 @@ from phalanx.telemetry.uncertainty import ellipse, position_std_m, send_ellipses
 FloatArray = npt.NDArray[np.float64]
 TRAIL_POINTS = 600
 TRAIL_EVERY_STEPS = 10
+BOUND_SAMPLES = 121  # the bounds are drawn as dots: this many over the run
 # Section 5 of the paper: backward-motion errors below 2 % linear and 0.8 % angular.
 PAPER_LINEAR_BOUND_PCT = 2.0
 PAPER_ANGULAR_BOUND_PCT = 0.8
@@ -150,7 +154,9 @@ class Telemetry(Closing):
         v_max_mps: float,
         omega_max_radps: float,
     ) -> None:
-        """The paper's error bounds and the velocity limits as flat series."""
+        """The paper's error bounds and the velocity limits as flat series, sampled evenly
+        from the first to the last of `t_s` (drawn as dotted lines).
+        """
         series = {
             "bounds/errors/linear_pct": linear_pct,
             "bounds/errors/angular_pct": angular_pct,
@@ -159,9 +165,13 @@ class Telemetry(Closing):
             "bounds/velocity/omega_max_degps": math.degrees(omega_max_radps),
             "bounds/velocity/omega_min_degps": -math.degrees(omega_max_radps),
         }
-        times = np.asarray(t_s, dtype=np.float64)
+        given = np.asarray(t_s, dtype=np.float64)
+        if given.size == 0:
+            return
+        times = np.linspace(given.min(), given.max(), BOUND_SAMPLES)
         for path, value in series.items():
-            self._columns(path, times, {"scalars": np.full(len(times), value)}, static=True)
+            values = {"scalars": np.full(len(times), value)}
+            self._columns(path, times, values, static=True, steps=False)
 
     def log_step(
         self,
@@ -249,7 +259,8 @@ class Telemetry(Closing):
         self.logged_steps[robot_id] = self.logged_steps.get(robot_id, 0) + len(t_s)
         self._extent.add(x_m, y_m)
         base = f"robots/{robot_id}"
-        self._columns(f"{base}/pose", t_s, {"points": np.column_stack([x_m, y_m])})
+        pose = {"points": np.column_stack([x_m, y_m]), "radius": POSE_RADIUS_M, "label": robot_id}
+        self._columns(f"{base}/pose", t_s, pose)
         heading = 0.4 * np.column_stack([np.cos(theta_rad), np.sin(theta_rad)])
         self._columns(f"{base}/heading", t_s, {"arrows": (heading, np.column_stack([x_m, y_m]))})
         scalars = {
@@ -303,18 +314,27 @@ class Telemetry(Closing):
         self._columns(f"{base}/estimate/std_m", t_s, {"scalars": stds})
 
     def _columns(
-        self, path: str, t_s: FloatArray, data: dict[str, Any], *, static: bool = False
+        self,
+        path: str,
+        t_s: FloatArray,
+        data: dict[str, Any],
+        *,
+        static: bool = False,
+        steps: bool = True,
     ) -> None:
         def job(rec: Any) -> None:
             rr = rerun_sdk()
-            times = [
-                rr.TimeColumn("sim_time", duration=t_s),
-                rr.TimeColumn("step", sequence=np.arange(len(t_s))),
-            ]
+            times = [rr.TimeColumn("sim_time", duration=t_s)]
+            if steps:  # the rows are a run's steps
+                times.append(rr.TimeColumn("step", sequence=np.arange(len(t_s))))
             if "scalars" in data:
                 columns = rr.Scalars.columns(scalars=data["scalars"])
             elif "points" in data:
-                columns = rr.Points2D.columns(positions=data["points"])
+                n = len(data["points"])
+                extra = {}
+                if "radius" in data:
+                    extra = {"radii": np.full(n, data["radius"]), "labels": [data["label"]] * n}
+                columns = rr.Points2D.columns(positions=data["points"], **extra)
             else:
                 vectors, origins = data["arrows"]
                 columns = rr.Arrows2D.columns(vectors=vectors, origins=origins)
@@ -333,6 +353,8 @@ class Telemetry(Closing):
             return
         self._layout_ids = list(robot_ids) or list(self.logged_steps)
         blueprint = make_blueprint(self._layout_ids, extent_m=extent_m)
+        frame = map_frame_transform()  # the map view's y-up frame, before the view needs it
+        self._outbox.submit(lambda rec: rec.log(MAP_FRAME_ENTITY, frame, static=True), static=True)
         self._outbox.submit(lambda rec: rec.send_blueprint(blueprint), static=True)
 
     # --- lifecycle ---------------------------------------------------------------------
