@@ -348,3 +348,72 @@ def _terminate(procs: Iterable[subprocess.Popen[bytes]], *, grace_s: float) -> N
         except subprocess.TimeoutExpired:
             proc.kill()
             proc.wait(5)
+
+
+# --- a flood of one key, from a process of its own ----------------------------------------
+
+FLOOD_BATCH = 100  # puts between two looks at the clock
+
+
+def flood(
+    endpoint: str, key: str, *, after: int, seconds: float, rate_hz: float = 0.0
+) -> dict[str, float]:
+    """Copies of the `after`-th payload heard on `key` (a valid message, soon old), put
+    back on `key` at `rate_hz` (0: as fast as this process can) for `seconds` or until
+    SIGTERM: how many were put, over how long (s), at what rate (Hz). The capture waits
+    at most 60 s (nothing heard: nothing put).
+    """
+    import queue
+
+    stop = threading.Event()
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    heard: queue.Queue[bytes] = queue.Queue()
+    with open_session(TransportConfig(mode="client", connect=(endpoint,))) as session:
+        sub = session.zenoh.declare_subscriber(key, lambda s: heard.put(s.payload.to_bytes()))
+        payload, taken, deadline = b"", 0, time.monotonic() + 60.0
+        while taken < after and not stop.is_set() and time.monotonic() < deadline:
+            try:
+                payload, taken = heard.get(timeout=0.1), taken + 1
+            except queue.Empty:
+                continue
+        sub.undeclare()
+        if taken < after:
+            return {"sent": 0, "seconds": 0.0, "rate_hz": 0.0}
+        publisher = session.zenoh.declare_publisher(key)
+        sent, began = 0, time.monotonic()
+        due, end = began, began + seconds
+        while not stop.is_set():
+            for _ in range(FLOOD_BATCH):
+                publisher.put(payload)
+            sent += FLOOD_BATCH
+            now = time.monotonic()
+            if now >= end:
+                break
+            if rate_hz > 0.0:  # paced: behind by a second at most, never a burst to catch up
+                due = max(due + FLOOD_BATCH / rate_hz, now - 1.0)
+                stop.wait(max(0.0, due - now))
+        took = time.monotonic() - began
+        publisher.undeclare()
+    return {"sent": sent, "seconds": took, "rate_hz": sent / max(took, 1e-9)}
+
+
+def start_flooder(
+    endpoint: str, key: str, *, after: int, seconds: float, rate_hz: float, out: Path
+) -> subprocess.Popen[bytes]:
+    """`flood` in a process of its own: its result as JSON in `out` (written when it
+    ends, SIGTERM included), its output in `out` with the suffix `.log`.
+    """
+    argv = [sys.executable, __file__, "flood", endpoint, key]
+    argv += [str(after), str(seconds), str(rate_hz), str(out)]
+    with out.with_suffix(".log").open("ab") as sink:
+        return subprocess.Popen(argv, stdout=sink, stderr=subprocess.STDOUT)
+
+
+if __name__ == "__main__" and sys.argv[1:2] == ["flood"]:
+    import json
+
+    _endpoint, _key, _after, _seconds, _rate, _out = sys.argv[2:8]
+    _result = flood(
+        _endpoint, _key, after=int(_after), seconds=float(_seconds), rate_hz=float(_rate)
+    )
+    Path(_out).write_text(json.dumps(_result))

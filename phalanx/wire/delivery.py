@@ -2,12 +2,17 @@
 sender's rate (`KeyBuckets`), decoded totally and checked (`deliver`), or held raw in a
 bounded ring until its owner drains it (`Polled`), and the last few values per robot
 (`History`). Every payload is either handed on or counted in the session's `DecodeStats`.
+
+A rate-limited ring also drops, before it takes a token, a packed message stamped no
+later than the newest its key has delivered (`StampFilter`): a flood of copies of a
+robot's old state cannot then spend the tokens the robot's own new states need.
 """
 
 from __future__ import annotations
 
 import logging
 import math
+import struct
 import threading
 import time
 from collections import deque
@@ -15,16 +20,19 @@ from collections.abc import Callable
 from typing import Any, Generic, TypeVar
 
 from phalanx.wire.bounds import FleetBounds
-from phalanx.wire.codec import DecodeStats, decode
+from phalanx.wire.codec import LAYOUTS, DecodeStats, decode
 from phalanx.wire.keys import robot_of
 from phalanx.wire.messages import Message
 
 log = logging.getLogger("phalanx.transport")
 M = TypeVar("M", bound=Message)
 # A rate-limited subscription takes from each key this many times the rate its sender
-# publishes at, in bursts of up to BURST messages (a late batch after a stall); the rest
-# is dropped before it is decoded, and counted (`DecodeStats.rate_limited`).
+# publishes at, in bursts of what the sender publishes in STALL_S (at least BURST
+# messages): the batch that arrives at once after this process or the link stalled on a
+# loaded machine. The rest is dropped before it is decoded, and counted
+# (`DecodeStats.rate_limited`).
 RATE_HEADROOM = 4.0
+STALL_S = 5.0
 BURST = 8
 # Keys with a bucket of their own, at most; a key beyond them, or of a robot outside
 # the receiver's fleet (refused when decoded anyway), shares the OTHERS bucket.
@@ -50,6 +58,7 @@ class KeyBuckets:
         if not (math.isfinite(rate_hz) and rate_hz > 0.0):
             raise ValueError(f"a rate limit needs a positive rate, not {rate_hz} Hz")
         self.refill_hz = RATE_HEADROOM * rate_hz
+        self.burst = max(float(BURST), STALL_S * rate_hz)
         self._members = bounds.robot_ids if bounds is not None else None
         self._clock = clock
         self._lock = threading.Lock()
@@ -62,8 +71,8 @@ class KeyBuckets:
         now = self._clock()
         with self._lock:
             slot = self._slot(key, now)
-            tokens, then = self._buckets.get(slot, (float(BURST), now))
-            tokens = min(float(BURST), tokens + max(0.0, now - then) * self.refill_hz)
+            tokens, then = self._buckets.get(slot, (self.burst, now))
+            tokens = min(self.burst, tokens + max(0.0, now - then) * self.refill_hz)
             admitted = tokens >= 1.0
             self._buckets[slot] = (tokens - 1.0 if admitted else tokens, now)
             return admitted
@@ -115,12 +124,81 @@ class History:
             self._values.pop(robot_id, None)
 
 
+# The fixed-size kinds of the packed form (`phalanx.wire.codec`): packed first, in order.
+_FIXED_KINDS = frozenset("dIb?")
+_STAMP = struct.Struct("<d")
+# A key's stamp filter holds this long (s) after the newest message it delivered.
+FRESH_FOR_S = 1.0
+
+
+def stamp_offset(model: type[Message]) -> int | None:
+    """Where a packed `model`'s `stamp_s` lies in its payload (None: it has none)."""
+    kinds = ""
+    for name, kind in LAYOUTS.get(model, (0, ()))[1]:
+        if name == "stamp_s":
+            return 2 + struct.calcsize("<" + kinds)  # after the kind and version bytes
+        if kind in _FIXED_KINDS:
+            kinds += kind
+    return None
+
+
+class StampFilter:
+    """The newest stamp each key of a subscription has delivered (a valid message), and
+    whether a packed payload is older: read from its bytes, not decoded. A JSON payload,
+    or one not of `model`'s kind or version, is left to the decoder. A key that has
+    delivered nothing newer for `FRESH_FOR_S` is not filtered until it delivers again
+    (its robot's clock stepped back, or a stamp ahead held it: it is silenced that long
+    at most). At most `MAX_KEYS` keys are remembered (only keys that delivered a valid
+    message are). `stale` runs on Zenoh's thread, `delivered` on the owner's: one
+    dictionary read or write each.
+    """
+
+    def __init__(
+        self, model: type[Message], *, clock: Callable[[], float] = time.monotonic
+    ) -> None:
+        self._offset = stamp_offset(model)
+        self._kind = LAYOUTS[model][0] if model in LAYOUTS else -1
+        self._clock = clock
+        self._newest: dict[str, tuple[float, float]] = {}  # key -> (stamp, when heard)
+
+    @property
+    def active(self) -> bool:
+        """Whether `model` carries a stamp to compare."""
+        return self._offset is not None
+
+    def stale(self, key: str, payload: bytes) -> bool:
+        """Whether `payload` on `key` is packed and stamped no later than the newest."""
+        newest = self._newest.get(key)
+        offset = self._offset
+        if newest is None or offset is None or len(payload) < offset + _STAMP.size:
+            return False
+        if payload[0] != self._kind or payload[1] != 1:
+            return False
+        if self._clock() - newest[1] > FRESH_FOR_S:
+            return False
+        (stamp,) = _STAMP.unpack_from(payload, offset)
+        return bool(stamp <= newest[0])  # (NaN: False, left to the decoder)
+
+    def delivered(self, key: str, stamp_s: float) -> None:
+        """A valid message stamped `stamp_s` came through on `key`."""
+        newest = self._newest.get(key)
+        if newest is None and len(self._newest) >= MAX_KEYS:
+            return
+        now = self._clock()
+        if newest is None or stamp_s > newest[0] or now - newest[1] > FRESH_FOR_S:
+            self._newest[key] = (stamp_s, now)
+
+
 class Polled(Generic[M]):
     """A subscription whose payloads wait in a ring of `capacity` until `drain` (see
     `FleetSession.subscribe_polled`). Zenoh's callback only appends the raw payload (no
     decoding on its thread); when the ring is full the oldest payload is dropped and
     counted (`DecodeStats.ring_dropped`). With a `limit`, a payload over its key's rate
-    never enters the ring (counted: `DecodeStats.rate_limited`).
+    never enters the ring (counted: `DecodeStats.rate_limited`), and neither does a
+    packed one stamped no later than the newest its key delivered (`StampFilter`, counted
+    the same way, before it takes a token): a robot's messages come in the order it
+    stamps them, so an older one is a copy or a replay, and a flood of those would
+    otherwise take every token its key gets.
     """
 
     def __init__(
@@ -138,13 +216,19 @@ class Polled(Generic[M]):
         self._limit = limit
         self._ring: deque[tuple[str, bytes]] = deque(maxlen=capacity)
         self._lock = threading.Lock()
+        stamps = StampFilter(model)
+        self._stamps = stamps if limit is not None and stamps.active else None
 
     def put(self, sample: Any) -> None:
         """Zenoh's side: keep the sample's key and payload (the oldest goes if full)."""
         key = str(sample.key_expr)
+        payload = sample.payload.to_bytes()
+        if self._stamps is not None and self._stamps.stale(key, payload):
+            self._stats.rate_limited[self._model.__name__] += 1
+            return
         if over_rate(self._limit, key, self._stats, self._model.__name__):
             return
-        item = (key, sample.payload.to_bytes())
+        item = (key, payload)
         with self._lock:
             if len(self._ring) == self._ring.maxlen:
                 self._stats.ring_dropped[self._model.__name__] += 1
@@ -157,9 +241,22 @@ class Polled(Generic[M]):
         with self._lock:
             items = list(self._ring)
             self._ring.clear()
+        handler = on_message if self._stamps is None else self._stamped(self._stamps, on_message)
         for key, payload in items:
-            deliver(key, payload, self._model, self._stats, on_message, self._context)
+            deliver(key, payload, self._model, self._stats, handler, self._context)
         return len(items)
+
+    @staticmethod
+    def _stamped(
+        stamps: StampFilter, on_message: Callable[[str, M], None]
+    ) -> Callable[[str, M], None]:
+        """`on_message`, noting each valid message's stamp in `stamps` first."""
+
+        def handler(key: str, value: M) -> None:
+            stamps.delivered(key, float(getattr(value, "stamp_s", -math.inf)))
+            on_message(key, value)
+
+        return handler
 
 
 def deliver(

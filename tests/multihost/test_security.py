@@ -15,9 +15,10 @@ import subprocess
 import threading
 import time
 from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import pytest
 from netlab import NetLab
@@ -33,9 +34,9 @@ from phalanx.hosts.protocol import SpawnRequest
 from phalanx.hosts.request_auth import sign
 from phalanx.hosts.wiring import client_transport, local_endpoint
 from phalanx.runtime.batch import run_batch
-from phalanx.wire.codec import encode
+from phalanx.wire.codec import decode, encode
 from phalanx.wire.keys import alive_key, robot_key, status_key
-from phalanx.wire.messages import RobotFlags, RobotState, SenseFrame, VelocityCommand
+from phalanx.wire.messages import Message, RobotFlags, RobotState, SenseFrame, VelocityCommand
 from phalanx.wire.security import TlsFiles
 from phalanx.wire.transport import FleetSession, TransportConfig, free_tcp_port
 
@@ -44,6 +45,8 @@ HOSTS = ("laptop", "robot-a", "robot-b")
 PLACEMENT = {"r1": "robot-a", "r2": "robot-b", "r3": "robot-b"}
 SECURITY = 'mode = "mtls"\noperators = ["alice"]\nviewers = ["bob"]\nmay_override = ["alice"]'
 DURATION_S = 115.0  # past the deadlock reverse at t = 100 s
+CLAIMS_RUN_S = 30.0  # the real-time run r3's certificate claims the lead in
+M = TypeVar("M", bound=Message)
 
 
 def _issue_all(folder: Path, loaded: LoadedDeployment) -> None:
@@ -97,20 +100,19 @@ def _no_cert_session(cfg: TransportConfig, ca: str) -> FleetSession:
     raise AssertionError("a peer without a certificate joined the fleet")
 
 
-@pytest.fixture(scope="module")
-def secured(module_kit: Any, tmp_path_factory: pytest.TempPathFactory) -> Iterator[SecuredFleet]:
+@contextmanager
+def _secured_fleet(kit: Any, folder: Path, *, clock: str) -> Iterator[SecuredFleet]:
     """A secured deployment on three loopback hosts, daemons running (stopped at the end)."""
-    folder = tmp_path_factory.mktemp("secured")
     hosts = [(h, "127.0.0.1", free_tcp_port()) for h in HOSTS]
-    text = module_kit.deployment_text(
-        name="secured", hosts=hosts, out_dir=folder / "results", clock="lockstep",
+    text = kit.deployment_text(
+        name="secured", hosts=hosts, out_dir=folder / "results", clock=clock,
         placement=PLACEMENT, world_host="laptop", lease_ms=1000, security=SECURITY,
     )  # fmt: skip
     path = folder / "secured.toml"
     path.write_text(text)
     loaded = load_deployment(path)
     _issue_all(folder, loaded)
-    daemons = module_kit.start_daemons(path, HOSTS, folder / "logs")
+    daemons = kit.start_daemons(path, HOSTS, folder / "logs")
     try:
         with FleetClient(loaded, _operator(loaded)) as client:
             client.wait_for_hosts(30.0, lambda _text: None)
@@ -118,6 +120,21 @@ def secured(module_kit: Any, tmp_path_factory: pytest.TempPathFactory) -> Iterat
     finally:
         codes = daemons.stop()
         assert codes == dict.fromkeys(HOSTS, 0), daemons.log_tail()
+
+
+@pytest.fixture(scope="module")
+def secured(module_kit: Any, tmp_path_factory: pytest.TempPathFactory) -> Iterator[SecuredFleet]:
+    """The secured deployment in lockstep, shared by the module's tests."""
+    with _secured_fleet(module_kit, tmp_path_factory.mktemp("secured"), clock="lockstep") as made:
+        yield made
+
+
+@pytest.fixture
+def secured_realtime(kit: Any, tmp_path: Path) -> Iterator[SecuredFleet]:
+    """The same deployment on the real-time clock, where every robot hears every robot's
+    flags (in lockstep the world's frames carry the states leadership is decided on)."""
+    with _secured_fleet(kit, tmp_path, clock="realtime") as made:
+        yield made
 
 
 def _operator(loaded: LoadedDeployment, identity: str = "operator.alice") -> TransportConfig:
@@ -148,6 +165,17 @@ class Observer:
         """Keys of samples whose payload holds `marker`."""
         with self._lock:
             return [key for key, payload in self.keys if marker in payload]
+
+    def count(self) -> int:
+        """How many samples arrived so far (a point to read `decoded` from)."""
+        with self._lock:
+            return len(self.keys)
+
+    def decoded(self, model: type[M], key: str, start: int = 0) -> list[M]:
+        """The valid `model`s that arrived on `key`, from sample `start` on."""
+        with self._lock:
+            payloads = [payload for k, payload in self.keys[start:] if k == key]
+        return [m for m in (decode(model, p) for p in payloads) if m is not None]
 
 
 def _forgeries(fleet: str, stamp_s: float) -> list[tuple[str, bytes]]:
@@ -312,6 +340,106 @@ def test_the_fleet_runs_unchanged_while_a_robot_certificate_attacks_it(
     multi = json.loads(results.read_text())
     scenario = apply_overrides(load_scenario(kit.WEDGE), [f"duration_s={DURATION_S}"])
     same_follower_metrics(multi, run_metrics(run_batch(scenario)))
+
+
+def _states(observer: Observer, fleet: str, start: int = 0) -> dict[str, list[RobotState]]:
+    """Every robot's states the observer heard, from sample `start` on."""
+    return {r: observer.decoded(RobotState, robot_key(fleet, r, "state"), start) for r in PLACEMENT}
+
+
+def _until(predicate: Callable[[], bool], timeout_s: float) -> bool:
+    """Whether `predicate` held within `timeout_s` (polled every 50 ms)."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        time.sleep(0.05)
+    return predicate()
+
+
+def _claim(observer: Observer, forger: FleetSession, fleet: str, epoch: int) -> None:
+    """r3's certificate claims the lead under `epoch` on r3's own flags key (20 packets,
+    each stamped ahead of the fleet's newest state, as the local fleet's test does)."""
+    for _ in range(20):
+        now = max(s[-1].stamp_s for s in _states(observer, fleet).values() if s)
+        forged = RobotFlags(
+            robot_id="r3", seq=10**6, stamp_s=now + 0.3, fsm_state="FORMATION_TRACK",
+            epoch=epoch, formation_leader_id="r3", clear=True,
+        )  # fmt: skip
+        forger.publish_raw(robot_key(fleet, "r3", "flags"), encode(forged, "packed"))
+        time.sleep(0.05)
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(300)  # the daemons, a 30 s run, the launcher's own bounds
+def test_a_robot_certificate_cannot_take_the_lead_with_its_own_flags(
+    kit: Any, secured_realtime: SecuredFleet
+) -> None:
+    """Row 4 of the issue under mTLS. r3's certificate may publish r3's own flags (access
+    control lets them through: the observer hears them), so only the acceptance rule
+    (`Leadership.verdict`) stands between r3's claim and the lead: claims at epoch 1 (the
+    next, as a real handover carries) and 1000 while r1 lives. Every robot follows r1
+    under epoch 0 throughout; r1 and r2 count the refusals. (Before: everyone followed r3.)
+    """
+    secured = secured_realtime
+    fleet = secured.loaded.spec.fleet
+    observer = Observer(secured)
+    forger = secured.session(secured.files("robot.r3"), host="robot-b")
+    log_path = secured.folder / "launch.log"
+    argv = [
+        *kit.CLI, "launch", str(secured.loaded.path), "--identity", "operator.alice",
+        "--set", f"duration_s={CLAIMS_RUN_S}", "--run-id", "claims", "--no-table",
+        "--host-wait", "30", "--timeout", str(CLAIMS_RUN_S + 60), "--via", "laptop",
+    ]  # fmt: skip
+    with log_path.open("wb") as sink:
+        launch = subprocess.Popen(argv, stdout=sink, stderr=subprocess.STDOUT)
+    try:
+
+        def tracking() -> bool:
+            states = _states(observer, fleet)
+            return all(
+                len(states[r]) >= 20 and states[r][-1].fsm_state == "FORMATION_TRACK"
+                for r in ("r2", "r3")
+            )
+
+        assert _until(tracking, 60.0), log_path.read_text()[-3000:]
+        start = observer.count()
+        _claim(observer, forger, fleet, 1)
+        _claim(observer, forger, fleet, 1000)
+        claimed = max(s[-1].stamp_s for s in _states(observer, fleet).values())
+
+        def went_on() -> bool:  # every robot published for a second after the claims
+            states = _states(observer, fleet, start).values()
+            return all(s and s[-1].stamp_s > claimed + 1.0 for s in states)
+
+        assert _until(went_on, 30.0)
+        statuses = {
+            r: observer.session.query_status(status_key(fleet, r), 2.0) for r in ("r1", "r2")
+        }
+        code = launch.wait(CLAIMS_RUN_S + 90)
+    finally:
+        if launch.poll() is None:
+            launch.terminate()
+            try:
+                launch.wait(30)
+            except subprocess.TimeoutExpired:
+                launch.kill()
+                launch.wait(5)
+        forger.close()
+        observer.session.close()
+    heard = observer.decoded(RobotFlags, robot_key(fleet, "r3", "flags"), start)
+    assert {f.epoch for f in heard if f.formation_leader_id == "r3"} == {1, 1000}  # the control
+    followed = {
+        (s.robot_id, s.formation_leader_id, s.epoch)
+        for states in _states(observer, fleet, start).values()
+        for s in states
+    }
+    assert followed == {("r1", "r1", 0), ("r2", "r1", 0), ("r3", "r1", 0)}, followed
+    for rid, replies in statuses.items():  # the claims were heard, refused and counted
+        assert len(replies) == 1, (rid, replies)
+        assert replies[0]["leader_claims_refused"] > 0, replies[0]
+        assert replies[0]["decode"]["rejected"].get("RobotFlags", 0) > 0, replies[0]
+    assert code == 0, log_path.read_text()[-3000:] + secured.daemons.log_tail()
 
 
 # --- across namespaces ----------------------------------------------------------------
