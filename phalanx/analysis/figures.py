@@ -1,4 +1,4 @@
-"""PNG figures of a run, the counterparts of the paper's figures 4b, 5, 6 and 7 (its
+"""Figures of a run (PNG, PDF or SVG), the counterparts of the paper's figures 4b, 5, 6 and 7 (its
 figure 4a, the state machine, is drawn by `phalanx fsm`: `phalanx.analysis.fsm_picture`).
 
 fig4b: behaviour state over time, with who led; fig5: trajectories (and obstacles) with the
@@ -10,12 +10,18 @@ Figures scale with the fleet: up to `LEGEND_MAX` robots each gets its own line a
 legend entry; a larger fleet's lines go into one `LineCollection` per kind, each line
 decimated to about `POINTS_PER_LINE` points (more than the pixels it is drawn across),
 so a 1000-robot run draws in seconds (`phalanx.analysis.plotting`).
+
+Drawn for a paper: every legend sits outside the axes (right of them), every robot has
+a line style of its own besides its colour (paths that overlap stay told apart), the
+titles name the scenario and the controller, and the trajectories' axes fit the course
+at equal aspect.
 """
 
 from __future__ import annotations
 
 import math
 from pathlib import Path
+from typing import Any, Literal, get_args
 
 import matplotlib as mpl
 
@@ -24,7 +30,8 @@ import matplotlib.pyplot as plt
 import numpy as np
 from matplotlib.axes import Axes
 from matplotlib.figure import Figure
-from matplotlib.patches import Circle, Polygon
+from matplotlib.lines import Line2D
+from matplotlib.patches import Circle, Patch, Polygon
 
 from phalanx.analysis.metrics import (
     error_series,
@@ -47,6 +54,39 @@ from phalanx.core.runlog import RunLog
 from phalanx.core.scenarios import resolve_world
 from phalanx.core.states import State
 
+FigureFormat = Literal["png", "pdf", "svg"]
+FORMATS: tuple[FigureFormat, ...] = get_args(FigureFormat)
+DEFAULT_DPI = 150
+# Pixel density bounds: below is unreadable, above costs seconds and tens of megabytes.
+DPI_MIN, DPI_MAX = 50, 600
+# A style per robot besides its colour (no plain dotted: that marks desired values).
+LINESTYLES: tuple[str | tuple[int, tuple[int, ...]], ...] = (
+    "-",
+    "--",
+    "-.",
+    (0, (1, 1)),
+    (0, (5, 1, 1, 1, 1, 1)),
+    (0, (8, 2)),
+)
+# Room for the legend right of the axes, in inches.
+LEGEND_ROOM_IN = 1.6
+
+
+def _style(i: int) -> dict[str, Any]:
+    """Colour and line style of the i-th robot."""
+    return {"color": COLOURS[i % len(COLOURS)], "ls": LINESTYLES[i % len(LINESTYLES)]}
+
+
+def _title(log: RunLog, what: str) -> str:
+    return f"{log.scenario.name} / {log.scenario.controller.kind}: {what}"
+
+
+def _legend_outside(fig: Figure, handles: list[Any]) -> None:
+    """One legend for the whole figure, right of every axes (the figure's layout must be
+    constrained, which makes room for it).
+    """
+    fig.legend(handles=handles, loc="outside right upper", fontsize=9)
+
 
 def _followers(log: RunLog) -> list[str]:
     return [r for r in log.formation.robot_ids if is_follower(log, r)]
@@ -66,6 +106,17 @@ def _reverse_spans(log: RunLog) -> list[tuple[float, float]]:
     return spans
 
 
+def _key(log: RunLog, line: tuple[str, str]) -> list[Any]:
+    """Legend entries for a black line of style `line[1]` meaning `line[0]`, and for the
+    grey reverse shading if the run reversed.
+    """
+    label, ls = line
+    out: list[Any] = [Line2D([], [], color="k", ls=ls, lw=1, label=label)]
+    if _reverse_spans(log):
+        out.append(Patch(color="0.85", label="reverse"))
+    return out
+
+
 def _shade(ax: Axes, log: RunLog) -> None:
     for i, (a, b) in enumerate(_reverse_spans(log)):
         ax.axvspan(a, b, color="0.85", label="reverse" if i == 0 else None)
@@ -82,51 +133,99 @@ def draw_world(ax: Axes, log: RunLog) -> None:
         ax.plot(x, y, "k*", ms=12, zorder=3)
 
 
+def _extent(log: RunLog) -> tuple[float, float, float, float]:
+    """(x min, x max, y min, y max) of the paths, obstacles and waypoints, with a margin."""
+    xs = [np.zeros(0)] + [np.asarray(tr.x_m, dtype=float) for tr in log.traces.values()]
+    ys = [np.zeros(0)] + [np.asarray(tr.y_m, dtype=float) for tr in log.traces.values()]
+    world = resolve_world(log.scenario.world)
+    for c in world.circles:
+        xs.append(np.array([c.x_m - c.radius_m, c.x_m + c.radius_m]))
+        ys.append(np.array([c.y_m - c.radius_m, c.y_m + c.radius_m]))
+    for poly in world.polygons:
+        xs.append(np.array([v[0] for v in poly.vertices_m], dtype=float))
+        ys.append(np.array([v[1] for v in poly.vertices_m], dtype=float))
+    for wx, wy in log.scenario.navigation.waypoints:
+        xs.append(np.array([wx], dtype=float))
+        ys.append(np.array([wy], dtype=float))
+    x, y = np.concatenate(xs), np.concatenate(ys)
+    x, y = x[np.isfinite(x)], y[np.isfinite(y)]
+    x0, x1 = (float(x.min()), float(x.max())) if x.size else (0.0, 1.0)
+    y0, y1 = (float(y.min()), float(y.max())) if y.size else (0.0, 1.0)
+    margin = 0.05 * max(x1 - x0, y1 - y0, 1.0)
+    return x0 - margin, x1 + margin, y0 - margin, y1 + margin
+
+
+def _map_size(extent: tuple[float, float, float, float], legend: bool) -> tuple[float, float]:
+    """A figure size (inches) whose axes have about the course's shape: 7 in wide, as
+    tall as the course at equal aspect within 2.5-9 in, plus the title, labels and legend.
+    """
+    x0, x1, y0, y1 = extent
+    height = min(9.0, max(2.5, 7.0 * (y1 - y0) / max(x1 - x0, 1e-9)))
+    return 7.0 + 1.0 + (LEGEND_ROOM_IN if legend else 0.0), height + 1.3
+
+
 def trajectories(log: RunLog) -> Figure:
-    """Figure 5: every robot's path; the reverse phase drawn thick and dashed."""
-    fig, ax = plt.subplots(figsize=(8, 7))
+    """Figure 5: every robot's path, a style each; the reverse phase drawn over it as a
+    wide pale band of the robot's colour; circles at the starts, squares at the ends.
+    """
+    legend = len(log.traces) <= LEGEND_MAX
+    extent = _extent(log)
+    fig, ax = plt.subplots(figsize=_map_size(extent, legend), layout="constrained")
     draw_world(ax, log)
-    if len(log.traces) > LEGEND_MAX:
+    if not legend:
         fleet_trajectories(ax, log)
-    for i, (rid, tr) in enumerate(log.traces.items() if len(log.traces) <= LEGEND_MAX else ()):
-        colour = COLOURS[i % len(COLOURS)]
-        ax.plot(tr.x_m, tr.y_m, color=colour, lw=1.0, label=rid)
+    handles: list[Any] = []
+    n = len(log.traces)
+    for i, (rid, tr) in enumerate(log.traces.items() if legend else ()):
+        style = _style(i)
         back = np.where(tr.direction < 0, tr.y_m, np.nan)
-        ax.plot(tr.x_m, back, color=colour, lw=2.5, ls="--")
-        ax.plot(tr.x_m[0], tr.y_m[0], "o", color=colour)
-        ax.plot(tr.x_m[-1], tr.y_m[-1], "s", color=colour)
-    ax.set(xlabel="x (m)", ylabel="y (m)", aspect="equal")
-    ax.set_title(
-        f"{log.scenario.name} / {log.scenario.controller.kind}: trajectories "
-        "(dashed = reverse; o start, s end)"
-    )
-    if len(log.traces) <= LEGEND_MAX:
-        ax.legend()
+        ax.plot(tr.x_m, back, color=style["color"], lw=7, alpha=0.3, solid_capstyle="butt")
+        # the first robots drawn wider, so that paths on top of each other all show
+        lw = 1.2 + 0.9 * (n - 1 - i) if n <= len(LINESTYLES) else 1.2
+        (line,) = ax.plot(tr.x_m, tr.y_m, lw=lw, label=rid, **style)
+        handles.append(line)
+        ax.plot(tr.x_m[0], tr.y_m[0], "o", color=style["color"], zorder=4)
+        ax.plot(tr.x_m[-1], tr.y_m[-1], "s", color=style["color"], zorder=4)
+    x0, x1, y0, y1 = extent
+    ax.set(xlabel="x (m)", ylabel="y (m)", xlim=(x0, x1), ylim=(y0, y1))
+    ax.set_aspect("equal", adjustable="box")
+    ax.set_title(_title(log, "trajectories"))
+    if legend:
+        handles += [
+            Patch(color="0.5", alpha=0.3, label="reverse (pale band)"),
+            Line2D([], [], ls="", marker="o", color="k", label="circle: start"),
+            Line2D([], [], ls="", marker="s", color="k", label="square: end"),
+        ]
+        _legend_outside(fig, handles)
     ax.grid(True, alpha=0.3)
     return fig
 
 
 def separations(log: RunLog) -> Figure:
     """Figure 6: l and phi of every follower against l_d and phi_d."""
-    fig, (ax_l, ax_p) = plt.subplots(2, 1, figsize=(9, 7), sharex=True)
     followers = _followers(log)
     fleet = len(followers) > LEGEND_MAX
+    width = 9 + (0 if fleet else LEGEND_ROOM_IN)
+    fig, (ax_l, ax_p) = plt.subplots(2, 1, figsize=(width, 7), sharex=True, layout="constrained")
+    handles: list[Any] = []
     lines_l, lines_p, desired_l, desired_p = [], [], [], []
     for i, rid in enumerate(followers):
         parents = [p for p in tracked_series(log, rid) if p]
         leader = max(set(parents), key=parents.count)  # the robot it tracked most
         series = error_series(log, rid)
         l_d, phi_d = log.formation.polar_of(rid, leader)
-        colour = COLOURS[(i + 1) % len(COLOURS)]
+        style = _style(i + 1)
+        colour = style["color"]
         if fleet:
             lines_l.append(decimated(log.t_s, series.l_m))
             lines_p.append(decimated(log.t_s, np.degrees(series.phi_rad)))
             desired_l.append(l_d)
             desired_p.append(math.degrees(phi_d))
             continue
-        ax_l.plot(log.t_s, series.l_m, color=colour, label=f"{rid} to {leader}")
+        (line,) = ax_l.plot(log.t_s, series.l_m, label=f"{rid} to {leader}", **style)
+        handles.append(line)
         ax_l.axhline(l_d, color=colour, ls=":", lw=1)
-        ax_p.plot(log.t_s, np.degrees(series.phi_rad), color=colour, label=rid)
+        ax_p.plot(log.t_s, np.degrees(series.phi_rad), **style)
         ax_p.axhline(math.degrees(phi_d), color=colour, ls=":", lw=1)
     if fleet:
         for ax, lines, desired in ((ax_l, lines_l, desired_l), (ax_p, lines_p, desired_p)):
@@ -137,9 +236,9 @@ def separations(log: RunLog) -> Figure:
     for ax in (ax_l, ax_p):
         _shade(ax, log)
         ax.grid(True, alpha=0.3)
-        if not fleet:
-            ax.legend(loc="upper right")
-    ax_l.set(ylabel="l (m)", title="separations (dotted = desired; grey = reverse)")
+    if not fleet:
+        _legend_outside(fig, handles + _key(log, ("desired", ":")))
+    ax_l.set(ylabel="l (m)", title=_title(log, "separations (dotted = desired; grey = reverse)"))
     ax_p.set(ylabel="phi (deg)", xlabel="t (s)")
     return fig
 
@@ -147,8 +246,10 @@ def separations(log: RunLog) -> Figure:
 def velocities(log: RunLog) -> Figure:
     """Figure 7: translational and rotational velocities against the run's limits."""
     limits = KinematicLimits.from_params(log.robot, log.scenario.limits)
-    fig, (ax_v, ax_w) = plt.subplots(2, 1, figsize=(9, 7), sharex=True)
     fleet = len(log.traces) > LEGEND_MAX
+    width = 9 + (0 if fleet else LEGEND_ROOM_IN)
+    fig, (ax_v, ax_w) = plt.subplots(2, 1, figsize=(width, 7), sharex=True, layout="constrained")
+    handles: list[Any] = []
     if fleet:
         traces = list(log.traces.values())
         collection(ax_v, [decimated(log.t_s, tr.v_mps) for tr in traces], lw=0.8)
@@ -156,17 +257,18 @@ def velocities(log: RunLog) -> Figure:
         collection(ax_w, w_deg, lw=0.8)
         fleet_note(ax_v, len(traces))
     for i, (rid, tr) in enumerate(log.traces.items() if not fleet else ()):
-        colour = COLOURS[i % len(COLOURS)]
-        ax_v.plot(log.t_s, tr.v_mps, color=colour, label=rid)
-        ax_w.plot(log.t_s, np.degrees(tr.omega_radps), color=colour, label=rid)
+        style = _style(i)
+        (line,) = ax_v.plot(log.t_s, tr.v_mps, label=rid, **style)
+        handles.append(line)
+        ax_w.plot(log.t_s, np.degrees(tr.omega_radps), **style)
     for ax, bound in ((ax_v, limits.v_max_mps), (ax_w, math.degrees(limits.omega_max_radps))):
         ax.axhline(bound, color="k", ls="--", lw=1)
         ax.axhline(-bound, color="k", ls="--", lw=1)
         _shade(ax, log)
         ax.grid(True, alpha=0.3)
-        if not fleet:
-            ax.legend(loc="upper right")
-    ax_v.set(ylabel="v (m/s)", title="velocity profiles (dashed = limits)")
+    if not fleet:
+        _legend_outside(fig, handles + _key(log, ("limits", "--")))
+    ax_v.set(ylabel="v (m/s)", title=_title(log, "velocity profiles (dashed = limits)"))
     ax_w.set(ylabel="omega (deg/s)", xlabel="t (s)")
     return fig
 
@@ -314,22 +416,32 @@ FIGURES = {
 }
 
 
-def write_figures(log: RunLog, folder: Path) -> list[Path]:
-    """Draw every figure of `log` into `folder`; returns the files written."""
+def figure_name(name: str, fmt: FigureFormat) -> str:
+    """The file name of figure `name` (a key of FIGURES) in format `fmt`."""
+    return str(Path(name).with_suffix(f".{fmt}"))
+
+
+def write_figures(
+    log: RunLog, folder: Path, *, fmt: FigureFormat = "png", dpi: int = DEFAULT_DPI
+) -> list[Path]:
+    """Draw every figure of `log` into `folder` as `fmt` files (`dpi`: the PNG's pixels
+    per inch; PDF and SVG are vector); returns the files written.
+    """
     folder.mkdir(parents=True, exist_ok=True)
     written = []
     for name, draw in FIGURES.items():
         fig = draw(log)
-        path = folder / name
-        fig.savefig(path, dpi=90)
-        plt.close(fig)
-        written.append(path)
+        written.append(save_figure(fig, folder / figure_name(name, fmt), dpi=dpi))
     return written
 
 
-def save_figure(fig: Figure, path: Path, *, dpi: int = 90) -> Path:
-    """Write `fig` as a PNG at `path` and close it."""
+def save_figure(fig: Figure, path: Path, *, dpi: int = DEFAULT_DPI) -> Path:
+    """Write `fig` at `path` (its format from the suffix: png, pdf or svg) and close it."""
+    if not DPI_MIN <= dpi <= DPI_MAX:
+        raise ValueError(f"dpi must be within {DPI_MIN}-{DPI_MAX}, not {dpi}")
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=dpi)
-    plt.close(fig)
+    try:
+        fig.savefig(path, dpi=dpi)
+    finally:
+        plt.close(fig)
     return path

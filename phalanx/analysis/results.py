@@ -1,4 +1,4 @@
-"""A run's results folder: `metrics.json`, the paper's figures as PNGs and the traces
+"""A run's results folder: `metrics.json`, the paper's figures (PNG, PDF or SVG) and the traces
 they are drawn from (`traces.npz`), a Rerun `.rrd`.
 
 `phalanx run` (in process) and `phalanx up` (one process per robot) both write it. A run
@@ -29,7 +29,14 @@ from typing import IO, Any
 
 import numpy as np
 
-from phalanx.analysis.figures import FIGURES, write_figures
+from phalanx.analysis.figures import (
+    DEFAULT_DPI,
+    FIGURES,
+    FORMATS,
+    FigureFormat,
+    figure_name,
+    write_figures,
+)
 from phalanx.analysis.metrics import error_series, is_follower, run_metrics
 from phalanx.core.errors import PhalanxError
 from phalanx.core.limits import KinematicLimits
@@ -48,7 +55,12 @@ def _finite(value: Any) -> Any:
     return value
 
 
-RESULT_FILES = ("metrics.json", "traces.npz", "run.rrd", *FIGURES)
+RESULT_FILES = (
+    "metrics.json",
+    "traces.npz",
+    "run.rrd",
+    *(figure_name(name, fmt) for fmt in FORMATS for name in FIGURES),
+)
 
 
 class ResultsNotWritten(PhalanxError, OSError):
@@ -220,32 +232,46 @@ def read_traces(path: Path) -> dict[str, dict[str, Any]]:
     return out
 
 
-def write_figures_atomically(log: RunLog, folder: Path) -> None:
-    """The paper's figures, drawn into a temporary folder beside `folder`'s and moved
-    in one by one: a figure is there whole or not at all.
+def write_figures_atomically(
+    log: RunLog, folder: Path, *, fmt: FigureFormat = "png", dpi: int = DEFAULT_DPI
+) -> None:
+    """The paper's figures as `fmt` files (`dpi`: a PNG's pixels per inch), drawn into a
+    temporary folder beside `folder`'s and moved in one by one: a figure is there whole
+    or not at all.
     """
     drafts = Path(tempfile.mkdtemp(dir=folder, prefix=".figures."))
     try:
-        for path in write_figures(log, drafts):
+        for path in write_figures(log, drafts, fmt=fmt, dpi=dpi):
             os.replace(path, folder / path.name)
     finally:
         shutil.rmtree(drafts, ignore_errors=True)
 
 
 def write_results(
-    log: RunLog, folder: Path, *, recording: bool = True, figures: bool = True
+    log: RunLog,
+    folder: Path,
+    *,
+    recording: bool = True,
+    figures: bool = True,
+    figure_format: FigureFormat = "png",
+    dpi: int = DEFAULT_DPI,
 ) -> dict[str, Any]:
-    """Write the results folder of `log` (without the PNG figures and the traces they
-    are drawn from if not `figures`, and without the recording if not `recording`);
-    returns the metrics. The metrics first (the smallest and the most wanted), each file
-    atomically; a write that fails raises ResultsNotWritten.
+    """Write the results folder of `log` (without the figures and the traces they are
+    drawn from if not `figures`, and without the recording if not `recording`; the
+    figures as `figure_format` files, a PNG at `dpi`); returns the metrics. The metrics
+    first (the smallest and the most wanted), each file atomically; a write that fails
+    raises ResultsNotWritten.
     """
     _guarded(folder, "the results folder", lambda: folder.mkdir(parents=True, exist_ok=True))
     metrics = run_metrics(log)
     _guarded(folder, "metrics.json", lambda: write_metrics(metrics, folder / "metrics.json"))
     if figures:
         _guarded(folder, "traces.npz", lambda: write_traces(log, folder / "traces.npz"))
-        _guarded(folder, "the figures", lambda: write_figures_atomically(log, folder))
+        _guarded(
+            folder,
+            "the figures",
+            lambda: write_figures_atomically(log, folder, fmt=figure_format, dpi=dpi),
+        )
     if recording:
         _guarded(folder, "run.rrd", lambda: write_recording(log, folder / "run.rrd"))
     return metrics

@@ -4,12 +4,15 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from pathlib import Path
-from typing import Annotated, get_args
+from typing import TYPE_CHECKING, Annotated, get_args
 
 import typer
 
 from phalanx.cli.style import choice
 from phalanx.core.config import ControllerKind
+
+if TYPE_CHECKING:
+    from phalanx.analysis.figures import FigureFormat
 
 ScenarioArg = Annotated[
     Path, typer.Argument(help="Scenario TOML file.", exists=True, dir_okay=False)
@@ -17,6 +20,15 @@ ScenarioArg = Annotated[
 OutOpt = Annotated[Path | None, typer.Option("--out", "-o", help="Results folder.")]
 ControllerOpt = Annotated[
     str | None, typer.Option(help="Override the controller: tracking, switching, icr, ours.")
+]
+# The bounds of --dpi are `phalanx.analysis.figures`' DPI_MIN and DPI_MAX (not imported
+# here: that would load matplotlib for every command).
+FormatOpt = Annotated[
+    str,
+    typer.Option("--format", help="The figures' file format: png, pdf or svg (vector)."),
+]
+DpiOpt = Annotated[
+    int, typer.Option(min=50, max=600, help="The PNG figures' pixels per inch (50-600).")
 ]
 SetOpt = Annotated[
     list[str] | None,
@@ -30,8 +42,10 @@ def run(
     controller: ControllerOpt = None,
     set_: SetOpt = None,
     recording: Annotated[bool, typer.Option(help="Write a Rerun .rrd of the run.")] = True,
-    figures: Annotated[bool, typer.Option(help="Draw the PNG figures (a step of its own).")] = True,
+    figures: Annotated[bool, typer.Option(help="Draw the figures (a step of its own).")] = True,
     progress: Annotated[bool, typer.Option(help="Show a progress bar.")] = True,
+    figure_format: FormatOpt = "png",
+    dpi: DpiOpt = 150,
 ) -> None:
     """Run SCENARIO with every robot in this process; write metrics, figures and a recording."""
     from phalanx.analysis.report import print_summary
@@ -39,6 +53,7 @@ def run(
     from phalanx.core.config_files import apply_overrides, load_scenario
     from phalanx.runtime.batch import run_batch
 
+    fmt = _figure_format(figure_format)
     config = load_scenario(scenario)
     overrides = list(set_ or [])
     if controller is not None:
@@ -46,7 +61,9 @@ def run(
     config = apply_overrides(config, overrides, source=str(scenario)) if overrides else config
     folder = out or Path("results") / f"{config.name}-{config.controller.kind}"
     log = run_batch(config, progress=_progress_bar() if progress else None)
-    metrics = write_results(log, folder, recording=recording, figures=figures)
+    metrics = write_results(
+        log, folder, recording=recording, figures=figures, figure_format=fmt, dpi=dpi
+    )
     print_summary(metrics)
     typer.echo(f"results: {folder}")
 
@@ -55,6 +72,13 @@ def _controller(name: str) -> ControllerKind:
     valid: tuple[ControllerKind, ...] = get_args(ControllerKind)
     choice(name, valid, option="--controller")
     return next(kind for kind in valid if kind == name)
+
+
+def _figure_format(name: str) -> FigureFormat:
+    from phalanx.analysis.figures import FORMATS
+
+    choice(name, FORMATS, option="--format")
+    return next(fmt for fmt in FORMATS if fmt == name)
 
 
 def _progress_bar() -> Callable[[int, int], None]:
