@@ -1,6 +1,6 @@
 """The architecture's rules as tests: the import contract between layers, no loop of
-imports between modules, a repository that stands on its own, and the README's arbitration
-table equal to the one the transitions generate.
+imports between modules, a repository that stands on its own, and the arbitration table
+in docs/BEHAVIOUR.md equal to the one the transitions generate.
 """
 
 from __future__ import annotations
@@ -171,5 +171,5 @@ def test_nothing_in_the_repository_points_outside_it() -> None:
 
 
 def test_the_readme_shows_the_arbitration_the_transitions_generate() -> None:
-    readme = (REPO / "README.md").read_text()
+    readme = (REPO / "docs" / "BEHAVIOUR.md").read_text()
     assert arbitration_markdown() in readme

@@ -9,7 +9,7 @@ arbitration table, `ARBITRATION`, is the transition priorities in writing: a hig
 wins whenever its condition holds, whatever lower row is active.
 
 The context is built by the agent once per step, before the update; guards only read it.
-The arbitration table is generated from the transitions (`arbitration()`); the README
+The arbitration table is generated from the transitions (`arbitration()`); docs/BEHAVIOUR.md
 shows it, and a test keeps the two equal.
 """
 
@@ -134,7 +134,7 @@ ARBITRATION = arbitration()
 
 
 def arbitration_markdown(rules: Sequence[Rule] = ARBITRATION) -> str:
-    """The arbitration table as markdown (highest priority first), as the README has it."""
+    """The arbitration table as markdown (highest priority first), as docs/BEHAVIOUR.md has it."""
     rows = ["| priority | behaviour | layer | role | when |", "|---:|---|---|---|---|"]
     for r in rules:
         states = " / ".join(f"`{s}`" for s in r.behaviour.split(" / "))

@@ -2,7 +2,7 @@
 `dot`, one box per group of states (`phalanx.core.states.STATE_GROUPS`) as a Stateflow
 chart nests superstates, every edge labelled with its guard.
 
-The picture is drawn from the same transitions the robots run and the README's
+The picture is drawn from the same transitions the robots run and docs/BEHAVIOUR.md's
 arbitration table is generated from (`behaviour_transitions()`). To stay readable, a
 family of transitions is drawn as one edge where Stateflow would draw one:
 

@@ -1,6 +1,6 @@
 """The state machine picture (`phalanx fsm`, docs/figures/fsm.*): every state once, in its
 group's box; every transition an edge labelled with its guard; the same transitions as the
-README's arbitration table; and the committed figures are the ones the code draws.
+arbitration table in docs/BEHAVIOUR.md; and the committed figures are the ones the code draws.
 
 The DOT source is read back by the renderer itself (`-Tjson`), so these tests check what
 Graphviz understood, not what a regular expression finds in the text.
@@ -163,8 +163,8 @@ def test_the_picture_and_the_readme_table_come_from_the_same_transitions() -> No
     for rule in ARBITRATION:
         for state in rule.behaviour.split(" / "):
             assert state in entered, (rule.priority, state)
-    readme = (REPO / "README.md").read_text()
-    assert "docs/figures/fsm.svg" in readme
+    readme = (REPO / "docs" / "BEHAVIOUR.md").read_text()
+    assert "](figures/fsm.svg)" in readme
 
 
 def test_it_renders_to_svg_and_png() -> None:
