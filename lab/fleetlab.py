@@ -183,7 +183,7 @@ class Fleet:
 
     def stop(self) -> None:
         """SIGTERM every process (SIGCONT first: one may be frozen), SIGKILL after 10 s."""
-        _terminate(self.procs.values(), grace_s=10.0)
+        terminate(self.procs.values(), grace_s=10.0)
 
     # --- the observer's session ---------------------------------------------------------
 
@@ -316,7 +316,7 @@ class Hosts:
 
     def stop(self) -> None:
         """SIGTERM every daemon and the router (SIGCONT first), SIGKILL after 20 s."""
-        _terminate(self.procs.values(), grace_s=20.0)
+        terminate(self.procs.values(), grace_s=20.0)
 
 
 @contextmanager
@@ -333,7 +333,7 @@ def running_hosts(workdir: Path, deployment: Path, *, router: bool) -> Iterator[
         hosts.stop()
 
 
-def _terminate(procs: Iterable[subprocess.Popen[bytes]], *, grace_s: float) -> None:
+def terminate(procs: Iterable[subprocess.Popen[Any]], *, grace_s: float) -> None:
     """SIGTERM every live process (SIGCONT first: one may be frozen); SIGKILL any still
     running after `grace_s`.
     """

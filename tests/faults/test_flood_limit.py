@@ -19,7 +19,6 @@ from __future__ import annotations
 import json
 import logging
 import struct
-import subprocess
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -28,7 +27,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from fleetlab import Fleet, start_flooder
+from fleetlab import Fleet, start_flooder, terminate
 
 from phalanx.wire.bounds import FleetBounds
 from phalanx.wire.codec import DecodeStats, encode
@@ -321,12 +320,7 @@ def _run(workdir: Path, name: str, *, flood: bool) -> dict[str, Any]:
         out["codes"] = {n: fleet.wait_exit(n, 30.0) for n in fleet.procs}
     finally:
         if flooder is not None:
-            flooder.terminate()
-            try:
-                flooder.wait(20)
-            except subprocess.TimeoutExpired:
-                flooder.kill()
-                flooder.wait(5)
+            terminate([flooder], grace_s=20.0)
         fleet.stop()
     if flood and (workdir / "flood.json").exists():
         out["flood"] = json.loads((workdir / "flood.json").read_text())

@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import Any, TypeVar
 
 import pytest
+from fleetlab import terminate
 from netlab import NetLab
 
 from phalanx.analysis.metrics import run_metrics
@@ -418,13 +419,7 @@ def test_a_robot_certificate_cannot_take_the_lead_with_its_own_flags(
         }
         code = launch.wait(CLAIMS_RUN_S + 90)
     finally:
-        if launch.poll() is None:
-            launch.terminate()
-            try:
-                launch.wait(30)
-            except subprocess.TimeoutExpired:
-                launch.kill()
-                launch.wait(5)
+        terminate([launch], grace_s=30.0)
         forger.close()
         observer.session.close()
     heard = observer.decoded(RobotFlags, robot_key(fleet, "r3", "flags"), start)
