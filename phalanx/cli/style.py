@@ -34,7 +34,7 @@ VERB_GROUPS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("Fleets and robots", ("agent", "world", "emulate", "mocap")),
     ("Deploy on hosts", ("launch", "status", "stop", "host", "router", "pki")),
     ("Analyse", ("report", "sweep", "sweep-compare")),
-    ("Tools", ("fsm",)),
+    ("Tools", ("validate", "fsm")),
 )
 _TOOLS = VERB_GROUPS[-1][0]
 _SUMMARY_CHARS = 300  # a verb's summary in the list: its first sentence, up to this
