@@ -6,8 +6,8 @@ from __future__ import annotations
 
 import math
 import shutil
-from collections.abc import Sequence
-from concurrent.futures import ProcessPoolExecutor
+from collections.abc import Callable, Sequence
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -68,10 +68,22 @@ def run_case(case: Case, out_root: Path) -> dict[str, Any]:
     return write_results(log, out_root / case.label, recording=False)
 
 
-def run_matrix(cases: Sequence[Case], out_root: Path, *, workers: int = 2) -> list[dict[str, Any]]:
-    """Run every case (in `workers` processes); metrics in the order of `cases`."""
+def run_matrix(
+    cases: Sequence[Case],
+    out_root: Path,
+    *,
+    workers: int = 2,
+    progress: Callable[[int, int], None] | None = None,
+) -> list[dict[str, Any]]:
+    """Run every case (in `workers` processes); metrics in the order of `cases`.
+    `progress(done, total)` is called at the start and as each case finishes.
+    """
     with ProcessPoolExecutor(max_workers=workers) as pool:
         futures = [pool.submit(run_case, case, out_root) for case in cases]
+        if progress is not None:
+            progress(0, len(futures))
+            for done, _ in enumerate(as_completed(futures), start=1):
+                progress(done, len(futures))
         return [f.result() for f in futures]
 
 
@@ -299,12 +311,19 @@ def default_cases() -> list[Case]:
     return cases + [Case(f, "ours", noise=True) for f in FORMATIONS]
 
 
-def write_report(docs: Path, out_root: Path, *, workers: int = 2) -> list[dict[str, Any]]:
+def write_report(
+    docs: Path,
+    out_root: Path,
+    *,
+    workers: int = 2,
+    progress: Callable[[int, int], None] | None = None,
+) -> list[dict[str, Any]]:
     """Run the matrix and write docs/RESULTS.md with its figures (keeping the sections
-    the benchmarks write between their markers, `KEPT_SECTIONS`).
+    the benchmarks write between their markers, `KEPT_SECTIONS`); `progress` as in
+    `run_matrix`.
     """
     cases = default_cases()
-    results = run_matrix(cases, out_root, workers=workers)
+    results = run_matrix(cases, out_root, workers=workers, progress=progress)
     figures = copy_figures(cases, out_root, docs)
     path = docs / "RESULTS.md"
     old = path.read_text(encoding="utf-8") if path.exists() else ""

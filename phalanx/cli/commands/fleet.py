@@ -12,7 +12,10 @@ from typing import TYPE_CHECKING, Annotated, Literal, NoReturn
 
 import typer
 
+from phalanx.cli.commands.run import DpiOpt, FormatOpt
+
 if TYPE_CHECKING:
+    from phalanx.analysis.figures import FigureFormat
     from phalanx.analysis.results import ResultsNotWritten
     from phalanx.core.config import Scenario
     from phalanx.core.robot_params import RobotParams
@@ -351,6 +354,8 @@ def world(
             "needs --clock realtime and --epoch).",
         ),
     ] = None,
+    figure_format: FormatOpt = "png",
+    dpi: DpiOpt = 150,
 ) -> None:
     """Run the world for agents in other processes: simulate the robots on the sim
     driver, record the ones that move on their own; write the results folder (and, while
@@ -358,10 +363,12 @@ def world(
     run, 5 for one its results mark incomplete, 6 if the results could not be written.
     """
     from phalanx.analysis.results import ResultsNotWritten, write_checkpoint
+    from phalanx.cli.commands.run import _figure_format
     from phalanx.core.config_files import load_robot
     from phalanx.runtime.exits import EXIT_INCOMPLETE
     from phalanx.runtime.world_process import WorldOptions, WorldProcess
 
+    fmt = _figure_format(figure_format)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s world %(levelname)s %(message)s")
     config = _scenario(scenario, set_)
     transport = _transport(
@@ -380,7 +387,9 @@ def world(
         )  # fmt: skip
         run_log = process.run(_stop_on_signals())
     try:
-        complete = _write_world_results(process, run_log, folder, recording=recording)
+        complete = _write_world_results(
+            process, run_log, folder, recording=recording, figure_format=fmt, dpi=dpi
+        )
     except ResultsNotWritten as exc:
         _results_lost(exc)
     typer.echo(f"results: {folder}")
@@ -389,13 +398,21 @@ def world(
 
 
 def _write_world_results(
-    process: WorldProcess, run_log: RunLog, folder: Path, *, recording: bool
+    process: WorldProcess,
+    run_log: RunLog,
+    folder: Path,
+    *,
+    recording: bool,
+    figure_format: FigureFormat = "png",
+    dpi: int = 150,
 ) -> bool:
     """The world's results folder, its summary printed; whether the run is complete."""
     from phalanx.analysis.report import print_summary
     from phalanx.analysis.results import mark_results, write_results
 
-    metrics = write_results(run_log, folder, recording=recording)
+    metrics = write_results(
+        run_log, folder, recording=recording, figure_format=figure_format, dpi=dpi
+    )
     marked = mark_results(folder, problems=[])
     print_summary(metrics)
     missed = {r: n for r, n in process.missed.items() if n}

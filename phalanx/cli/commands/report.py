@@ -14,11 +14,15 @@ def report(
         "results/report"
     ),
     workers: Annotated[int, typer.Option(min=1, help="Worker processes.")] = 2,
+    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress on stderr.")] = False,
 ) -> None:
     """Run 3 formations x 4 controllers (plus ours with noise); write docs/RESULTS.md."""
     from phalanx.analysis.report import write_report
+    from phalanx.cli.progress import Reporter
 
-    results = write_report(docs, out, workers=workers)
+    reporter = Reporter("report", unit="runs", quiet=quiet)
+    results = write_report(docs, out, workers=workers, progress=reporter)
+    reporter.close()
     typer.echo(f"{len(results)} runs; wrote {docs / 'RESULTS.md'}")
 
 

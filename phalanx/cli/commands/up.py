@@ -20,6 +20,7 @@ from phalanx.cli.commands.fleet import (
     _scenario,
     _stop_on_signals,
 )
+from phalanx.cli.commands.run import DpiOpt, FormatOpt, _figure_format
 from phalanx.cli.style import choice
 
 if TYPE_CHECKING:
@@ -73,6 +74,9 @@ def up(
             "random_each_update or constant."
         ),
     ] = "none",
+    figure_format: FormatOpt = "png",
+    dpi: DpiOpt = 150,
+    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress on stderr.")] = False,
 ) -> None:
     """Start the world and one agent process per robot here; supervise; write results,
     marked complete or not (`complete` in metrics.json) with the reason. The processes
@@ -105,6 +109,7 @@ def up(
 
     choice(driver, ("sim", "arcos"), option="--driver")
     choice(robots, ("phalanx", "amrisim"), option="--robots")
+    fmt = _figure_format(figure_format)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s up %(levelname)s %(message)s")
     started_unix = time.time()  # (a metrics.json older than this is an earlier run's)
     config = _scenario(scenario, set_)
@@ -146,7 +151,12 @@ def up(
         endpoint = stack.enter_context(private_fabric())  # (only this user can join)
         logging.getLogger("phalanx.up").info("the fleet's Zenoh endpoint: %s", endpoint)
         children = plan(scenario, config, options, endpoint=endpoint)
+        children[0].argv += ["--format", fmt, "--dpi", str(dpi)]  # (the world's figures)
+        watch = stack.enter_context(
+            RunWatch(out, config.duration_s, config.dt_s, since_unix=started_unix, quiet=quiet)
+        )
         outcome = supervise(children, options, _stop_on_signals())
+        watch.stop(finished=outcome.complete)
     parts = sorted(telemetry_dir(out).glob("*.rrd")) if recording else []
     if parts and merge_recordings(parts, out / "run.rrd"):
         typer.echo(f"recording: {out / 'run.rrd'} ({len(parts)} processes merged)")
@@ -157,6 +167,74 @@ def up(
     if not metrics.get("complete", False):
         typer.echo(f"results (incomplete: {metrics['incomplete_reason']}): {out}", err=True)
     raise typer.Exit(exit_code(outcome, metrics))
+
+
+class RunWatch:
+    """Progress of a run of processes on stderr: the world's checkpoints (`metrics.json`
+    every few seconds, "N ticks run") against the scenario's duration, read on a thread
+    of its own once a second. Nothing is shown before the first checkpoint.
+    """
+
+    def __init__(
+        self, out: Path, duration_s: float, dt_s: float, *, since_unix: float, quiet: bool
+    ) -> None:
+        import threading
+
+        from phalanx.cli.progress import Reporter
+
+        self.out, self.duration_s, self.dt_s, self.since_unix = out, duration_s, dt_s, since_unix
+        self.reporter = Reporter("up", unit="s of run", quiet=quiet)
+        self._done = threading.Event()
+        self._thread = threading.Thread(target=self._loop, name="up-progress", daemon=True)
+
+    def __enter__(self) -> RunWatch:
+        if not self.reporter.quiet:
+            self._thread.start()
+        return self
+
+    def __exit__(self, *_: object) -> None:
+        self.stop()
+
+    def stop(self, *, finished: bool = False) -> None:
+        """Stop watching (once the world has ended; `finished`: the whole run) and end
+        the progress line.
+        """
+        if self._done.is_set():
+            return
+        self._done.set()
+        if self._thread.is_alive():
+            self._thread.join(timeout=5.0)
+            if finished:
+                self.reporter(self.duration_s, self.duration_s)
+        self.reporter.close()
+
+    def _loop(self) -> None:
+        while not self._done.wait(1.0):
+            ran = checkpoint_s(self.out / "metrics.json", self.dt_s, since_unix=self.since_unix)
+            if ran is not None:
+                self.reporter(min(ran, self.duration_s), self.duration_s)
+
+
+def checkpoint_s(path: Path, dt_s: float, *, since_unix: float) -> float | None:
+    """The run time a world's checkpoint in `path` has reached (None if there is none
+    newer than `since_unix`, or it cannot be read: a file being replaced, another's).
+    """
+    import json
+    import re
+
+    try:
+        if path.stat().st_mtime < since_unix or path.stat().st_size > 50_000_000:
+            return None
+        reason = json.loads(path.read_text(encoding="utf-8")).get("incomplete_reason")
+    except (OSError, ValueError, AttributeError):
+        return None
+    if not isinstance(reason, str):
+        return None
+    # "N ticks run", or the world's own "the world ran N of M ticks".
+    found = re.search(r"(\d{1,12}) ticks run", reason) or re.search(
+        r"ran (\d{1,12}) of \d{1,12} ticks", reason
+    )
+    return int(found.group(1)) * dt_s if found else None
 
 
 def _need_display() -> None:
