@@ -25,7 +25,7 @@ import tempfile
 import uuid
 from collections.abc import Callable, Iterable
 from pathlib import Path
-from typing import IO, Any
+from typing import Any
 
 import numpy as np
 
@@ -39,6 +39,7 @@ from phalanx.analysis.figures import (
 )
 from phalanx.analysis.metrics import error_series, is_follower, run_metrics
 from phalanx.core.errors import PhalanxError
+from phalanx.core.files import atomic_write
 from phalanx.core.limits import KinematicLimits
 from phalanx.core.runlog import RunLog
 from phalanx.core.scenarios import resolve_world
@@ -93,26 +94,6 @@ def kept_files(folder: Path) -> list[str]:
             if sizes:
                 out.append(f"{sub.name}/ ({len(sizes)} parts, {sum(sizes) / 1024:.1f} KiB)")
     return out
-
-
-def atomic_write(path: Path, write: Callable[[IO[bytes]], object]) -> None:
-    """Write `path` whole or not at all: `write` fills a temporary file in the same folder,
-    which is flushed to disk and renamed over `path`. On any failure the temporary file
-    is removed and `path` is left as it was. The file gets the umask's mode, as with a
-    plain open.
-    """
-    partial = path.with_name(f".{path.name}.{os.getpid()}.{uuid.uuid4().hex[:8]}.tmp")
-    fd = os.open(partial, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
-    try:
-        with os.fdopen(fd, "wb") as out:
-            write(out)
-            out.flush()
-            os.fsync(out.fileno())  # (a full disk can surface only here)
-        os.replace(partial, path)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            partial.unlink()
-        raise
 
 
 def _guarded(folder: Path, what: str, write: Callable[[], object]) -> None:

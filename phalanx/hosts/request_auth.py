@@ -20,7 +20,6 @@ daemon refuses every request issued before it started, until they are past the w
 from __future__ import annotations
 
 import base64
-import contextlib
 import hashlib
 import logging
 import os
@@ -32,6 +31,7 @@ from typing import Annotated, Literal
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from phalanx.core.errors import ConfigError, RequestRefused
+from phalanx.core.files import atomic_write
 from phalanx.hosts.pki import role_of, verify_chain
 from phalanx.wire.security import TlsFiles
 
@@ -162,30 +162,12 @@ def _read_record(path: Path) -> ServedRecord:
 
 
 def _write_private(path: Path, data: bytes) -> None:
-    """Replace `path` by `data` at once (written to a temporary file, synced, renamed),
-    readable by its owner only; the folder made private (0700) if it is new.
+    """Replace `path` by `data` at once (written to a temporary file, synced, renamed, the
+    rename synced too), readable by its owner only; the folder made private (0700) if it
+    is new.
     """
     path.parent.mkdir(mode=0o700, parents=True, exist_ok=True)
-    temporary = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    with contextlib.suppress(FileNotFoundError):
-        temporary.unlink()
-    fd = os.open(temporary, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
-    try:
-        with os.fdopen(fd, "wb") as out:
-            out.write(data)
-            out.flush()
-            os.fsync(out.fileno())
-        os.replace(temporary, path)
-    except OSError:
-        with contextlib.suppress(OSError):
-            temporary.unlink()
-        raise
-    with contextlib.suppress(OSError):  # the rename itself, on disk
-        folder = os.open(path.parent, os.O_RDONLY)
-        try:
-            os.fsync(folder)
-        finally:
-            os.close(folder)
+    atomic_write(path, lambda out: out.write(data), mode=0o600, sync_folder=True)
 
 
 class RequestVerifier:
