@@ -189,6 +189,15 @@ def _is_robot_file(path: Path) -> bool:
         data = tomllib.loads(read_text(path))
     except (ConfigError, tomllib.TOMLDecodeError, RecursionError):
         return False
+    return holds_robot_params(data)
+
+
+def holds_robot_params(data: object) -> bool:
+    """Whether a file's top-level table holds a robot's parameters: all its keys robot
+    fields, more than its `name`.
+    """
+    if not isinstance(data, dict):
+        return False
     keys = set(data) - {"name"}
     return bool(keys) and keys <= set(RobotParams.model_fields)
 

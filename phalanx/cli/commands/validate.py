@@ -108,9 +108,8 @@ def file_kind(path: Path) -> Kind:
     robot file (only robot parameters) or, otherwise, a scenario (whose loader reports
     what is wrong with anything else).
     """
-    from phalanx.core.config_files import read_text
+    from phalanx.core.config_files import holds_robot_params, read_text
     from phalanx.core.errors import ConfigError
-    from phalanx.core.robot_params import RobotParams
 
     try:
         text = read_text(path)
@@ -121,8 +120,7 @@ def file_kind(path: Path) -> Kind:
         return "scenario"
     if _DEPLOYMENT_KEYS & set(data):
         return "deployment"
-    keys = set(data) - {"name"}
-    return "robot" if keys and keys <= set(RobotParams.model_fields) else "scenario"
+    return "robot" if holds_robot_params(data) else "scenario"
 
 
 def describe(path: Path) -> str:
