@@ -19,6 +19,7 @@ import pytest
 from fleetlab import ROBOTS, Fleet, running_fleet, wait_for
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from peerflags import flags
 
 from phalanx.agents.leadership import Leadership, LiveFlags, successor, taker
 from phalanx.core.config import LeadershipConfig
@@ -34,18 +35,6 @@ from phalanx.wire.messages import LeaderAnnouncement, RobotFlags, RobotState
 WEDGE4 = resolve_formation(formation_shape("wedge", 4))
 WEDGE = resolve_formation(formation_shape("wedge", 3))
 TIMEOUT_S = 0.5
-
-
-def flags(rid: str, t_s: float = 10.0, **kw: Any) -> RobotFlags:
-    base: dict[str, Any] = {
-        "robot_id": rid,
-        "seq": 1,
-        "stamp_s": t_s,
-        "fsm_state": State.NAVIGATE if rid == "r1" else State.FORMATION_TRACK,
-        "formation_leader_id": "r1",
-        "clear": True,
-    }
-    return RobotFlags(**{**base, **kw})
 
 
 def view(rid: str, formation: Any = WEDGE, **kw: Any) -> Leadership:

@@ -6,6 +6,7 @@ from __future__ import annotations
 from typing import Any
 
 import pytest
+from peerflags import flags
 
 from phalanx.agents.leadership import Leadership, group_deadlock, newer
 from phalanx.core.config import LeadershipConfig
@@ -19,18 +20,6 @@ WEDGE = resolve_formation(formation_shape("wedge", 3))
 INLINE = resolve_formation(formation_shape("inline", 3))
 CONFIG = LeadershipConfig()
 TIMEOUT_S = 0.5
-
-
-def flags(rid: str, t_s: float = 10.0, **kw: Any) -> RobotFlags:
-    base: dict[str, Any] = {
-        "robot_id": rid,
-        "seq": 1,
-        "stamp_s": t_s,
-        "fsm_state": State.NAVIGATE if rid == "r1" else State.FORMATION_TRACK,
-        "formation_leader_id": "r1",
-        "clear": True,
-    }
-    return RobotFlags(**{**base, **kw})
 
 
 def views(formation: Formation, **kw: Any) -> dict[str, Leadership]:
