@@ -42,3 +42,12 @@ def atomic_write(
                 os.fsync(folder)
             finally:
                 os.close(folder)
+
+
+def write_private(path: Path, data: bytes) -> None:
+    """Replace `path` by `data` at once (`atomic_write`, the rename synced too), readable
+    and writable by its owner only (0600) from creation on; its folder made private
+    (0700) if it is new.
+    """
+    path.parent.mkdir(mode=0o700, parents=True, exist_ok=True)
+    atomic_write(path, lambda out: out.write(data), mode=0o600, sync_folder=True)

@@ -17,16 +17,15 @@ as subject alternative names: TLS verifies the name a connection was opened to.
 
 from __future__ import annotations
 
-import contextlib
 import datetime as dt
 import ipaddress
-import os
 import re
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Literal
 
 from phalanx.core.errors import ConfigError
+from phalanx.core.files import write_private
 
 if TYPE_CHECKING:
     from cryptography import x509
@@ -69,16 +68,6 @@ class Issued:
         """Whether it is outside its validity period now."""
         now = now or dt.datetime.now(dt.UTC)
         return not self.not_before <= now <= self.not_after
-
-
-def _write_private(path: Path, data: bytes) -> None:
-    """Write `data` readable and writable by the owner only (0600), from creation on."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with contextlib.suppress(FileNotFoundError):
-        path.unlink()
-    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
-    with os.fdopen(fd, "wb") as out:
-        out.write(data)
 
 
 def _key_pem(key: object) -> bytes:
@@ -130,7 +119,7 @@ def init_ca(folder: Path, *, fleet: str, days: float = MAX_DAYS, force: bool = F
         .add_extension(x509.SubjectKeyIdentifier.from_public_key(key.public_key()), False)
         .sign(key, hashes.SHA256())
     )
-    _write_private(folder / f"{CA_NAME}.key", _key_pem(key))
+    write_private(folder / f"{CA_NAME}.key", _key_pem(key))
     crt.write_bytes(cert.public_bytes(serialization.Encoding.PEM))
     return crt
 
@@ -212,7 +201,7 @@ def issue(
         .sign(ca_key, hashes.SHA256())
     )
     crt_path, key_path = folder / f"{cn}.crt", folder / f"{cn}.key"
-    _write_private(key_path, _key_pem(key))
+    write_private(key_path, _key_pem(key))
     crt_path.write_bytes(cert.public_bytes(serialization.Encoding.PEM))
     return crt_path, key_path
 

@@ -31,7 +31,7 @@ from typing import Annotated, Literal
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from phalanx.core.errors import ConfigError, RequestRefused
-from phalanx.core.files import atomic_write
+from phalanx.core.files import write_private
 from phalanx.hosts.pki import role_of, verify_chain
 from phalanx.wire.security import TlsFiles
 
@@ -143,7 +143,7 @@ class ServedRequests:
             return
         record = ServedRecord(served=tuple(self._expiry.items()))
         try:
-            _write_private(self.path, record.model_dump_json().encode("utf-8"))
+            write_private(self.path, record.model_dump_json().encode("utf-8"))
         except OSError as exc:
             self.write_errors += 1
             log.error("cannot record a served request in %s: %s", self.path, exc)
@@ -159,15 +159,6 @@ def _read_record(path: Path) -> ServedRecord:
     if len(data) > MAX_SERVED_BYTES:
         raise ValueError(f"over {MAX_SERVED_BYTES} bytes")
     return ServedRecord.model_validate_json(data)
-
-
-def _write_private(path: Path, data: bytes) -> None:
-    """Replace `path` by `data` at once (written to a temporary file, synced, renamed, the
-    rename synced too), readable by its owner only; the folder made private (0700) if it
-    is new.
-    """
-    path.parent.mkdir(mode=0o700, parents=True, exist_ok=True)
-    atomic_write(path, lambda out: out.write(data), mode=0o600, sync_folder=True)
 
 
 class RequestVerifier:

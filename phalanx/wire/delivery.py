@@ -3,9 +3,10 @@ sender's rate (`KeyBuckets`), decoded totally and checked (`deliver`), or held r
 bounded ring until its owner drains it (`Polled`), and the last few values per robot
 (`History`). Every payload is either handed on or counted in the session's `DecodeStats`.
 
-A rate-limited ring also drops, before it takes a token, a packed message stamped no
-later than the newest its key has delivered (`StampFilter`): a flood of copies of a
-robot's old state cannot then spend the tokens the robot's own new states need.
+A rate-limited subscription (a ring or a callback) also drops, before it takes a token, a
+packed message stamped no later than the newest its key has delivered (`StampFilter`): a
+flood of copies of a robot's old state cannot then spend the tokens the robot's own new
+states need.
 """
 
 from __future__ import annotations
@@ -216,8 +217,7 @@ class Polled(Generic[M]):
         self._limit = limit
         self._ring: deque[tuple[str, bytes]] = deque(maxlen=capacity)
         self._lock = threading.Lock()
-        stamps = StampFilter(model)
-        self._stamps = stamps if limit is not None and stamps.active else None
+        self._stamps = stamp_filter(model, limit)
 
     def put(self, sample: Any) -> None:
         """Zenoh's side: keep the sample's key and payload (the oldest goes if full)."""
@@ -241,22 +241,32 @@ class Polled(Generic[M]):
         with self._lock:
             items = list(self._ring)
             self._ring.clear()
-        handler = on_message if self._stamps is None else self._stamped(self._stamps, on_message)
+        handler = stamped(self._stamps, on_message)
         for key, payload in items:
             deliver(key, payload, self._model, self._stats, handler, self._context)
         return len(items)
 
-    @staticmethod
-    def _stamped(
-        stamps: StampFilter, on_message: Callable[[str, M], None]
-    ) -> Callable[[str, M], None]:
-        """`on_message`, noting each valid message's stamp in `stamps` first."""
 
-        def handler(key: str, value: M) -> None:
-            stamps.delivered(key, float(getattr(value, "stamp_s", -math.inf)))
-            on_message(key, value)
+def stamp_filter(model: type[Message], limit: KeyBuckets | None) -> StampFilter | None:
+    """The stamp filter a rate-limited subscription to `model` applies (None: none, for
+    a subscription without a limit or a model without a stamp).
+    """
+    stamps = StampFilter(model)
+    return stamps if limit is not None and stamps.active else None
 
-        return handler
+
+def stamped(
+    stamps: StampFilter | None, on_message: Callable[[str, M], None]
+) -> Callable[[str, M], None]:
+    """`on_message`, noting each valid message's stamp in `stamps` first."""
+    if stamps is None:
+        return on_message
+
+    def handler(key: str, value: M) -> None:
+        stamps.delivered(key, float(getattr(value, "stamp_s", -math.inf)))
+        on_message(key, value)
+
+    return handler
 
 
 def deliver(

@@ -29,7 +29,14 @@ from phalanx.core.errors import TransportError
 from phalanx.core.lifecycle import Closing
 from phalanx.wire.bounds import FleetBounds
 from phalanx.wire.codec import DecodeStats, encode
-from phalanx.wire.delivery import KeyBuckets, Polled, deliver, over_rate
+from phalanx.wire.delivery import (
+    KeyBuckets,
+    Polled,
+    deliver,
+    over_rate,
+    stamp_filter,
+    stamped,
+)
 from phalanx.wire.messages import Message
 from phalanx.wire.security import AccessControl, TlsFiles, apply_security
 
@@ -238,17 +245,23 @@ class FleetSession(Closing):
         `context` (a `FleetBounds`) holds every message against what this process knows
         of its fleet. `rate_hz`: how many messages a second one sender publishes on one
         key; a key is then held to a few times that (`phalanx.wire.delivery.KeyBuckets`),
-        the rest dropped before decoding and counted (None: no limit, as in lockstep,
-        where the world sets the pace). `on_message` runs on a Zenoh thread: it must be
-        quick and must not call Zenoh.
+        and a packed message stamped no later than the newest its key delivered is
+        dropped before it takes a token (`StampFilter`), each counted (None: no limit,
+        as in lockstep, where the world sets the pace). `on_message` runs on a Zenoh
+        thread: it must be quick and must not call Zenoh.
         """
         stats, name = self.stats, model.__name__
         limit = _limit(rate_hz, context)
+        stamps = stamp_filter(model, limit)
+        handler = stamped(stamps, on_message)
 
         def callback(sample: Any) -> None:
             key = str(sample.key_expr)
-            if not over_rate(limit, key, stats, name):
-                deliver(key, sample.payload.to_bytes(), model, stats, on_message, context)
+            payload = sample.payload.to_bytes()
+            if stamps is not None and stamps.stale(key, payload):
+                stats.rate_limited[name] += 1
+            elif not over_rate(limit, key, stats, name):
+                deliver(key, payload, model, stats, handler, context)
 
         self._declare(lambda session: session.declare_subscriber(key_expr, callback))
 
