@@ -38,14 +38,14 @@ from phalanx.agents.control.spacing import Spacing
 from phalanx.agents.estimation.estimator import PoseEstimator
 from phalanx.agents.estimation.landmarks import Landmarks
 from phalanx.agents.fsm import StateMachine
-from phalanx.agents.inputs import FleetView, Observation
+from phalanx.agents.inputs import FleetView, Observation, now
 from phalanx.agents.leadership import Flags, Leadership, LeadershipChange, group_deadlock
 from phalanx.agents.masking import MaskInputs, SlotMasks
 from phalanx.agents.parts import Parts
 from phalanx.agents.sensing import STANDSTILL_MPS, ContactGuard, Sensing, Stance, way_clear
 from phalanx.core.config import Scenario
 from phalanx.core.formation import Formation
-from phalanx.core.geometry import Pose2D, Twist2D, wrap_angle
+from phalanx.core.geometry import ZERO_TWIST, Pose2D, Twist2D, wrap_angle
 from phalanx.core.limits import run_limits
 from phalanx.core.mapfile import GridMap
 from phalanx.core.peers import PeerFlags, PeerState, Scan
@@ -127,6 +127,8 @@ class Agent:
         self._seq = 0
         self._last_odometry: Odometry | None = None
         self._heard: tuple[float, FleetView, Observation] | None = None
+        self.view: FleetView | None = None  # the fleet as the last step perceived it
+        self._last_forward = ZERO_TWIST  # the forward twist a behaviour drove last
         self.estimator: PoseEstimator | None = None
         if scenario.localisation.estimator:
             self.estimator = PoseEstimator(
@@ -186,28 +188,38 @@ class Agent:
         them), this robot's own as published included; when omitted, `peers` serve.
         """
         self.parts.startup.begin(t_s, self.scenario.leader_timeout_s)
+        # perceive the fleet (leadership, whom to track, where it and this robot's slot
+        # are now) and estimate this robot's pose
         view, observation = self._listen_and_localise(observation, peers, flags, t_s)
+        self.view = view
+        # sense: the sonar and bumpers, read with that pose
         stance = Stance(self.fsm.state, self.direction, self.limiter.last)
         assume_formed = t_s < self.parts.startup.assume_formed_until_s
         sensing = self.parts.senses.read(
             observation, view, stance, t_s=t_s, assume_formed=assume_formed
         )
-        self._estimate(observation.odometry, sensing, view, t_s)
+        self._estimate(observation.odometry, sensing, view, t_s)  # the memories move on
+        # decide: at most one transition, on a context built once
         ctx = self._context(observation, sensing, view, stance, t_s)
-        moment = Moment(t_s, self.fsm.state, observation.odometry, sensing, view, ctx.others_busy)
         event = self.fsm.update(ctx, t_s)
-        if event is not None:
-            moment = Moment(t_s, event.target, moment.odometry, sensing, view, ctx.others_busy)
-            self._enter(event, moment)
-        active = self._active
-        wanted = self.spacing.apply(
-            active.command(moment), observation.odometry.pose, peers, observation.near
+        odometry = observation.odometry
+        moment = Moment(
+            t_s, self.fsm.state, odometry, sensing, view, ctx.others_busy, self._last_forward
         )
+        if event is not None:
+            self._enter(event, moment)
+        # command: the active behaviour's twist, kept apart from the others and off contact
+        active = self._active
+        behaviour_wants = active.command(moment)
+        if active.drove_forward is not None:
+            self._last_forward = active.drove_forward
+        wanted = self.spacing.apply(behaviour_wants, odometry.pose, peers, observation.near)
         wanted = self.contact.apply(wanted, sensing)
+        # limit: saturated and rate-limited
         command = self.limiter.apply(
             wanted, self.dt_s, emergency=active.emergency, brake_hard=self.spacing.cut
         )
-        self._update_formed(observation.odometry.pose, view, t_s)
+        self._update_formed(observation.odometry.pose, view)
         self._last_odometry = observation.odometry
         return self._output(observation.odometry, command, sensing, view, event, t_s)
 
@@ -282,7 +294,15 @@ class Agent:
         if change is not None:
             self.role_reason = f"{change.reason} (epoch {change.epoch}, leader {change.leader_id})"
         took = change if lsh.is_leader and not was_leader else None
-        return FleetView(live, took, lsh.is_leader, lsh.leader_id, self.parent_id, lead, head)
+        lead_now, head_now = now(lead, t_s), now(head, t_s)
+        anchor, anchor_now = (head, head_now) if head is not None else (lead, lead_now)
+        slot = None
+        if anchor is not None and anchor_now is not None:
+            slot = self.parts.shape.slot_target(anchor, anchor_now)
+        return FleetView(
+            live, took, lsh.is_leader, lsh.leader_id, self.parent_id, lead, head,
+            lead_now, head_now, slot,
+        )  # fmt: skip
 
     def _localise(
         self, observation: Observation, view: FleetView, peers: Mapping[str, PeerState], t_s: float
@@ -362,7 +382,7 @@ class Agent:
             bumper=sensing.bumper,
             imminent=sensing.imminent,
             standstill=abs(odometry.twist.v_mps) < STANDSTILL_MPS,
-            way_clear=not in_estop or way_clear(sensing, parts.shape, view, odometry.pose, t_s),
+            way_clear=not in_estop or way_clear(sensing, parts.shape, view, odometry.pose),
             blocked_s=parts.blocked.of(stance.direction),
             way_free_s=parts.avoid.way_free_s,
             leader_lost=self.leadership.leader_lost(live),
@@ -425,14 +445,16 @@ class Agent:
 
     # --- after the command ------------------------------------------------------------
 
-    def _update_formed(self, pose: Pose2D, view: FleetView, t_s: float) -> None:
+    def _update_formed(self, pose: Pose2D, view: FleetView) -> None:
         state, lead = self.fsm.state, view.anchor
         if view.is_leader and state not in OUT_OF_FORMATION:
             self.formed = True
         elif state in OUT_OF_FORMATION:
             self.formed = False
         elif not self.formed and lead is not None and state != State.HOLD:
-            target = self.parts.track.target(lead, t_s)
+            target = self.parts.track.target(view)
+            if target is None:
+                return
             error_m = (pose.position - target.position).norm()
             error_rad = abs(wrap_angle(pose.theta_rad - target.theta_rad))
             within_m = self.parts.shape.formed_within_m(lead.robot_id, self.scenario.leadership)

@@ -1,5 +1,6 @@
 """What a control step starts from: the robot's own readings, and its view of the fleet
-(who leads, whom it tracks and that robot's latest state).
+(who leads, whom it tracks, that robot's latest state and where it is now, and this
+robot's slot), worked out once per step and read by every stage after.
 """
 
 from __future__ import annotations
@@ -10,7 +11,9 @@ from phalanx.agents.leadership import LeadershipChange, LiveFlags
 from phalanx.agents.perception import MaskedEchoes, SonarEchoes
 from phalanx.core.fixes import PoseFix, RelativeFix
 from phalanx.core.frozen import quick_init
+from phalanx.core.geometry import Pose2D, Twist2D
 from phalanx.core.peers import PeerState, Scan
+from phalanx.core.rigid_body import predict_leader
 from phalanx.core.robot import Odometry, RobotStatus
 
 
@@ -75,6 +78,10 @@ class FleetView:
     change by which it took the lead this step (if it did), who leads, whom it tracks
     (None while it leads) and that robot's state, if fresh; and the leader's state
     (`head`), if fresh and the leader is not the robot tracked.
+
+    `lead_now` and `head_now`: those states' poses dead-reckoned to the step's time
+    (`now`); `slot`: this robot's rigid slot target and its feed-forward twist, laid out
+    from the `anchor` where it is now (None without one).
     """
 
     live: LiveFlags
@@ -84,6 +91,9 @@ class FleetView:
     tracked_id: str | None
     lead: PeerState | None
     head: PeerState | None = None
+    lead_now: Pose2D | None = None
+    head_now: Pose2D | None = None
+    slot: tuple[Pose2D, Twist2D] | None = None
 
     @property
     def anchor(self) -> PeerState | None:
@@ -93,3 +103,18 @@ class FleetView:
         the tracked robot's.
         """
         return self.head if self.head is not None else self.lead
+
+    @property
+    def anchor_now(self) -> Pose2D | None:
+        """The anchor's pose dead-reckoned to the step's time."""
+        return self.head_now if self.head is not None else self.lead_now
+
+
+def now(state: PeerState | None, t_s: float) -> Pose2D | None:
+    """`state`'s pose dead-reckoned along its twist to fleet time `t_s` (None: none).
+    The one place a step predicts where another robot is: the agent calls it once per
+    robot it reads, and every stage reads the result from the `FleetView`.
+    """
+    if state is None:
+        return None
+    return predict_leader(state.pose, state.twist, max(0.0, t_s - state.stamp_s))

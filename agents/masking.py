@@ -35,7 +35,6 @@ from phalanx.agents.perception import (
 )
 from phalanx.core.frozen import quick_init
 from phalanx.core.geometry import Pose2D, Vec2
-from phalanx.core.rigid_body import predict_leader
 from phalanx.core.states import OUT_OF_FORMATION
 
 # Sonar echoes this close to where a known robot should be are that robot, not an
@@ -282,9 +281,8 @@ def _tracked_met(
     """
     rows, cx, cy = [], [], []
     for i, heard in enumerate(inputs):
-        lead = heard.view.lead
-        if lead is not None:
-            predicted = predict_leader(lead.pose, lead.twist, max(0.0, heard.t_s - lead.stamp_s))
+        predicted = heard.view.lead_now
+        if predicted is not None:
             # `heard.pose.to_body(predicted.position)` in floats, operation for operation
             pose = heard.pose
             dx, dy = predicted.x_m - pose.x_m, predicted.y_m - pose.y_m

@@ -16,7 +16,7 @@ import numpy as np
 from phalanx.agents.behaviours.navigation import Breadcrumbs
 from phalanx.agents.leadership import FlagsView, LiveFlags
 from phalanx.agents.perception import FloatArray
-from phalanx.core.geometry import ZERO_TWIST, Pose2D, Twist2D, Vec2
+from phalanx.core.geometry import Pose2D, Vec2
 
 # A navigating leader that has not got this far from where it was in `stall_s` is stuck.
 PROGRESS_M = 0.3
@@ -80,12 +80,11 @@ class Steering:
 
 @dataclass
 class Course:
-    """The leader's way so far: the ground it crossed (to back along), its last forward
-    command (to retrace), and a point to make for first after a dead end (world frame).
+    """The leader's way so far: the ground it crossed (to back along) and a point to make
+    for first after a dead end (world frame).
     """
 
     crumbs: Breadcrumbs
-    last_forward: Twist2D = ZERO_TWIST
     escape: Vec2 | None = None
 
 

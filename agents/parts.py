@@ -78,8 +78,8 @@ class Parts:
         self.senses = Senses(
             robot_id, scenario, sonar=SonarGeometry.from_params(robot), shape=self.shape,
             limits=limits, planner=self.planner, progress=self.progress, plan=self.plan,
+            fold=self.keeper.fold,
         )  # fmt: skip
-        self.senses.fold = self.keeper.fold
         self.reverse = DeadlockReverse(
             scenario, shape=self.shape, course=self.course, progress=self.progress
         )
@@ -88,28 +88,30 @@ class Parts:
             course=self.course, blocked=self.blocked,
         )  # fmt: skip
         self.avoid = Avoid(scenario, shape=self.shape, limits=limits, steering=self.steering)
-        self.reshape = Reshape(self.keeper, self.shape, dt_s=scenario.dt_s)
+        # (a leader going to waypoints drives on with its navigation while it reshapes)
+        go = None
+        if scenario.leader_profile is None and self.plan != "wander":
+            go = self._go_to_goal(limits)
+        self.reshape = Reshape(self.keeper, self.shape, dt_s=scenario.dt_s, drive=go)
         self.estop = EmergencyStop()
         seed = scenario.seed + formation.robot_ids.index(robot_id)
-        self.behaviours = self._table(robot_id, limits, seed)
+        self.behaviours = self._table(robot_id, limits, seed, go)
 
-    def _table(self, robot_id: str, limits: KinematicLimits, seed: int) -> dict[str, Behaviour]:
-        """The behaviour of each state."""
+    def _table(
+        self, robot_id: str, limits: KinematicLimits, seed: int, go: GoToGoal | None
+    ) -> dict[str, Behaviour]:
+        """The behaviour of each state (`go`: the leader's way to its waypoints)."""
         scenario = self.scenario
         wander = Wander(
             scenario, shape=self.shape, limits=limits, steering=self.steering,
             course=self.course, seed=seed,
         )  # fmt: skip
-        navigate: Behaviour
+        navigate: Behaviour = go or wander
         if scenario.leader_profile is not None:
             navigate = Scripted(
                 scenario.leader_profile, progress=self.progress, course=self.course,
                 dt_s=scenario.dt_s,
             )  # fmt: skip
-        elif self.plan == "wander":
-            navigate = wander
-        else:
-            navigate = self.reshape.drive = self._go_to_goal(limits)
         track = self.track = Track(
             robot_id, scenario, shape=self.shape, limits=limits,
             controller=make_controller(scenario.controller),
@@ -132,12 +134,11 @@ class Parts:
         return {state: table.get(state, still) for state in State}
 
     def _go_to_goal(self, limits: KinematicLimits) -> GoToGoal:
-        go = GoToGoal(
+        return GoToGoal(
             self.scenario, shape=self.shape, limits=limits, steering=self.steering,
             course=self.course, planner=self.planner, progress=self.progress,
+            keeper=self.keeper,
         )  # fmt: skip
-        go.keeper = self.keeper
-        return go
 
     def apply_shape(self) -> None:
         """Take the shape in effect (`keeper.key`) wherever it is used: the slots this

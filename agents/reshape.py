@@ -168,6 +168,9 @@ class Drive(Protocol):
 
     def command(self, moment: Moment) -> Twist2D: ...  # noqa: D102
 
+    @property
+    def drove_forward(self) -> Twist2D | None: ...  # noqa: D102
+
 
 class Reshape(Behaviour):
     """RESHAPE (the leader): drive on slowly (`drive`, the navigation behaviour, capped at
@@ -210,9 +213,12 @@ class Reshape(Behaviour):
         if not keeper.key.settled and keeper.wanted == keeper.key.source:
             keeper.key = ShapeKey(keeper.key.target, keeper.key.source, 1.0 - keeper.key.morph)
         self.slide(moment)
+        self.drove_forward = None
         if self.drive is None or not self.drive.has_goal:
             return ZERO_TWIST
-        return _capped(self.drive.command(moment), RESHAPE_CRUISE_MPS)
+        twist = self.drive.command(moment)
+        self.drove_forward = self.drive.drove_forward
+        return _capped(twist, RESHAPE_CRUISE_MPS)
 
     def slide(self, moment: Moment) -> None:
         """The slide moves a step on to its target; once there, the settling time runs."""

@@ -97,6 +97,7 @@ class Senses:
         planner: RoutePlanner,
         progress: Progress,
         plan: Plan,
+        fold: Callable[[], bool] = lambda: False,
     ) -> None:
         self.robot_id = robot_id
         self.nav = scenario.navigation
@@ -110,7 +111,7 @@ class Senses:
         self._boxed_since_s: float | None = None  # since when the route has led back
         # Asked before a dead end is declared: fold the group into a narrower shape
         # if it has one (True: a fold is coming, the way may open for it).
-        self.fold: Callable[[], bool] = lambda: False
+        self.fold = fold
         # (the scenario's shape: only the slots within hearing, not every robot's)
         self.remask((shape.slots_within(self._audible_m()),))
 
@@ -259,14 +260,14 @@ class Senses:
         return gap < braking + self.nav.stop_margin_m
 
 
-def way_clear(sensing: Sensing, shape: Shape, view: FleetView, pose: Pose2D, t_s: float) -> bool:
+def way_clear(sensing: Sensing, shape: Shape, view: FleetView, pose: Pose2D) -> bool:
     """Room to brake from cruise speed the way this robot means to go (what ends an
     emergency stop): forwards for a leader; for a follower, the way to its slot (or,
     on it, the way its slot moves).
     """
     backwards = False
-    if view.anchor is not None and not view.is_leader:
-        target, ff = shape.slot_target(view.anchor, t_s)
+    if view.slot is not None and not view.is_leader:
+        target, ff = view.slot
         offset = target.position - pose.position
         along = offset.x_m * math.cos(pose.theta_rad) + offset.y_m * math.sin(pose.theta_rad)
         backwards = along < -INTENT_M or (abs(along) <= INTENT_M and ff.v_mps < 0.0)

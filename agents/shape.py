@@ -24,7 +24,7 @@ from phalanx.core.formation import Formation
 from phalanx.core.geometry import Pose2D, Twist2D, Vec2
 from phalanx.core.limits import KinematicLimits
 from phalanx.core.peers import PeerState
-from phalanx.core.rigid_body import predict_leader, rigid_body_target
+from phalanx.core.rigid_body import rigid_body_target
 from phalanx.core.states import OUT_OF_FORMATION
 
 Points = tuple[FloatArray, FloatArray]
@@ -265,11 +265,10 @@ class Shape:
         )
         return Clearances(wide, narrow, float(left), float(right))
 
-    def slot_target(self, lead: PeerState, t_s: float) -> tuple[Pose2D, Twist2D]:
+    def slot_target(self, lead: PeerState, lead_now: Pose2D) -> tuple[Pose2D, Twist2D]:
         """The robot's slot behind `lead`, moving rigidly with it: the target pose and its
-        feed-forward twist, the leader's state dead-reckoned over its age to `t_s`.
+        feed-forward twist, with `lead` where it is now (`lead_now`, its state's pose
+        dead-reckoned to the step's time: `phalanx.agents.inputs.now`).
         """
-        age_s = max(0.0, t_s - lead.stamp_s)
-        leader = predict_leader(lead.pose, lead.twist, age_s)
         slot = self.formation.slot_of(self.robot_id, lead.robot_id)
-        return rigid_body_target(leader, lead.twist, slot)
+        return rigid_body_target(lead_now, lead.twist, slot)

@@ -5,7 +5,9 @@ the robot's motion did since the last step.
 A behaviour reads a `Moment`, built once per step and never written; what it needs to
 remember is its own (or one of the shared memories of `phalanx.agents.memory` it was
 given when it was made). What the state machine's guards need of it they ask through
-the agent when the next step's context is built, never by a command writing to it.
+the agent when the next step's context is built, never by a command writing to it; what
+another behaviour needs of it (the forward twist it drove, `drove_forward`, which a
+deadlock reverse retraces) it reports, and the agent hands on in the next `Moment`.
 """
 
 from __future__ import annotations
@@ -24,8 +26,9 @@ from phalanx.core.robot import Odometry
 @dataclass(frozen=True, slots=True)
 class Moment:
     """One step as a behaviour sees it: fleet time (s), the behaviour state the machine
-    is in, the robot's odometry and sensing, its view of the fleet, and whether robots
-    of the group are off their slots or holding still (`others_busy`).
+    is in, the robot's odometry and sensing, its view of the fleet, whether robots of
+    the group are off their slots or holding still (`others_busy`), and the last forward
+    twist a behaviour drove (`last_forward`, reported by it as `drove_forward`).
     """
 
     t_s: float
@@ -34,6 +37,7 @@ class Moment:
     sensing: Sensing
     view: FleetView
     others_busy: bool = False
+    last_forward: Twist2D = ZERO_TWIST
 
     @property
     def pose(self) -> Pose2D:
@@ -49,6 +53,9 @@ class Behaviour:
     """
 
     emergency = False
+    # The forward twist its last command drove (before limits; None: none this step),
+    # for a deadlock reverse to retrace.
+    drove_forward: Twist2D | None = None
 
     def enter(self, moment: Moment) -> None:
         """The machine has just entered this behaviour's state (entry action)."""

@@ -10,6 +10,7 @@ import math
 from phalanx.agents.behaviours.base import Behaviour, Moment, turn_on_spot
 from phalanx.agents.behaviours.navigation import Clearances, bearing_rad, steer
 from phalanx.agents.control.common import FollowerController, FollowerInput
+from phalanx.agents.inputs import FleetView
 from phalanx.agents.memory import Steering
 from phalanx.agents.perception import HEADINGS_RAD, clearance_along, corridor_clearance
 from phalanx.agents.shape import Shape
@@ -17,8 +18,6 @@ from phalanx.agents.trail import Trail
 from phalanx.core.config import Scenario
 from phalanx.core.geometry import ZERO_TWIST, Pose2D, Twist2D, Vec2, wrap_angle
 from phalanx.core.limits import KinematicLimits
-from phalanx.core.peers import PeerState
-from phalanx.core.rigid_body import predict_leader
 from phalanx.core.states import DEADLOCK_STATES, State
 
 # A follower near its slot settles onto it once its leader has stood still this long
@@ -75,26 +74,27 @@ class Track(Behaviour):
 
     def command(self, moment: Moment) -> Twist2D:
         """The controller's twist, or (its leader standing still) settling onto the slot."""
-        lead = moment.view.anchor
-        if lead is None:
+        view = moment.view
+        lead, rigid = view.anchor, _rigid(view)
+        if lead is None or rigid is None:
             return ZERO_TWIST
         still = abs(lead.v_mps) < STILL_MPS and abs(lead.omega_radps) < STILL_RADPS
         self.leader_still_s = self.leader_still_s + self.dt_s if still else 0.0
         self.on_slot = self.on_slot and still
-        on_path = self.path_slot(lead, moment.t_s) if _keeps_to_path(moment) else None
+        on_path = self.path_slot(view) if _keeps_to_path(moment) else None
         if self.leader_still_s >= ALIGN_AFTER_S:
-            target = on_path or self.shape.slot_target(lead, moment.t_s)[0]
-            settled = self._settle(moment.pose, target)
+            settled = self._settle(moment.pose, on_path or rigid)
             if settled is not None:
                 return settled
         odometry = moment.odometry
         slot = self.shape.formation.slot_of(self.robot_id, lead.robot_id)
         leader, twist, age_s = lead.pose, lead.twist, max(0.0, moment.t_s - lead.stamp_s)
+        leader_now = view.anchor_now
         if on_path is not None:
             # The robot that would have this slot there, driving straight on.
             at = on_path.to_world(Vec2(-slot.x_m, -slot.y_m))
             leader, age_s = Pose2D(at.x_m, at.y_m, on_path.theta_rad), 0.0
-            twist = Twist2D(lead.v_mps, 0.0)
+            leader_now, twist = leader, Twist2D(lead.v_mps, 0.0)
         inp = FollowerInput(
             follower=odometry.pose,
             follower_twist=odometry.twist,
@@ -104,26 +104,29 @@ class Track(Behaviour):
             slot=slot,
             direction=-1 if moment.state == State.FORMATION_REVERSE else 1,
             dt_s=self.dt_s,
+            leader_now=leader_now,
         )
         return self.controller.command(inp)
 
-    def path_slot(self, lead: PeerState, t_s: float) -> Pose2D | None:
-        """The robot's slot on `lead`'s path: None without a trail of it, for a slot
+    def path_slot(self, view: FleetView) -> Pose2D | None:
+        """The robot's slot on its anchor's path: None without a trail of it, for a slot
         not straight behind it, or while the path is shorter than the slot is far.
         """
-        trail = self.trail
+        lead, trail = view.anchor, self.trail
+        if lead is None or view.anchor_now is None:
+            return None
         if trail is None or trail.robot_id != lead.robot_id:
             return None
         behind_m = self.shape.behind_by_m(lead.robot_id)
         if behind_m is None:
             return None
-        now = predict_leader(lead.pose, lead.twist, max(0.0, t_s - lead.stamp_s))
-        return trail.pose_back(now.position, behind_m)
+        return trail.pose_back(view.anchor_now.position, behind_m)
 
-    def target(self, lead: PeerState, t_s: float) -> Pose2D:
-        """Where this robot belongs now: its slot on `lead`'s path, or the rigid slot."""
-        on_path = self.path_slot(lead, t_s)
-        return on_path or self.shape.slot_target(lead, t_s)[0]
+    def target(self, view: FleetView) -> Pose2D | None:
+        """Where this robot belongs now: its slot on its anchor's path, or the rigid
+        slot (None without an anchor).
+        """
+        return self.path_slot(view) or _rigid(view)
 
     def _settle(self, pose: Pose2D, target: Pose2D) -> Twist2D | None:
         """Near its slot beside a leader standing still: drive straight onto the slot's
@@ -157,6 +160,11 @@ class Track(Behaviour):
         slow, fast = SETTLE_SPEED_MPS
         speed = min(fast, max(slow, ALIGN_GAIN_PER_S * distance_m)) * math.cos(error)
         return Twist2D(sign * min(speed, distance_m / self.dt_s), turn.omega_radps)
+
+
+def _rigid(view: FleetView) -> Pose2D | None:
+    """The rigid slot's target pose in `view` (None without an anchor)."""
+    return None if view.slot is None else view.slot[0]
 
 
 def _keeps_to_path(moment: Moment) -> bool:
@@ -195,11 +203,10 @@ class Avoid(Behaviour):
 
     def command(self, moment: Moment) -> Twist2D:
         """Steer round what blocks the way to the slot."""
-        lead = moment.view.anchor
-        if lead is None:
+        if moment.view.slot is None:
             return ZERO_TWIST
         pose, sensing = moment.pose, moment.sensing
-        target, ff = self.shape.slot_target(lead, moment.t_s)
+        target, ff = moment.view.slot
         lead_m = ff.v_mps * AVOID_LEAD_S
         aim = target.position + Vec2(
             lead_m * math.cos(target.theta_rad), lead_m * math.sin(target.theta_rad)

@@ -84,7 +84,7 @@ class Scripted(Behaviour):
         reference = self._reference or moment.pose
         self._reference = integrate_unicycle(reference, twist, self.dt_s)
         self.progress.profile_s += self.dt_s
-        self.course.last_forward = twist
+        self.drove_forward = twist
         return keep_to(reference, moment.pose, twist)
 
 
@@ -127,6 +127,7 @@ class Steered(Behaviour):
         self.scripted = scenario.leader_profile is not None
         self.shape, self.limits, self.steering, self.course = shape, limits, steering, course
         self.keeper: ShapeKeeper | None = None  # (a leader that may change the shape)
+        self.drove_forward: Twist2D | None = None
         self.dt_s = scenario.dt_s
         self.recent = RecentEchoes(RECENT_ECHOES_S)
 
@@ -136,6 +137,7 @@ class Steered(Behaviour):
 
     def command(self, moment: Moment) -> Twist2D:
         """Finish a turn on the spot, or steer towards `desired` round obstacles."""
+        self.drove_forward = None
         desired, dist_m = self.desired(moment)
         speed = min(self.nav.cruise_mps, 0.5 * dist_m + 0.02)
         if moment.others_busy:
@@ -186,7 +188,7 @@ class Steered(Behaviour):
         lagging = any(not f.formed for f in moment.view.live.values())
         v_max = self.limits.v_max_mps * (CATCH_UP_SHARE if lagging else 1.0)
         twist = rigid_limit(twist, self.shape.follower_slots, v_max)
-        self.course.last_forward = twist
+        self.drove_forward = twist
         return twist
 
     def _turn_radius_m(self, clear: Clearances) -> float:
@@ -221,9 +223,10 @@ class GoToGoal(Steered):
         course: Course,
         planner: RoutePlanner,
         progress: Progress,
+        keeper: ShapeKeeper | None = None,
     ) -> None:
         super().__init__(scenario, shape=shape, limits=limits, steering=steering, course=course)
-        self.planner, self.progress = planner, progress
+        self.planner, self.progress, self.keeper = planner, progress, keeper
 
     @property
     def has_goal(self) -> bool:
@@ -303,7 +306,7 @@ class DeadlockReverse(Behaviour):
         if self.pausing:
             return ZERO_TWIST  # stand still first: the followers settle on their slots
         if self.deadlock.reverse_mode != "path":
-            return reverse_twist(self.deadlock, self.course.last_forward)
+            return reverse_twist(self.deadlock, moment.last_forward)
         speed = self.deadlock.reverse_speed_mps
         twist = self.course.crumbs.back_along(pose, speed, REVERSE_LOOKBACK_M)
         if twist is None:  # backed along all the ground it knows: go no further

@@ -17,7 +17,10 @@ from phalanx.core.geometry import Pose2D, Twist2D, Vec2
 @quick_init
 @dataclass(frozen=True, slots=True)
 class FollowerInput:
-    """One control step's inputs for a follower (SI units, world frame)."""
+    """One control step's inputs for a follower (SI units, world frame): the leader's
+    pose as it was `leader_age_s` ago, and (`leader_now`) that pose dead-reckoned to
+    now, when the caller has worked it out already (the agent does, once per step).
+    """
 
     follower: Pose2D
     follower_twist: Twist2D
@@ -27,6 +30,7 @@ class FollowerInput:
     slot: Vec2
     direction: int
     dt_s: float
+    leader_now: Pose2D | None = None
 
 
 class FollowerController(Protocol):

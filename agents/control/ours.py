@@ -45,8 +45,12 @@ class OursController:
 
     def command(self, inp: FollowerInput) -> Twist2D:
         """`[v, w] = M(theta, d)^-1 (p*' + K (p* - p))`."""
-        age_s = inp.leader_age_s if self.compensate_delay else 0.0
-        leader = predict_leader(inp.leader, inp.leader_twist, age_s)
+        if not self.compensate_delay:
+            leader = inp.leader
+        elif inp.leader_now is not None:
+            leader = inp.leader_now
+        else:
+            leader = predict_leader(inp.leader, inp.leader_twist, inp.leader_age_s)
         target, ff = rigid_body_target(leader, inp.leader_twist, inp.slot)
         d = self._point_sign(ff.v_mps, inp.direction) * self.control_point_m
         # (plain floats: this runs for every follower every step)

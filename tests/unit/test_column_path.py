@@ -79,9 +79,12 @@ def test_a_column_s_tail_keeps_to_the_leader_s_arc() -> None:
     # A half turn done (3.1 m of arc): the tail's slot, 2 m back along the path, on it.
     seconds = (STRAIGHT_M + RADIUS_M * math.pi) / SPEED_MPS
     agent, lead, _ = _drive(True, seconds)
-    t_s = lead.stamp_s
-    on_path = agent.parts.track.target(lead, t_s)
-    rigid, _ = agent.parts.shape.slot_target(lead, t_s)
+    view = agent.view  # the last step's, at the leader's last stamp
+    assert view is not None
+    assert view.anchor == lead
+    assert view.slot is not None
+    on_path, (rigid, _) = agent.parts.track.target(view), view.slot
+    assert on_path is not None
     assert _off_arc_m(on_path) < 0.01
     # heading along the arc at the point: the angle turned there
     turned = math.atan2(on_path.x_m - STRAIGHT_M, RADIUS_M - on_path.y_m)
@@ -93,9 +96,11 @@ def test_a_column_s_tail_keeps_to_the_leader_s_arc() -> None:
 def test_switched_off_the_tail_keeps_the_rigid_slot() -> None:
     seconds = (STRAIGHT_M + RADIUS_M * math.pi / 2) / SPEED_MPS
     agent, lead, _ = _drive(False, seconds)
-    t_s = lead.stamp_s
-    rigid, _ = agent.parts.shape.slot_target(lead, t_s)
-    assert agent.parts.track.target(lead, t_s) == rigid
+    view = agent.view
+    assert view is not None
+    assert view.anchor == lead
+    assert view.slot is not None
+    assert agent.parts.track.target(view) == view.slot[0]
 
 
 def test_on_a_straight_course_both_are_the_same_slot() -> None:
