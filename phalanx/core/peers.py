@@ -4,12 +4,21 @@ The agent brain produces a `PeerState` each step and reads its peers' states and
 in the same form; the wire (`phalanx.wire.messages`) validates and encodes them at the
 edge of a process. In one process (the batch runner) they pass from robot to robot as
 they are, with no validation on the hot path.
+
+`PeerState` is the one definition of the record: its fields' names, order, types and
+defaults. `PeerFlags` is the subset of them every robot needs (its fields, in the same
+order); `PeerState.flags()`, the wire messages' conversions and the packed layout
+(`phalanx.wire.codec`, an int in the width its annotation gives: `Int8`, `UInt32`) are
+derived from the two, and tests/unit/test_robot_record.py fails if the wire models, which
+declare each field's bounds, drift from them.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
-from typing import Final
+from operator import attrgetter
+from typing import Annotated, Final
 
 from phalanx.core.frozen import quick_init
 from phalanx.core.geometry import Pose2D, Twist2D
@@ -25,6 +34,29 @@ SEQ_MAX: Final = 2**32 - 1
 def next_epoch(epoch: int) -> int:
     """The epoch a new leadership claim takes after `epoch` (saturating at EPOCH_MAX)."""
     return min(epoch + 1, EPOCH_MAX)
+
+
+@dataclass(frozen=True, slots=True)
+class IntWidth:
+    """The width an integer field of a shared record travels in: `bits`, signed or not."""
+
+    bits: int
+    signed: bool
+
+    @property
+    def low(self) -> int:
+        """The smallest value it holds."""
+        return -(1 << (self.bits - 1)) if self.signed else 0
+
+    @property
+    def high(self) -> int:
+        """The largest value it holds."""
+        return (1 << (self.bits - 1 if self.signed else self.bits)) - 1
+
+
+# An int field of a record takes one of these (the packed layout needs its width).
+Int8 = Annotated[int, IntWidth(8, signed=True)]
+UInt32 = Annotated[int, IntWidth(32, signed=False)]
 
 
 @quick_init
@@ -44,25 +76,27 @@ class PeerFlags:
     scripted profile clock in s); `shape_source`, `shape_target`, `morph`: the shape the
     group is in, or moving between (`phalanx.core.shapes.ShapeKey`: 0 the scenario's,
     1 shrunk, 2 column; `morph` of the way from the first to the second, 1 = there).
+
+    Its fields are fields of `PeerState`, declared as there, in the same order.
     """
 
     robot_id: str
-    seq: int
+    seq: UInt32
     stamp_s: float
     fsm_state: str
     obstacle: bool = False
-    direction: int = 1
-    epoch: int = 0
+    direction: Int8 = 1
+    epoch: UInt32 = 0
     formation_leader_id: str = ""
     clear: bool = False
     formed: bool = True
     blocked_s: float = 0.0
     dead_end: bool = False
-    waypoint: int = 0
-    deadlocks: int = 0
+    waypoint: UInt32 = 0
+    deadlocks: UInt32 = 0
     profile_s: float = 0.0
-    shape_source: int = 0
-    shape_target: int = 0
+    shape_source: Int8 = 0
+    shape_target: Int8 = 0
     morph: float = 1.0
 
 
@@ -78,10 +112,14 @@ class PeerState:
     is on), as the upper triangle `(xx, xy, xt, yy, yt, tt)` in m^2, m rad and rad^2
     (`phalanx.core.fixes`); empty when the robot steers from its odometry as given
     (perfect sensing), which a receiver takes as exact.
+
+    The one definition of the record (see the module's docstring): a field added here
+    (and to `PeerFlags`, if every robot needs it) is declared on the wire messages with
+    its bound; the conversions and the packed layout follow.
     """
 
     robot_id: str
-    seq: int
+    seq: UInt32
     stamp_s: float
     x_m: float
     y_m: float
@@ -90,20 +128,20 @@ class PeerState:
     omega_radps: float
     fsm_state: str
     obstacle: bool = False
-    direction: int = 1
+    direction: Int8 = 1
     leader_id: str = ""
-    epoch: int = 0
+    epoch: UInt32 = 0
     formation_leader_id: str = ""
     clear: bool = False
     formed: bool = True
     blocked_s: float = 0.0
     dead_end: bool = False
-    waypoint: int = 0
-    deadlocks: int = 0
+    waypoint: UInt32 = 0
+    deadlocks: UInt32 = 0
     profile_s: float = 0.0
     cov: tuple[float, ...] = ()
-    shape_source: int = 0
-    shape_target: int = 0
+    shape_source: Int8 = 0
+    shape_target: Int8 = 0
     morph: float = 1.0
 
     @property
@@ -118,26 +156,13 @@ class PeerState:
 
     def flags(self) -> PeerFlags:
         """The behaviour flags in this state (what every other robot needs)."""
-        return PeerFlags(
-            robot_id=self.robot_id,
-            seq=self.seq,
-            stamp_s=self.stamp_s,
-            fsm_state=self.fsm_state,
-            obstacle=self.obstacle,
-            direction=self.direction,
-            epoch=self.epoch,
-            formation_leader_id=self.formation_leader_id,
-            clear=self.clear,
-            formed=self.formed,
-            blocked_s=self.blocked_s,
-            dead_end=self.dead_end,
-            waypoint=self.waypoint,
-            deadlocks=self.deadlocks,
-            profile_s=self.profile_s,
-            shape_source=self.shape_source,
-            shape_target=self.shape_target,
-            morph=self.morph,
-        )
+        return PeerFlags(*_flag_values(self))
+
+
+# The record's field names in order, and its flags' (a subset of them, in the same order).
+STATE_FIELDS: Final = tuple(f.name for f in dataclasses.fields(PeerState))
+FLAG_FIELDS: Final = tuple(f.name for f in dataclasses.fields(PeerFlags))
+_flag_values: Final = attrgetter(*FLAG_FIELDS)
 
 
 @dataclass(frozen=True, slots=True)

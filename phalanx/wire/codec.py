@@ -20,11 +20,12 @@ import os
 import struct
 from collections import Counter
 from collections.abc import Callable
-from dataclasses import dataclass, field
-from typing import Any, Literal, TypeVar
+from dataclasses import dataclass, field, fields
+from typing import Annotated, Any, Final, Literal, TypeVar, get_args, get_origin, get_type_hints
 
 from pydantic import ValidationError
 
+from phalanx.core.peers import IntWidth, PeerFlags, PeerState
 from phalanx.wire.messages import (
     AgentEvent,
     AgentReport,
@@ -48,33 +49,37 @@ JSON_MARK = ord("{")
 # I = uint32, b = int8, ? = bool, D = list of float64, B = list of bool, R = list of
 # RobotState (each its own packed form, length-prefixed). `version` is the header, not a
 # field.
-_STATE_FIELDS: tuple[tuple[str, str], ...] = (
-    ("robot_id", "s"),
-    ("seq", "I"),
-    ("stamp_s", "d"),
-    ("x_m", "d"),
-    ("y_m", "d"),
-    ("theta_rad", "d"),
-    ("v_mps", "d"),
-    ("omega_radps", "d"),
-    ("fsm_state", "s"),
-    ("obstacle", "?"),
-    ("direction", "b"),
-    ("leader_id", "s"),
-    ("epoch", "I"),
-    ("formation_leader_id", "s"),
-    ("clear", "?"),
-    ("formed", "?"),
-    ("blocked_s", "d"),
-    ("dead_end", "?"),
-    ("waypoint", "I"),
-    ("deadlocks", "I"),
-    ("profile_s", "d"),
-    ("cov", "D"),  # empty (2 bytes) unless the robot runs its pose estimator
-    ("shape_source", "b"),  # the shape the group is in or moving between, and how far
-    ("shape_target", "b"),
-    ("morph", "d"),
-)
+_RECORD_KINDS: Final[dict[object, str]] = {
+    str: "s",
+    float: "d",
+    bool: "?",
+    tuple[float, ...]: "D",
+    IntWidth(8, signed=True): "b",
+    IntWidth(32, signed=False): "I",
+}
+
+
+def record_layout(record: type[Any]) -> tuple[tuple[str, str], ...]:
+    """The layout of a shared record's message (`phalanx.core.peers`): its fields in its
+    order, each of the kind its type gives (an int: of the width it is annotated with).
+    """
+    hints = get_type_hints(record, include_extras=True)
+    return tuple((f.name, _record_kind(f.name, hints[f.name])) for f in fields(record))
+
+
+def _record_kind(name: str, hint: object) -> str:
+    if get_origin(hint) is Annotated:
+        base, *extras = get_args(hint)
+        hint = next((e for e in extras if isinstance(e, IntWidth)), base)
+    kind = _RECORD_KINDS.get(hint)
+    if kind is None:
+        raise TypeError(f"{name}: {hint} has no packed kind (an int takes Int8 or UInt32)")
+    return kind
+
+
+# A robot's state and its flags (the fields of it every robot needs), from their records.
+_STATE_FIELDS = record_layout(PeerState)
+_FLAG_FIELDS = record_layout(PeerFlags)
 LAYOUTS: dict[type[Message], tuple[int, tuple[tuple[str, str], ...]]] = {
     RobotState: (1, _STATE_FIELDS),
     ClockTick: (2, (("tick", "I"), ("t_s", "d"), ("dt_s", "d"), ("final", "?"))),
@@ -122,7 +127,7 @@ LAYOUTS: dict[type[Message], tuple[int, tuple[tuple[str, str], ...]]] = {
         ),
     ),
     # a robot's flags: the fields of its state that RobotFlags has, in the same order
-    RobotFlags: (7, tuple(f for f in _STATE_FIELDS if f[0] in RobotFlags.model_fields)),
+    RobotFlags: (7, _FLAG_FIELDS),
     LeaderAnnouncement: (
         8,
         (

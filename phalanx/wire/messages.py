@@ -7,6 +7,7 @@ Encoding and decoding (and the drop-and-count of malformed payloads) live in
 from __future__ import annotations
 
 import math
+from operator import attrgetter
 from typing import Final, Literal, Self
 
 from pydantic import (
@@ -20,7 +21,7 @@ from pydantic import (
 
 from phalanx.core.config import MAX_ROBOTS
 from phalanx.core.geometry import Pose2D, Twist2D
-from phalanx.core.peers import PeerFlags, PeerState, Scan
+from phalanx.core.peers import FLAG_FIELDS, STATE_FIELDS, PeerFlags, PeerState, Scan
 from phalanx.wire.bounds import (
     MAX_BUMPERS,
     MAX_EXTENT_M,
@@ -74,6 +75,9 @@ class RobotState(Message):
     when the robot runs its pose estimator (upper triangle xx, xy, xt, yy, yt, tt in
     m^2, m rad, rad^2; see `check_pose_cov`), empty when it steers from its odometry as
     given.
+
+    Its fields are `PeerState`'s (the record's one definition), in its order, each
+    with its bound (tests/unit/test_robot_record.py holds them to it).
     """
 
     version: Literal[1] = 1
@@ -132,11 +136,11 @@ class RobotState(Message):
     @classmethod
     def of(cls, state: PeerState) -> RobotState:
         """The wire message of an agent's state (validated)."""
-        return cls.model_validate({name: getattr(state, name) for name in _PEER_STATE_FIELDS})
+        return cls.model_validate(dict(zip(STATE_FIELDS, _state_values(state), strict=True)))
 
     def peer(self) -> PeerState:
         """The state as the agent brain reads it."""
-        return PeerState(**{name: getattr(self, name) for name in _PEER_STATE_FIELDS})
+        return PeerState(*_state_values(self))
 
 
 class RobotFlags(Message):
@@ -154,6 +158,8 @@ class RobotFlags(Message):
     progress (next waypoint, deadlocks at it, scripted profile clock in s);
     `shape_source`, `shape_target`, `morph`: the shape the group is in or moving between
     (0 the scenario's, 1 shrunk, 2 column; `morph` of the way, 1 = there).
+
+    Its fields are `PeerFlags`', in its order, each with its bound.
     """
 
     version: Literal[1] = 1
@@ -179,14 +185,17 @@ class RobotFlags(Message):
     @classmethod
     def of(cls, flags: PeerFlags) -> RobotFlags:
         """The wire message of an agent's flags (validated)."""
-        return cls.model_validate({name: getattr(flags, name) for name in _PEER_FLAG_FIELDS})
+        return cls.model_validate(dict(zip(FLAG_FIELDS, _flag_values(flags), strict=True)))
 
     def peer(self) -> PeerFlags:
         """The flags as the agent brain reads them."""
-        return PeerFlags(**{name: getattr(self, name) for name in _PEER_FLAG_FIELDS})
+        return PeerFlags(*_flag_values(self))
 
 
 _FLAG_FIELDS = tuple(RobotFlags.model_fields)
+# A record's values in its order (the same names on the brain's value and on the wire's).
+_state_values: Final = attrgetter(*STATE_FIELDS)
+_flag_values: Final = attrgetter(*FLAG_FIELDS)
 FIX_FIELDS = ("stamp_s", "x_m", "y_m", "theta_rad", "std_m", "std_rad")
 RELATIVE_FIELDS = (
     "stamp_s", "target", "range_m", "bearing_rad", "heading_rad", "std_range_m",
@@ -212,9 +221,6 @@ _MAX_RELATIVE_VALUES: Final = len(RELATIVE_FIELDS) * MAX_MEASUREMENTS
 MAX_POSITION_VAR_M2 = 1e6
 MAX_HEADING_VAR_RAD2 = math.pi**2
 _COV_TOLERANCE = 1e-9
-# Every field but the wire's `version` header: the brain's plain values.
-_PEER_STATE_FIELDS = tuple(f for f in RobotState.model_fields if f != "version")
-_PEER_FLAG_FIELDS = tuple(f for f in RobotFlags.model_fields if f != "version")
 
 
 class LeaderAnnouncement(Message):
