@@ -81,6 +81,9 @@ class StepOutput:
     saturations: int = 0
     accel_limited: int = 0
     scan: Scan | None = None  # this step's sonar reading, for the fleet's shared map
+    # (a navigating leader) whether its map shows the scenario's shape fitting the way
+    # to its goal (`ShapeKeeper.scenario_fits`); True otherwise
+    shape_fits: bool = True
 
     @property
     def flags(self) -> PeerFlags:
@@ -188,40 +191,63 @@ class Agent:
         them), this robot's own as published included; when omitted, `peers` serve.
         """
         self.parts.startup.begin(t_s, self.scenario.leader_timeout_s)
-        # perceive the fleet (leadership, whom to track, where it and this robot's slot
-        # are now) and estimate this robot's pose
+        # perceive the fleet and estimate this robot's pose
         view, observation = self._listen_and_localise(observation, peers, flags, t_s)
         self.view = view
-        # sense: the sonar and bumpers, read with that pose
         stance = Stance(self.fsm.state, self.direction, self.limiter.last)
-        assume_formed = t_s < self.parts.startup.assume_formed_until_s
-        sensing = self.parts.senses.read(
-            observation, view, stance, t_s=t_s, assume_formed=assume_formed
-        )
+        sensing = self._sense(observation, view, stance, t_s)
         self._estimate(observation.odometry, sensing, view, t_s)  # the memories move on
-        # decide: at most one transition, on a context built once
-        ctx = self._context(observation, sensing, view, stance, t_s)
-        event = self.fsm.update(ctx, t_s)
-        odometry = observation.odometry
-        moment = Moment(
-            t_s, self.fsm.state, odometry, sensing, view, ctx.others_busy, self._last_forward
-        )
-        if event is not None:
-            self._enter(event, moment)
-        # command: the active behaviour's twist, kept apart from the others and off contact
-        active = self._active
-        behaviour_wants = active.command(moment)
-        if active.drove_forward is not None:
-            self._last_forward = active.drove_forward
-        wanted = self.spacing.apply(behaviour_wants, odometry.pose, peers, observation.near)
-        wanted = self.contact.apply(wanted, sensing)
-        # limit: saturated and rate-limited
+        event, moment = self._decide(observation, sensing, view, stance, t_s)
+        wanted = self._command(moment, observation, peers)
         command = self.limiter.apply(
-            wanted, self.dt_s, emergency=active.emergency, brake_hard=self.spacing.cut
+            wanted, self.dt_s, emergency=self._active.emergency, brake_hard=self.spacing.cut
         )
         self._update_formed(observation.odometry.pose, view)
         self._last_odometry = observation.odometry
         return self._output(observation.odometry, command, sensing, view, event, t_s)
+
+    def _sense(
+        self, observation: Observation, view: FleetView, stance: Stance, t_s: float
+    ) -> Sensing:
+        """The sonar and bumpers, read with the step's pose."""
+        assume_formed = t_s < self.parts.startup.assume_formed_until_s
+        return self.parts.senses.read(
+            observation, view, stance, t_s=t_s, assume_formed=assume_formed
+        )
+
+    def _decide(
+        self,
+        observation: Observation,
+        sensing: Sensing,
+        view: FleetView,
+        stance: Stance,
+        t_s: float,
+    ) -> tuple[TransitionEvent | None, Moment]:
+        """At most one transition, on a context built once; the step as the behaviour
+        of the state the machine is now in sees it.
+        """
+        ctx = self._context(observation, sensing, view, stance, t_s)
+        event = self.fsm.update(ctx, t_s)
+        moment = Moment(
+            t_s, self.fsm.state, observation.odometry, sensing, view, ctx.others_busy,
+            self._last_forward,
+        )  # fmt: skip
+        if event is not None:
+            self._enter(event, moment)
+        return event, moment
+
+    def _command(
+        self, moment: Moment, observation: Observation, peers: Mapping[str, PeerState]
+    ) -> Twist2D:
+        """The active behaviour's twist (noting the forward twist it reports), kept apart
+        from the other robots and off contact; before the limiter.
+        """
+        active = self._active
+        wanted = active.command(moment)
+        if active.drove_forward is not None:
+            self._last_forward = active.drove_forward
+        wanted = self.spacing.apply(wanted, moment.pose, peers, observation.near)
+        return self.contact.apply(wanted, moment.sensing)
 
     # --- listen, estimate -------------------------------------------------------------
 
@@ -510,6 +536,7 @@ class Agent:
             self.limiter.saturations,
             self.limiter.accel_limited,
             self.parts.planner.scan,
+            self.parts.keeper.scenario_fits,
         )
 
 

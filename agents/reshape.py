@@ -66,6 +66,9 @@ class ShapeKeeper:
     _decided_s: float = -math.inf
     _settled_s: float = -math.inf
     squeezed_s: float = 0.0  # how long the sonar has shown the way too narrow for the shape
+    # Whether the scenario's shape fits the way to the goal, as the map showed it when the
+    # leader last weighed the shapes: its footprint's route is about as good as the best.
+    scenario_fits: bool = True
 
     def copy_from(self, leader: FlagsView) -> None:
         """Take the leader's shape as it published it."""
@@ -126,6 +129,7 @@ class ShapeKeeper:
             return  # (a slide under way is turned back only by the sonar's fold)
         self._decided_s = t_s
         best = self._best(grid, pose.position, goal)
+        self.scenario_fits = best == SCENARIO_SHAPE
         if best is None or t_s - self._settled_s < DWELL_S:
             self._count = 0
             return

@@ -365,18 +365,30 @@ def navigation_metrics(log: RunLog) -> dict[str, Any]:
         "reshaping_share": float(sliding.mean()) if sliding.size else math.nan,
         "calm": errors,
         "reshapes": sum(1 for e in transitions if e.target == "RESHAPE"),
-        "scenario_shape_share": _scenario_shape_share(log),
+        **_scenario_shape_shares(log),
     }
 
 
-def _scenario_shape_share(log: RunLog) -> float:
-    """The share of steps the group (its leader's view) was in the scenario's shape."""
+def _scenario_shape_shares(log: RunLog) -> dict[str, float]:
+    """The share of steps the group (its leader's view) was in the scenario's shape
+    (`scenario_shape_share`), the share its leader's map showed that shape fitting the
+    way to the goal (`fits_share`), and the share of those it was in it
+    (`scenario_shape_when_fits`; 1 when it never fitted).
+    """
     leaders = leader_series(log)
-    shapes = {rid: tr.shapes for rid, tr in log.traces.items()}
     n = len(leaders)
-    if not n or any(len(s) != n for s in shapes.values()):
-        return 1.0
-    return sum(shapes[rid][k] == (0, 0, 1.0) for k, rid in enumerate(leaders)) / n
+    traces = log.traces.values()
+    if not n or any(len(tr.shapes) != n or len(tr.fits) != n for tr in traces):
+        return {"scenario_shape_share": 1.0, "fits_share": 1.0, "scenario_shape_when_fits": 1.0}
+    in_shape = [log.traces[rid].shapes[k] == (0, 0, 1.0) for k, rid in enumerate(leaders)]
+    fits = [log.traces[rid].fits[k] for k, rid in enumerate(leaders)]
+    fitting = sum(fits)
+    kept = sum(i and f for i, f in zip(in_shape, fits, strict=True))
+    return {
+        "scenario_shape_share": sum(in_shape) / n,
+        "fits_share": fitting / n,
+        "scenario_shape_when_fits": kept / fitting if fitting else 1.0,
+    }
 
 
 def _calm_errors(log: RunLog, followers: list[str], calm: BoolArray) -> dict[str, Any]:

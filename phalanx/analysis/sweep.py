@@ -257,9 +257,9 @@ def summarise(rows: Sequence[dict[str, Any]]) -> dict[str, Any]:
         "reshaping_share": float(np.mean([r.get("reshaping_share", 0.0) for r in rows]))
         if rows
         else math.nan,
-        "scenario_shape_share": float(np.mean([r.get("scenario_shape_share", 1.0) for r in rows]))
-        if rows
-        else math.nan,
+        "scenario_shape_share": _mean(rows, "scenario_shape_share"),
+        "fits_share": _mean(rows, "fits_share"),
+        "scenario_shape_when_fits": _mean(rows, "scenario_shape_when_fits"),
         "time_mean_s": float(times.mean()) if times.size else math.nan,
         "time_median_s": float(np.median(times)) if times.size else math.nan,
         "time_max_s": float(times.max()) if times.size else math.nan,
@@ -267,6 +267,11 @@ def summarise(rows: Sequence[dict[str, Any]]) -> dict[str, Any]:
         "calm": calm,
         "wall_s": sum(r["wall_s"] for r in rows),
     }
+
+
+def _mean(rows: Sequence[dict[str, Any]], key: str) -> float:
+    """The mean of a share over `rows` (1 for rows from before it was measured)."""
+    return float(np.mean([r.get(key, 1.0) for r in rows])) if rows else math.nan
 
 
 def group_key(row: dict[str, Any]) -> tuple[str, str, int, str]:
@@ -294,8 +299,9 @@ def table(groups: dict[tuple[str, str, int, str], dict[str, Any]]) -> list[str]:
         "| collisions robot-obstacle / robot-robot | deadlock reverses (runs) | reshapes "
         "| time to goal median / max | median time / route at cruise | calm linear % "
         "mean / max | calm orientation deg mean / max | time in avoidance episodes "
-        "| time reshaping | time in the scenario's shape |",
-        "|---|---|---:|---|---:|---:|---:|---|---|---:|---|---:|---|---|---:|---:|---:|",
+        "| time reshaping | time in the scenario's shape | time it fits "
+        "| in the shape while it fits |",
+        "|---|---|---:|---|---:|---:|---:|---|---|---:|---|---:|---|---|---:|---:|---:|---:|---:|",
     ]
     for (course, shape, robots, controller), s in groups.items():
         c = s["calm"]
@@ -309,7 +315,8 @@ def table(groups: dict[tuple[str, str, int, str], dict[str, Any]]) -> list[str]:
             f"| {_fmt(c['linear_pct']['mean'])} / {_fmt(c['linear_pct']['max'])} "
             f"| {_fmt(c['orientation_deg']['mean'])} / {_fmt(c['orientation_deg']['max'])} "
             f"| {100 * s['episode_share']:.0f} % | {100 * s['reshaping_share']:.0f} % "
-            f"| {100 * s['scenario_shape_share']:.0f} % |"
+            f"| {100 * s['scenario_shape_share']:.0f} % | {100 * s['fits_share']:.0f} % "
+            f"| {100 * s['scenario_shape_when_fits']:.0f} % |"
         )
     return rows
 
@@ -321,8 +328,8 @@ def section(command: str, groups: dict[tuple[str, str, int, str], dict[str, Any]
             SWEEP_BEGIN,
             "## Navigation sweep (`phalanx sweep`)",
             "",
-            f"Reproduce with `{command}`. Each run as in the Monte-Carlo table above "
-            "(until the goal or STUCK, plus 10 s); *median time / route at cruise*: time to "
+            f"Reproduce with `{command}`. Each run goes on until the goal or STUCK, "
+            "plus 10 s; *median time / route at cruise*: time to "
             "the goal over the time the shortest route the map gives at the start (on the "
             "world's obstacles) takes at cruise speed; *time in avoidance episodes*: the share of "
             "steps some robot was off its slot on purpose, stopped for an obstacle or turning "
@@ -330,7 +337,10 @@ def section(command: str, groups: dict[tuple[str, str, int, str], dict[str, Any]
             "outside these and outside reshaping; *time reshaping*: the share of steps the "
             "group slid between two shapes; *time in the scenario's shape*: the "
             "share of steps the group was in the shape the scenario asks for (not shrunk, "
-            "folded or between two).",
+            "folded or between two); *time it fits*: the share of steps the leader's map "
+            "showed that shape fitting the way to the goal (its footprint's route about as "
+            "good as the best), and *in the shape while it fits*: the share of those steps "
+            "the group was in it.",
             "",
             *table(groups),
             "",

@@ -68,6 +68,9 @@ class RobotTrace:
     cov: FloatArray = field(default_factory=lambda: np.zeros((0, 6)))
     # The shape it was in (`phalanx.core.shapes.ShapeKey`: from, to, morph), per step.
     shapes: list[tuple[int, int, float]] = field(default_factory=list)
+    # Whether the robot's map showed the scenario's shape fitting its way (a navigating
+    # leader's `StepOutput.shape_fits`), per step.
+    fits: list[bool] = field(default_factory=list)
 
     @classmethod
     def empty(cls, n: int) -> RobotTrace:
@@ -96,6 +99,7 @@ class RobotTrace:
             self.estimate[:n],
             self.cov[:n],
             self.shapes[:n],
+            self.fits[:n],
         )
 
     def pose(self, k: int) -> Pose2D:
