@@ -23,7 +23,8 @@ class Observation:
     """What a robot senses this step (from its driver, or the simulated world): odometry,
     its status, and the positioning measurements that arrived since the last step (pose
     fixes, relative measurements of other robots), each stamped when it was taken, and
-    the sonar scans the fleet shared since the last step (`phalanx.agents.fleetmap`).
+    the sonar scans the fleet shared since the last step
+    (`phalanx.agents.navigation.fleet_map`).
 
     `sonar`: the sonar ranges of `status` already read as geometry, and `masked`: that
     reading with the formation's robots masked out for this robot's step (the batch

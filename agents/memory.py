@@ -2,24 +2,17 @@
 
 Each piece is small and named for what it holds; the agent (`phalanx.agents.agent`)
 updates them in the estimate stage of a step, before the state machine decides, and
-the behaviours that need one are given it when they are made.
+the behaviours that need one are given it when they are made. What the navigator
+remembers (its steering, the leader's course, the stall watch) is navigation's
+(`phalanx.agents.navigation`).
 """
 
 from __future__ import annotations
 
 import math
-from collections import deque
 from dataclasses import dataclass, field
 
-import numpy as np
-
-from phalanx.agents.behaviours.navigation import Breadcrumbs
 from phalanx.agents.leadership import FlagsView, LiveFlags
-from phalanx.agents.perception import FloatArray
-from phalanx.core.geometry import Pose2D, Vec2
-
-# A navigating leader that has not got this far from where it was in `stall_s` is stuck.
-PROGRESS_M = 0.3
 
 
 @dataclass
@@ -60,84 +53,6 @@ class BlockedTimers:
     def reset(self) -> None:
         """A new heading: blocked only if blocked again."""
         self.seconds = {1: 0.0, -1: 0.0}
-
-
-@dataclass
-class Steering:
-    """The reactive navigator's memory (world frame, rad): the heading it last steered
-    for, and a turn on the spot under way. NAVIGATE, WANDER and AVOID share it (a
-    follower that takes the lead keeps the side it was going round by).
-    """
-
-    chosen_rad: float | None = None
-    turn_to_rad: float | None = None
-
-    def reset(self) -> None:
-        """Forget both (a robot that stopped steering)."""
-        self.chosen_rad = None
-        self.turn_to_rad = None
-
-
-@dataclass
-class Course:
-    """The leader's way so far: the ground it crossed (to back along) and a point to make
-    for first after a dead end (world frame).
-    """
-
-    crumbs: Breadcrumbs
-    escape: Vec2 | None = None
-
-
-class RecentEchoes:
-    """The obstacle points a navigator's sonar showed over the last `keep_s` (world
-    frame), to steer by. A ring of beams loses and finds an obstacle between two beams
-    as the robot yaws; steering by one step's echoes alone then swings from side to side,
-    and the shape behind swings with it.
-    """
-
-    def __init__(self, keep_s: float) -> None:
-        self.keep_s = keep_s
-        self._steps: deque[tuple[float, FloatArray, FloatArray]] = deque()
-
-    def with_recent(
-        self, pose: Pose2D, points: tuple[FloatArray, FloatArray], t_s: float
-    ) -> tuple[FloatArray, FloatArray]:
-        """Remember this step's `points` (body frame, at `pose`); this step's and the
-        last `keep_s`'s, in the body frame.
-        """
-        c, s = math.cos(pose.theta_rad), math.sin(pose.theta_rad)
-        x, y = points
-        steps = self._steps
-        steps.append((t_s, pose.x_m + c * x - s * y, pose.y_m + s * x + c * y))
-        while steps[0][0] < t_s - self.keep_s - 1e-9:
-            steps.popleft()
-        if len(steps) == 1:
-            return points
-        dx = np.concatenate([p[1] for p in steps]) - pose.x_m
-        dy = np.concatenate([p[2] for p in steps]) - pose.y_m
-        return c * dx + s * dy, c * dy - s * dx
-
-
-class StallWatch:
-    """Whether a navigating leader that turns and creeps gets anywhere: one that has not
-    moved `PROGRESS_M` from where it was for `stall_s` is blocked as surely as one
-    facing a wall.
-    """
-
-    def __init__(self, stall_s: float) -> None:
-        self.stall_s = stall_s
-        self._anchor: tuple[Vec2, float] | None = None  # where and when progress was made
-
-    def stalled(self, pose: Pose2D, t_s: float) -> bool:
-        """Update with the pose at `t_s`; whether the robot is stalled."""
-        here = pose.position
-        if self._anchor is None or (here - self._anchor[0]).norm() >= PROGRESS_M:
-            self._anchor = (here, t_s)
-        return t_s - self._anchor[1] >= self.stall_s
-
-    def reset(self) -> None:
-        """Start watching afresh (a new behaviour, or not navigating)."""
-        self._anchor = None
 
 
 @dataclass

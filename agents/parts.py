@@ -2,9 +2,13 @@
 shape, its senses and route planner, its memories, and the behaviour table that maps
 each behaviour state to the object that drives it.
 
+The scenario is taken apart here, and nowhere below: a behaviour is given the settings it
+reads (navigation's `NavSettings`, a table of the scenario, the control step), never the
+whole scenario.
+
 Adding a behaviour: write it (a `Behaviour` subclass, in `phalanx.agents.behaviours`),
-give it the parts it needs here, and put it in the table under the state (or states)
-it drives; the transitions into and out of that state go in
+give it the parts and settings it needs here, and put it in the table under the state
+(or states) it drives; the transitions into and out of that state go in
 `phalanx.agents.behaviours.stack`.
 """
 
@@ -19,18 +23,26 @@ from phalanx.agents.behaviours.leader import (
     DeadlockTurn,
     GoToGoal,
     Scripted,
+    SteeredParts,
     Wander,
 )
-from phalanx.agents.behaviours.navigation import Breadcrumbs, Plan, plan_of
 from phalanx.agents.control import make_controller
-from phalanx.agents.fleetmap import FleetMap
-from phalanx.agents.memory import BlockedTimers, Course, Progress, StartUp, Steering, StopsBefore
+from phalanx.agents.memory import BlockedTimers, Progress, StartUp, StopsBefore
+from phalanx.agents.navigation import (
+    Breadcrumbs,
+    Course,
+    FleetMap,
+    NavSettings,
+    Plan,
+    RoutePlanner,
+    Steering,
+    Trail,
+    plan_of,
+)
 from phalanx.agents.perception import SonarGeometry
 from phalanx.agents.reshape import Arrived, Reshape, ShapeKeeper
-from phalanx.agents.route import RoutePlanner
 from phalanx.agents.sensing import Senses
 from phalanx.agents.shape import Shape
-from phalanx.agents.trail import Trail
 from phalanx.core.config import Scenario
 from phalanx.core.formation import Formation
 from phalanx.core.geometry import Pose2D, Vec2
@@ -56,6 +68,8 @@ class Parts:
         self.scenario = scenario
         self.plan: Plan = plan_of(scenario)
         nav = scenario.navigation
+        # What navigation reads of the scenario: its behaviours and senses are given this.
+        self.settings = NavSettings(nav, scenario.deadlock, self.plan, scenario.dt_s)
         self.shape = Shape(
             robot_id, formation, radius_m=robot.radius_m, nav=nav, limits=limits,
             dt_s=scenario.dt_s,
@@ -76,36 +90,34 @@ class Parts:
         )
         self._applied: ShapeKey = NOMINAL_KEY
         self.senses = Senses(
-            robot_id, scenario, sonar=SonarGeometry.from_params(robot), shape=self.shape,
-            limits=limits, planner=self.planner, progress=self.progress, plan=self.plan,
-            fold=self.keeper.fold,
+            robot_id, self.settings, sonar=SonarGeometry.from_params(robot), shape=self.shape,
+            limits=limits, planner=self.planner, progress=self.progress, fold=self.keeper.fold,
         )  # fmt: skip
         self.reverse = DeadlockReverse(
-            scenario, shape=self.shape, course=self.course, progress=self.progress
+            self.settings, shape=self.shape, course=self.course, progress=self.progress
         )
         self.turn = DeadlockTurn(
-            scenario, shape=self.shape, planner=self.planner, progress=self.progress,
+            self.settings, shape=self.shape, planner=self.planner, progress=self.progress,
             course=self.course, blocked=self.blocked,
         )  # fmt: skip
-        self.avoid = Avoid(scenario, shape=self.shape, limits=limits, steering=self.steering)
+        self.avoid = Avoid(
+            nav, dt_s=scenario.dt_s, shape=self.shape, limits=limits, steering=self.steering
+        )
+        steered = SteeredParts(self.settings, self.shape, limits, self.steering, self.course)
         # (a leader going to waypoints drives on with its navigation while it reshapes)
         go = None
         if scenario.leader_profile is None and self.plan != "wander":
-            go = self._go_to_goal(limits)
+            go = GoToGoal(steered, planner=self.planner, progress=self.progress, keeper=self.keeper)
         self.reshape = Reshape(self.keeper, self.shape, dt_s=scenario.dt_s, drive=go)
         self.estop = EmergencyStop()
         seed = scenario.seed + formation.robot_ids.index(robot_id)
-        self.behaviours = self._table(robot_id, limits, seed, go)
+        self.behaviours = self._table(robot_id, limits, Wander(steered, seed=seed), go)
 
     def _table(
-        self, robot_id: str, limits: KinematicLimits, seed: int, go: GoToGoal | None
+        self, robot_id: str, limits: KinematicLimits, wander: Wander, go: GoToGoal | None
     ) -> dict[str, Behaviour]:
         """The behaviour of each state (`go`: the leader's way to its waypoints)."""
         scenario = self.scenario
-        wander = Wander(
-            scenario, shape=self.shape, limits=limits, steering=self.steering,
-            course=self.course, seed=seed,
-        )  # fmt: skip
         navigate: Behaviour = go or wander
         if scenario.leader_profile is not None:
             navigate = Scripted(
@@ -113,7 +125,7 @@ class Parts:
                 dt_s=scenario.dt_s,
             )  # fmt: skip
         track = self.track = Track(
-            robot_id, scenario, shape=self.shape, limits=limits,
+            robot_id, dt_s=scenario.dt_s, shape=self.shape, limits=limits,
             controller=make_controller(scenario.controller),
             trail=self.trail,
         )  # fmt: skip
@@ -132,13 +144,6 @@ class Parts:
             State.EMERGENCY_STOP: self.estop,
         }
         return {state: table.get(state, still) for state in State}
-
-    def _go_to_goal(self, limits: KinematicLimits) -> GoToGoal:
-        return GoToGoal(
-            self.scenario, shape=self.shape, limits=limits, steering=self.steering,
-            course=self.course, planner=self.planner, progress=self.progress,
-            keeper=self.keeper,
-        )  # fmt: skip
 
     def apply_shape(self) -> None:
         """Take the shape in effect (`keeper.key`) wherever it is used: the slots this
@@ -163,7 +168,7 @@ class Parts:
 
     def weigh_shapes(self, pose: Pose2D, t_s: float) -> None:
         """The navigating leader weighs the shapes for the way to its next waypoint."""
-        waypoints = self.scenario.navigation.waypoints
+        waypoints = self.settings.nav.waypoints
         if self.keeper.enabled and self.progress.waypoint < len(waypoints):
             goal = self.course.escape or Vec2(*waypoints[self.progress.waypoint])
             self.keeper.decide(self.planner.map, pose, goal, t_s)
@@ -174,9 +179,9 @@ class Parts:
         the map still shows a way to it one robot wide (the group can fold into a
         column); STUCK is for when the map proves there is none.
         """
-        if self.progress.deadlocks < self.scenario.deadlock.max_retries:
+        if self.progress.deadlocks < self.settings.deadlock.max_retries:
             return True
-        waypoints = self.scenario.navigation.waypoints
+        waypoints = self.settings.nav.waypoints
         if not deadlocked or self.plan != "goto" or self.progress.waypoint >= len(waypoints):
             return False
         goal = Vec2(*waypoints[self.progress.waypoint])
@@ -186,7 +191,7 @@ class Parts:
         """The leader's waypoint bookkeeping: a reached waypoint resets the retries (and
         the escape point a dead end left, once reached or passed by).
         """
-        nav, progress, course = self.scenario.navigation, self.progress, self.course
+        nav, progress, course = self.settings.nav, self.progress, self.course
         if self.plan != "goto":
             return
         near_m = nav.goal_tolerance_m

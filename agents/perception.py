@@ -2,9 +2,8 @@
 
 Each reading becomes obstacle points across the transducer's beam (a sonar only knows
 that something lies somewhere on the arc at that range, so the whole arc is treated as
-occupied). From the points: the free distance along a straight corridor as wide as the
-robot (plus a margin) in any heading, for the robot alone or for a whole formation, and
-the heading a reactive navigator should take towards a goal.
+occupied). The free way round those points and the heading to take are worked out from
+them by navigation (`phalanx.agents.navigation`: `clearance`, `steering`).
 
 Pure numpy, no I/O: the same numbers in the batch runner and on a robot. A reading's
 geometry (`SonarEchoes`) is worked out for a whole fleet in one pass
@@ -28,8 +27,6 @@ from phalanx.core.robot_params import RobotParams
 FloatArray = npt.NDArray[np.float64]
 BoolArray = npt.NDArray[np.bool_]
 NO_OBSTACLE_M = math.inf
-# Candidate headings of the reactive navigator, body frame: every 7.5 deg all round.
-HEADINGS_RAD: FloatArray = np.radians(np.arange(-180.0, 180.0, 7.5))
 _AT_MAX_RANGE_M = 1e-6
 _REACH_MARGIN_M = 1e-3
 _DOUBT = 1e-9
@@ -39,10 +36,6 @@ GAP_FILL_RANGE_M = 1.5
 ARC_SPREAD_M = 0.3
 # An echo at the minimum range is taken this far outside the body's disc (m).
 EDGE_MARGIN_M = 1e-3
-# Free way enough to head straight for where one wants to go (m).
-NEAR_NEED_M = 2.0
-# Weight of "close to the last choice" against "close to the goal" (choose_heading).
-STICKINESS = 0.5
 
 
 @dataclass(frozen=True, slots=True)
@@ -369,123 +362,6 @@ def nearest_m(points: tuple[FloatArray, FloatArray]) -> float:
     """Distance from the body origin to the nearest point (inf if none)."""
     x, y = points
     return float(np.sqrt(np.min(x * x + y * y))) if x.size else NO_OBSTACLE_M
-
-
-def corridor_clearance(
-    points: tuple[FloatArray, FloatArray],
-    headings_rad: FloatArray,
-    *,
-    half_width_m: float,
-    origins: Sequence[Vec2] = (Vec2(0.0, 0.0),),
-    turning: bool = True,
-) -> FloatArray:
-    """Free distance (m) along each heading before a disc of radius `half_width_m` at any
-    of `origins` (body frame; the formation's slots, all moving together) touches a point.
-    With `turning`, the shape is first turned to face each heading (it drives that way);
-    without, it slides that way as it stands.
-
-    A disc at `o` moving along unit `u` touches point `p` after `f - sqrt(w^2 - l^2)`,
-    with `f`, `l` the along and across components of `p - o` and `w` the half-width;
-    a point already inside the disc gives 0 along the headings it lies ahead of (`f > 0`);
-    a point behind the disc's centre never counts, so one the disc already overlaps there
-    (an echo at the body's edge) leaves every way away from it open.
-    """
-    x, y = points
-    out = np.full(headings_rad.shape, NO_OBSTACLE_M)
-    if x.size == 0:
-        return out
-    c, s = np.cos(headings_rad)[:, None], np.sin(headings_rad)[:, None]
-    w2 = half_width_m * half_width_m
-    for o in origins:
-        # the slot rotates with the formation: origin o is given for heading 0
-        ox = c * o.x_m - s * o.y_m if turning else np.full_like(c, o.x_m)
-        oy = s * o.x_m + c * o.y_m if turning else np.full_like(s, o.y_m)
-        dx, dy = x[None, :] - ox, y[None, :] - oy
-        f = dx * c + dy * s
-        lat = -dx * s + dy * c
-        inside = lat * lat < w2
-        half_chord = np.sqrt(np.maximum(w2 - lat * lat, 0.0))
-        ahead = inside & (f > 0.0)
-        hit = np.where(ahead, np.maximum(f - half_chord, 0.0), np.inf)
-        out = np.minimum(out, hit.min(axis=1))
-    return out
-
-
-def clearance_along(
-    points: tuple[FloatArray, FloatArray], heading_rad: float, *, half_width_m: float
-) -> float:
-    """`corridor_clearance` of the robot alone along one heading (the fast path)."""
-    x, y = points
-    if x.size == 0:
-        return NO_OBSTACLE_M
-    c, s = math.cos(heading_rad), math.sin(heading_rad)
-    f = x * c + y * s
-    lat2 = np.square(y * c - x * s)
-    w2 = half_width_m * half_width_m
-    half_chord = np.sqrt(np.maximum(w2 - lat2, 0.0))
-    ahead = (lat2 < w2) & (f > 0.0)
-    if not ahead.any():
-        return NO_OBSTACLE_M
-    return max(0.0, float(np.min(f[ahead] - half_chord[ahead])))
-
-
-def choose_heading(
-    desired_rad: float,
-    *,
-    wide: FloatArray,
-    narrow: FloatArray,
-    need_m: float,
-    window_rad: float = math.pi,
-    previous_rad: float | None = None,
-    reach_rad: float = math.pi,
-    headings_rad: FloatArray = HEADINGS_RAD,
-) -> int:
-    """Index of the heading to take, among those within `window_rad` of `desired_rad`:
-    the one nearest `desired_rad` whose whole-formation corridor (`wide`) is free for
-    `need_m`; else whose own corridor (`narrow`) is; else straight for the goal. Ties
-    go to the smaller turn, then to the left. With `previous_rad` (the last choice), a
-    heading near it costs less: a navigator facing an obstacle head-on picks a side and
-    keeps to it instead of dithering between two equally good ways round.
-
-    The window keeps a navigator from turning its back on the goal: what cannot be got
-    round within it is a dead end, the deadlock escape's business. `reach_rad` also
-    keeps the choice within that much of straight ahead (a shape with no room to turn
-    on the spot can only bend its course).
-    """
-    off = _angle_between(headings_rad, desired_rad)
-    inside = (off <= window_rad + 1e-9) & (np.abs(headings_rad) <= reach_rad + 1e-9)
-    if not inside.any():
-        inside = off <= off.min() + 1e-9
-    turn = np.abs(headings_rad)
-    # Going the desired way needs only room to make progress; turning away from it
-    # needs the full `need_m`, or a narrow opening towards the goal would lose to any
-    # wide-open side.
-    need = np.minimum(need_m, NEAR_NEED_M + (need_m - NEAR_NEED_M) * off / max(window_rad, 1e-9))
-    if previous_rad is not None:
-        off = off + STICKINESS * _angle_between(headings_rad, previous_rad)
-    for free in (inside & (wide >= need), inside & (narrow >= need)):
-        if free.any():
-            return _first(np.lexsort((-headings_rad, turn, np.where(free, off, np.inf))))
-    # No way round within the window: keep heading for the goal and let the robot creep
-    # up to the obstacle, where being blocked hands the problem to the group's rules
-    # (handover, deadlock) instead of turning the formation about in a tight spot.
-    return _first(np.lexsort((-headings_rad, off)))
-
-
-def _angle_between(headings_rad: FloatArray, angle_rad: float) -> FloatArray:
-    return np.abs(np.mod(headings_rad - angle_rad + math.pi, 2.0 * math.pi) - math.pi)
-
-
-def _first(order: npt.NDArray[np.intp]) -> int:
-    return int(order[0])
-
-
-def open_side(points: tuple[FloatArray, FloatArray], *, half_width_m: float) -> int:
-    """+1 if the left half (counter-clockwise) is freer than the right, else -1."""
-    clear = np.minimum(corridor_clearance(points, HEADINGS_RAD, half_width_m=half_width_m), 5.0)
-    left = float(clear[HEADINGS_RAD > 0.0].sum())
-    right = float(clear[HEADINGS_RAD < 0.0].sum())
-    return 1 if left >= right else -1
 
 
 def braking_gap_m(speed_mps: float, *, decel_mps2: float, latency_s: float) -> float:

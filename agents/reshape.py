@@ -23,8 +23,7 @@ from typing import Protocol
 
 from phalanx.agents.behaviours.base import Behaviour, Moment
 from phalanx.agents.leadership import FlagsView
-from phalanx.agents.mapping import OccupancyMap
-from phalanx.agents.route import DETOUR_M, DETOUR_SHARE, ROUTE_AHEAD_M
+from phalanx.agents.navigation import DETOUR_M, DETOUR_SHARE, ROUTE_AHEAD_M, OccupancyMap
 from phalanx.agents.shape import Shape
 from phalanx.core.geometry import ZERO_TWIST, Pose2D, Twist2D, Vec2
 from phalanx.core.shapes import SCENARIO_SHAPE, SHAPE_NAMES, ShapeBook, ShapeKey

@@ -10,7 +10,6 @@ import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from phalanx.agents.behaviours.navigation import Plan, bearing_rad
 from phalanx.agents.inputs import FleetView, Observation
 from phalanx.agents.masking import (
     EXPECTED_MASK_M,
@@ -20,15 +19,16 @@ from phalanx.agents.masking import (
     SlotMasks,
     mask_readings,
 )
-from phalanx.agents.memory import Progress, StallWatch
-from phalanx.agents.perception import (
-    SonarGeometry,
-    braking_gap_m,
+from phalanx.agents.memory import Progress
+from phalanx.agents.navigation import (
+    NavSettings,
+    RoutePlanner,
+    StallWatch,
+    bearing_rad,
     clearance_along,
 )
-from phalanx.agents.route import RoutePlanner
+from phalanx.agents.perception import SonarGeometry, braking_gap_m
 from phalanx.agents.shape import Points, Shape
-from phalanx.core.config import Scenario
 from phalanx.core.frozen import quick_init
 from phalanx.core.geometry import Pose2D, Twist2D, Vec2
 from phalanx.core.limits import KinematicLimits
@@ -89,24 +89,23 @@ class Senses:
     def __init__(
         self,
         robot_id: str,
-        scenario: Scenario,
+        settings: NavSettings,
         *,
         sonar: SonarGeometry,
         shape: Shape,
         limits: KinematicLimits,
         planner: RoutePlanner,
         progress: Progress,
-        plan: Plan,
         fold: Callable[[], bool] = lambda: False,
     ) -> None:
         self.robot_id = robot_id
-        self.nav = scenario.navigation
-        self.near_m = scenario.deadlock.obstacle_range_m
+        self.nav = settings.nav
+        self.near_m = settings.deadlock.obstacle_range_m
         # (a follower in reactive navigation leaves its slot for what is this near)
         self.follower_near_m = self.nav.avoid_range_m if self.nav.reactive else self.near_m
-        self.dt_s = scenario.dt_s
+        self.dt_s = settings.dt_s
         self.sonar, self.shape, self.limits = sonar, shape, limits
-        self.planner, self.progress, self.plan = planner, progress, plan
+        self.planner, self.progress, self.plan = planner, progress, settings.plan
         self.stall = StallWatch(self.nav.stall_s)
         self._boxed_since_s: float | None = None  # since when the route has led back
         # Asked before a dead end is declared: fold the group into a narrower shape

@@ -10,15 +10,14 @@ from functools import cached_property
 
 import numpy as np
 
-from phalanx.agents.behaviours.navigation import Clearances, turn_rate_radps
 from phalanx.agents.leadership import Flags
-from phalanx.agents.perception import (
+from phalanx.agents.navigation import (
     HEADINGS_RAD,
-    FloatArray,
-    braking_gap_m,
+    Clearances,
     corridor_clearance,
-    nearest_m,
+    turn_rate_radps,
 )
+from phalanx.agents.perception import FloatArray, braking_gap_m, nearest_m
 from phalanx.core.config import LeadershipConfig, NavigationConfig
 from phalanx.core.formation import Formation
 from phalanx.core.geometry import Pose2D, Twist2D, Vec2

@@ -3,8 +3,9 @@ into a twist (before the limiter), told when it becomes active and, while active
 the robot's motion did since the last step.
 
 A behaviour reads a `Moment`, built once per step and never written; what it needs to
-remember is its own (or one of the shared memories of `phalanx.agents.memory` it was
-given when it was made). What the state machine's guards need of it they ask through
+remember is its own (or one of the shared memories of `phalanx.agents.memory` or of
+navigation's, `Steering` and `Course`, it was given when it was made, with the settings
+it reads). What the state machine's guards need of it they ask through
 the agent when the next step's context is built, never by a command writing to it; what
 another behaviour needs of it (the forward twist it drove, `drove_forward`, which a
 deadlock reverse retraces) it reports, and the agent hands on in the next `Moment`.

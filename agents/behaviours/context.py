@@ -7,7 +7,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from phalanx.agents.behaviours.navigation import Plan
+from phalanx.agents.navigation import Plan
 from phalanx.core.frozen import quick_init
 
 

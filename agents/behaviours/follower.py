@@ -8,14 +8,20 @@ from __future__ import annotations
 import math
 
 from phalanx.agents.behaviours.base import Behaviour, Moment, turn_on_spot
-from phalanx.agents.behaviours.navigation import Clearances, bearing_rad, steer
 from phalanx.agents.control.common import FollowerController, FollowerInput
 from phalanx.agents.inputs import FleetView
-from phalanx.agents.memory import Steering
-from phalanx.agents.perception import HEADINGS_RAD, clearance_along, corridor_clearance
+from phalanx.agents.navigation import (
+    HEADINGS_RAD,
+    Clearances,
+    Steering,
+    Trail,
+    bearing_rad,
+    clearance_along,
+    corridor_clearance,
+    steer,
+)
 from phalanx.agents.shape import Shape
-from phalanx.agents.trail import Trail
-from phalanx.core.config import Scenario
+from phalanx.core.config import NavigationConfig
 from phalanx.core.geometry import ZERO_TWIST, Pose2D, Twist2D, Vec2, wrap_angle
 from phalanx.core.limits import KinematicLimits
 from phalanx.core.states import DEADLOCK_STATES, State
@@ -58,8 +64,8 @@ class Track(Behaviour):
     def __init__(
         self,
         robot_id: str,
-        scenario: Scenario,
         *,
+        dt_s: float,
         shape: Shape,
         limits: KinematicLimits,
         controller: FollowerController,
@@ -68,7 +74,7 @@ class Track(Behaviour):
         self.robot_id = robot_id
         self.shape, self.limits, self.controller = shape, limits, controller
         self.trail = trail
-        self.dt_s = scenario.dt_s
+        self.dt_s = dt_s
         self.leader_still_s = 0.0
         self.on_slot = False  # settled onto the slot's position while the leader stands
 
@@ -186,14 +192,15 @@ class Avoid(Behaviour):
 
     def __init__(
         self,
-        scenario: Scenario,
+        nav: NavigationConfig,
         *,
+        dt_s: float,
         shape: Shape,
         limits: KinematicLimits,
         steering: Steering,
     ) -> None:
-        self.nav = scenario.navigation
-        self.dt_s = scenario.dt_s
+        self.nav = nav
+        self.dt_s = dt_s
         self.shape, self.limits, self.steering = shape, limits, steering
         self.way_free_s = 0.0
 

@@ -6,27 +6,31 @@ deadlock escape: back off in formation, then turn.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 from phalanx.agents.behaviours.base import Behaviour, Moment, turn_on_spot
-from phalanx.agents.behaviours.navigation import (
+from phalanx.agents.memory import BlockedTimers, Progress
+from phalanx.agents.navigation import (
     REORIENT_RAD,
     Clearances,
+    Course,
+    NavSettings,
+    RecentEchoes,
+    RoutePlanner,
     ScriptedProfile,
+    Steering,
     WanderHeading,
     bearing_rad,
     centring_rad,
     heading_index,
-    plan_of,
+    open_side,
     reverse_twist,
     rigid_limit,
     steer,
 )
-from phalanx.agents.memory import BlockedTimers, Course, Progress, RecentEchoes, Steering
-from phalanx.agents.perception import open_side
 from phalanx.agents.reshape import ShapeKeeper
-from phalanx.agents.route import RoutePlanner
 from phalanx.agents.shape import Shape
-from phalanx.core.config import LeaderProfile, NavigationConfig, Scenario
+from phalanx.core.config import LeaderProfile, NavigationConfig
 from phalanx.core.geometry import ZERO_TWIST, Pose2D, Twist2D, Vec2, integrate_unicycle, wrap_angle
 from phalanx.core.limits import KinematicLimits
 from phalanx.core.robot import Odometry
@@ -108,27 +112,34 @@ def keep_to(reference: Pose2D, pose: Pose2D, twist: Twist2D) -> Twist2D:
     return Twist2D(along, turn)
 
 
+@dataclass(frozen=True, slots=True)
+class SteeredParts:
+    """What every steered behaviour of a leader (`GoToGoal`, `Wander`) is made of, made
+    once and shared: the navigation settings, the shape and the limits it steers within,
+    and the memories they share (the steering, the leader's course).
+    """
+
+    settings: NavSettings
+    shape: Shape
+    limits: KinematicLimits
+    steering: Steering
+    course: Course
+
+
 class Steered(Behaviour):
     """Reactive navigation for a formation: head the way `desired` says, round what the
     sonar shows, no tighter than the shape allows, slowing near obstacles and while
     robots of the group are off their slots. Subclasses say where to head for.
     """
 
-    def __init__(
-        self,
-        scenario: Scenario,
-        *,
-        shape: Shape,
-        limits: KinematicLimits,
-        steering: Steering,
-        course: Course,
-    ) -> None:
-        self.nav = scenario.navigation
-        self.scripted = scenario.leader_profile is not None
-        self.shape, self.limits, self.steering, self.course = shape, limits, steering, course
+    def __init__(self, parts: SteeredParts) -> None:
+        self.nav = parts.settings.nav
+        self.scripted = parts.settings.plan == "scripted"
+        self.shape, self.limits = parts.shape, parts.limits
+        self.steering, self.course = parts.steering, parts.course
         self.keeper: ShapeKeeper | None = None  # (a leader that may change the shape)
         self.drove_forward: Twist2D | None = None
-        self.dt_s = scenario.dt_s
+        self.dt_s = parts.settings.dt_s
         self.recent = RecentEchoes(RECENT_ECHOES_S)
 
     def desired(self, moment: Moment) -> tuple[float, float]:
@@ -215,17 +226,13 @@ class GoToGoal(Steered):
 
     def __init__(
         self,
-        scenario: Scenario,
+        parts: SteeredParts,
         *,
-        shape: Shape,
-        limits: KinematicLimits,
-        steering: Steering,
-        course: Course,
         planner: RoutePlanner,
         progress: Progress,
         keeper: ShapeKeeper | None = None,
     ) -> None:
-        super().__init__(scenario, shape=shape, limits=limits, steering=steering, course=course)
+        super().__init__(parts)
         self.planner, self.progress, self.keeper = planner, progress, keeper
 
     @property
@@ -244,18 +251,9 @@ class GoToGoal(Steered):
 class Wander(Steered):
     """WANDER: cruise along a heading that changes now and then (seeded), round obstacles."""
 
-    def __init__(
-        self,
-        scenario: Scenario,
-        *,
-        shape: Shape,
-        limits: KinematicLimits,
-        steering: Steering,
-        course: Course,
-        seed: int,
-    ) -> None:
-        super().__init__(scenario, shape=shape, limits=limits, steering=steering, course=course)
-        self.heading = WanderHeading(scenario.navigation, seed)
+    def __init__(self, parts: SteeredParts, *, seed: int) -> None:
+        super().__init__(parts)
+        self.heading = WanderHeading(parts.settings.nav, seed)
 
     def desired(self, moment: Moment) -> tuple[float, float]:
         """The wander heading, with nowhere in particular to get to."""
@@ -271,11 +269,11 @@ class DeadlockReverse(Behaviour):
     """
 
     def __init__(
-        self, scenario: Scenario, *, shape: Shape, course: Course, progress: Progress
+        self, settings: NavSettings, *, shape: Shape, course: Course, progress: Progress
     ) -> None:
-        self.deadlock = scenario.deadlock
-        self.nav = scenario.navigation
-        self.navigating = plan_of(scenario) == "goto"
+        self.deadlock = settings.deadlock
+        self.nav = settings.nav
+        self.navigating = settings.plan == "goto"
         self.shape, self.course, self.progress = shape, course, progress
         self.pausing = False  # standing still before it backs off
         self.reversed_m = 0.0
@@ -341,7 +339,7 @@ class DeadlockTurn(Behaviour):
 
     def __init__(
         self,
-        scenario: Scenario,
+        settings: NavSettings,
         *,
         shape: Shape,
         planner: RoutePlanner,
@@ -349,8 +347,8 @@ class DeadlockTurn(Behaviour):
         course: Course,
         blocked: BlockedTimers,
     ) -> None:
-        self.deadlock, self.nav = scenario.deadlock, scenario.navigation
-        self.navigating = plan_of(scenario) == "goto"
+        self.deadlock, self.nav = settings.deadlock, settings.nav
+        self.navigating = settings.plan == "goto"
         self.shape, self.planner, self.progress, self.course = shape, planner, progress, course
         self.blocked = blocked
         self.side = 1

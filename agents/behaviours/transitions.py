@@ -7,8 +7,8 @@ The order of the transitions within one priority is the order they are tried in.
 from __future__ import annotations
 
 from phalanx.agents.behaviours.context import Guard, StackContext
-from phalanx.agents.behaviours.navigation import Plan
 from phalanx.agents.fsm import ANY_STATE, Transition
+from phalanx.agents.navigation import Plan
 from phalanx.core.states import DEADLOCK_STATES, LEADER_STATES, ROBOT_STATES, State
 
 # Priorities of the transitions below; a row wins over every row beneath it.

@@ -28,7 +28,7 @@ from typing import Any
 
 import numpy as np
 
-from phalanx.agents.mapping import MAX_EVIDENCE, OccupancyMap
+from phalanx.agents.navigation.grid import MAX_EVIDENCE, OccupancyMap
 from phalanx.analysis.metrics import navigation_metrics
 from phalanx.analysis.report import SWEEP_BEGIN, SWEEP_END
 from phalanx.core.config import Scenario

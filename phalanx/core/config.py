@@ -249,7 +249,8 @@ class NavigationConfig(Model):
     leadership still work; every robot is blocked within `deadlock.obstacle_range_m`):
     for scripted sensor events such as the paper's. Never on a real robot. `column_path`
     (reactive only): a follower whose slot is straight behind the one it is laid out from
-    keeps to the path that robot drove, not to a slot swung out (`phalanx.agents.trail`).
+    keeps to the path that robot drove, not to a slot swung out
+    (`phalanx.agents.navigation.column_path`).
 
     `reshape`: a navigating leader may change the formation's shape (shrink it, fold it
     into a column) where the scenario's shape does not fit, and back

@@ -8,7 +8,7 @@ leadership change has a state from the very same tick, and a step first waits (b
 for the states the batch runner would hand it (published `comm_delay_s` earlier).
 
 A navigating robot's sonar scans go to every robot too (`ScanInbox`): each adds the
-fleet's scans to its copy of the shared map (`phalanx.agents.fleetmap`).
+fleet's scans to its copy of the shared map (`phalanx.agents.navigation.fleet_map`).
 """
 
 from __future__ import annotations

@@ -8,15 +8,10 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from phalanx.agents.behaviours.navigation import Clearances, steer
 from phalanx.agents.leadership import Leadership, LiveFlags, newer
-from phalanx.agents.perception import (
-    HEADINGS_RAD,
-    NEAR_NEED_M,
-    SonarGeometry,
-    choose_heading,
-    corridor_clearance,
-)
+from phalanx.agents.navigation import HEADINGS_RAD, Clearances, corridor_clearance, steer
+from phalanx.agents.navigation.steering import NEAR_NEED_M, choose_heading
+from phalanx.agents.perception import SonarGeometry
 from phalanx.agents.shape import TAIL_SHARE, TURN_CENTRE_MARGIN_M, Shape
 from phalanx.core.config import FormationConfig, LeadershipConfig, NavigationConfig, SlotConfig
 from phalanx.core.config_files import load_robot

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from phalanx.agents.agent import Observation
-from phalanx.agents.behaviours.navigation import Breadcrumbs
+from phalanx.agents.navigation import Breadcrumbs
 from phalanx.analysis.metrics import error_series, navigation_metrics, phase_masks, run_metrics
 from phalanx.core.config import PolygonObstacle
 from phalanx.core.config_files import CONFIG_ROOT, apply_overrides, load_scenario

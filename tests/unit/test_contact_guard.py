@@ -10,7 +10,8 @@ import numpy as np
 from hypothesis import given
 from hypothesis import strategies as st
 
-from phalanx.agents.perception import SonarGeometry, clearance_along
+from phalanx.agents.navigation import clearance_along
+from phalanx.agents.perception import SonarGeometry
 from phalanx.agents.sensing import CONTACT_MARGIN_M, ContactGuard, Sensing
 from phalanx.core.config_files import load_robot
 from phalanx.core.geometry import Twist2D

@@ -8,7 +8,6 @@ from typing import Any
 
 import pytest
 
-from phalanx.agents.behaviours.navigation import ScriptedProfile
 from phalanx.agents.behaviours.stack import (
     ARBITRATION,
     STATE_NOTES,
@@ -17,6 +16,7 @@ from phalanx.agents.behaviours.stack import (
     behaviour_transitions,
 )
 from phalanx.agents.fsm import ANY_STATE, StateMachine, Transition, to_mermaid
+from phalanx.agents.navigation import ScriptedProfile
 from phalanx.core.config import LeaderProfile, Segment
 from phalanx.core.states import State
 

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from phalanx.agents.agent import Agent
-from phalanx.agents.mapping import OCCUPIED
+from phalanx.agents.navigation.grid import OCCUPIED
 from phalanx.core.geometry import Pose2D
 from phalanx.core.scenarios import navigation_scenario
 from phalanx.runtime.batch import BatchRunner

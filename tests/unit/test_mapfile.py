@@ -8,8 +8,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from phalanx.agents.fleetmap import FleetMap
-from phalanx.agents.mapping import OccupancyMap
+from phalanx.agents.navigation import FleetMap, OccupancyMap
 from phalanx.agents.perception import SonarGeometry
 from phalanx.core.config_files import load_robot
 from phalanx.core.errors import ConfigError

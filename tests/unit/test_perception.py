@@ -7,16 +7,15 @@ import math
 import numpy as np
 import pytest
 
-from phalanx.agents.mapping import OccupancyMap
 from phalanx.agents.masking import _clearances
-from phalanx.agents.perception import (
+from phalanx.agents.navigation import (
     HEADINGS_RAD,
-    SonarGeometry,
-    braking_gap_m,
-    choose_heading,
+    OccupancyMap,
     clearance_along,
     corridor_clearance,
 )
+from phalanx.agents.navigation.steering import choose_heading
+from phalanx.agents.perception import SonarGeometry, braking_gap_m
 from phalanx.core.config_files import load_robot
 from phalanx.core.geometry import Pose2D, Vec2
 

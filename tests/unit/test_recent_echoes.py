@@ -1,4 +1,4 @@
-"""A navigator's memory of recent echoes (agents/memory.py: RecentEchoes)."""
+"""A navigator's memory of recent echoes (agents/navigation/steering.py: RecentEchoes)."""
 
 from __future__ import annotations
 
@@ -7,8 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from phalanx.agents.memory import RecentEchoes
-from phalanx.agents.perception import HEADINGS_RAD, FloatArray, corridor_clearance
+from phalanx.agents.navigation import HEADINGS_RAD, RecentEchoes, corridor_clearance
+from phalanx.agents.perception import FloatArray
 from phalanx.core.geometry import Pose2D
 
 

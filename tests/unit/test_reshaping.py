@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from phalanx.agents.behaviours.base import Moment
-from phalanx.agents.mapping import OCCUPIED, OccupancyMap
+from phalanx.agents.navigation.grid import OCCUPIED, OccupancyMap
 from phalanx.agents.reshape import SQUEEZE_S, Arrived, Reshape, ShapeKeeper
 from phalanx.agents.shape import Shape
 from phalanx.core.config import NavigationConfig

@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from phalanx.agents.mapping import OCCUPIED, OccupancyMap
+from phalanx.agents.navigation.grid import OCCUPIED, OccupancyMap
 from phalanx.agents.reshape import DECIDE_S, ShapeKeeper
 from phalanx.analysis.metrics import navigation_metrics
 from phalanx.core.config_files import CONFIG_ROOT, load_robot, load_scenario

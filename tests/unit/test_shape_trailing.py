@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from phalanx.agents.behaviours.navigation import RIGID_SPEED_SHARE
+from phalanx.agents.navigation.steering import RIGID_SPEED_SHARE
 from phalanx.agents.shape import Shape
 from phalanx.core.config import NavigationConfig
 from phalanx.core.config_files import load_robot

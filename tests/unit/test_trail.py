@@ -1,5 +1,5 @@
-"""The tracked robot's path (`phalanx.agents.trail.Trail`): the point and heading a given
-distance back along it, and when it starts again."""
+"""The tracked robot's path (`phalanx.agents.navigation.column_path.Trail`): the point and
+heading a given distance back along it, and when it starts again."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from phalanx.agents.trail import HEADING_CHORD_M, JUMP_M, KEPT_M, SPACING_M, Trail
+from phalanx.agents.navigation.column_path import HEADING_CHORD_M, JUMP_M, KEPT_M, SPACING_M, Trail
 from phalanx.core.geometry import Vec2
 
 

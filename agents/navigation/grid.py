@@ -10,7 +10,7 @@ optimistic and is re-planned as the map fills in.
 The route is a wavefront (Dijkstra on the 8-connected grid, in numpy) from the goal over
 the free cells, with obstacles grown by a clearance: the formation's half-width first,
 so the whole shape fits, then the robot's own radius when the shape does not.
-The reactive layer (`phalanx.agents.perception`) still decides the actual heading.
+The reactive layer (`phalanx.agents.navigation.steering`) still decides the actual heading.
 """
 
 from __future__ import annotations

@@ -15,7 +15,7 @@ from collections.abc import Iterable
 
 import numpy as np
 
-from phalanx.agents.mapping import OccupancyMap
+from phalanx.agents.navigation.grid import OccupancyMap
 from phalanx.agents.perception import BoolArray, FloatArray, SonarGeometry
 from phalanx.core.geometry import Pose2D, Vec2
 from phalanx.core.mapfile import GridMap

@@ -1,7 +1,7 @@
 """The route: where to head for next on the way to a goal, over the map the fleet builds
 (re-planned every `REPLAN_S`, so it follows the map as it grows).
 
-With a fleet map (`phalanx.agents.fleetmap`, every navigating scenario) a robot's own
+With a fleet map (`phalanx.agents.navigation.fleet_map`, every navigating scenario) a robot's own
 reading goes into its next `Scan`, shared with the fleet and added to the map with the
 others' at the start of the next step; without one (a robot given none), the robot's
 own map takes its readings at once, as it always did.
@@ -12,8 +12,8 @@ from __future__ import annotations
 import math
 from collections.abc import Iterable
 
-from phalanx.agents.fleetmap import FleetMap, scan_of
-from phalanx.agents.mapping import OccupancyMap
+from phalanx.agents.navigation.fleet_map import FleetMap, scan_of
+from phalanx.agents.navigation.grid import OccupancyMap
 from phalanx.agents.perception import BoolArray, FloatArray, SonarGeometry
 from phalanx.core.geometry import Pose2D, Vec2
 from phalanx.core.peers import Scan
