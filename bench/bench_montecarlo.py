@@ -1,17 +1,19 @@
-"""Navigation Monte-Carlo: every formation through many seeded obstacle fields, and the
-U-shaped dead end escaped in reverse.
+"""Navigation: the U-shaped dead end escaped in reverse, and (on request) the formations
+through many seeded obstacle fields.
 
-For each shape (wedge, inline, collateral) and each seed, `navigation_scenario("field",
-shape, robots, seed=seed)` (the scenario of configs/scenarios/nav_field_*.toml with that
-field seed) runs in the batch runner until the goal is reached or the group is STUCK (plus
-10 s for the followers to settle), at most its 240 s. Worker processes share the seeds.
-Then configs/scenarios/nav_deadend_wedge3.toml (and inline, collateral) runs to the end
-and its backward phase is measured against the formation-core bounds.
+configs/scenarios/nav_deadend_{wedge,inline,collateral}{3,5}.toml each run in the batch
+runner until the goal is reached or the group is STUCK (plus 10 s for the followers to
+settle), and the backward phase is measured against the formation-core bounds. With
+`--seeds N`, for each shape, group size and seed, `navigation_scenario("field", shape,
+robots, seed=seed)` (the scenario of configs/scenarios/nav_field_*.toml with that field
+seed) runs the same way; worker processes share the runs.
 
-Prints the tables; with --write, rewrites the navigation part of docs/RESULTS.md and
-docs/figures/deadend-*.png.
+Prints the tables; with --write, rewrites the navigation part of docs/RESULTS.md (the
+dead end's table, its notes and figures, docs/figures/deadend-*.png). The seeded fields'
+table is printed only: `phalanx sweep --write` writes theirs, the section after it.
 
-    .venv/bin/python bench/bench_montecarlo.py --seeds 100 --workers 2 --write
+    .venv/bin/python bench/bench_montecarlo.py --workers 2 --write
+    .venv/bin/python bench/bench_montecarlo.py --seeds 100 --robots 3   # + 300 field runs
 """
 
 from __future__ import annotations
@@ -82,26 +84,28 @@ def deadend_run(shape: str, robots: int = 3) -> tuple[RunLog, dict[str, Any]]:
             if values.size:
                 worst[k] = max(worst[k], float(values.max()))
     nav = navigation_metrics(log)
-    return log, {"shape": shape, "backward_s": seconds, "worst": worst, **nav}
+    return log, {"shape": shape, "robots": robots, "backward_s": seconds, "worst": worst, **nav}
 
 
 def _fmt(value: float, digits: int = 3) -> str:
     return "n/a" if not math.isfinite(value) else f"{value:.{digits}g}"
 
 
-def field_table(summaries: dict[str, dict[str, Any]]) -> list[str]:
-    """Markdown: one row per shape."""
+def field_table(summaries: dict[tuple[str, int], dict[str, Any]]) -> list[str]:
+    """Markdown: one row per shape and group size (printed; the sweep's table in
+    docs/RESULTS.md holds the same runs).
+    """
     rows = [
-        "| formation | runs | goal reached | stuck | collisions robot-obstacle / robot-robot "
-        "| deadlock reverses (runs) | leadership changes | time to goal mean / median / max "
-        "| calm linear % mean / max | calm angular % mean / max | calm orientation deg "
-        "mean / max | calm linear m mean / max | time in episodes |",
-        "|---|---:|---:|---:|---|---|---:|---|---|---|---|---|---:|",
+        "| formation | robots | runs | goal reached | stuck | collisions robot-obstacle / "
+        "robot-robot | deadlock reverses (runs) | leadership changes | time to goal mean / "
+        "median / max | calm linear % mean / max | calm angular % mean / max | calm "
+        "orientation deg mean / max | calm linear m mean / max | time in episodes |",
+        "|---|---:|---:|---:|---:|---|---|---:|---|---|---|---|---|---:|",
     ]
-    for shape, s in summaries.items():
+    for (shape, robots), s in summaries.items():
         c = s["calm"]
         rows.append(
-            f"| {shape} | {s['runs']} | {100 * s['reached'] / s['runs']:.0f} % "
+            f"| {shape} | {robots} | {s['runs']} | {100 * s['reached'] / s['runs']:.0f} % "
             f"| {s['stuck']} | {s['obstacle_collisions']} / {s['robot_collisions']} "
             f"| {s['deadlock_reverses']} ({s['runs_with_reverse']}) | {s['leadership_changes']} "
             f"| {_fmt(s['time_mean_s'])} / {_fmt(s['time_median_s'])} / "
@@ -116,140 +120,189 @@ def field_table(summaries: dict[str, dict[str, Any]]) -> list[str]:
 
 
 def deadend_table(results: list[dict[str, Any]]) -> list[str]:
-    """Markdown: the dead end per shape, backward phase against the core bounds."""
+    """Markdown: the dead end per shape and group size, the backward phase against the
+    core bounds (a dash where no reverse was measured).
+    """
     rows = [
-        "| formation | deadlock reverses | measured reverse | backward linear max % "
+        "| formation | robots | deadlock reverses | measured reverse | backward linear max % "
         "| backward angular max % | backward orientation max deg | goal reached "
         "| collisions |",
-        "|---|---:|---:|---|---|---|---|---:|",
+        "|---|---:|---:|---:|---|---|---|---|---:|",
     ]
     for r in results:
         w = r["worst"]
-        marks = {k: " ✗" if w[k] > b else " ✓" for k, b in CORE_BOUNDS.items()}
         measured = r["backward_s"] > 0
-        rows.append(
-            f"| {r['shape']} | {r['deadlock_reverses']} | {r['backward_s']:.0f} s "
-            + "".join(f"| {_fmt(w[k]) + marks[k] if measured else 'n/a'} " for k in CORE_BOUNDS)
-            + f"| {'yes' if r['goal_reached'] else 'no'} "
-            f"| {r['collisions_obstacle'] + r['collisions_robot']} |"
-        )
+        errors = [
+            f"{_fmt(w[k])} {'✗' if w[k] > bound else '✓'}" if measured else "-"
+            for k, bound in CORE_BOUNDS.items()
+        ]
+        cells = [
+            r["shape"], str(r["robots"]), str(r["deadlock_reverses"]), _reverse(r), *errors,
+            f"yes ({r['time_to_goal_s']:.0f} s)" if r["goal_reached"] else "no",
+            str(r["collisions_obstacle"] + r["collisions_robot"]),
+        ]  # fmt: skip
+        rows.append("| " + " | ".join(cells) + " |")
     return rows
 
 
-def section(
-    seeds: int,
-    robots: int,
-    summaries: dict[str, dict[str, Any]],
-    deadends: list[dict[str, Any]],
-    figure: str,
-) -> str:
-    """The navigation part of docs/RESULTS.md."""
+def _reverse(result: dict[str, Any]) -> str:
+    """How long the measured reverse lasted, or why there was none."""
+    if result["backward_s"] > 0:
+        return f"{result['backward_s']:.3g} s"
+    return "none (goes round, never in)" if not result["deadlock_reverses"] else "none measured"
+
+
+# The figures of the section: (file under docs/figures, the group it draws, its caption).
+DEADEND_FIGURES = (
+    (
+        "deadend-inline3-escape.png",
+        ("inline", 3),
+        "dead end, chain of three: round the U, never in",
+    ),
+    ("deadend-wedge3-escape.png", ("wedge", 3), "dead end, wedge"),
+)
+
+
+def section(deadends: list[dict[str, Any]]) -> str:
+    """The navigation part of docs/RESULTS.md: what the seeded fields are (the sweep's
+    section after it holds their table), the dead end, its table, notes and figures.
+    """
     lines = [
         SECTION_BEGIN,
         "## Navigation: seeded obstacle fields and the dead end",
         "",
-        "Reproduce with `.venv/bin/python bench/bench_montecarlo.py --seeds "
-        f"{seeds} --robots {robots} --workers 2 --write` (rewrites this section and "
-        "`docs/figures/deadend-*.png`; `phalanx report` keeps it).",
+        "### The seeded obstacle fields",
         "",
-        f"### {seeds} seeded obstacle fields per formation ({robots} robots)",
-        "",
-        'Each run: `navigation_scenario("field", shape, '
-        f"{robots}, seed=s)` for s = 0..{seeds - 1} (the scenario of "
-        "`configs/scenarios/nav_field_*.toml`): 18 round obstacles (0.2-0.45 m, at least "
-        "1.2 m apart) scattered between start and goal 24 m away in a 12 m wide arena, the "
-        "leader navigating on sonar alone (reactive steering over a map it builds), followers "
-        "in formation with `ours`, |v| <= 0.3 m/s, |omega| <= 40 deg/s, at most 240 s. "
-        "Collisions count contact episodes (ground truth). *Calm* errors are the paper's "
-        "formation errors (against the robot each follower tracks, all followers' steps "
-        "pooled) outside obstacle-avoidance episodes: an episode runs from a robot leaving "
-        "its slot (AVOID, EMERGENCY_STOP, HOLD, JOIN, STUCK) until it is back in it "
-        "(within 0.1 m, or a tenth of its slot's distance from the leader if more, and "
-        "15 deg), or while the leader turns the shape on the spot or "
-        "away from a dead end (DEADLOCK_TURN), and `settle_s` = 5 s after; the deadlock "
-        "reverse itself is measured. *Time in episodes* is the share of steps excluded "
-        "that way. A run that does not reach the goal ran out of its 240 s or ended STUCK "
-        "(deadlock retries used up).",
-        "",
-        *field_table(summaries),
+        FIELDS_TEXT,
         "",
         "### The U-shaped dead end, escaped in reverse",
         "",
-        "`configs/scenarios/nav_deadend_*3.toml`: a U 1.2 m wider than the shape, 8 m deep "
-        "(its end out of sonar range from the mouth), the goal behind it. The group drives "
-        "in; once the leader's map shows its route leading back the way it came and no room "
-        "to turn the shape round, the group is in deadlock: it turns the shape back to the "
-        "way it came in (the heading of the leader's last 2 m of path: a leader caught "
-        "turning would otherwise back out diagonally), stands still 12 s "
-        "(`deadlock.pause_s`: the followers settle onto their slots, position then "
-        "heading), backs out straight in "
-        "formation (`deadlock.reverse_mode = 'fixed'`, as the paper) for 10 m, turns "
-        "towards the route and goes round. Backward-phase errors are measured from 5 s "
-        "after the reverse starts (the formation-core convention), against the "
-        "formation-core bounds (< 0.5 % linear, < 0.3 % angular, < 0.5 deg orientation).",
+        DEADEND_TEXT,
+        "",
+        MEASURED_TEXT,
         "",
         *deadend_table(deadends),
         "",
-        *DEADEND_NOTES,
+        DEADEND_NOTES,
         "",
-        f"![dead end, wedge]({figure})",
-        "",
+        *(f"![{caption}](figures/{name})\n" for name, _, caption in DEADEND_FIGURES),
         SECTION_END,
     ]
     return "\n".join(lines)
 
 
-DEADEND_NOTES = [
-    "- **Every formation of three backs out within the bounds and reaches the goal**: the "
-    "wedge and the line abreast fold into a column on the way in, the turn back swings "
-    "the column's slots about 0.1 m sideways, and the followers settle onto their slots "
-    "(a turn, a straight drive, a turn on the spot) before the reverse starts. The chain "
-    "drives in because a dead end needs its route to lead back two re-plans running (the "
-    "sonar's arcs close and open the U's mouth on the map from one re-plan to the next).",
-    "- **5 robots** (`nav_deadend_*5.toml`, not in the table): the chain backs out within "
-    "the bounds three times and runs out of time; the wedge reaches the goal after a "
-    "reverse an obstacle stopped at 0.08 m (it turns round inside the U instead); the "
-    "line abreast backs out within the linear and angular bounds (0.0201 %, 0.0409 %), "
-    "0.731 deg of orientation (the fourth robot against the second, whose own small turn "
-    "tilts the reference), and does not reach the goal. No collision.",
-]
+FIELDS_TEXT = (
+    'Each run: `navigation_scenario("field", shape, robots, seed=s)` (the scenario of '
+    "`configs/scenarios/nav_field_*.toml` with field seed s): 18 round obstacles "
+    "(0.2-0.45 m, at least 1.2 m apart) scattered between start and goal 24 m away in a "
+    "12 m wide arena, the leader navigating on sonar alone (reactive steering over a "
+    "map it builds), followers in formation with `ours`, |v| <= 0.3 m/s, |omega| <= 40 "
+    "deg/s, at most 240 s. Collisions count contact episodes (ground truth). *Calm* "
+    "errors are the paper's formation errors (against the robot each follower tracks, "
+    "all followers' steps pooled) outside obstacle-avoidance episodes: an episode runs "
+    "from a robot leaving its slot (AVOID, EMERGENCY_STOP, HOLD, JOIN, STUCK) until it "
+    "is back in it (within 0.1 m, or a tenth of its slot's distance from the leader if "
+    "more, and 15 deg), or while the leader turns the shape on the spot or away from a "
+    "dead end (DEADLOCK_TURN), and `settle_s` = 5 s after; the deadlock reverse itself "
+    "is measured. A run that does not reach the goal ran out of its 240 s or ended "
+    "STUCK (deadlock retries used up). The sweep below runs 100 of these fields for "
+    "every formation of three and of five robots."
+)
+DEADEND_TEXT = (
+    "`configs/scenarios/nav_deadend_*.toml`: a U 1.2 m wider than the shape, 8 m deep "
+    "(its end out of sonar range from the mouth), the goal behind it. The group drives "
+    "in; once the leader's map shows its route leading back the way it came and no room "
+    "to turn the shape round, the group is in deadlock: it turns the shape back to the "
+    "way it came in (the heading of the leader's last 2 m of path: a leader caught "
+    "turning would otherwise back out diagonally), stands still 12 s "
+    "(`deadlock.pause_s`: the followers settle onto their slots, position then "
+    "heading), backs out straight in formation (`deadlock.reverse_mode = 'fixed'`, as "
+    "the paper) for 10 m, turns towards the route and goes round. Backward-phase errors "
+    "are measured from 5 s after the reverse starts (the formation-core convention), "
+    "against the formation-core bounds (< 0.5 % linear, < 0.3 % angular, < 0.5 deg "
+    "orientation)."
+)
+MEASURED_TEXT = (
+    "Measured with `bench_montecarlo.deadend_run(shape, robots)` of "
+    "`bench/bench_montecarlo.py` on each `configs/scenarios/nav_deadend_*.toml`, run to "
+    "its end (`phalanx run configs/scenarios/nav_deadend_wedge5.toml` runs one with its "
+    "figures):"
+)
+# What the table shows, written by hand: read it again when the numbers change.
+DEADEND_NOTES = """\
+- **Every reverse stays within the bounds.** The wedge and the line abreast fold into a
+  column on the way in; a column's followers keep to the path driven ahead of them
+  (`[navigation] column_path`), so they do not swing into the U's walls on its bends.
+  While the leader stands before the reverse, each follower settles onto its slot to
+  within 5 mm (it turns towards the slot, drives onto it, then turns on the spot to the
+  slot's heading: `Track`, `phalanx.agents.behaviours.follower`), which is what keeps the
+  reverse within the bounds from its fifth second on.
+- **The chains go round, never in.** At the U's mouth the sonar's arcs close and open the
+  mouth on the leader's map from one re-plan to the next, so its route flips between going
+  in and going round; a dead end is called only when the route has led back for 2 s
+  running (`DEAD_END_CONFIRM_S`, `phalanx.agents.sensing`). A chain's leader turns as
+  fast as its second robot's slot allows (the robots behind it trail), so it turns towards
+  the way round while that is offered and keeps to it.
+- **"no": out of time on the way round, not inside the U.** The wedge and the line of five
+  back out and run out of the scenario's 360 s on the way round the U (the wedge of five's
+  leader is at (3.9, 3.1) at 340 s, past the U's mouth on its way round the top wall).
+  Given 600 s (the same runs with `duration_s` raised; the first 360 s are the same
+  steps), the wedge of five reaches its goal at 429 s and the line of five at 405 s, with
+  the same reverses and errors and no contact."""
 
 
 def main() -> None:
     Calibration.measure()  # (the unit every time below can be divided by, on any machine)
     parser = argparse.ArgumentParser()
-    parser.add_argument("--seeds", type=int, default=100)
-    parser.add_argument("--robots", type=int, default=3)
+    parser.add_argument("--seeds", type=int, default=0, help="seeded fields per shape (printed)")
+    parser.add_argument("--robots", type=int, nargs="+", default=[3, 5])
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--shapes", nargs="+", default=list(SHAPES))
     parser.add_argument("--write", action="store_true", help="rewrite docs/RESULTS.md's part")
     args = parser.parse_args()
-    jobs = [(shape, args.robots, seed) for shape in args.shapes for seed in range(args.seeds)]
+    groups = [(shape, robots) for robots in args.robots for shape in args.shapes]
+    jobs = [(shape, robots, seed) for shape, robots in groups for seed in range(args.seeds)]
     started = time.perf_counter()
     with ProcessPoolExecutor(max_workers=args.workers) as pool:
         rows = list(pool.map(field_run, jobs, chunksize=2))
-        deadends_out = list(pool.map(deadend_run, args.shapes))
-    summaries = {s: summarise([r for r in rows if r["shape"] == s]) for s in args.shapes}
+        deadends_out = list(pool.map(deadend_run, *zip(*groups, strict=True)))
     deadends = [d for _, d in deadends_out]
-    print(f"{len(jobs)} field runs in {time.perf_counter() - started:.0f} s wall")
-    print("\n".join(field_table(summaries)))
-    print()
+    print(
+        f"{len(jobs)} field runs, {len(groups)} dead ends in {time.perf_counter() - started:.0f} s"
+    )
+    if rows:
+        summaries = {
+            g: summarise([r for r in rows if (r["shape"], r["robots"]) == g]) for g in groups
+        }
+        print("\n".join(field_table(summaries)))
+        for shape, robots in groups:
+            failed = [
+                r["seed"]
+                for r in rows
+                if (r["shape"], r["robots"]) == (shape, robots) and not r["goal_reached"]
+            ]
+            print(f"{shape} {robots}: seeds not reaching the goal: {failed}")
+        print()
     print("\n".join(deadend_table(deadends)))
-    for s in summaries:
-        failed = [r["seed"] for r in rows if r["shape"] == s and not r["goal_reached"]]
-        print(f"{s}: seeds not reaching the goal: {failed}")
     if args.write:
-        from phalanx.analysis.figures import deadend_escape, save_figure, states
+        write_docs(deadends_out)
 
-        figures = REPO / "docs" / "figures"
-        wedge = next(log for log, d in deadends_out if d["shape"] == "wedge")
-        save_figure(deadend_escape(wedge), figures / "deadend-wedge3-escape.png")
-        save_figure(states(wedge), figures / "deadend-wedge3-fig4b_states.png")
-        path = REPO / "docs" / "RESULTS.md"
-        text = section(args.seeds, args.robots, summaries, deadends,
-                       "figures/deadend-wedge3-escape.png")  # fmt: skip
-        path.write_text(with_section(path.read_text(encoding="utf-8"), text), encoding="utf-8")
-        print(f"wrote {path}")
+
+def write_docs(deadends_out: list[tuple[RunLog, dict[str, Any]]]) -> None:
+    """Rewrite the navigation part of docs/RESULTS.md and its figures."""
+    from phalanx.analysis.figures import deadend_escape, save_figure, states
+
+    figures = REPO / "docs" / "figures"
+    logs = {(d["shape"], d["robots"]): log for log, d in deadends_out}
+    for name, group, _ in DEADEND_FIGURES:
+        if group in logs:
+            save_figure(deadend_escape(logs[group]), figures / name)
+    if ("wedge", 3) in logs:
+        save_figure(states(logs["wedge", 3]), figures / "deadend-wedge3-fig4b_states.png")
+    path = REPO / "docs" / "RESULTS.md"
+    text = section([d for _, d in deadends_out])
+    path.write_text(with_section(path.read_text(encoding="utf-8"), text), encoding="utf-8")
+    print(f"wrote {path}")
 
 
 if __name__ == "__main__":

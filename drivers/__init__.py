@@ -4,7 +4,9 @@
 and with it its hardware library (pyserial, python-can, canopen), is imported only when
 that backend is asked for: importing `phalanx.drivers` imports none of them. Each backend
 declares its settings once, as its own pydantic model, and every backend class is built
-the same way, `Driver(settings, *, robot=robot_params)`:
+the same way, `Driver(settings, *, robot=robot_params)`. A backend may also name the
+`phalanx agent` options that each set one of its settings (`--arcos-tcp`: `tcp`), read by
+`settings_from_options`:
 
     driver = open_driver("arcos", {"port": "/dev/ttyUSB0"}, robot=load_robot("p3dx"))
 
@@ -33,12 +35,15 @@ if TYPE_CHECKING:
 
 @dataclass(frozen=True)
 class Backend:
-    """Where a backend lives (imported on first use) and what it is, in one line."""
+    """Where a backend lives (imported on first use), what it is in one line, and the
+    command-line options that each set one of its settings: (option, settings field).
+    """
 
     module: str
     driver_class: str
     settings_class: str
     help: str
+    options: tuple[tuple[str, str], ...] = ()
 
 
 BACKENDS: dict[str, Backend] = {
@@ -47,12 +52,14 @@ BACKENDS: dict[str, Backend] = {
         "ArcosDriver",
         "ArcosSettings",
         "Pioneer P3DX over its ARCOS protocol, on a serial port or TCP",
+        options=(("--arcos-port", "port"), ("--arcos-tcp", "tcp"), ("--baud", "baud")),
     ),
     "canopen": Backend(
         "phalanx.drivers.canopen",
         "CanopenDriver",
         "CanopenSettings",
         "two CiA 402 wheel drives on a CAN bus (python-can, canopen)",
+        options=(("--can-channel", "channel"), ("--can-interface", "interface")),
     ),
 }
 
@@ -71,6 +78,30 @@ def backend(name: str) -> Backend:
         known = ", ".join(backend_names())
         raise ConfigError(f"unknown driver backend {name!r}{hint}; backends: {known}")
     return entry
+
+
+def settings_from_options(name: str, given: Mapping[str, object]) -> dict[str, object]:
+    """The settings of driver `name` (a backend, or `sim`) that backend options set.
+
+    `given` maps each option (`--arcos-tcp`) to its value, None for one not given. A
+    ConfigError for an option no backend declares, or one of another backend than `name`.
+    """
+    owners = {
+        option: (owner, field)
+        for owner, entry in BACKENDS.items()
+        for option, field in entry.options
+    }
+    values: dict[str, object] = {}
+    for option, value in given.items():
+        if value is None:
+            continue
+        if option not in owners:
+            raise ConfigError(f"{option} is no driver backend's option")
+        owner, field = owners[option]
+        if owner != name:
+            raise ConfigError(f"{option} is an option of --driver {owner}, not {name}")
+        values[field] = value
+    return values
 
 
 def settings_model(name: str) -> type[BaseModel]:

@@ -1,6 +1,8 @@
-"""The architecture's rules as tests: the import contract between layers, no loop of
-imports between modules, a repository that stands on its own, and the arbitration table
-in docs/BEHAVIOUR.md equal to the one the transitions generate.
+"""The architecture's rules as tests: the import contract between layers, the CLI a leaf
+that builds nothing the runtime assembles, agents started from a spec and never from a
+command line built by hand, no loop of imports between modules, a repository that stands
+on its own, and the arbitration table in docs/BEHAVIOUR.md equal to the one the
+transitions generate.
 """
 
 from __future__ import annotations
@@ -15,11 +17,44 @@ from pathlib import Path
 import pytest
 
 from phalanx.agents.behaviours.stack import arbitration_markdown
+from phalanx.drivers import BACKENDS
 
 REPO = Path(__file__).resolve().parent.parent
 BIN = Path(sys.executable).parent
 PACKAGE_DIRS = ("phalanx", "agents", "drivers", "simulator")
 MAX_STEP_LINES = 40
+CLI_DIR = REPO / "phalanx" / "cli"
+# What the runtime's factory (`phalanx.runtime.agent_process.run_agent`) puts together
+# into a running agent, and nothing else does: the CLI parses its options into a spec and
+# hands it over (`phalanx.runtime.process_spec`), importing none of these, not even as
+# types. (Driver backends too: the registry opens one from a spec's driver choice.)
+ASSEMBLED_MODULES = frozenset(
+    {
+        "phalanx.drivers.base",
+        "phalanx.drivers.safety",
+        "phalanx.runtime.agent",
+        "phalanx.runtime.clock",
+        "phalanx.runtime.positioning",
+        "phalanx.runtime.robot_io",
+        "phalanx.telemetry.stream",
+        *(entry.module for entry in BACKENDS.values()),
+    }
+)
+ASSEMBLED_NAMES = frozenset(
+    {
+        "AgentRuntime",
+        "Driver",
+        "DriverIO",
+        "EpochClock",
+        "PositioningInbox",
+        "RuntimeOptions",
+        "SafeDriver",
+        "Telemetry",
+        "WorldLink",
+        "open_camera",
+        "open_driver",
+    }
+)
 
 
 def _lint_imports(
@@ -70,11 +105,38 @@ def _classes(path: Path) -> list[ast.ClassDef]:
     return [n for n in ast.walk(ast.parse(path.read_text())) if isinstance(n, ast.ClassDef)]
 
 
-def _module_name(path: Path) -> str:
-    parts = list(path.relative_to(REPO).with_suffix("").parts)
+def _module_name(path: Path, root: Path = REPO) -> str:
+    parts = list(path.relative_to(root).with_suffix("").parts)
     if parts[0] != "phalanx":
         parts.insert(0, "phalanx")  # agents/, drivers/, simulator/ are phalanx's subpackages
     return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def _imported(node: ast.Import | ast.ImportFrom, package: list[str]) -> list[tuple[str, str]]:
+    """What one import statement names: (module, name taken from it, "" for none), a
+    relative module resolved against `package`.
+    """
+    if isinstance(node, ast.Import):
+        return [(a.name, "") for a in node.names]
+    base = node.module or ""
+    if node.level:
+        base = ".".join([*package[: len(package) - node.level + 1], *([base] if base else [])])
+    return [(base, a.name) for a in node.names]
+
+
+def _all_imports(path: Path, root: Path = REPO) -> list[tuple[int, str, str]]:
+    """Every import in `path` (a file of the package in `root`) wherever it stands (the
+    top level, inside functions, under `if TYPE_CHECKING`): (line, module, name taken
+    from it or "").
+    """
+    name = _module_name(path, root)
+    package = name.split(".") if path.name == "__init__.py" else name.split(".")[:-1]
+    return [
+        (node.lineno, module, taken)
+        for node in ast.walk(ast.parse(path.read_text()))
+        if isinstance(node, ast.Import | ast.ImportFrom)
+        for module, taken in _imported(node, package)
+    ]
 
 
 def _imports_at_load(path: Path, name: str, modules: set[str]) -> set[str]:
@@ -86,17 +148,102 @@ def _imports_at_load(path: Path, name: str, modules: set[str]) -> set[str]:
         if isinstance(node, ast.If) and "TYPE_CHECKING" in ast.unparse(node.test):
             continue
         for n in ast.walk(node):
-            if isinstance(n, ast.Import):
-                found.update(a.name for a in n.names)
-            elif isinstance(n, ast.ImportFrom):
-                base = n.module or ""
-                if n.level:
-                    base = ".".join(
-                        [*package[: len(package) - n.level + 1], *([base] if base else [])]
-                    )
-                found.add(base)
-                found.update(f"{base}.{a.name}" for a in n.names)
+            if isinstance(n, ast.Import | ast.ImportFrom):
+                for module, taken in _imported(n, package):
+                    found.update([module, f"{module}.{taken}"] if taken else [module])
     return (found & modules) - {name}
+
+
+def _in_cli(path: Path) -> bool:
+    return path.is_relative_to(CLI_DIR)
+
+
+def _names_the_cli(module: str, taken: str) -> bool:
+    named = [module, f"{module}.{taken}"] if taken else [module]
+    return any(n == "phalanx.cli" or n.startswith("phalanx.cli.") for n in named)
+
+
+def test_nothing_but_the_entry_point_imports_the_cli() -> None:
+    # The layers contract says so for the layers' modules; this says it for every module
+    # and every import, lazy or for types only.
+    hits = [
+        f"{_module_name(path)}:{line} imports {module}{'.' + taken if taken else ''}"
+        for path in _python_files()
+        if not _in_cli(path) and _module_name(path) != "phalanx.__main__"
+        for line, module, taken in _all_imports(path)
+        if _names_the_cli(module, taken)
+    ]
+    assert hits == []
+
+
+def cli_builds(paths: list[Path], root: Path = REPO) -> list[str]:
+    """Where modules of the CLI (`paths`, in the package in `root`) import what the
+    runtime's factory assembles.
+    """
+    return [
+        f"{_module_name(path, root)}:{line} imports {module}{'.' + taken if taken else ''}"
+        for path in paths
+        for line, module, taken in _all_imports(path, root)
+        if module in ASSEMBLED_MODULES
+        or f"{module}.{taken}" in ASSEMBLED_MODULES
+        or taken in ASSEMBLED_NAMES
+    ]
+
+
+def test_the_cli_builds_no_part_of_an_agent() -> None:
+    paths = sorted(CLI_DIR.rglob("*.py"))
+    assert len(paths) > 10  # (the CLI's modules were found)
+    assert cli_builds(paths) == []
+
+
+def test_an_import_of_a_part_of_an_agent_is_found(tmp_path: Path) -> None:
+    command = tmp_path / "phalanx" / "cli" / "commands" / "probe.py"
+    command.parent.mkdir(parents=True)
+    command.write_text(
+        "from typing import TYPE_CHECKING\n"
+        "if TYPE_CHECKING:\n    from phalanx.drivers.base import Driver\n"
+        "def run() -> None:\n"
+        "    from phalanx.drivers import open_driver, backend_names\n"
+        "    from ..commands import fleet\n"
+    )
+    assert cli_builds([command], tmp_path) == [
+        "phalanx.cli.commands.probe:3 imports phalanx.drivers.base.Driver",
+        "phalanx.cli.commands.probe:5 imports phalanx.drivers.open_driver",
+    ]
+
+
+def agent_only_options() -> set[str]:
+    """The options of `phalanx agent` that no other command has, but `--spec`: the one
+    a supervisor gives it (`phalanx.runtime.process_spec.spawn_argv`).
+    """
+    import typer.main
+
+    from phalanx.cli import app
+
+    commands = typer.main.get_command(app).commands  # type: ignore[attr-defined]
+    spelled = {
+        name: {o for p in command.params for o in p.opts if o.startswith("-")}
+        for name, command in commands.items()
+    }
+    others = set().union(*(opts for name, opts in spelled.items() if name != "agent"))
+    return spelled["agent"] - others - {"--spec"}
+
+
+def test_agents_are_started_from_a_spec_not_from_options() -> None:
+    # A module that spelled an option of `phalanx agent` would be building its command
+    # line by hand. The driver registry alone declares its backends' options (for the CLI).
+    options = agent_only_options()
+    assert {"--arcos-tcp", "--driver-setting", "--frame-timeout"} <= options
+    registry = REPO / "drivers" / "__init__.py"
+    hits = [
+        f"{_module_name(path)}:{node.lineno} spells {node.value!r}"
+        for path in _python_files()
+        if not _in_cli(path) and path != registry
+        for node in ast.walk(ast.parse(path.read_text()))
+        if isinstance(node, ast.Constant) and isinstance(node.value, str)
+        and any(node.value == o or node.value.startswith(o + "=") for o in options)
+    ]  # fmt: skip
+    assert hits == []
 
 
 def import_cycles(graph: dict[str, set[str]]) -> list[list[str]]:

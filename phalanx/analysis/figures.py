@@ -20,19 +20,22 @@ at equal aspect.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Literal, get_args
+from typing import Any, Literal, cast, get_args
 
 import matplotlib as mpl
 
 mpl.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
+import numpy.typing as npt
 from matplotlib.axes import Axes
-from matplotlib.figure import Figure
+from matplotlib.figure import Figure, FigureBase
 from matplotlib.lines import Line2D
 from matplotlib.patches import Circle, Patch, Polygon
 
+from phalanx.analysis.estimation import NEES_BAND, nees, pose_errors
 from phalanx.analysis.metrics import (
     error_series,
     is_follower,
@@ -77,11 +80,19 @@ def _style(i: int) -> dict[str, Any]:
     return {"color": COLOURS[i % len(COLOURS)], "ls": LINESTYLES[i % len(LINESTYLES)]}
 
 
+Titled = Callable[[str], str]  # a panel's title from what it shows
+
+
 def _title(log: RunLog, what: str) -> str:
     return f"{log.scenario.name} / {log.scenario.controller.kind}: {what}"
 
 
-def _legend_outside(fig: Figure, handles: list[Any]) -> None:
+def _titled(log: RunLog) -> Titled:
+    """Titles naming the scenario and the controller (a figure of its own)."""
+    return lambda what: _title(log, what)
+
+
+def _legend_outside(fig: FigureBase, handles: list[Any]) -> None:
     """One legend for the whole figure, right of every axes (the figure's layout must be
     constrained, which makes room for it).
     """
@@ -169,8 +180,16 @@ def trajectories(log: RunLog) -> Figure:
     wide pale band of the robot's colour; circles at the starts, squares at the ends.
     """
     legend = len(log.traces) <= LEGEND_MAX
+    fig = plt.figure(figsize=_map_size(_extent(log), legend), layout="constrained")
+    draw_trajectories(fig, log, _titled(log))
+    return fig
+
+
+def draw_trajectories(fig: FigureBase, log: RunLog, title: Titled) -> None:
+    """Figure 5 drawn into `fig` (a figure or a panel of one)."""
+    legend = len(log.traces) <= LEGEND_MAX
     extent = _extent(log)
-    fig, ax = plt.subplots(figsize=_map_size(extent, legend), layout="constrained")
+    ax = fig.subplots()
     draw_world(ax, log)
     if not legend:
         fleet_trajectories(ax, log)
@@ -189,7 +208,7 @@ def trajectories(log: RunLog) -> Figure:
     x0, x1, y0, y1 = extent
     ax.set(xlabel="x (m)", ylabel="y (m)", xlim=(x0, x1), ylim=(y0, y1))
     ax.set_aspect("equal", adjustable="box")
-    ax.set_title(_title(log, "trajectories"))
+    ax.set_title(title("trajectories"))
     if legend:
         handles += [
             Patch(color="0.5", alpha=0.3, label="reverse (pale band)"),
@@ -198,15 +217,22 @@ def trajectories(log: RunLog) -> Figure:
         ]
         _legend_outside(fig, handles)
     ax.grid(True, alpha=0.3)
-    return fig
 
 
 def separations(log: RunLog) -> Figure:
     """Figure 6: l and phi of every follower against l_d and phi_d."""
+    fleet = len(_followers(log)) > LEGEND_MAX
+    width = 9 + (0 if fleet else LEGEND_ROOM_IN)
+    fig = plt.figure(figsize=(width, 7), layout="constrained")
+    draw_separations(fig, log, _titled(log))
+    return fig
+
+
+def draw_separations(fig: FigureBase, log: RunLog, title: Titled) -> None:
+    """Figure 6 drawn into `fig` (a figure or a panel of one)."""
     followers = _followers(log)
     fleet = len(followers) > LEGEND_MAX
-    width = 9 + (0 if fleet else LEGEND_ROOM_IN)
-    fig, (ax_l, ax_p) = plt.subplots(2, 1, figsize=(width, 7), sharex=True, layout="constrained")
+    ax_l, ax_p = fig.subplots(2, 1, sharex=True)
     handles: list[Any] = []
     lines_l, lines_p, desired_l, desired_p = [], [], [], []
     for i, rid in enumerate(followers):
@@ -238,17 +264,23 @@ def separations(log: RunLog) -> Figure:
         ax.grid(True, alpha=0.3)
     if not fleet:
         _legend_outside(fig, handles + _key(log, ("desired", ":")))
-    ax_l.set(ylabel="l (m)", title=_title(log, "separations (dotted = desired; grey = reverse)"))
+    ax_l.set(ylabel="l (m)", title=title("separations (dotted = desired; grey = reverse)"))
     ax_p.set(ylabel="phi (deg)", xlabel="t (s)")
-    return fig
 
 
 def velocities(log: RunLog) -> Figure:
     """Figure 7: translational and rotational velocities against the run's limits."""
+    width = 9 + (0 if len(log.traces) > LEGEND_MAX else LEGEND_ROOM_IN)
+    fig = plt.figure(figsize=(width, 7), layout="constrained")
+    draw_velocities(fig, log, _titled(log))
+    return fig
+
+
+def draw_velocities(fig: FigureBase, log: RunLog, title: Titled) -> None:
+    """Figure 7 drawn into `fig` (a figure or a panel of one)."""
     limits = KinematicLimits.from_params(log.robot, log.scenario.limits)
     fleet = len(log.traces) > LEGEND_MAX
-    width = 9 + (0 if fleet else LEGEND_ROOM_IN)
-    fig, (ax_v, ax_w) = plt.subplots(2, 1, figsize=(width, 7), sharex=True, layout="constrained")
+    ax_v, ax_w = fig.subplots(2, 1, sharex=True)
     handles: list[Any] = []
     if fleet:
         traces = list(log.traces.values())
@@ -268,9 +300,8 @@ def velocities(log: RunLog) -> Figure:
         ax.grid(True, alpha=0.3)
     if not fleet:
         _legend_outside(fig, handles + _key(log, ("limits", "--")))
-    ax_v.set(ylabel="v (m/s)", title=_title(log, "velocity profiles (dashed = limits)"))
+    ax_v.set(ylabel="v (m/s)", title=title("velocity profiles (dashed = limits)"))
     ax_w.set(ylabel="omega (deg/s)", xlabel="t (s)")
-    return fig
 
 
 # Rows of figure 4b, top to bottom: the navigation layer over the formation layer.
@@ -295,22 +326,33 @@ STATE_ROWS = (
 )
 
 
+def _state_names(log: RunLog) -> list[str]:
+    """The rows of figure 4b, bottom to top: the states the run went through."""
+    seen = {s for tr in log.traces.values() for s in tr.states}
+    names = [str(s) for s in reversed(STATE_ROWS) if s in seen]
+    return names + sorted(seen - set(names))
+
+
 def states(log: RunLog) -> Figure:
     """Figure 4b: each robot's behaviour state over time (navigation layer above the
     formation layer), and below it which robot led, epoch by epoch.
     """
-    seen = {s for tr in log.traces.values() for s in tr.states}
-    names = [str(s) for s in reversed(STATE_ROWS) if s in seen]
-    names += sorted(seen - set(names))
+    width = 10 + (0 if len(log.traces) > LEGEND_MAX else LEGEND_ROOM_IN)
+    height = 1.6 + 0.45 * len(_state_names(log)) + 1.0
+    fig = plt.figure(figsize=(width, height), layout="constrained")
+    draw_states(fig, log, _titled(log))
+    return fig
+
+
+def draw_states(fig: FigureBase, log: RunLog, title: Titled) -> None:
+    """Figure 4b drawn into `fig` (a figure or a panel of one)."""
+    names = _state_names(log)
     index = {name: i for i, name in enumerate(names)}
-    fig, (ax, ax_lead) = plt.subplots(
-        2,
-        1,
-        figsize=(10, 1.6 + 0.45 * len(names) + 1.0),
-        sharex=True,
-        gridspec_kw={"height_ratios": [max(2, len(names)), 1.5]},
+    ax, ax_lead = fig.subplots(
+        2, 1, sharex=True, gridspec_kw={"height_ratios": [max(2, len(names)), 1.5]}
     )
     fleet = len(log.traces) > LEGEND_MAX
+    handles: list[Any] = []
     steps = []
     for i, (rid, tr) in enumerate(log.traces.items()):
         if fleet:  # a step line's corners, decimated; the robots spread within a row
@@ -319,18 +361,17 @@ def states(log: RunLog) -> Figure:
             steps.append(decimated(np.repeat(t, 2)[1:], np.repeat(lift, 2)[:-1]))
             continue
         level = [index[s] + 0.08 * i for s in tr.states]
-        ax.step(log.t_s, level, where="post", color=COLOURS[i % len(COLOURS)], label=rid)
+        (line,) = ax.step(log.t_s, level, where="post", label=rid, **_style(i))
+        handles.append(line)
     if fleet:
         collection(ax, steps, lw=0.6)
         fleet_note(ax, len(log.traces))
     ax.set_yticks(range(len(names)), names)
-    ax.set(title="behaviour states over time (figure 4b)")
+    ax.set(title=title("behaviour states over time"))
     ax.grid(True, alpha=0.3)
     if not fleet:
-        ax.legend(loc="upper right")
+        _legend_outside(fig, handles)
     _leadership_panel(ax_lead, log)
-    fig.tight_layout()
-    return fig
 
 
 def _leadership_panel(ax: Axes, log: RunLog) -> None:
@@ -414,6 +455,115 @@ FIGURES = {
     "fig6_separations.png": separations,
     "fig7_velocities.png": velocities,
 }
+PAPER_FIGURE = "paper.pdf"
+ESTIMATION_FIGURE = "estimation.png"
+# The panels of the paper figure, in the paper's order: what each draws and its title.
+PAPER_PANELS: tuple[tuple[str, Callable[[FigureBase, RunLog, Titled], None]], ...] = (
+    ("(a) fig. 4b", draw_states),
+    ("(b) fig. 5", draw_trajectories),
+    ("(c) fig. 6", draw_separations),
+    ("(d) fig. 7", draw_velocities),
+)
+
+
+def paper_figure(log: RunLog) -> Figure:
+    """The paper's figures 4b, 5, 6 and 7 of one run as the four panels of one figure,
+    (a) to (d), two by two, each panel's legend right of it; the scenario and the
+    controller named once, above them all.
+    """
+    legend_in = 0.0 if len(log.traces) > LEGEND_MAX else LEGEND_ROOM_IN
+    x0, x1, y0, y1 = _extent(log)
+    map_in = 7.0 * min(1.6, max(0.45, (y1 - y0) / max(x1 - x0, 1e-9)))
+    top_in = max(1.6 + 0.45 * len(_state_names(log)) + 1.0, map_in + 1.3)
+    fig = plt.figure(figsize=(2 * (9.5 + legend_in), top_in + 7.5), layout="constrained")
+    grid = fig.subfigures(2, 2, height_ratios=[top_in, 7.5], wspace=0.02, hspace=0.02)
+    panels: list[FigureBase] = list(cast("npt.NDArray[Any]", grid).ravel())  # (2 x 2)
+    for panel, (label, draw) in zip(panels, PAPER_PANELS, strict=True):
+        draw(panel, log, _labelled(label))
+    fig.suptitle(
+        f"{log.scenario.name} / {log.scenario.controller.kind}", fontsize=14, fontweight="bold"
+    )
+    return fig
+
+
+def _top(values: npt.NDArray[np.float64]) -> float:
+    """The largest finite value (0 if none)."""
+    finite = values[np.isfinite(values)]
+    return float(finite.max()) if finite.size else 0.0
+
+
+def _labelled(label: str) -> Titled:
+    """A panel's titles: its label, then what it shows."""
+    return lambda what: f"{label}: {what}"
+
+
+def has_estimates(log: RunLog) -> bool:
+    """Whether the robots of `log` ran the pose estimator and published its covariance."""
+    if not log.scenario.localisation.estimator:
+        return False
+    return any(
+        tr.cov.shape[0] == len(log.t_s) and bool(np.isfinite(tr.cov).all(axis=1).any())
+        for tr in log.traces.values()
+    )
+
+
+def estimation(log: RunLog) -> Figure:
+    """How well each robot knew its pose (a run with the pose estimator on): its published
+    estimate against ground truth over time, the position and heading errors with the
+    2-sigma bound of the covariance it published with them, and the NEES against its 95 %
+    band (an honest filter keeps about 95 % of its steps inside).
+    """
+    legend = len(log.traces) <= LEGEND_MAX
+    fig = plt.figure(figsize=(9 + (LEGEND_ROOM_IN if legend else 0), 8.5), layout="constrained")
+    ax_p, ax_h, ax_n = fig.subplots(3, 1, sharex=True)
+    handles: list[Any] = []
+    settled = log.t_s >= log.scenario.initial_settle_s
+    tops = {"position": [0.0], "heading": [0.0]}  # what the settled run reaches
+    for i, (rid, tr) in enumerate(log.traces.items()):
+        if tr.cov.shape[0] != len(log.t_s):
+            continue
+        style = _style(i) if legend else {"color": COLOURS[i % len(COLOURS)], "ls": "-"}
+        position_m, heading_rad, errors = pose_errors(tr)
+        sigma_xy_m = np.sqrt(np.maximum(tr.cov[:, 0] + tr.cov[:, 3], 0.0))
+        sigma_h_deg = np.degrees(np.sqrt(np.maximum(tr.cov[:, 5], 0.0)))
+        value = nees(errors, tr.cov)
+        finite = value[settled & np.isfinite(value)]
+        inside = float(np.mean((finite >= NEES_BAND[0]) & (finite <= NEES_BAND[1])))
+        share = f" ({100 * inside:.0f} % in band)" if finite.size else ""
+        lw = 0.8 if legend else 0.5
+        (line,) = ax_p.plot(log.t_s, 1e3 * position_m, lw=lw, label=f"{rid}{share}", **style)
+        handles.append(line)
+        ax_p.plot(log.t_s, 2e3 * sigma_xy_m, color=style["color"], ls=":", lw=1.2)
+        ax_h.plot(log.t_s, np.degrees(heading_rad), lw=lw, **style)
+        ax_h.fill_between(log.t_s, -2 * sigma_h_deg, 2 * sigma_h_deg, color=style["color"],
+                          alpha=0.12, lw=0)  # fmt: skip
+        ax_n.plot(log.t_s, value, lw=0.5, alpha=0.8, **style)
+        tops["position"] += [_top(1e3 * position_m[settled]), _top(2e3 * sigma_xy_m[settled])]
+        tops["heading"] += [_top(np.degrees(np.abs(heading_rad[settled]))),
+                            _top(2 * sigma_h_deg[settled])]  # fmt: skip
+    # Fitted to the run after it settled: the start's covariance, tens of times
+    # larger, would flatten everything after it.
+    ax_p.set_ylim(0.0, 1.15 * max(tops["position"]) or 1.0)
+    heading_deg = 1.15 * max(tops["heading"]) or 1.0
+    ax_h.set_ylim(-heading_deg, heading_deg)
+    ax_n.axhspan(*NEES_BAND, color="0.85", lw=0)
+    ax_n.set_yscale("log")
+    for ax in (ax_p, ax_h, ax_n):
+        ax.axvline(log.scenario.initial_settle_s, color="k", lw=0.8, ls="-.")
+        ax.grid(True, alpha=0.3)
+    ax_p.set(ylabel="position error (mm)",
+             title=_title(log, "pose estimate against ground truth"))  # fmt: skip
+    ax_h.set(ylabel="heading error (deg)")
+    ax_n.set(ylabel="NEES", xlabel="t (s)")
+    if legend:
+        keys = [
+            Line2D([], [], color="k", ls=":", lw=1.2, label="2 sigma, position"),
+            Patch(color="k", alpha=0.12, label="2 sigma, heading"),
+            Patch(color="0.85", label="NEES 95 % band"),
+            Line2D([], [], color="k", ls="-.", lw=0.8, label="settled: measured from here"),
+        ]
+        _legend_outside(fig, [*handles, *keys])
+    return fig
 
 
 def figure_name(name: str, fmt: FigureFormat) -> str:
@@ -422,16 +572,28 @@ def figure_name(name: str, fmt: FigureFormat) -> str:
 
 
 def write_figures(
-    log: RunLog, folder: Path, *, fmt: FigureFormat = "png", dpi: int = DEFAULT_DPI
+    log: RunLog,
+    folder: Path,
+    *,
+    fmt: FigureFormat = "png",
+    dpi: int = DEFAULT_DPI,
+    paper: bool = False,
 ) -> list[Path]:
     """Draw every figure of `log` into `folder` as `fmt` files (`dpi`: the PNG's pixels
-    per inch; PDF and SVG are vector); returns the files written.
+    per inch; PDF and SVG are vector): the paper's four (`FIGURES`), the estimation
+    figure for a run with the pose estimator on, and with `paper` the four as one PDF
+    (`PAPER_FIGURE`); returns the files written.
     """
     folder.mkdir(parents=True, exist_ok=True)
     written = []
     for name, draw in FIGURES.items():
         fig = draw(log)
         written.append(save_figure(fig, folder / figure_name(name, fmt), dpi=dpi))
+    if has_estimates(log):
+        path = folder / figure_name(ESTIMATION_FIGURE, fmt)
+        written.append(save_figure(estimation(log), path, dpi=dpi))
+    if paper:
+        written.append(save_figure(paper_figure(log), folder / PAPER_FIGURE, dpi=dpi))
     return written
 
 

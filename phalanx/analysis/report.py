@@ -1,19 +1,27 @@
 """`phalanx report`: the scenario matrix (3 formations x 4 controllers, plus ours with
-noise) and `docs/RESULTS.md`, the table set beside the paper's section 5 bounds.
+noise) and its `RESULTS.md`, the table set beside the paper's section 5 bounds; and the
+tables the commands print (`text_table`).
+
+A table printed in a terminal fits its width (`terminal_width`: the terminal's, 80 columns
+in a pipe or a CI log): side by side, each header wrapped over as many lines as it needs,
+when the columns fit; one block of `field: value` lines per row when they do not. It is
+plain text unless Markdown is asked for, and a number that is not one shows as a dash,
+never `nan`. The Markdown written into RESULTS.md is built apart and stays as it is.
 """
 
 from __future__ import annotations
 
 import math
+import os
+import re
 import shutil
+import sys
+import textwrap
 from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
-
-from rich.console import Console
-from rich.table import Table
+from typing import Any, TextIO
 
 from phalanx.core.config_files import CONFIG_ROOT, apply_overrides, load_scenario
 from phalanx.core.scenarios import signal_builder
@@ -59,13 +67,16 @@ class Case:
 
 
 def run_case(case: Case, out_root: Path) -> dict[str, Any]:
-    """Run one case in this process, write its results folder, return its metrics."""
+    """Run one case in this process, write its results folder (with the combined paper
+    figure, `paper.pdf`, for the wedge), return its metrics.
+    """
     from phalanx.analysis.results import write_results
     from phalanx.runtime.batch import run_batch
 
     scenario = load_scenario(CONFIG_ROOT / "scenarios" / f"paper_{case.formation}.toml")
     log = run_batch(apply_overrides(scenario, case.overrides))
-    return write_results(log, out_root / case.label, recording=False)
+    paper = case.formation == "wedge"
+    return write_results(log, out_root / case.label, recording=False, paper=paper)
 
 
 def run_matrix(
@@ -106,100 +117,292 @@ def _cell(value: float, bound: float | None) -> str:
     return text
 
 
-def number(value: float | None) -> str:
-    """A measured value for a table: 3 significant digits, "-" where there was nothing
-    to measure (NaN, None: a phase the run never had, such as a reverse).
+def number(value: float | None, spec: str = ".3g") -> str:
+    """A measured value for a table: 3 significant digits (or as `spec` says), "-" where
+    there was nothing to measure (NaN, None: a phase the run never had, such as a reverse).
     """
     if value is None or math.isnan(value):
         return "-"
-    return f"{value:.3g}"
+    return format(value, spec)
 
 
-def print_summary(metrics: dict[str, Any]) -> None:
-    """A terminal table of one run's errors per follower and phase."""
-    table = Table(title=f"{metrics['scenario']} / {metrics['controller']}")
-    for col in (
-        "follower",
-        "phase",
-        "lin max %",
-        "ang max %",
-        "orient max deg",
-        "lin max m",
-        "ang max deg",
-        "saturations",
-    ):
-        table.add_column(col)
-    for rid, f in metrics["followers"].items():
-        for phase in ("forward", "backward"):
-            p = f[phase]
-            table.add_row(
-                rid,
-                phase,
-                *(
-                    number(p[k]["max"])
-                    for k in (
-                        "linear_pct",
-                        "angular_pct",
-                        "orientation_deg",
-                        "linear_m",
-                        "angular_deg",
-                    )
-                ),
-                str(f["saturations"]),
-            )
-    console = Console()
-    console.print(table)
-    console.print(
+SUMMARY_COLUMNS = (
+    ("linear_pct", "lin max %"),
+    ("angular_pct", "ang max %"),
+    ("orientation_deg", "orient max deg"),
+    ("linear_m", "lin max m"),
+    ("angular_deg", "ang max deg"),
+)
+
+
+def summary_cells(metrics: dict[str, Any]) -> tuple[list[str], list[list[str]]]:
+    """One run's errors per follower and phase: the headers and the rows of its table."""
+    headers = ["follower", "phase", *(title for _, title in SUMMARY_COLUMNS), "saturations"]
+    rows = [
+        [
+            rid,
+            phase,
+            *(number(f[phase][key]["max"]) for key, _ in SUMMARY_COLUMNS),
+            str(f["saturations"]),
+        ]
+        for rid, f in metrics["followers"].items()
+        for phase in ("forward", "backward")
+    ]
+    return headers, rows
+
+
+def summary_notes(metrics: dict[str, Any]) -> list[str]:
+    """What one run's table is followed by: collisions and reverses, each robot's estimate,
+    the navigation's outcome.
+    """
+    notes = [
         f"collisions: {len(metrics['collisions'])}, deadlock reverses: "
         f"{metrics['deadlock_reverses']}, wall time {metrics['wall_time_s']:.2f} s "
-        f"({metrics['realtime_factor']:.0f}x real time)"
-    )
+        f"({number(metrics['realtime_factor'], '.0f')}x real time)"
+    ]
     for rid, est in metrics.get("estimation", {}).get("robots", {}).items():
-        console.print(
+        if not est:
+            continue
+        notes.append(
             f"{rid} estimate: max error {number(est['position_m']['max'])} m, "
             f"{number(est['heading_deg']['max'])} deg; NEES in its 95 % band "
-            f"{100 * est['nees_in_band']:.0f} % of steps"
+            f"{number(_pct(est['nees_in_band']), '.0f')} % of steps"
         )
     nav = metrics.get("navigation")
     if nav:
         reached = (
-            f"goal reached at {nav['time_to_goal_s']:.1f} s"
+            f"goal reached at {number(nav['time_to_goal_s'], '.1f')} s"
             if nav["goal_reached"]
-            else ("goal not reached")
+            else "goal not reached"
         )
         calm = nav["calm"]["linear_pct"]
-        console.print(
+        notes.append(
             f"{reached}; leadership changes: {nav['leadership_changes']}; time in "
-            f"avoidance episodes {100 * nav['episode_share']:.0f} %; calm linear error "
-            f"mean {number(calm['mean'])} % max {number(calm['max'])} %"
+            f"avoidance episodes {number(_pct(nav['episode_share']), '.0f')} %; calm linear "
+            f"error mean {number(calm['mean'])} % max {number(calm['max'])} %"
             + (f"; STUCK: {nav['stuck_reason']}" if nav["stuck"] else "")
         )
+    return notes
+
+
+def _pct(share: float | None) -> float | None:
+    return None if share is None else 100 * share
+
+
+def print_summary(
+    metrics: dict[str, Any],
+    *,
+    width: int | None = None,
+    markdown: bool = False,
+    stream: TextIO | None = None,
+) -> None:
+    """Print one run's table of errors per follower and phase, and its notes, fitted to
+    `width` columns (the terminal's by default); Markdown if asked.
+    """
+    out = stream or sys.stdout
+    width = width or terminal_width(out)
+    headers, rows = summary_cells(metrics)
+    title = f"{metrics['scenario']} / {metrics['controller']}"
+    lines = text_table(headers, rows, width=width, markdown=markdown, title=title)
+    for note in summary_notes(metrics):
+        lines += textwrap.wrap(note, width, subsequent_indent="  ", break_on_hyphens=False)
+    out.write("\n".join(lines) + "\n")
+    out.flush()
+
+
+# --- tables in a terminal -----------------------------------------------------------------
+
+TERMINAL_COLUMNS = 80  # a pipe's, a CI log's
+COLUMN_GAP = "  "
+_NOT_A_NUMBER = re.compile(r"(?<![A-Za-z])nan(?![A-Za-z])", re.IGNORECASE)
+_NUMERIC = re.compile(r"^[-+]?(\d+\.?\d*|\.\d+)(e[-+]?\d+)?( %| s)?$")
+
+
+def terminal_width(stream: TextIO | None = None) -> int:
+    """The columns a table printed on `stream` (stdout) gets: $COLUMNS if set, else the
+    terminal's width, else (a pipe, a CI log) 80.
+    """
+    columns = os.environ.get("COLUMNS", "")
+    if columns.isdigit() and int(columns) > 0:
+        return int(columns)
+    isatty = getattr(stream or sys.stdout, "isatty", None)
+    if callable(isatty) and isatty():
+        return shutil.get_terminal_size((TERMINAL_COLUMNS, 24)).columns
+    return TERMINAL_COLUMNS
+
+
+def cell_text(value: object) -> str:
+    """A cell as shown: a NaN (or `nan` in a text) as a dash, whitespace on one line."""
+    if value is None or (isinstance(value, float) and math.isnan(value)):
+        return "-"
+    return _NOT_A_NUMBER.sub("-", " ".join(str(value).split())) or "-"
+
+
+def text_table(
+    headers: Sequence[str],
+    rows: Sequence[Sequence[object]],
+    *,
+    width: int = TERMINAL_COLUMNS,
+    markdown: bool = False,
+    title: str = "",
+) -> list[str]:
+    """The lines of a table for a terminal: `markdown` (pipes), else plain columns side
+    by side if they fit in `width`, else one block of `field: value` lines per row. No
+    line is longer than `width` (but a Markdown one), no number shows as `nan`.
+    """
+    cells = [[cell_text(v) for v in row] for row in rows]
+    heads = [cell_text(h) for h in headers]
+    if markdown:
+        top = [f"**{title}**", ""] if title else []
+        rule = "|" + "|".join("---" for _ in heads) + "|"
+        body = ["| " + " | ".join(row) + " |" for row in cells]
+        return [*top, "| " + " | ".join(heads) + " |", rule, *body]
+    width = max(width, 20)
+    top = textwrap.wrap(title, width) if title else []
+    columns = column_widths(heads, cells, width)
+    if columns is None:
+        return [*top, *vertical(heads, cells, width)]
+    return [*top, *side_by_side(heads, cells, columns)]
+
+
+def column_widths(
+    headers: Sequence[str], rows: Sequence[Sequence[str]], width: int
+) -> list[int] | None:
+    """Each column's width, side by side within `width` (None if they cannot fit): as
+    wide as its widest cell, and its header wrapped over as few lines as the room allows
+    (every header over one line if it can, else over two, ...).
+    """
+    widest = [max([len(r[i]) for r in rows if i < len(r)] + [1]) for i in range(len(headers))]
+    room = width - len(COLUMN_GAP) * (len(headers) - 1)
+    deepest = max((len(h.split()) for h in headers), default=1)
+    for depth in range(1, deepest + 1):
+        columns = [max(w, _header_width(h, depth)) for h, w in zip(headers, widest, strict=True)]
+        if sum(columns) <= room:
+            return columns
+    return None
+
+
+def _header_width(header: str, depth: int) -> int:
+    """The narrowest a column can be with `header` wrapped over at most `depth` lines."""
+    longest = max((len(w) for w in header.split()), default=1)
+    for width in range(longest, len(header) + 1):
+        if len(_wrapped(header, width)) <= depth:
+            return width
+    return max(len(header), 1)
+
+
+def _wrapped(text: str, width: int) -> list[str]:
+    return textwrap.wrap(text, width, break_on_hyphens=False) or [""]
+
+
+def side_by_side(
+    headers: Sequence[str], rows: Sequence[Sequence[str]], columns: Sequence[int]
+) -> list[str]:
+    """Plain columns: the headers wrapped to their columns (bottom-aligned), a rule, the
+    rows; a column of numbers right-aligned, its header too.
+    """
+    numeric = [
+        all(_NUMERIC.match(r[i]) or r[i] == "-" for r in rows if i < len(r)) and bool(rows)
+        for i in range(len(columns))
+    ]
+    wrapped = [_wrapped(h, w) for h, w in zip(headers, columns, strict=True)]
+    depth = max(len(w) for w in wrapped)
+    lines = []
+    for k in range(depth):
+        parts = [(w[k - depth + len(w)] if k >= depth - len(w) else "") for w in wrapped]
+        lines.append(_joined(parts, columns, numeric))
+    lines.append(_joined(["-" * w for w in columns], columns, numeric))
+    for row in rows:
+        parts = [row[i] if i < len(row) else "" for i in range(len(columns))]
+        lines.append(_joined(parts, columns, numeric))
+    return lines
+
+
+def _joined(parts: Sequence[str], columns: Sequence[int], right: Sequence[bool]) -> str:
+    shown = [p.rjust(w) if r else p.ljust(w) for p, w, r in zip(parts, columns, right, strict=True)]
+    return COLUMN_GAP.join(shown).rstrip()
+
+
+def vertical(headers: Sequence[str], rows: Sequence[Sequence[str]], width: int) -> list[str]:
+    """One block per row, a `field: value` line per column (values wrapped under
+    themselves), a blank line between blocks.
+    """
+    key = min(max(len(h) for h in headers) + 2, width // 2)
+    lines: list[str] = []
+    for n, row in enumerate(rows):
+        if n:
+            lines.append("")
+        for i, header in enumerate(headers):
+            value = row[i] if i < len(row) else ""
+            label = f"{header}:"
+            if len(label) + 1 > key:  # a long field name: the value on lines of its own
+                lines += textwrap.wrap(label, width, break_on_hyphens=False)
+                lines += (
+                    textwrap.wrap(value, width, initial_indent="  ", subsequent_indent="  ") or []
+                )
+                continue
+            wrapped = textwrap.wrap(value, width - key, break_on_hyphens=False) or [""]
+            lines.append((label.ljust(key) + wrapped[0]).rstrip())
+            lines += [" " * key + more for more in wrapped[1:]]
+    return lines
+
+
+def matrix_values(m: dict[str, Any]) -> list[str]:
+    """One case's cells after its formation and controller, as RESULTS.md shows them:
+    backward-phase worst errors (and their absolute values), the forward phase's, the
+    saturations and the collisions.
+    """
+    lin_m = worst(m, "backward", "linear_m")
+    ang_d = worst(m, "backward", "angular_deg")
+    steady = "/".join(
+        f"{worst(m, 'forward_steady', k):.3g}"
+        for k in ("linear_pct", "angular_pct", "orientation_deg")
+    )
+    return [
+        _cell(worst(m, "backward", "linear_pct"), PAPER_BOUNDS["linear_pct"]),
+        _cell(worst(m, "backward", "angular_pct"), PAPER_BOUNDS["angular_pct"]),
+        _cell(worst(m, "backward", "orientation_deg"), None),
+        f"{lin_m:.3g} m / {ang_d:.3g} deg",
+        _cell(worst(m, "forward", "linear_pct"), None),
+        steady,
+        str(sum(f["saturations"] for f in m["followers"].values())),
+        str(len(m["collisions"])),
+    ]
 
 
 def matrix_rows(cases: Sequence[Case], results: Sequence[dict[str, Any]]) -> list[str]:
     """Markdown rows: backward-phase worst errors per case, with absolute values."""
+    return [
+        f"| {case.formation} | {case.controller}{' + noise' if case.noise else ''} "
+        f"{'(reverse while turning)' if case.turning else ''}"
+        "| " + " | ".join(matrix_values(m)) + " |"
+        for case, m in zip(cases, results, strict=True)
+    ]
+
+
+MATRIX_HEADERS = (
+    "formation",
+    "controller",
+    "back lin max %",
+    "back ang max %",
+    "back orient max deg",
+    "back abs (lin / ang)",
+    "fwd lin max %",
+    "fwd steady max lin/ang/orient",
+    "saturations",
+    "collisions",
+)
+
+
+def matrix_cells(
+    cases: Sequence[Case], results: Sequence[dict[str, Any]]
+) -> tuple[list[str], list[list[str]]]:
+    """The matrix for a terminal (`text_table`): its headers and a row per case."""
     rows = []
     for case, m in zip(cases, results, strict=True):
-        lin = worst(m, "backward", "linear_pct")
-        ang = worst(m, "backward", "angular_pct")
-        ori = worst(m, "backward", "orientation_deg")
-        lin_m = worst(m, "backward", "linear_m")
-        ang_d = worst(m, "backward", "angular_deg")
-        flin = worst(m, "forward", "linear_pct")
-        steady = "/".join(
-            f"{worst(m, 'forward_steady', k):.3g}"
-            for k in ("linear_pct", "angular_pct", "orientation_deg")
-        )
-        sat = sum(f["saturations"] for f in m["followers"].values())
-        rows.append(
-            f"| {case.formation} | {case.controller}{' + noise' if case.noise else ''} "
-            f"{'(reverse while turning)' if case.turning else ''}"
-            f"| {_cell(lin, PAPER_BOUNDS['linear_pct'])} "
-            f"| {_cell(ang, PAPER_BOUNDS['angular_pct'])} "
-            f"| {_cell(ori, None)} | {lin_m:.3g} m / {ang_d:.3g} deg "
-            f"| {_cell(flin, None)} | {steady} | {sat} | {len(m['collisions'])} |"
-        )
-    return rows
+        how = " + noise" if case.noise else (" (reverse while turning)" if case.turning else "")
+        rows.append([case.formation, case.controller + how, *matrix_values(m)])
+    return list(MATRIX_HEADERS), rows
 
 
 def copy_figures(cases: Sequence[Case], out_root: Path, docs: Path) -> list[str]:
@@ -317,16 +520,21 @@ def write_report(
     *,
     workers: int = 2,
     progress: Callable[[int, int], None] | None = None,
+    cases: Sequence[Case] | None = None,
+    kept_from: Path | None = None,
 ) -> list[dict[str, Any]]:
-    """Run the matrix and write docs/RESULTS.md with its figures (keeping the sections
-    the benchmarks write between their markers, `KEPT_SECTIONS`); `progress` as in
-    `run_matrix`.
+    """Run the matrix (`cases`, `default_cases()` if None) into `out_root` and write
+    `docs`/RESULTS.md with its figures (`docs` the repository's docs/ or a results
+    folder: the same bytes either way). The sections the benchmarks write between their
+    markers (`KEPT_SECTIONS`) are kept from `kept_from` (by default `docs`/RESULTS.md);
+    `progress` as in `run_matrix`.
     """
-    cases = default_cases()
+    cases = list(cases if cases is not None else default_cases())
     results = run_matrix(cases, out_root, workers=workers, progress=progress)
     figures = copy_figures(cases, out_root, docs)
     path = docs / "RESULTS.md"
-    old = path.read_text(encoding="utf-8") if path.exists() else ""
+    source = kept_from or path
+    old = source.read_text(encoding="utf-8") if source.exists() else ""
     text = keep_sections(results_markdown(cases, results, figures), old)
     path.write_text(text, encoding="utf-8")
     return results

@@ -1,5 +1,6 @@
-"""A run's results folder: `metrics.json`, the paper's figures (PNG, PDF or SVG) and the traces
-they are drawn from (`traces.npz`), a Rerun `.rrd`.
+"""A run's results folder: `metrics.json`, the paper's figures (PNG, PDF or SVG; the four
+also as one PDF, `paper.pdf`; and the estimation figure of a run with the pose estimator
+on) and the traces they are drawn from (`traces.npz`), a Rerun `.rrd`.
 
 `phalanx run` (in process) and `phalanx up` (one process per robot) both write it. A run
 of processes is also marked whole or not (`mark_results`): `complete`, and the
@@ -31,8 +32,10 @@ import numpy as np
 
 from phalanx.analysis.figures import (
     DEFAULT_DPI,
+    ESTIMATION_FIGURE,
     FIGURES,
     FORMATS,
+    PAPER_FIGURE,
     FigureFormat,
     figure_name,
     write_figures,
@@ -60,7 +63,8 @@ RESULT_FILES = (
     "metrics.json",
     "traces.npz",
     "run.rrd",
-    *(figure_name(name, fmt) for fmt in FORMATS for name in FIGURES),
+    *(figure_name(name, fmt) for fmt in FORMATS for name in (*FIGURES, ESTIMATION_FIGURE)),
+    PAPER_FIGURE,
 )
 
 
@@ -214,15 +218,20 @@ def read_traces(path: Path) -> dict[str, dict[str, Any]]:
 
 
 def write_figures_atomically(
-    log: RunLog, folder: Path, *, fmt: FigureFormat = "png", dpi: int = DEFAULT_DPI
+    log: RunLog,
+    folder: Path,
+    *,
+    fmt: FigureFormat = "png",
+    dpi: int = DEFAULT_DPI,
+    paper: bool = True,
 ) -> None:
-    """The paper's figures as `fmt` files (`dpi`: a PNG's pixels per inch), drawn into a
-    temporary folder beside `folder`'s and moved in one by one: a figure is there whole
-    or not at all.
+    """The paper's figures as `fmt` files (`dpi`: a PNG's pixels per inch; with `paper`,
+    also as one PDF), drawn into a temporary folder beside `folder`'s and moved in one by
+    one: a figure is there whole or not at all.
     """
     drafts = Path(tempfile.mkdtemp(dir=folder, prefix=".figures."))
     try:
-        for path in write_figures(log, drafts, fmt=fmt, dpi=dpi):
+        for path in write_figures(log, drafts, fmt=fmt, dpi=dpi, paper=paper):
             os.replace(path, folder / path.name)
     finally:
         shutil.rmtree(drafts, ignore_errors=True)
@@ -236,12 +245,13 @@ def write_results(
     figures: bool = True,
     figure_format: FigureFormat = "png",
     dpi: int = DEFAULT_DPI,
+    paper: bool = True,
 ) -> dict[str, Any]:
     """Write the results folder of `log` (without the figures and the traces they are
     drawn from if not `figures`, and without the recording if not `recording`; the
-    figures as `figure_format` files, a PNG at `dpi`); returns the metrics. The metrics
-    first (the smallest and the most wanted), each file atomically; a write that fails
-    raises ResultsNotWritten.
+    figures as `figure_format` files, a PNG at `dpi`, and with `paper` the four as one
+    PDF too); returns the metrics. The metrics first (the smallest and the most wanted),
+    each file atomically; a write that fails raises ResultsNotWritten.
     """
     _guarded(folder, "the results folder", lambda: folder.mkdir(parents=True, exist_ok=True))
     metrics = run_metrics(log)
@@ -251,7 +261,7 @@ def write_results(
         _guarded(
             folder,
             "the figures",
-            lambda: write_figures_atomically(log, folder, fmt=figure_format, dpi=dpi),
+            lambda: write_figures_atomically(log, folder, fmt=figure_format, dpi=dpi, paper=paper),
         )
     if recording:
         _guarded(folder, "run.rrd", lambda: write_recording(log, folder / "run.rrd"))

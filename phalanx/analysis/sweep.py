@@ -292,33 +292,79 @@ def _fmt(value: float, digits: int = 3) -> str:
     return "n/a" if not math.isfinite(value) else f"{value:.{digits}g}"
 
 
-def table(groups: dict[tuple[str, str, int, str], dict[str, Any]]) -> list[str]:
-    """Markdown: one row per group."""
-    rows = [
-        "| family | formation | robots | controller | runs | goal reached | stuck "
-        "| collisions robot-obstacle / robot-robot | deadlock reverses (runs) | reshapes "
-        "| time to goal median / max | median time / route at cruise | calm linear % "
-        "mean / max | calm orientation deg mean / max | time in avoidance episodes "
-        "| time reshaping | time in the scenario's shape | time it fits "
-        "| in the shape while it fits |",
-        "|---|---|---:|---|---:|---:|---:|---|---|---:|---|---:|---|---|---:|---:|---:|---:|---:|",
-    ]
+TABLE_HEADERS = (
+    "family",
+    "formation",
+    "robots",
+    "controller",
+    "runs",
+    "goal reached",
+    "stuck",
+    "collisions robot-obstacle / robot-robot",
+    "deadlock reverses (runs)",
+    "reshapes",
+    "time to goal median / max",
+    "median time / route at cruise",
+    "calm linear % mean / max",
+    "calm orientation deg mean / max",
+    "time in avoidance episodes",
+    "time reshaping",
+    "time in the scenario's shape",
+    "time it fits",
+    "in the shape while it fits",
+)
+_ALIGN = "|---|---|---:|---|---:|---:|---:|---|---|---:|---|---:|---|---|---:|---:|---:|---:|---:|"
+
+
+def table_cells(groups: dict[tuple[str, str, int, str], dict[str, Any]]) -> list[list[str]]:
+    """A row of cells per group, in `TABLE_HEADERS`' order."""
+    rows = []
     for (course, shape, robots, controller), s in groups.items():
         c = s["calm"]
         rows.append(
-            f"| {course} | {shape} | {robots} | {controller} | {s['runs']} "
-            f"| {100 * s['reached'] / max(1, s['runs']):.0f} % | {s['stuck']} "
-            f"| {s['obstacle_collisions']} / {s['robot_collisions']} "
-            f"| {s['deadlock_reverses']} ({s['runs_with_reverse']}) | {s['reshapes']} "
-            f"| {_fmt(s['time_median_s'])} / {_fmt(s['time_max_s'])} s "
-            f"| {_fmt(s['time_ratio_median'])} "
-            f"| {_fmt(c['linear_pct']['mean'])} / {_fmt(c['linear_pct']['max'])} "
-            f"| {_fmt(c['orientation_deg']['mean'])} / {_fmt(c['orientation_deg']['max'])} "
-            f"| {100 * s['episode_share']:.0f} % | {100 * s['reshaping_share']:.0f} % "
-            f"| {100 * s['scenario_shape_share']:.0f} % | {100 * s['fits_share']:.0f} % "
-            f"| {100 * s['scenario_shape_when_fits']:.0f} % |"
-        )
+            [
+                course, shape, str(robots), controller, str(s["runs"]),
+                f"{100 * s['reached'] / max(1, s['runs']):.0f} %", str(s["stuck"]),
+                f"{s['obstacle_collisions']} / {s['robot_collisions']}",
+                f"{s['deadlock_reverses']} ({s['runs_with_reverse']})", str(s["reshapes"]),
+                f"{_fmt(s['time_median_s'])} / {_fmt(s['time_max_s'])} s",
+                _fmt(s["time_ratio_median"]),
+                f"{_fmt(c['linear_pct']['mean'])} / {_fmt(c['linear_pct']['max'])}",
+                f"{_fmt(c['orientation_deg']['mean'])} / {_fmt(c['orientation_deg']['max'])}",
+                _share(s["episode_share"]), _share(s["reshaping_share"]),
+                _share(s["scenario_shape_share"]), _share(s["fits_share"]),
+                _share(s["scenario_shape_when_fits"]),
+            ]
+        )  # fmt: skip
     return rows
+
+
+def _share(value: float) -> str:
+    return f"{100 * value:.0f} %"
+
+
+def table(groups: dict[tuple[str, str, int, str], dict[str, Any]]) -> list[str]:
+    """Markdown: one row per group (what RESULTS.md's section holds)."""
+    head = "| " + " | ".join(TABLE_HEADERS) + " |"
+    return [head, _ALIGN, *("| " + " | ".join(row) + " |" for row in table_cells(groups))]
+
+
+def terminal_table(
+    groups: dict[tuple[str, str, int, str], dict[str, Any]],
+    *,
+    width: int,
+    markdown: bool = False,
+) -> list[str]:
+    """The table for a terminal, fitted to `width` columns (`report.text_table`): side by
+    side when its 19 columns fit, else a block of `field: value` lines per group; Markdown
+    if asked.
+    """
+    from phalanx.analysis.report import text_table
+
+    title = "navigation sweep: a row per family, formation, robots and controller"
+    return text_table(
+        TABLE_HEADERS, table_cells(groups), width=width, markdown=markdown, title=title
+    )
 
 
 def section(command: str, groups: dict[tuple[str, str, int, str], dict[str, Any]]) -> str:

@@ -12,7 +12,7 @@ import sys
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import TextIO
+from typing import Protocol
 
 PIPE_STEP = 0.1  # a pipe's line every tenth of the work ...
 PIPE_PERIOD_S = 30.0  # ... or every 30 s
@@ -64,6 +64,18 @@ def sweep_statement(runs: int, per_run_s: float, workers: int) -> str:
     return f"{runs} {noun}, about {duration(waves * per_run_s)} on {workers} {per}"
 
 
+class Stream(Protocol):
+    """Where progress lines go: stderr, or anything that takes text the same way."""
+
+    def write(self, text: str, /) -> int:
+        """Write `text`; the characters written."""
+        ...
+
+    def flush(self) -> None:
+        """Push what was written out."""
+        ...
+
+
 @dataclass
 class Reporter:
     """Writes progress lines to `stream` (stderr by default): in place on a TTY, sparse
@@ -72,7 +84,7 @@ class Reporter:
 
     label: str
     unit: str = ""
-    stream: TextIO | None = None
+    stream: Stream | None = None
     quiet: bool = False
     tty: bool | None = None  # (None: whether `stream` is a terminal)
     clock: Callable[[], float] | None = None  # (seconds; None: time.monotonic)

@@ -22,6 +22,7 @@ from typing import IO, Literal
 from phalanx.hosts.deployment import RestartPolicy
 from phalanx.hosts.protocol import ACTIVE_STATES, MAX_LOG_LINE, ChildState, ChildStatus, line_level
 from phalanx.runtime.exits import exit_reason
+from phalanx.runtime.process_spec import AgentSpec, hand_spec
 from phalanx.runtime.signals import supervised_env
 
 LOG_LINES_PER_S = 200.0
@@ -32,7 +33,9 @@ LineSink = Callable[["ManagedChild", str, LogLevel], None]
 
 
 class ManagedChild:
-    """One supervised process: its state, restarts, output and last error."""
+    """One supervised process: its state, restarts, output and last error; an agent
+    with its `spec`, written to its standard input at each start.
+    """
 
     def __init__(
         self,
@@ -42,8 +45,9 @@ class ManagedChild:
         *,
         policy: RestartPolicy,
         on_line: LineSink,
+        spec: AgentSpec | None = None,
     ) -> None:
-        self.name, self.kind, self.argv = name, kind, argv
+        self.name, self.kind, self.argv, self.spec = name, kind, argv, spec
         self.policy = policy
         self.on_line = on_line
         self.process: subprocess.Popen[bytes] | None = None
@@ -72,13 +76,15 @@ class ManagedChild:
         env = {**supervised_env(), "PYTHONUNBUFFERED": "1"}
         self.process = subprocess.Popen(  # noqa: S603 - argv built from the deployment file
             self.argv,
-            stdin=subprocess.DEVNULL,
+            stdin=subprocess.DEVNULL if self.spec is None else subprocess.PIPE,
             stdout=subprocess.PIPE,
             stderr=subprocess.STDOUT,
             cwd=workdir,
             env=env,
             start_new_session=True,
         )
+        if self.spec is not None:
+            hand_spec(self.process, self.spec)
         self.state, self.exit_code = "starting", None
         self.started_at = time.monotonic()
         self._pump = threading.Thread(

@@ -4,7 +4,8 @@ The daemon is its host's Zenoh router (endpoints from the deployment file), hold
 liveliness token `phalanx/<fleet>/host/<name>/alive`, and answers spawn, stop and status
 requests on its queryables (see `phalanx.hosts.protocol`). It starts only what its own
 copy of the deployment assigns to its host: the agents of those robots and, if the world
-runs here, the world. Command lines are built from the deployment; a request names the
+runs here, the world. What each runs is built from the deployment alone (an agent's spec,
+handed on its standard input; the world's command line); a request names the
 deployment and carries a run id, an epoch and scenario overrides, all checked first
 (`phalanx.hosts.request_checks`). A malformed or refused request is answered with the
 reason and counted; it never ends the daemon. A secured daemon remembers the signed
@@ -51,9 +52,10 @@ from phalanx.hosts.protocol import (
 )
 from phalanx.hosts.request_auth import RequestVerifier
 from phalanx.hosts.request_checks import RequestChecks, validation_summary
-from phalanx.hosts.wiring import RunParameters, agent_argv, secured_host_transport, world_argv
+from phalanx.hosts.wiring import RunParameters, agent_spec, secured_host_transport, world_argv
 from phalanx.runtime.exits import EXIT_INCOMPLETE
 from phalanx.runtime.local_fleet import GRACE_S
+from phalanx.runtime.process_spec import AgentSpec, spawn_argv
 from phalanx.runtime.signals import Stoppable
 from phalanx.wire.keys import alive_pattern, host_key, log_key
 from phalanx.wire.transport import FleetSession, TransportConfig, open_session
@@ -221,7 +223,8 @@ class HostDaemon:
         run = RunParameters(request.run_id, request.epoch_unix, overrides)
         python = self.options.python
         for rid in robots:
-            self._ensure(rid, "agent", agent_argv(self.loaded, rid, run=run, python=python))
+            spec = agent_spec(self.loaded, rid, run=run)
+            self._ensure(rid, "agent", spawn_argv(spec, python=python), spec=spec)
         if world:
             out = self._results_dir(request.run_id)
             self._ensure("world", "world", world_argv(self.loaded, run=run, out=out, python=python))
@@ -274,11 +277,20 @@ class HostDaemon:
         base = Path(world.out_dir if world else "results")
         return (base if base.is_absolute() else self.options.workdir / base) / run_id
 
-    def _ensure(self, name: str, kind: Literal["agent", "world"], argv: list[str]) -> None:
+    def _ensure(
+        self,
+        name: str,
+        kind: Literal["agent", "world"],
+        argv: list[str],
+        *,
+        spec: AgentSpec | None = None,
+    ) -> None:
         current = self.children.get(name)
         if current is not None and current.active:
             return
-        child = ManagedChild(name, kind, argv, policy=self.spec.restart, on_line=self._on_line)
+        child = ManagedChild(
+            name, kind, argv, policy=self.spec.restart, on_line=self._on_line, spec=spec
+        )
         self.children[name] = child
         self._publisher(name)
         self._start(child)

@@ -1,5 +1,6 @@
-"""What a deployment implies: every process's Zenoh endpoints and transport, and the
-command lines the host daemons run. Nothing here is configured by hand.
+"""What a deployment implies: every process's Zenoh endpoints and transport, and what the
+host daemons run (each agent's spec, the world's command line). Nothing here is
+configured by hand.
 
 - Each host's daemon is a Zenoh router listening on `tcp/<address>:<port>` (IPv4; never
   `[::]`, so hosts without IPv6 work) and on `tcp/127.0.0.1:<port>` for its children.
@@ -13,8 +14,9 @@ command lines the host daemons run. Nothing here is configured by hand.
   instead, one link per pair (the router with the greater Zenoh id connects). Slower to
   rejoin after a loss (scouting's period), and the network must carry multicast.
 - Agents and the world are Zenoh clients of their own host's daemon on 127.0.0.1.
-- A robot's driver settings reach its agent as `--driver-setting=KEY=VALUE` (VALUE in
-  TOML), checked again there by the driver backend's settings model.
+- A robot's driver and its settings reach its agent in its spec (`agent_spec`), checked
+  by the driver backend's own settings model when the spec is built and again when the
+  agent reads it.
 - A secured deployment (`[security] mode = "mtls"`, see `Deployment.secured`) uses `tls/`
   endpoints everywhere, loopback included: every process presents its own certificate
   (`robot.<id>`, `world`, `host.<name>`, `operator.<name>`), and each daemon's router
@@ -29,11 +31,11 @@ import uuid
 from dataclasses import dataclass
 from pathlib import Path
 
-from phalanx.core.config_files import toml_value
 from phalanx.core.errors import ConfigError
 from phalanx.hosts.access import host_acl, host_files, identity_files
-from phalanx.hosts.deployment import Deployment, LoadedDeployment, RobotPlacement, RouterEntry
+from phalanx.hosts.deployment import Deployment, LoadedDeployment, RouterEntry
 from phalanx.hosts.pki import common_name
+from phalanx.runtime.process_spec import AgentSpec, DriverChoice, TelemetryTarget
 from phalanx.wire.security import TlsFiles
 from phalanx.wire.transport import TransportConfig
 
@@ -221,7 +223,7 @@ def loopback_hosts(spec: Deployment) -> tuple[str, ...]:
     return tuple(h.name for h in spec.hosts if h.address.startswith("127."))
 
 
-# --- command lines ----------------------------------------------------------------------
+# --- what the daemons run ---------------------------------------------------------------
 
 
 @dataclass(frozen=True)
@@ -246,34 +248,42 @@ def _common(loaded: LoadedDeployment, host: str, run: RunParameters, identity: s
         files = identity_files(loaded, identity, check=False)  # the daemon checked at start
         argv += ["--tls-ca", files.ca, "--tls-cert", files.cert, "--tls-key", files.key]
     argv += [f"--set={o}" for o in (*spec.overrides, *run.overrides)]
-    if spec.telemetry.url is not None:
-        argv += ["--recording-id", recording_id(spec.fleet, run.run_id)]
-        argv += ["--telemetry-url", spec.telemetry.url]
+    telemetry = _telemetry(spec, run)
+    if telemetry.url is not None:
+        argv += ["--recording-id", str(telemetry.recording_id), "--telemetry-url", telemetry.url]
     return argv
 
 
-def agent_argv(
-    loaded: LoadedDeployment, robot_id: str, *, run: RunParameters, python: str
-) -> list[str]:
-    """The command line of a robot's agent, built from the deployment alone."""
-    placement = loaded.spec.placement(robot_id)
-    argv = [python, "-m", "phalanx", "agent", str(loaded.scenario_path), "--robot", robot_id]
-    argv += _common(loaded, placement.host, run, common_name("robot", robot_id))
-    return argv + _driver_args(loaded, placement, run)
+def agent_spec(loaded: LoadedDeployment, robot_id: str, *, run: RunParameters) -> AgentSpec:
+    """The spec of a robot's agent, built from the deployment alone: a client of its
+    host's daemon, with its own certificate when secured; a robot on a driver runs from
+    the run's epoch (to the millisecond, as the world's command line gives it).
+    """
+    spec, placement = loaded.spec, loaded.spec.placement(robot_id)
+    tls = None
+    if spec.secured:  # (the daemon checked every child's files at start)
+        tls = identity_files(loaded, common_name("robot", robot_id), check=False)
+    transport = TransportConfig(
+        mode="client", connect=(local_endpoint(spec, placement.host),), tls=tls
+    )
+    driver = DriverChoice(name=loaded.driver_of(robot_id), settings=placement.settings)
+    on_driver = driver.settings is not None
+    epoch_s = round(run.epoch_unix, 3) if on_driver and run.epoch_unix is not None else None
+    return AgentSpec(
+        scenario=loaded.scenario_path, overrides=(*spec.overrides, *run.overrides),
+        robot_id=robot_id, fleet=spec.fleet, clock=spec.clock, transport=transport,
+        driver=driver, epoch_s=epoch_s, watchdog_s=placement.watchdog_s,
+        telemetry=_telemetry(spec, run),
+    )  # fmt: skip
 
 
-def _driver_args(
-    loaded: LoadedDeployment, placement: RobotPlacement, run: RunParameters
-) -> list[str]:
-    driver = loaded.driver_of(placement.id)
-    argv = ["--driver", driver]
-    if driver == "sim":
-        return argv
-    argv += ["--watchdog", repr(placement.watchdog_s)]
-    if run.epoch_unix is not None:
-        argv += ["--epoch", f"{run.epoch_unix:.3f}"]
-    settings = placement.settings.items()
-    return argv + [f"--driver-setting={key}={toml_value(value)}" for key, value in settings]
+def _telemetry(spec: Deployment, run: RunParameters) -> TelemetryTarget:
+    """Every process streams to the deployment's viewer, if it names one."""
+    if spec.telemetry.url is None:
+        return TelemetryTarget()
+    return TelemetryTarget(
+        recording_id=recording_id(spec.fleet, run.run_id), url=spec.telemetry.url
+    )
 
 
 def world_argv(

@@ -8,7 +8,9 @@ TCP port), in a directory made for the run with mode 0700 and removed after it
 join the fleet nor publish on it; every process `up` starts (world, agents, emulators)
 connects there.
 
-A crashed agent is reported and, with `restart`, started again. Everything is stopped
+Every agent is started from its spec (`phalanx.runtime.process_spec`), handed on its
+standard input, not from options. A crashed agent is reported and, with `restart`,
+started again. Everything is stopped
 on the way out: SIGTERM first, SIGKILL after a grace period. The outcome says whether
 the run ended as asked (the world finished, no process died on its own) and, if not,
 which process ended how; a world that finished a run its results mark incomplete
@@ -37,6 +39,7 @@ import uuid
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Literal
 
 from phalanx.core.config import Scenario
 from phalanx.core.errors import TransportError
@@ -47,10 +50,18 @@ from phalanx.runtime.exits import (
     EXIT_INCOMPLETE,
     agent_exit_reason,
 )
+from phalanx.runtime.process_spec import (
+    AgentSpec,
+    DriverChoice,
+    TelemetryTarget,
+    hand_spec,
+    spawn_argv,
+)
 from phalanx.runtime.signals import Stoppable, supervised_env
 from phalanx.wire.transport import (
     LOWLATENCY_MAX_BYTES,
     SOCKET_PATH_MAX_BYTES,
+    TransportConfig,
     free_tcp_port,
     unix_socket_endpoint,
 )
@@ -69,15 +80,14 @@ class UpOptions:
     """What `phalanx up` starts."""
 
     fleet: str
-    clock: str = "lockstep"
+    clock: Literal["lockstep", "realtime"] = "lockstep"
     speed: float = 1.0
     out: Path | None = None
     restart: bool = False
     max_restarts: int = 3
     timeout_s: float = 600.0
     recording: bool = True
-    extra_agent_args: tuple[str, ...] = ()
-    overrides: tuple[str, ...] = ()
+    overrides: tuple[str, ...] = ()  # scenario fields, `PATH=VALUE` as `--set` takes them
     driver: str = "sim"
     startup_s: float = 8.0  # robot drivers: time given to every process before step 0
     recording_id: str = field(default_factory=lambda: str(uuid.uuid4()))
@@ -101,13 +111,15 @@ class AmrisimRun:
 
 @dataclass
 class Child:
-    """A supervised process: one of ours (`kind` agent, emulator or world), or a third
-    party's (`env` given: a simulator such as AMRISim, its output to `output`).
+    """A supervised process: one of ours (`kind` agent, emulator or world; an agent with
+    its `spec`, written to its standard input at each start), or a third party's (`env`
+    given: a simulator such as AMRISim, its output to `output`).
     """
 
     name: str
     argv: list[str]
     kind: str = "agent"
+    spec: AgentSpec | None = None
     env: dict[str, str] | None = None
     output: Path | None = None  # a third party's stdout and stderr (None: ours, inherited)
     process: subprocess.Popen[bytes] | None = None
@@ -122,9 +134,12 @@ class Child:
         self.reported = False
         self.started_at = time.monotonic()
         if self.env is None:
+            stdin = None if self.spec is None else subprocess.PIPE
             self.process = subprocess.Popen(  # noqa: S603 - our own interpreter and CLI
-                self.argv, env=supervised_env()
+                self.argv, env=supervised_env(), stdin=stdin
             )
+            if self.spec is not None:
+                hand_spec(self.process, self.spec)
         else:
             self.process = self._third_party(self.env)
         if self.cpu is not None:
@@ -265,16 +280,16 @@ def _private(folder: Path) -> bool:
 def plan(
     scenario_path: Path, scenario: Scenario, options: UpOptions, *, endpoint: str = UNMADE_ENDPOINT
 ) -> list[Child]:
-    """The world and agent command lines: the world listening on `endpoint` alone (from
-    `private_fabric`), every other process connecting there (by default a socket that
-    cannot be made: command lines to look at, not to run).
+    """The world's command line and every agent's spec: the world listening on `endpoint`
+    alone (from `private_fabric`), every other process connecting there (by default a
+    socket that cannot be made: a plan to look at, not to run).
     """
     # Every process on this machine: Zenoh's low-latency transport (see TransportConfig),
     # if its messages carry the fleet's lockstep frames.
+    lowlatency = options.clock != "lockstep" or _frames_fit_lowlatency(scenario)
     common = ["--fleet", options.fleet, "--clock", options.clock]
-    if options.clock != "lockstep" or _frames_fit_lowlatency(scenario):
-        common.append("--lowlatency")
-    common += options.overrides
+    common += ["--lowlatency"] if lowlatency else []
+    common += [f"--set={o}" for o in options.overrides]
     world = [
         *_cli(),
         "world",
@@ -289,12 +304,11 @@ def plan(
         world += ["--out", str(options.out)]
     # The world's own post-run recording is replaced by every process's live one.
     world += ["--no-recording", *_telemetry_args(options, "world")]
-    agent_extra: dict[str, list[str]] = {
-        entry.id: _telemetry_args(options, entry.id) for entry in scenario.robots
-    }
+    drivers: dict[str, DriverChoice] = {}
     emulators: list[Child] = []
+    epoch: float | None = None
     if options.driver == "arcos":
-        epoch = time.time() + options.startup_s
+        epoch = _epoch(options)
         world += ["--epoch", f"{epoch:.3f}"]
         for entry in scenario.robots:
             port = free_tcp_port()
@@ -302,41 +316,37 @@ def plan(
                 *_cli(), "emulate", "p3dx", "--tcp", str(port), "--world", str(scenario_path),
                 "--robot", entry.id, "--fleet", options.fleet, "--connect", endpoint,
             ]))  # fmt: skip
-            agent_extra[entry.id] += [
-                "--driver", "arcos", "--arcos-tcp", f"127.0.0.1:{port}", "--epoch", f"{epoch:.3f}",
-            ]  # fmt: skip
+            drivers[entry.id] = DriverChoice(name="arcos", settings={"tcp": f"127.0.0.1:{port}"})
     if options.amrisim is not None:
-        epoch = time.time() + options.startup_s
+        epoch = _epoch(options)
         world += ["--epoch", f"{epoch:.3f}"]
         world += [arg for entry in scenario.robots for arg in ("--observe", entry.id)]
         emulators.append(_amrisim_child(scenario, options.amrisim, options.out))
-        ports = amrisim_ports(tuple(agent_extra), options.amrisim.command.base_port)
-        for entry in scenario.robots:
-            agent_extra[entry.id] += [
-                "--driver", "arcos", f'--driver-setting=tcp="127.0.0.1:{ports[entry.id]}"',
-                f"--driver-setting=place_at={_place_at(scenario, entry.id)}",
-                "--epoch", f"{epoch:.3f}",
-            ]  # fmt: skip
+        ids = tuple(entry.id for entry in scenario.robots)
+        ports = amrisim_ports(ids, options.amrisim.command.base_port)
+        for rid in ids:
+            settings = {"tcp": f"127.0.0.1:{ports[rid]}", "place_at": _place_at(scenario, rid)}
+            drivers[rid] = DriverChoice(name="arcos", settings=settings)
+    transport = TransportConfig(mode="client", connect=(endpoint,), lowlatency=lowlatency)
     children = [Child("world", world), *emulators]
     for entry in scenario.robots:
-        agent = [
-            *_cli(),
-            "agent",
-            str(scenario_path),
-            "--robot",
-            entry.id,
-            *common,
-            "--mode",
-            "client",
-            "--connect",
-            endpoint,
-            *agent_extra[entry.id],
-            *options.extra_agent_args,
-        ]
-        children.append(Child(entry.id, agent))
+        spec = AgentSpec(
+            scenario=scenario_path, overrides=options.overrides, robot_id=entry.id,
+            fleet=options.fleet, clock=options.clock, transport=transport,
+            driver=drivers.get(entry.id, DriverChoice()), epoch_s=epoch,
+            telemetry=_telemetry_target(options, entry.id),
+        )  # fmt: skip
+        children.append(Child(entry.id, spawn_argv(spec, python=sys.executable), spec=spec))
     if options.pinned:
         assign_cpus(children, usable_cpus())
     return children
+
+
+def _epoch(options: UpOptions) -> float:
+    """Step 0 of a run of robots on drivers, to the millisecond, as the world's command
+    line gives it (`--epoch`): every process starts its clock at the same instant.
+    """
+    return round(time.time() + options.startup_s, 3)
 
 
 def _amrisim_child(scenario: Scenario, run: AmrisimRun, out: Path | None) -> Child:
@@ -349,18 +359,28 @@ def _amrisim_child(scenario: Scenario, run: AmrisimRun, out: Path | None) -> Chi
     return Child("amrisim", argv, kind="simulator", env=command.env(run.display), output=output)
 
 
-def _place_at(scenario: Scenario, robot_id: str) -> str:
-    """The robot's start pose as the arcos driver's `place_at` (TOML: m, m, deg)."""
+def _place_at(scenario: Scenario, robot_id: str) -> tuple[float, float, float]:
+    """The robot's start pose as the arcos driver's `place_at` (m, m, deg)."""
     pose = scenario.start_pose(robot_id)
-    return f"[{pose.x_m!r}, {pose.y_m!r}, {math.degrees(pose.theta_rad)!r}]"
+    return (pose.x_m, pose.y_m, math.degrees(pose.theta_rad))
+
+
+def _telemetry_target(options: UpOptions, name: str) -> TelemetryTarget:
+    """Where process `name` sends its telemetry: its part of the recording in the
+    results folder, the live viewer, both or nowhere, under the run's recording id.
+    """
+    file = None
+    if options.recording and options.out is not None:
+        file = telemetry_dir(options.out) / f"{name}.rrd"
+    url = options.telemetry_url or None
+    recording_id = options.recording_id if file or url else None
+    return TelemetryTarget(recording_id=recording_id, file=file, url=url)
 
 
 def _telemetry_args(options: UpOptions, name: str) -> list[str]:
-    args = []
-    if options.recording and options.out is not None:
-        args += ["--telemetry-file", str(telemetry_dir(options.out) / f"{name}.rrd")]
-    if options.telemetry_url:
-        args += ["--telemetry-url", options.telemetry_url]
+    target = _telemetry_target(options, name)
+    args = [] if target.file is None else ["--telemetry-file", str(target.file)]
+    args += [] if target.url is None else ["--telemetry-url", target.url]
     return ["--recording-id", options.recording_id, *args] if args else []
 
 

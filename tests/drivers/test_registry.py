@@ -10,13 +10,13 @@ import pytest
 from typer.testing import CliRunner
 
 from phalanx.cli import app
-from phalanx.cli.commands.fleet import _backend
 from phalanx.core.config_files import CONFIG_ROOT, load_robot
 from phalanx.core.errors import ConfigError
 from phalanx.drivers import BACKENDS, backend_names, open_driver, settings_model
 from phalanx.drivers.arcos import ArcosDriver, ArcosSettings
 from phalanx.drivers.base import Driver
 from phalanx.drivers.canopen import CanopenDriver, CanopenSettings
+from phalanx.runtime.process_spec import AgentSpec
 
 pytestmark = pytest.mark.drivers
 ROBOT = load_robot("p3dx")
@@ -114,26 +114,34 @@ def test_bad_driver_options_are_named_without_a_traceback(extra: list[str], expe
     assert "Traceback" not in result.output
 
 
+def _spec_of(*options: str) -> AgentSpec:
+    """The spec `phalanx agent` makes of its options (the runtime builds the agent from it)."""
+    argv = ["agent", str(WEDGE), "--robot", "r1", *options, "--print-spec"]
+    result = CliRunner().invoke(app, argv)
+    assert result.exit_code == 0, result.output
+    return AgentSpec.model_validate_json(result.output)
+
+
 def test_the_agent_fills_the_backends_settings_from_its_options() -> None:
-    arcos = _backend(
-        "arcos",
-        ROBOT,
-        shortcuts={"--arcos-port": "/dev/ttyUSB0", "--baud": 19200, "--can-channel": None},
-        settings=["sonar=false", "pulse_s=0.25"],
-    )
-    assert isinstance(arcos, ArcosDriver)
-    assert arcos.settings == ArcosSettings(
+    arcos = _spec_of(
+        "--driver", "arcos", "--arcos-port", "/dev/ttyUSB0", "--baud", "19200",
+        "--driver-setting", "sonar=false", "--driver-setting", "pulse_s=0.25",
+    )  # fmt: skip
+    assert arcos.driver.name == "arcos"
+    assert arcos.driver.settings == ArcosSettings(
         port="/dev/ttyUSB0", baud=19200, sonar=False, pulse_s=0.25
     )
-    canopen = _backend(
-        "canopen",
-        ROBOT,
-        shortcuts={"--can-interface": "virtual"},
-        settings=["channel=bus-7", "bitrate=250000", "left_sign = -1"],
-    )
-    assert isinstance(canopen, CanopenDriver)
+    canopen = _spec_of(
+        "--driver", "canopen", "--can-interface", "virtual", "--driver-setting", "channel=bus-7",
+        "--driver-setting", "bitrate=250000", "--driver-setting", "left_sign = -1",
+    )  # fmt: skip
     expected = CanopenSettings(interface="virtual", channel="bus-7", bitrate=250_000, left_sign=-1)
-    assert canopen.settings == expected
-    assert _backend("sim", ROBOT, shortcuts={}, settings=None) is None
-    for driver in (arcos, canopen):
+    assert canopen.driver.settings == expected
+    assert _spec_of().driver.settings is None  # sim: the world moves the robot
+    # The factory opens each through the registry, as every backend is built.
+    for spec, kind in ((arcos, ArcosDriver), (canopen, CanopenDriver)):
+        assert spec.driver.settings is not None
+        driver = open_driver(spec.driver.name, spec.driver.settings, robot=ROBOT)
+        assert isinstance(driver, kind)
+        assert driver.settings == spec.driver.settings
         driver.close()

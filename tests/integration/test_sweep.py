@@ -4,6 +4,7 @@ the runs made in this process, finished runs never run again, one table."""
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -36,7 +37,13 @@ def test_a_sweep_on_two_local_workers_is_resumable_and_matches_in_process(tmp_pa
     lines = out.read_text(encoding="utf-8").splitlines()
     assert len(lines) == 2
     assert lines[0] == first[0]
-    assert "| field | inline | 3 | ours | 2 |" in printed
+    # a pipe: 80 columns, the 19 columns as a block of `field: value` lines, no pipes
+    assert re.search(r"^formation: +inline$", printed, re.MULTILINE), printed
+    assert re.search(r"^runs: +2$", printed, re.MULTILINE), printed
+    assert "|" not in printed
+    *shown, said = printed.splitlines()
+    assert max(len(line) for line in shown) <= 80
+    assert said.endswith(f"results: {out}")
     rows = done_rows(out)
     todo = jobs(["field"], ["inline"], [3], [0, 1], overrides=SHORT)
     assert set(rows) == {j.key for j in todo}

@@ -10,7 +10,7 @@ import threading
 import pytest
 
 from phalanx.core.config_files import CONFIG_ROOT, load_scenario
-from phalanx.runtime.local_fleet import UpOptions, plan
+from phalanx.runtime.local_fleet import Child, UpOptions, plan
 from phalanx.wire.messages import AgentEvent
 from phalanx.wire.transport import (
     LOWLATENCY_MAX_BYTES,
@@ -24,6 +24,13 @@ from phalanx.wire.transport import (
 
 pytestmark = pytest.mark.integration
 WEDGE = CONFIG_ROOT / "scenarios" / "paper_wedge.toml"
+
+
+def _lowlatency(child: Child) -> bool:
+    """Whether `phalanx up` gives the process the low-latency transport: the world by its
+    command line, an agent in its spec.
+    """
+    return child.spec.transport.lowlatency if child.spec else "--lowlatency" in child.argv
 
 
 def _event(reason: str) -> AgentEvent:
@@ -84,10 +91,12 @@ def test_messages_cross_and_an_oversized_status_is_refused_not_sent() -> None:
 
 
 def test_up_starts_every_process_on_it() -> None:
-    children = plan(WEDGE, load_scenario(WEDGE), UpOptions(fleet="ll"))
-    assert len(children) == 4
-    for child in children:
-        assert "--lowlatency" in child.argv, child.name
+    world, *agents = plan(WEDGE, load_scenario(WEDGE), UpOptions(fleet="ll"))
+    assert len(agents) == 3
+    assert "--lowlatency" in world.argv
+    for agent in agents:
+        assert agent.spec is not None, agent.name
+        assert agent.spec.transport.lowlatency, agent.name
 
 
 def test_a_fleet_whose_lockstep_frames_do_not_fit_is_refused_or_run_without_it() -> None:
@@ -103,9 +112,9 @@ def test_a_fleet_whose_lockstep_frames_do_not_fit_is_refused_or_run_without_it()
     options = WorldOptions(fleet="ll", transport=TransportConfig(lowlatency=True))
     with pytest.raises(ConfigError, match="without --lowlatency"):
         WorldProcess(big, robot, options)
-    for child in plan(WEDGE, big, UpOptions(fleet="ll")):
-        assert "--lowlatency" not in child.argv, child.name  # `phalanx up` leaves it off
+    for child in plan(WEDGE, big, UpOptions(fleet="ll")):  # `phalanx up` leaves it off
+        assert not _lowlatency(child), child.name
     realtime = plan(WEDGE, big, UpOptions(fleet="ll", clock="realtime"))
-    assert all("--lowlatency" in child.argv for child in realtime)  # no frames with states
+    assert all(_lowlatency(child) for child in realtime)  # no frames with states
     fits = grid_scenario(load_scenario(WEDGE), 300)
     WorldProcess(fits, robot, options)  # (300 robots fit)

@@ -15,13 +15,14 @@ from typer.testing import CliRunner
 from phalanx.cli import app
 from phalanx.core.config_files import CONFIG_ROOT, toml_value
 from phalanx.core.errors import ConfigError
+from phalanx.drivers.arcos import ArcosSettings
 from phalanx.hosts.children import backoff_delay_s, exit_reason
 from phalanx.hosts.daemon import HostDaemon
 from phalanx.hosts.deployment import load_deployment
 from phalanx.hosts.protocol import HostReply, SpawnRequest, line_level
 from phalanx.hosts.wiring import (
     RunParameters,
-    agent_argv,
+    agent_spec,
     client_transport,
     host_connect,
     host_listen,
@@ -31,6 +32,7 @@ from phalanx.hosts.wiring import (
     router_transport,
     world_argv,
 )
+from phalanx.runtime.process_spec import read_spec
 from phalanx.runtime.signals import SignalStop
 
 WEDGE = CONFIG_ROOT / "scenarios" / "paper_wedge.toml"
@@ -87,14 +89,15 @@ def test_the_example_deployments_load(name: str) -> None:
 def test_the_real_robot_example_drives_p3dx_robots_over_serial() -> None:
     loaded = load_deployment("lab_p3dx")
     run = RunParameters("run1", epoch_unix=1.7e9)
-    argv = agent_argv(loaded, "r2", run=run, python="python3")
-    assert argv[argv.index("--driver") + 1] == "arcos"
-    assert argv[-2:] == ['--driver-setting=port="/dev/ttyUSB0"', "--driver-setting=baud=9600"]
-    assert argv[argv.index("--watchdog") + 1] == "0.5"
-    assert argv[argv.index("--epoch") + 1] == "1700000000.000"
-    assert argv[argv.index("--connect") + 1] == "tls/127.0.0.1:7447"  # secured by default
-    assert argv[argv.index("--tls-cert") + 1].endswith("/robot.r2.crt")
-    assert argv[argv.index("--recording-id") + 1] == recording_id("lab", "run1")
+    spec = agent_spec(loaded, "r2", run=run)
+    assert spec.driver.name == "arcos"
+    assert spec.driver.settings == ArcosSettings(port="/dev/ttyUSB0", baud=9600)
+    assert spec.watchdog_s == 0.5
+    assert spec.epoch_s == 1_700_000_000.0
+    assert spec.transport.connect == ("tls/127.0.0.1:7447",)  # secured by default
+    assert spec.transport.tls is not None
+    assert spec.transport.tls.cert.endswith("/robot.r2.crt")
+    assert spec.telemetry.recording_id == recording_id("lab", "run1")
 
 
 def test_each_pair_of_hosts_shares_exactly_one_link(tmp_path: Path) -> None:
@@ -212,7 +215,7 @@ def test_driver_settings_are_checked_by_the_backends_own_model(tmp_path: Path) -
     assert "lockstep" in _error(tmp_path, lockstep, head='clock = "lockstep"')
 
 
-def test_driver_settings_reach_the_agent_as_toml_values(tmp_path: Path) -> None:
+def test_driver_settings_reach_the_agent_as_they_were(tmp_path: Path) -> None:
     settings = {
         "interface": "virtual",
         "channel": 'bus "7" \\ \t ü',
@@ -222,10 +225,12 @@ def test_driver_settings_reach_the_agent_as_toml_values(tmp_path: Path) -> None:
     }
     table = ", ".join(f"{key} = {toml_value(value)}" for key, value in settings.items())
     path = _write(tmp_path, _on_r1(f'driver = "canopen"\nsettings = {{ {table} }}'))
-    argv = agent_argv(load_deployment(path), "r1", run=RunParameters("run1"), python="python3")
-    given = [a.removeprefix("--driver-setting=").partition("=") for a in argv if "-setting=" in a]
-    assert {key: tomllib.loads(f"v = {text}")["v"] for key, _, text in given} == settings
-    assert argv[argv.index("--driver") + 1] == "canopen"
+    spec = agent_spec(load_deployment(path), "r1", run=RunParameters("run1"))
+    (tmp_path / "r1.json").write_bytes(spec.encoded())  # as the agent reads it
+    given = read_spec(tmp_path / "r1.json").driver
+    assert given.name == "canopen"
+    assert given.settings is not None
+    assert given.settings.model_dump(include=set(settings)) == settings
 
 
 @pytest.mark.parametrize(

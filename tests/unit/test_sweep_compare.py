@@ -138,10 +138,16 @@ def test_the_command_prints_the_table_and_refuses_what_it_cannot_compare(
 ) -> None:
     a = _write(tmp_path / "a.jsonl", [*_rows(template, {0: False, 1: True}), "not json"])
     b = _write(tmp_path / "b.jsonl", _rows(template, {0: True, 1: True}))
-    done = _cli(str(a), str(b))
+    done = _cli(str(a), str(b), "--markdown")
     assert done.returncode == 0, done.stderr
     assert "| field | inline | 3 | ours | 2 | 1 (" in done.stdout
     assert "1 (0)" in done.stdout
+    plain = _cli(str(a), str(b))  # a pipe: plain text in 80 columns
+    assert plain.returncode == 0, plain.stderr
+    assert "|" not in plain.stdout
+    assert "nan" not in plain.stdout
+    assert max(len(line) for line in plain.stdout.splitlines()) <= 80
+    assert "gained (seeds):" in plain.stdout
     assert "1 lines that are not sweep runs, skipped" in done.stderr
     twice = _write(tmp_path / "twice.jsonl", _rows(template, {0: True}) * 2)
     refused = _cli(str(a), str(twice))

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-import secrets
+import re
 import sys
 import time
 from typing import TYPE_CHECKING, Annotated
@@ -10,11 +10,15 @@ from typing import TYPE_CHECKING, Annotated
 import typer
 
 from phalanx.cli.commands.host import DeploymentArg, load_or_exit
+from phalanx.cli.outputs import launch_run_id
+from phalanx.cli.tables import MarkdownOpt, show_table
 
 if TYPE_CHECKING:
+    from phalanx.cli.progress import Reporter
     from phalanx.hosts.deployment import LoadedDeployment
-    from phalanx.hosts.fleet_output import Output
+    from phalanx.hosts.fleet_output import LiveOutput, Output, Row
     from phalanx.hosts.launch import LaunchOptions
+    from phalanx.hosts.protocol import LogLine
     from phalanx.runtime.local_fleet import Child
     from phalanx.runtime.signals import Stoppable
     from phalanx.wire.transport import TransportConfig
@@ -49,15 +53,15 @@ def _transport(
     return client_transport(loaded.spec, via=via, connect=tuple(connect or ()), tls=tls)
 
 
-def _new_run_id() -> str:
-    return time.strftime("%Y%m%d-%H%M%S-") + secrets.token_hex(2)
-
-
 def launch(
     deployment: DeploymentArg,
     set_: SetOpt = None,
     run_id: Annotated[
-        str | None, typer.Option(help="Name of this run (default: date-time-random).")
+        str | None,
+        typer.Option(
+            help="Name of this run, and of its results folder on the world's host (default: "
+            "<deployment>-<date>-<time>-<4 hex digits>)."
+        ),
     ] = None,
     host_wait: Annotated[
         float, typer.Option(help="Seconds to wait for every host's daemon.")
@@ -81,8 +85,14 @@ def launch(
     print_acl: Annotated[
         bool, typer.Option(help="Print every host's generated access-control list and exit.")
     ] = False,
+    quiet: Annotated[
+        bool, typer.Option("--quiet", "-q", help="No progress (time elapsed and left).")
+    ] = False,
 ) -> None:
-    """Start a deployment on its hosts, follow it live, stop it on Ctrl-C or at its end."""
+    """Start a deployment on its hosts, follow it live, stop it on Ctrl-C or at its end.
+    The world's progress, with the time left, goes to stderr (in the live table's title
+    on a terminal); the run's results folder, on the world's host, is named at the end.
+    """
     from phalanx.core.errors import DeploymentError
     from phalanx.hosts.launch import LaunchOptions
     from phalanx.hosts.protocol import OVERRIDE_PATTERN, RUN_ID_PATTERN
@@ -93,7 +103,7 @@ def launch(
         return
     if loaded.spec.open_warning:
         typer.secho(loaded.spec.open_warning, fg="red", bold=True, err=True)
-    run = run_id or _new_run_id()
+    run = run_id or launch_run_id(loaded.spec.name)
     _check_pattern(run, RUN_ID_PATTERN, "--run-id")
     for override in set_ or ():
         _check_pattern(override, OVERRIDE_PATTERN, "--set")
@@ -111,7 +121,7 @@ def launch(
     daemons = _start_local_daemons(loaded) if local else []
     try:
         transport = _transport(loaded, via, connect, identity)
-        code = _run(loaded, options, transport, table, logs, stop)
+        code = _run(loaded, options, transport, (table, logs, quiet), stop)
     except DeploymentError as exc:
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(2) from exc
@@ -155,20 +165,94 @@ def _run(
     loaded: LoadedDeployment,
     options: LaunchOptions,
     transport: TransportConfig,
-    table: bool | None,
-    logs: bool,
+    shown: tuple[bool | None, bool, bool],
     stop: Stoppable,
 ) -> int:
+    """Launch with the output asked for: `shown` is (the live table, the processes'
+    output, quiet).
+    """
+    from phalanx.cli.progress import Reporter
+    from phalanx.core.config_files import apply_overrides
     from phalanx.hosts.fleet_output import LiveOutput, PlainOutput
     from phalanx.hosts.launch import launch
 
+    table, logs, quiet = shown
+    scenario = apply_overrides(loaded.scenario, list(options.overrides))
+    rate_hz = scenario.control_rate_hz
     title = f"{loaded.spec.name} · fleet {loaded.spec.fleet} · run {options.run_id}"
     if table if table is not None else sys.stdout.isatty():
         with LiveOutput(title, logs=logs) as live:
-            return launch(loaded, options, transport=transport, output=live, stop=stop)
-    output: Output = PlainOutput(lambda text: typer.echo(text), logs=logs)
+            line = TitleLine(live, title)
+            reporter = Reporter("launch", unit="s of run", stream=line, quiet=quiet, tty=True)
+            watched = WorldProgress(live, reporter, rate_hz)
+            return launch(loaded, options, transport=transport, output=watched, stop=stop)
+    reporter = Reporter("launch", unit="s of run", quiet=quiet)
+
+    def write(text: str) -> None:
+        reporter.close()  # (a terminal's progress line ended before a line of output)
+        typer.echo(text)
+
+    output = WorldProgress(PlainOutput(write, logs=logs), reporter, rate_hz)
     output.event(f"launching {title}")
-    return launch(loaded, options, transport=transport, output=output, stop=stop)
+    try:
+        return launch(loaded, options, transport=transport, output=output, stop=stop)
+    finally:
+        reporter.close()
+
+
+_TICKS = re.compile(r"^tick (\d{1,12})/(\d{1,12})$")
+
+
+class WorldProgress:
+    """A launcher's output (`phalanx.hosts.fleet_output.Output`) passed on as it is, the
+    world's progress (its row's `tick k/n`) reported on the way, in seconds of run.
+    """
+
+    def __init__(self, inner: Output, reporter: Reporter, rate_hz: float) -> None:
+        self.inner, self.reporter, self.rate_hz = inner, reporter, rate_hz
+        self.total_s: float | None = None  # the run's length, once the world said it
+
+    def event(self, text: str) -> None:
+        """Pass an event on."""
+        self.inner.event(text)
+
+    def log(self, line: LogLine) -> None:
+        """Pass a child's line on."""
+        self.inner.log(line)
+
+    def update(self, rows: list[Row]) -> None:
+        """Pass the rows on, and report the world's ticks."""
+        self.inner.update(rows)
+        for row in (r for r in rows if r.name == "world"):
+            ticks = _TICKS.match(row.state)
+            if ticks is not None:
+                done, self.total_s = (int(n) / self.rate_hz for n in ticks.groups())
+                self.reporter(done, self.total_s)
+            elif row.process == "finished" and self.total_s is not None:
+                self.reporter(self.total_s, self.total_s)
+
+
+class TitleLine:
+    """Where a terminal's progress line goes while the live table is shown: the table's
+    title, beside its own (the table owns the screen; a line of its own would tear it).
+    """
+
+    def __init__(self, live: LiveOutput, title: str) -> None:
+        self.live, self.title = live, title
+
+    def write(self, text: str, /) -> int:
+        """Show the line `text` carries in the title."""
+        said = text.strip("\r\n ")
+        if said:
+            self.live.title = f"{self.title} · {said}"
+        return len(text)
+
+    def flush(self) -> None:
+        """Nothing to push: the table redraws its title."""
+
+    def isatty(self) -> bool:
+        """In place, as in a terminal."""
+        return True
 
 
 def _start_local_daemons(loaded: LoadedDeployment) -> list[Child]:
@@ -193,6 +277,7 @@ def _stop_local_daemons(daemons: list[Child]) -> None:
 def status(
     deployment: DeploymentArg,
     json_: Annotated[bool, typer.Option("--json", help="Print JSON instead of a table.")] = False,
+    markdown: MarkdownOpt = False,
     listen_s: Annotated[
         float, typer.Option("--listen-s", help="Seconds to listen to the robots' states.")
     ] = 1.5,
@@ -203,7 +288,7 @@ def status(
     """Show a running fleet: every host's processes and every robot's state."""
     from phalanx.core.errors import DeploymentError
     from phalanx.hosts.fleet_client import FleetClient
-    from phalanx.hosts.fleet_output import fleet_rows, render_table, status_document
+    from phalanx.hosts.fleet_output import fleet_rows, status_document
 
     loaded = load_or_exit(deployment)
     try:
@@ -222,9 +307,8 @@ def status(
     if json_:
         typer.echo(status_document(statuses, rows, skews))
     else:
-        from rich.console import Console
-
-        Console().print(render_table(rows, title=f"{loaded.spec.name} · fleet {loaded.spec.fleet}"))
+        title = f"{loaded.spec.name} · fleet {loaded.spec.fleet}"
+        show_table(STATUS_HEADERS, status_cells(rows), title=title, markdown=markdown)
         for host_name, s in statuses.items():
             line = f"host {host_name}: " + (
                 f"run {s.run_id or '-'}, {s.requests} requests, {s.refused} refused, "
@@ -234,6 +318,24 @@ def status(
             )
             typer.echo(line)
     raise typer.Exit(1 if missing else 0)
+
+
+STATUS_HEADERS = ("robot", "host", "process", "restarts", "state", "leader", "rate", "dropped",
+                  "relinks", "last error")  # fmt: skip
+
+
+def status_cells(rows: list[Row]) -> list[list[str]]:
+    """The cells of `phalanx status`'s table, a row per robot and one for the world."""
+    return [
+        [
+            row.name, row.host, row.process, str(row.restarts), row.state, row.leader,
+            f"{row.rate_hz:.1f} Hz" if row.rate_hz is not None else "-",
+            "-" if row.dropped is None else str(row.dropped),
+            "-" if row.relinks is None else str(row.relinks),
+            row.last_error[-80:] or "-",
+        ]
+        for row in rows
+    ]  # fmt: skip
 
 
 def stop(

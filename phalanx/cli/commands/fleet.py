@@ -1,30 +1,30 @@
 """`phalanx agent`, `phalanx world`: robots as processes over Zenoh (`phalanx up` starts
-them all on this machine: `phalanx.cli.commands.up`).
+them all on this machine: `phalanx.cli.commands.up`). `phalanx agent` only turns its
+options into a spec (`phalanx.runtime.process_spec`); the runtime builds the agent.
 """
 
 from __future__ import annotations
 
-import difflib
 import logging
-from collections.abc import Mapping
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated, Literal, NoReturn
+from typing import TYPE_CHECKING, Annotated, Literal, NoReturn, TypeVar
 
 import typer
 
 from phalanx.cli.commands.run import DpiOpt, FormatOpt
+from phalanx.cli.outputs import fresh_folder, results_name
 
 if TYPE_CHECKING:
     from phalanx.analysis.figures import FigureFormat
     from phalanx.analysis.results import ResultsNotWritten
     from phalanx.core.config import Scenario
-    from phalanx.core.robot_params import RobotParams
     from phalanx.core.runlog import RunLog
-    from phalanx.drivers.base import Driver
+    from phalanx.runtime.process_spec import AgentSpec, TelemetryTarget
     from phalanx.runtime.signals import Stoppable
     from phalanx.runtime.world_process import WorldProcess
-    from phalanx.telemetry.stream import Telemetry
     from phalanx.wire.transport import TransportConfig
+
+T = TypeVar("T")
 
 
 ScenarioArg = Annotated[
@@ -117,9 +117,24 @@ def _clock(value: str) -> Literal["lockstep", "realtime"]:
     return "lockstep" if value == "lockstep" else "realtime"
 
 
+AGENT_SPEC_HELP = (
+    "The whole agent as a spec, a JSON file as --print-spec writes it (- reads it from "
+    "standard input, as phalanx up and the host daemons hand it): no other option is "
+    "given with it but --robot and --fleet, which must be the spec's."
+)
+
+
 def agent(
-    scenario: ScenarioArg,
-    robot: Annotated[str, typer.Option(help="This process's robot id.")],
+    ctx: typer.Context,
+    scenario: Annotated[
+        Path | None,
+        typer.Argument(
+            help="Scenario TOML file (unless --spec).",
+            exists=True,
+            dir_okay=False,
+        ),
+    ] = None,
+    robot: Annotated[str | None, typer.Option(help="This process's robot id.")] = None,
     fleet: FleetOpt = "default",
     clock: ClockOpt = "lockstep",
     listen: ListenOpt = None,
@@ -142,6 +157,8 @@ def agent(
             "--driver-setting bitrate=250000 (repeatable).",
         ),
     ] = None,
+    # The backends' own options: read by their spelling (`_backend_options`), the driver
+    # registry saying whose each one is and which setting it fills.
     arcos_port: Annotated[
         str | None, typer.Option(help="arcos: serial device, e.g. /dev/ttyUSB0.")
     ] = None,
@@ -185,45 +202,65 @@ def agent(
     recording_id: RecordingIdOpt = None,
     telemetry_file: TelemetryFileOpt = None,
     telemetry_url: TelemetryUrlOpt = None,
+    spec: Annotated[Path | None, typer.Option(help=AGENT_SPEC_HELP, allow_dash=True)] = None,
+    print_spec: Annotated[
+        bool, typer.Option("--print-spec", help="Print the agent's spec (JSON) and exit.")
+    ] = False,
 ) -> None:
-    """Run one robot's agent: Zenoh in, behaviour stack, command out."""
-    from phalanx.core.config_files import load_robot
+    """Run one robot's agent: Zenoh in, behaviour stack, command out. Its options (or
+    --spec) make one spec, which the runtime builds the agent from.
+    """
+    from pydantic import ValidationError
 
-    logging.basicConfig(level=logging.INFO, format=f"%(asctime)s {robot} %(levelname)s %(message)s")
-    config = _scenario(scenario, set_)
-    if robot not in {r.id for r in config.robots}:
-        raise typer.BadParameter(f"robot {robot!r} is not in {scenario}")
-    transport = _transport(
-        mode, listen, connect, (tls_ca, tls_cert, tls_key), lowlatency=lowlatency
-    )
-    params = load_robot(config.robot)
-    shortcuts = {
-        "--arcos-port": arcos_port,
-        "--arcos-tcp": arcos_tcp,
-        "--baud": baud,
-        "--can-channel": can_channel,
-        "--can-interface": can_interface,
-    }
-    backend = _backend(driver, params, shortcuts=shortcuts, settings=driver_setting)
+    from phalanx.core.errors import ConfigError, DriverUnavailable
+    from phalanx.runtime.process_spec import driver_choice
+
+    try:
+        if spec is not None:
+            checked = _spec_file(ctx, spec, robot=robot, fleet=fleet)
+        else:
+            checked = _agent_spec(
+                scenario=_given(scenario, "SCENARIO (or --spec)"),
+                overrides=tuple(set_ or ()),
+                robot_id=_given(robot, "--robot"),
+                fleet=fleet,
+                clock=_clock(clock),
+                transport=_transport(
+                    mode, listen, connect, (tls_ca, tls_cert, tls_key), lowlatency=lowlatency
+                ),
+                driver=driver_choice(
+                    driver, options=_backend_options(ctx), settings=_driver_settings(driver_setting)
+                ),
+                epoch_s=epoch, watchdog_s=watchdog, camera=camera, frame_timeout_s=frame_timeout,
+                telemetry=_telemetry_target(recording_id, telemetry_file, telemetry_url),
+            )  # fmt: skip
+    except DriverUnavailable as exc:  # (its backend's library, needed for its settings)
+        typer.echo(str(exc), err=True)
+        raise typer.Exit(2) from exc
+    except (ConfigError, ValidationError) as exc:
+        raise typer.BadParameter(_message(exc)) from exc
+    if print_spec:
+        typer.echo(checked.model_dump_json(indent=2))
+        return
+    _run_agent(checked)
+
+
+def _run_agent(spec: AgentSpec) -> None:
+    """Hand the spec to the runtime's factory and say how the agent ended (its exit code
+    not 0 for a run that did not finish).
+    """
     from phalanx.core.errors import DriverUnavailable
-    from phalanx.runtime.agent_process import AgentProcess, run_agent
+    from phalanx.runtime.agent_process import run_agent
 
-    process = AgentProcess(
-        robot_id=robot, fleet=fleet, transport=transport, clock=_clock(clock), epoch_s=epoch,
-        watchdog_s=watchdog, frame_timeout_s=frame_timeout, camera=camera,
-    )  # fmt: skip
-    stop = _stop_on_signals()
-    with _telemetry(recording_id, telemetry_file, telemetry_url, robot) as telemetry:
-        tel = telemetry if telemetry.sink.kind != "off" else None
-        try:
-            report, code = run_agent(
-                process, config, params, driver=backend, stop=stop, telemetry=tel
-            )
-        except DriverUnavailable as exc:
-            typer.echo(str(exc), err=True)
-            raise typer.Exit(2) from exc
+    rid = spec.robot_id
+    logging.basicConfig(level=logging.INFO, format=f"%(asctime)s {rid} %(levelname)s %(message)s")
+    try:
+        report, code = run_agent(spec, stop=_stop_on_signals())
+    except DriverUnavailable as exc:
+        typer.echo(str(exc), err=True)
+        raise typer.Exit(2) from exc
     typer.echo(
-        f"{robot}: {report.steps} steps, {report.saturations} saturations, "
+        f"{rid}: {report.steps} steps, {report.saturations} saturations, "
         f"{report.dropped_messages} dropped messages"
     )
     if code:  # not a finished run: a supervisor (phalanx host) restarts it to rejoin
@@ -231,90 +268,95 @@ def agent(
 
         why = agent_exit_reason(code)
         if code == EXIT_WORLD_LOST:
-            why = f"no frame from the world for {frame_timeout:g} s"
-        typer.echo(f"{robot}: {why} (exit code {code}, not a finished run)", err=True)
+            why = f"no frame from the world for {spec.frame_timeout_s:g} s"
+        typer.echo(f"{rid}: {why} (exit code {code}, not a finished run)", err=True)
         raise typer.Exit(code)
 
 
-def _telemetry(
-    recording_id: str | None, path: Path | None, url: str | None, robot_id: str | None
-) -> Telemetry:
-    from phalanx.telemetry.sinks import sink_for
-    from phalanx.telemetry.stream import Telemetry
-
-    sink = sink_for(path, url)
-    if sink.kind != "off" and recording_id is None:
-        raise typer.BadParameter("telemetry needs --recording-id (one per fleet run)")
-    # (the world's and agents' control loops come first: the telemetry thread yields)
-    return Telemetry(
-        recording_id=recording_id or "off", sink=sink, robot_id=robot_id, background=True
-    )
+# What `phalanx agent --spec` may be given besides (--robot, --fleet: the spec's own).
+_WITH_SPEC = ("spec", "print_spec", "robot", "fleet")
 
 
-# The documented shortcut options: each fills one field of one backend's settings.
-_SHORTCUTS = {
-    "--arcos-port": ("arcos", "port"),
-    "--arcos-tcp": ("arcos", "tcp"),
-    "--baud": ("arcos", "baud"),
-    "--can-channel": ("canopen", "channel"),
-    "--can-interface": ("canopen", "interface"),
-}
-
-
-def _backend(
-    driver: str,
-    robot: RobotParams,
-    *,
-    shortcuts: Mapping[str, object],
-    settings: list[str] | None,
-) -> Driver | None:
-    """The robot's driver, not yet connected; None for sim (the world moves the robot).
-
-    Its settings are the shortcut options given (`shortcuts`, None: not given) and the
-    `--driver-setting KEY=VALUE` pairs, checked by the backend's own settings model.
+def _spec_file(ctx: typer.Context, path: Path, *, robot: str | None, fleet: str) -> AgentSpec:
+    """The spec read from `path` (`-`: standard input), given no option beside it but a
+    robot and fleet equal to its own.
     """
-    from phalanx.core.errors import ConfigError, DriverUnavailable
-    from phalanx.drivers import backend_names, open_driver
+    from phalanx.runtime.process_spec import read_spec
 
-    names = ("sim", *backend_names())
-    if driver not in names:
-        close = difflib.get_close_matches(driver, names, n=1)
-        hint = f" (did you mean {close[0]!r}?)" if close else ""
-        raise typer.BadParameter(
-            f"expected one of {', '.join(names)}, got {driver!r}{hint}", param_hint="'--driver'"
-        )
-    values: dict[str, object] = {}
-    for option, value in shortcuts.items():
-        if value is None:
-            continue
-        owner, field = _SHORTCUTS[option]
-        if owner != driver:
-            raise typer.BadParameter(f"{option} is an option of --driver {owner}, not {driver}")
-        values[field] = value
-    pairs = _driver_settings(settings or [])
-    if driver == "sim":
-        if pairs:
-            raise typer.BadParameter("--driver-setting: the sim driver has no settings")
-        return None
-    for key, value in pairs.items():
-        if key in values:
-            raise typer.BadParameter(f"{key!r} given twice: by an option and by --driver-setting")
-        values[key] = value
-    try:
-        return open_driver(driver, values, robot=robot)
-    except ConfigError as exc:
-        raise typer.BadParameter(str(exc)) from exc
-    except DriverUnavailable as exc:
-        typer.echo(f"driver {driver!r}: {exc}", err=True)
-        raise typer.Exit(2) from exc
+    given = [name for name in ctx.params if name not in _WITH_SPEC and _given_here(ctx, name)]
+    if given:
+        spelled = ", ".join(_spelling(ctx, name) for name in given)
+        raise typer.BadParameter(f"the spec says everything: leave out {spelled}")
+    checked = read_spec(path)
+    if robot is not None and robot != checked.robot_id:
+        raise typer.BadParameter(f"--robot {robot}: the spec's robot is {checked.robot_id}")
+    if _given_here(ctx, "fleet") and fleet != checked.fleet:
+        raise typer.BadParameter(f"--fleet {fleet}: the spec's fleet is {checked.fleet}")
+    return checked
 
 
-def _driver_settings(pairs: list[str]) -> dict[str, object]:
+def _given_here(ctx: typer.Context, name: str) -> bool:
+    """Whether parameter `name` was given (on the command line or by its variable)."""
+    from typer._click.core import ParameterSource  # (typer is pinned to 0.29)
+
+    return ctx.get_parameter_source(name) not in (None, ParameterSource.DEFAULT)
+
+
+def _spelling(ctx: typer.Context, name: str) -> str:
+    """How parameter `name` is spelled on the command line (`--set`, SCENARIO)."""
+    param = next(p for p in ctx.command.params if p.name == name)
+    return param.opts[0] if param.opts[0].startswith("-") else name.upper()
+
+
+def _agent_spec(**values: object) -> AgentSpec:
+    from phalanx.core.config_files import validate_data
+    from phalanx.runtime.process_spec import AgentSpec
+
+    return validate_data(AgentSpec, values, source="phalanx agent")
+
+
+def _given(value: T | None, name: str) -> T:
+    if value is None:
+        raise typer.BadParameter(f"missing {name}")
+    return value
+
+
+def _backend_options(ctx: typer.Context) -> dict[str, object]:
+    """The driver backends' own options (`--arcos-tcp` ...) by their spelling, as given
+    (None: not given); the driver registry says whose each one is.
+    """
+    from phalanx.drivers import BACKENDS
+
+    declared = {option for entry in BACKENDS.values() for option, _ in entry.options}
+    found: dict[str, object] = {}
+    for param in ctx.command.params:
+        for option in set(param.opts) & declared:
+            found[option] = ctx.params.get(param.name or "")
+    return found
+
+
+def _message(exc: Exception) -> str:
+    """A spec's error in words: pydantic's own (from a model built directly) as
+    `field: message`.
+    """
+    from pydantic import ValidationError
+
+    if not isinstance(exc, ValidationError):
+        return str(exc)
+    said = []
+    for error in exc.errors():
+        text = error["msg"].removeprefix("Value error, ")
+        where = ".".join(map(str, error["loc"]))
+        said.append(f"{where}: {text}" if where else text)
+    return "; ".join(said)
+
+
+def _driver_settings(pairs: list[str] | None) -> dict[str, object]:
     """`KEY=VALUE` pairs, VALUE a TOML value (a bare word is a string, as with --set)."""
     from phalanx.core.config_files import parse_value
 
     values: dict[str, object] = {}
-    for pair in pairs:
+    for pair in pairs or []:
         key, sep, text = (part.strip() for part in pair.partition("="))
         if not sep or not key:
             raise typer.BadParameter(
@@ -337,7 +379,13 @@ def world(
     tls_cert: TlsCertOpt = None,
     tls_key: TlsKeyOpt = None,
     set_: SetOpt = None,
-    out: Annotated[Path | None, typer.Option(help="Results folder.")] = None,
+    out: Annotated[
+        Path | None,
+        typer.Option(
+            help="Results folder, used as given (default: results/<scenario>-<controller>-world, "
+            "or -world-2, -3 ... if that one holds an earlier run)."
+        ),
+    ] = None,
     recording: Annotated[bool, typer.Option(help="Write a Rerun .rrd.")] = True,
     epoch: Annotated[
         float | None, typer.Option(help="Real time: Unix time of tick 0, shared with agents.")
@@ -366,6 +414,7 @@ def world(
     from phalanx.cli.commands.run import _figure_format
     from phalanx.core.config_files import load_robot
     from phalanx.runtime.exits import EXIT_INCOMPLETE
+    from phalanx.runtime.process_spec import telemetry_for
     from phalanx.runtime.world_process import WorldOptions, WorldProcess
 
     fmt = _figure_format(figure_format)
@@ -378,11 +427,11 @@ def world(
         fleet=fleet, transport=transport, clock=_clock(clock), speed=speed, epoch_s=epoch,
         observed=tuple(observe or ()),
     )  # fmt: skip
-    folder = out or Path("results") / f"{config.name}-{config.controller.kind}-up"
-    with _telemetry(recording_id, telemetry_file, telemetry_url, None) as telemetry:
-        tel = telemetry if telemetry.sink.kind != "off" else None
+    folder = out or fresh_folder(results_name(config.name, config.controller.kind, "world"))
+    target = _telemetry_target(recording_id, telemetry_file, telemetry_url)
+    with telemetry_for(target, robot_id=None) as telemetry:
         process = WorldProcess(
-            config, load_robot(config.robot), options, telemetry=tel,
+            config, load_robot(config.robot), options, telemetry=telemetry,
             checkpoint=lambda so_far: write_checkpoint(so_far, folder),
         )  # fmt: skip
         run_log = process.run(_stop_on_signals())
@@ -395,6 +444,19 @@ def world(
     typer.echo(f"results: {folder}")
     if not complete:
         raise typer.Exit(EXIT_INCOMPLETE)
+
+
+def _telemetry_target(
+    recording_id: str | None, path: Path | None, url: str | None
+) -> TelemetryTarget:
+    from pydantic import ValidationError
+
+    from phalanx.runtime.process_spec import TelemetryTarget
+
+    try:
+        return TelemetryTarget(recording_id=recording_id, file=path, url=url)
+    except ValidationError as exc:
+        raise typer.BadParameter(_message(exc)) from exc
 
 
 def _write_world_results(

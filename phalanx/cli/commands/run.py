@@ -8,6 +8,7 @@ from typing import TYPE_CHECKING, Annotated, get_args
 
 import typer
 
+from phalanx.cli.outputs import ForceOpt, fresh_folder, results_name
 from phalanx.cli.style import choice
 from phalanx.core.config import ControllerKind
 
@@ -17,7 +18,10 @@ if TYPE_CHECKING:
 ScenarioArg = Annotated[
     Path, typer.Argument(help="Scenario TOML file.", exists=True, dir_okay=False)
 ]
-OutOpt = Annotated[Path | None, typer.Option("--out", "-o", help="Results folder.")]
+OutOpt = Annotated[
+    Path | None,
+    typer.Option("--out", "-o", help="Results folder (default: results/<scenario>-<controller>)."),
+]
 ControllerOpt = Annotated[
     str | None, typer.Option(help="Override the controller: tracking, switching, icr, ours.")
 ]
@@ -46,6 +50,7 @@ def run(
     progress: Annotated[bool, typer.Option(help="Show a progress bar.")] = True,
     figure_format: FormatOpt = "png",
     dpi: DpiOpt = 150,
+    force: ForceOpt = False,
 ) -> None:
     """Run SCENARIO with every robot in this process; write metrics, figures and a recording."""
     from phalanx.analysis.report import print_summary
@@ -59,8 +64,9 @@ def run(
     if controller is not None:
         overrides.append(f'controller.kind="{_controller(controller)}"')
     config = apply_overrides(config, overrides, source=str(scenario)) if overrides else config
-    folder = out or Path("results") / f"{config.name}-{config.controller.kind}"
+    named = out or results_name(config.name, config.controller.kind)
     log = run_batch(config, progress=_progress_bar() if progress else None)
+    folder = fresh_folder(named, force=force)
     metrics = write_results(
         log, folder, recording=recording, figures=figures, figure_format=fmt, dpi=dpi
     )

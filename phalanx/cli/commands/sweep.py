@@ -10,6 +10,7 @@ from typing import TYPE_CHECKING, Annotated, get_args
 import typer
 
 from phalanx.cli.progress import Reporter, sweep_statement
+from phalanx.cli.tables import MarkdownOpt, markdown_cells, show_table
 
 if TYPE_CHECKING:
     from phalanx.analysis.sweep import Job
@@ -46,8 +47,12 @@ def sweep(
         typer.Option("--set", help="PATH=VALUE: override a field of every run's scenario."),
     ] = None,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress on stderr.")] = False,
+    markdown: MarkdownOpt = False,
 ) -> None:
-    """Run the sweep, print the table (and write it into docs/RESULTS.md with --write)."""
+    """Run the sweep, print the table (and write it into docs/RESULTS.md with --write).
+    Every finished run is appended to the results file, so a sweep run again does only
+    what it lacks.
+    """
     from phalanx.analysis import sweep as sw
     from phalanx.analysis.report import SWEEP_BEGIN, SWEEP_END, with_section
     from phalanx.core.config import ControllerKind
@@ -70,8 +75,11 @@ def sweep(
     rows = sw.run_sweep(todo, out, address=address, workers=workers, progress=reporter)
     reporter.close()
     groups = sw.summaries(rows)
-    typer.echo("\n".join(sw.table(groups)))
-    typer.echo(f"{len(rows)} runs, {sum(r['wall_s'] for r in rows):.0f} s of run time; {out}")
+    from phalanx.analysis.report import terminal_width
+
+    typer.echo("\n".join(sw.terminal_table(groups, width=terminal_width(), markdown=markdown)))
+    wall_s = sum(r["wall_s"] for r in rows)
+    typer.echo(f"{len(rows)} runs, {wall_s:.0f} s of run time; results: {out}")
     if write:
         command = (
             f"phalanx sweep --seeds {seeds} "
@@ -133,6 +141,7 @@ def _assignment(text: str) -> tuple[str, object]:
 def sweep_compare(
     before: Annotated[Path, typer.Argument(help="Results file of the sweep before.")],
     after: Annotated[Path, typer.Argument(help="Results file of the sweep after.")],
+    markdown: MarkdownOpt = False,
 ) -> None:
     """Compare two sweeps of the same fields run by run: per row, the runs each reached
     and the other did not, an exact sign test on them, and each reach's 95 % interval.
@@ -152,7 +161,8 @@ def sweep_compare(
         raise typer.BadParameter(
             "the two files share no run (same family, shape, robots, controller, seed)"
         )
-    typer.echo("\n".join(paired.table(pairs)))
+    headers, rows = markdown_cells(paired.table(pairs))
+    show_table(headers, rows, title=f"{before} -> {after}", markdown=markdown)
 
 
 def register(app: typer.Typer) -> None:

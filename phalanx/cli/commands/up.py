@@ -21,6 +21,7 @@ from phalanx.cli.commands.fleet import (
     _stop_on_signals,
 )
 from phalanx.cli.commands.run import DpiOpt, FormatOpt, _figure_format
+from phalanx.cli.outputs import ForceOpt, fresh_folder, results_name
 from phalanx.cli.style import choice
 
 if TYPE_CHECKING:
@@ -32,7 +33,10 @@ def up(
     fleet: FleetOpt = "default",
     clock: ClockOpt = "lockstep",
     speed: Annotated[float, typer.Option(min=0.01, help="Real-time speed factor.")] = 1.0,
-    out: Annotated[Path | None, typer.Option(help="Results folder.")] = None,
+    out: Annotated[
+        Path | None,
+        typer.Option(help="Results folder (default: results/<scenario>-<controller>-up)."),
+    ] = None,
     restart: Annotated[bool, typer.Option(help="Restart crashed agents (with back-off).")] = False,
     timeout: Annotated[float, typer.Option(help="Give up after this many seconds.")] = 600.0,
     recording: Annotated[bool, typer.Option(help="Write a Rerun .rrd.")] = True,
@@ -77,6 +81,7 @@ def up(
     figure_format: FormatOpt = "png",
     dpi: DpiOpt = 150,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress on stderr.")] = False,
+    force: ForceOpt = False,
 ) -> None:
     """Start the world and one agent process per robot here; supervise; write results,
     marked complete or not (`complete` in metrics.json) with the reason. The processes
@@ -113,9 +118,12 @@ def up(
     logging.basicConfig(level=logging.INFO, format="%(asctime)s up %(levelname)s %(message)s")
     started_unix = time.time()  # (a metrics.json older than this is an earlier run's)
     config = _scenario(scenario, set_)
-    out = out or Path("results") / f"{config.name}-{config.controller.kind}-up"
     if viewer and telemetry_url is None:
         _need_display()
+    if robots == "amrisim" and driver != "sim":
+        raise typer.BadParameter("--robots amrisim drives AMRISim's robots: leave --driver out")
+    out = fresh_folder(out or results_name(config.name, config.controller.kind, "up"), force=force)
+    if viewer and telemetry_url is None:
         telemetry_url = start_viewer()
     options = UpOptions(
         fleet=fleet,
@@ -126,12 +134,10 @@ def up(
         restart=restart,
         timeout_s=timeout,
         recording=recording,
-        overrides=tuple(f"--set={o}" for o in set_ or ()),
+        overrides=tuple(set_ or ()),
         driver=driver,
         pin=pin,
     )
-    if robots == "amrisim" and driver != "sim":
-        raise typer.BadParameter("--robots amrisim drives AMRISim's robots: leave --driver out")
     if (driver == "arcos" or robots == "amrisim") and options.clock == "lockstep":
         typer.echo("robots on drivers keep their own time: running with --clock realtime", err=True)
         options.clock = "realtime"
@@ -166,6 +172,8 @@ def up(
         _results_lost(exc)
     if not metrics.get("complete", False):
         typer.echo(f"results (incomplete: {metrics['incomplete_reason']}): {out}", err=True)
+    else:
+        typer.echo(f"results: {out}")
     raise typer.Exit(exit_code(outcome, metrics))
 
 
