@@ -31,9 +31,9 @@ import phalanx
 # with the tools.
 VERB_GROUPS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("Run and look", ("run", "up", "view")),
-    ("Fleets and robots", ("agent", "world", "emulate", "mocap")),
+    ("Fleets and robots", ("agent", "world", "emulate", "mocap", "ros2")),
     ("Deploy on hosts", ("launch", "status", "stop", "host", "router", "pki")),
-    ("Analyse", ("report", "sweep", "sweep-compare")),
+    ("Analyse", ("report", "sweep", "sweep-compare", "export")),
     ("Tools", ("validate", "fsm")),
 )
 _TOOLS = VERB_GROUPS[-1][0]

@@ -375,6 +375,39 @@ class NoiseConfig(Model):
     sonar_std_m: NonNegativeFloat = 0.0
 
 
+# --- ROS 2 (`[ros2]`, docs/ROS2.md) ------------------------------------------------------
+
+Ros2Topic = Literal["odom", "sonar", "cmd_vel_out", "state", "tf", "tf_static", "markers"]
+ROS2_TOPICS: tuple[Ros2Topic, ...] = (
+    "odom", "sonar", "cmd_vel_out", "state", "tf", "tf_static", "markers",
+)  # fmt: skip
+# A ROS name's part (a namespace's or a node's): letters, digits and '_', not a digit first.
+_ROS_NAME = r"^[A-Za-z_][A-Za-z0-9_]{0,63}$"
+
+
+class Ros2Config(Model):
+    """The fleet as ROS 2 tools see it, through rmw_zenoh's key space (docs/ROS2.md): what
+    `phalanx ros2` publishes and what `phalanx export --mcap` writes.
+
+    `enabled`: the fleet runs a bridge (a deployment's access rules then let it publish
+    its ROS keys); off by default, and nothing of ROS 2 is loaded while it is off.
+    `domain_id`: ROS_DOMAIN_ID. `namespace`: put before every robot's own namespace
+    (`""`: `/r1/odom`; `"lab"`: `/lab/r1/odom`, and the markers on `/lab/markers`).
+    `node`: the bridge's node name. `topics`: which of `ROS2_TOPICS` are published.
+    `distro`: whose message definitions (and so type hashes) the keys carry.
+    `rate_hz`: how often the bridge publishes what came in since its last round.
+    """
+
+    enabled: bool = False
+    domain_id: int = Field(default=0, ge=0, le=232)
+    namespace: str = Field(default="", pattern=r"^([A-Za-z_][A-Za-z0-9_]{0,63})?$")
+    node: str = Field(default="phalanx_bridge", pattern=_ROS_NAME)
+    topics: tuple[Ros2Topic, ...] = Field(default=ROS2_TOPICS, max_length=len(ROS2_TOPICS))
+    distro: Literal["jazzy", "kilted"] = "jazzy"
+    map_frame: str = Field(default="map", pattern=_ROS_NAME)
+    rate_hz: float = Field(default=10.0, gt=0.0, le=MAX_CONTROL_RATE_HZ)
+
+
 class Scenario(Model):
     """A whole run: robots, formation, leader script or waypoints, events, world, controller.
 
@@ -404,6 +437,7 @@ class Scenario(Model):
     settle_s: NonNegativeFloat = 5.0
     initial_settle_s: NonNegativeFloat = 30.0
     leader_timeout_s: PositiveFloat = 0.5
+    ros2: Ros2Config = Ros2Config()
 
     @model_validator(mode="after")
     def _within_resources(self) -> Self:

@@ -16,19 +16,28 @@ Default deny. At host H's router, by certificate common name:
   (the robots and world placed there, their daemon's token, queryables and log lines),
   and forward queries to the daemons (an operator's identity is checked again by the
   daemon itself, on the request's signature: `phalanx.hosts.request_auth`);
+- `viewer.<identity>` of an enabled `[ros2]` (at its host's router: `ros2.host`, else the
+  world's): publish exactly the ROS 2 bridge's data keys, hold its node's and publishers'
+  liveliness tokens, and serve its transient-local topics' caches
+  (`phalanx.ros2.topics.bridge_keys`); the other hosts' routers carry the same from that
+  host;
 - every identity of the fleet may subscribe to and receive anything under the fleet's
-  prefix.
+  prefix, and the bridge's ROS keys.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from phalanx.core.errors import ConfigError
 from phalanx.hosts.deployment import Deployment, LoadedDeployment, SecuritySettings
 from phalanx.hosts.pki import common_name
 from phalanx.wire.security import READS, AccessControl, AclPolicy, AclRule, TlsFiles
+
+if TYPE_CHECKING:
+    from phalanx.ros2.topics import BridgeKeys
 
 ROBOT_TOPICS = ("state", "flags", "cmd", "event", "report", "scan", "truth")
 WORLD_TOPICS = ("sense", "fix", "relative")
@@ -118,7 +127,52 @@ def identities(spec: Deployment) -> list[Identity]:
     security = security_of(spec)
     found += [Identity(common_name("operator", n)) for n in security.operators]
     found += [Identity(common_name("viewer", n)) for n in security.viewers]
+    if spec.ros2 is not None and spec.ros2.enabled:
+        bridge = Identity(common_name("viewer", spec.ros2.identity))
+        found += [] if bridge in found else [bridge]
     return found
+
+
+# --- the ROS 2 bridge -------------------------------------------------------------------
+
+
+def bridge_host(spec: Deployment) -> str | None:
+    """The host whose daemon the deployment's ROS 2 bridge joins (None: it runs none)."""
+    if spec.ros2 is None or not spec.ros2.enabled:
+        return None
+    world = spec.world.host if spec.world is not None else spec.hosts[0].name
+    return spec.ros2.host or world
+
+
+def bridge_keys(spec: Deployment) -> BridgeKeys | None:
+    """The keys the deployment's ROS 2 bridge originates (None: it runs none)."""
+    if spec.ros2 is None or bridge_host(spec) is None:
+        return None
+    from phalanx.ros2.topics import bridge_keys as keys_of
+
+    return keys_of(spec.ros2, [r.id for r in spec.robots])
+
+
+def _bridge_rules(rule_id: str, keys: BridgeKeys) -> list[AclRule]:
+    """What the bridge (or the router of its host) may originate: exactly its keys."""
+    rules = [
+        _allow(f"{rule_id}-put", ("put",), list(keys.puts)),
+        _allow(f"{rule_id}-token", ("liveliness_token",), list(keys.tokens)),
+    ]
+    if keys.caches:
+        cache_kinds = ("put", "liveliness_token", "declare_queryable", "reply")
+        rules.append(_allow(f"{rule_id}-cache", cache_kinds, list(keys.caches)))
+    return rules
+
+
+def _ros_reads(keys: BridgeKeys | None) -> list[AclRule]:
+    """Every identity may subscribe to the bridge's keys and receive them."""
+    if keys is None:
+        return []
+    return [
+        _allow("ros-read", (*READS, "query"), list(keys.all())),
+        _allow("ros-receive", EVERYTHING, list(keys.all()), flow="egress"),
+    ]
 
 
 # --- the access-control list ------------------------------------------------------------
@@ -168,10 +222,12 @@ def host_acl(spec: Deployment, host: str) -> AccessControl:
     spec.host(host)
     prefix = f"phalanx/{spec.fleet}"
     everyone = f"{prefix}/**"
+    ros = bridge_keys(spec)
     common = [
         _allow("read", READS, [everyone]),
         _allow("reply", ("reply",), [everyone]),
         _allow("receive", EVERYTHING, [everyone], flow="egress"),
+        *_ros_reads(ros),
     ]
     policies: list[AclPolicy] = []
     for rid in spec.robots_on(host):
@@ -192,6 +248,9 @@ def host_acl(spec: Deployment, host: str) -> AccessControl:
         names = [common_name("viewer", n) for n in security.viewers]
         rules = [_allow("look", ("query",), status_keys), *common]
         policies.append(_policy("viewers", names, rules))
+    if ros is not None and spec.ros2 is not None and bridge_host(spec) == host:
+        cn = common_name("viewer", spec.ros2.identity)
+        policies.append(_policy("ros2", [cn], [*_bridge_rules("ros2", ros), *common]))
     for other in spec.hosts:
         if other.name != host:
             policies.append(_peer_host_policy(spec, other.name, common))
@@ -216,6 +275,9 @@ def _peer_host_policy(spec: Deployment, other: str, common: list[AclRule]) -> Ac
         _allow(f"{cn}-forward", ("query",), [f"{prefix}/host/*/*", f"{prefix}/status/*"]),
         *common,
     ]
+    ros = bridge_keys(spec)
+    if ros is not None and bridge_host(spec) == other:
+        rules += _bridge_rules(f"{cn}-ros2", ros)
     return _policy(cn, [cn], rules)
 
 

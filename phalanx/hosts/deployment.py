@@ -22,7 +22,7 @@ from typing import Annotated, Any, Literal, Self
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from phalanx.core.config import DriverKind, Scenario
+from phalanx.core.config import DriverKind, Ros2Config, Scenario
 from phalanx.core.config_files import apply_overrides, load_scenario, validate_file
 from phalanx.core.errors import ConfigError
 from phalanx.drivers import validate_settings
@@ -173,6 +173,18 @@ class TelemetrySettings(Model):
     url: str | None = Field(default=None, pattern=r"^rerun(\+https?)?://[^\s]{1,200}$")
 
 
+class Ros2Bridge(Ros2Config):
+    """`[ros2]` of a deployment: the fleet seen from ROS 2 (docs/ROS2.md), the fields of
+    a scenario's `[ros2]` (they stand for the scenario's), and where the bridge runs: it
+    joins `host`'s daemon (default: the world's host) with the certificate
+    `viewer.<identity>`, whose access rules, when `enabled`, let it publish exactly the
+    bridge's ROS keys.
+    """
+
+    host: Name | None = None
+    identity: Name = "ros2"
+
+
 class Deployment(Model):
     """A fleet on one or many hosts: the contents of a deployment file."""
 
@@ -192,6 +204,7 @@ class Deployment(Model):
     restart: RestartPolicy = RestartPolicy()
     telemetry: TelemetrySettings = TelemetrySettings()
     security: SecuritySettings | None = None
+    ros2: Ros2Bridge | None = None
 
     @model_validator(mode="before")
     @classmethod
@@ -223,6 +236,11 @@ class Deployment(Model):
             raise ValueError(
                 f"world: host {self.world.host!r} is not in hosts"
                 + did_you_mean(self.world.host, names)
+            )
+        bridge_host = self.ros2.host if self.ros2 is not None else None
+        if bridge_host is not None and bridge_host not in names:
+            raise ValueError(
+                f"ros2: host {bridge_host!r} is not in hosts" + did_you_mean(bridge_host, names)
             )
         if self.security is not None:
             for name in self.security.may_override:

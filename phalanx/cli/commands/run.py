@@ -14,6 +14,7 @@ from phalanx.core.config import ControllerKind
 
 if TYPE_CHECKING:
     from phalanx.analysis.figures import FigureFormat
+    from phalanx.core.runlog import RunLog
 
 ScenarioArg = Annotated[
     Path, typer.Argument(help="Scenario TOML file.", exists=True, dir_okay=False)
@@ -51,6 +52,9 @@ def run(
     figure_format: FormatOpt = "png",
     dpi: DpiOpt = 150,
     force: ForceOpt = False,
+    mcap: Annotated[
+        bool, typer.Option("--mcap", help="Also write the run as ROS 2 messages in an MCAP bag.")
+    ] = False,
 ) -> None:
     """Run SCENARIO with every robot in this process; write metrics, figures and a recording."""
     from phalanx.analysis.report import print_summary
@@ -71,7 +75,19 @@ def run(
         log, folder, recording=recording, figures=figures, figure_format=fmt, dpi=dpi
     )
     print_summary(metrics)
+    if mcap:
+        _export_mcap(log, folder)
     typer.echo(f"results: {folder}")
+
+
+def _export_mcap(log: RunLog, folder: Path) -> None:
+    """The run as a rosbag2 MCAP bag in `folder`/rosbag2 (docs/ROS2.md)."""
+    from phalanx.ros2.export import BAG_NAME, Extras, RunRecord, write_bag
+
+    bag = folder / BAG_NAME
+    extras = Extras.of(log.scenario, log.robot)
+    counts = write_bag(RunRecord.from_log(log), bag, cfg=log.scenario.ros2, extras=extras)
+    typer.echo(f"mcap: {sum(counts.values())} messages on {len(counts)} topics in {bag}")
 
 
 def _controller(name: str) -> ControllerKind:

@@ -1,0 +1,255 @@
+"""The bridge behind `phalanx ros2`: a fleet's robots as ROS 2 topics over rmw_zenoh.
+
+It joins the fleet's Zenoh fabric and only reads phalanx's keys: every robot's `state`
+(pose, the twist it drives, its behaviour state, who leads), and for the sonar its
+`scan` (a navigating robot's echoes) and `sense` frames (a simulated robot's ring). What
+arrives waits in bounded rings (Zenoh's threads only append bytes); `rate_hz` times a
+second a round takes the newest of each robot and publishes, on the same session, in
+rmw_zenoh's key space (`phalanx.ros2.topics`): odometry, the command, TF, the behaviour
+state (when it changes, and once a second), the sonar ring, and once a second the
+formation's slots (laid out from the formation leader's pose) with the world's
+obstacles. `/tf_static` (every robot's sonar mounts) goes out once, from a cache late
+subscribers query.
+
+Nothing is published on phalanx's keys, and nothing it publishes is read by a robot.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections import Counter
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+from phalanx.core.config import Ros2Config, Scenario
+from phalanx.core.formation import scenario_formation
+from phalanx.core.geometry import Pose2D, Vec2
+from phalanx.core.robot_params import RobotParams
+from phalanx.core.scenarios import resolve_world
+from phalanx.ros2.graph import RosNode, RosPublisher
+from phalanx.ros2.messages import RosMessages, sonar_mounts
+from phalanx.ros2.names import fleet_namespace, robot_frame
+from phalanx.ros2.topics import fleet_topics
+from phalanx.ros2.typestore import to_cdr
+from phalanx.wire.bounds import FleetBounds
+from phalanx.wire.delivery import Polled
+from phalanx.wire.keys import robots_key
+from phalanx.wire.messages import RobotState, ScanMessage, SenseFrame
+from phalanx.wire.transport import FleetSession
+
+SLOW_PERIOD_S = 1.0  # the behaviour state's heartbeat and the markers' period
+RING_PER_ROBOT = 8  # messages of one kind a robot may have waiting between two rounds
+
+
+@dataclass
+class BridgeStats:
+    """What the bridge did: rounds, messages in (by phalanx key) and out (by ROS topic
+    kind), and the CPU time its rounds took.
+    """
+
+    rounds: int = 0
+    heard: Counter[str] = field(default_factory=Counter)
+    sent: Counter[str] = field(default_factory=Counter)
+    cpu_s: float = 0.0
+
+
+@dataclass
+class _Robot:
+    """What the bridge holds of one robot between rounds."""
+
+    state: RobotState | None = None
+    fresh: bool = False
+    said: str = ""  # the behaviour state last published
+    said_at: float = -math.inf  # when (monotonic s)
+    ranges: tuple[float, ...] = ()
+    ranges_stamp_s: float = -1.0
+    ranges_fresh: bool = False
+
+
+class Bridge:
+    """One fleet's robots published to ROS 2 on `session` (which it does not close)."""
+
+    def __init__(
+        self, session: FleetSession, *, fleet: str, scenario: Scenario, robot: RobotParams,
+        cfg: Ros2Config,
+    ) -> None:  # fmt: skip
+        self.cfg, self.scenario, self.robot = cfg, scenario, robot
+        self.stats = BridgeStats()
+        ids = [r.id for r in scenario.robots]
+        self.topics = fleet_topics(cfg, ids)
+        self._robots = {rid: _Robot() for rid in ids}
+        self._msgs = RosMessages(cfg.distro)
+        self._formation = scenario_formation(scenario)
+        self._world = resolve_world(scenario.world)
+        node = RosNode(
+            session, domain_id=cfg.domain_id, namespace=fleet_namespace(cfg), name=cfg.node
+        )
+        self._pubs: dict[tuple[str, str], RosPublisher] = {
+            (t.kind, t.robot_id): node.publisher(t) for t in self.topics
+        }
+        self.node_token = node.token
+        self._markers_at = -math.inf
+        bounds = FleetBounds.of(scenario, robot)
+        ring = RING_PER_ROBOT * len(ids)
+        sub = session.subscribe_polled
+        self._rings: list[tuple[str, Polled[Any], Callable[[str, Any], None]]] = [
+            (
+                "state",
+                sub(robots_key(fleet, "state"), RobotState, ring, context=bounds),
+                self._on_state,
+            )
+        ]
+        if "sonar" in cfg.topics:
+            self._rings += [
+                (
+                    "scan",
+                    sub(robots_key(fleet, "scan"), ScanMessage, ring, context=bounds),
+                    self._on_scan,
+                ),
+                (
+                    "sense",
+                    sub(robots_key(fleet, "sense"), SenseFrame, ring, context=bounds),
+                    self._on_sense,
+                ),
+            ]
+
+    def publishers(self) -> list[RosPublisher]:
+        """Every ROS publisher of the bridge."""
+        return list(self._pubs.values())
+
+    def _send(self, kind: str, robot_id: str, message: Any) -> None:
+        publisher = self._pubs.get((kind, robot_id))
+        if publisher is not None:
+            publisher.put(to_cdr(message, publisher.topic.ros_type, self.cfg.distro))
+            self.stats.sent[kind] += 1
+
+    def _wanted(self, kind: str, robot_id: str = "") -> bool:
+        return (kind, robot_id) in self._pubs
+
+    def publish_static(self, t_s: float = 0.0) -> None:
+        """Every robot's sonar mounts on `/tf_static` (stamped `t_s`)."""
+        if self._wanted("tf_static"):
+            links = sonar_mounts(self._robots, self.robot.sonar)
+            self._send("tf_static", "", self._msgs.transforms(t_s, links))
+
+    # --- what arrives ---------------------------------------------------------------------
+
+    def _take(self) -> None:
+        for name, ring, handler in self._rings:
+            self.stats.heard[name] += ring.drain(handler)
+
+    def _on_state(self, _key: str, state: RobotState) -> None:
+        held = self._robots[state.robot_id]
+        if held.state is None or state.stamp_s >= held.state.stamp_s:
+            held.state, held.fresh = state, True
+
+    def _ring(self, robot_id: str, stamp_s: float, ranges: tuple[float, ...]) -> None:
+        held = self._robots[robot_id]
+        if stamp_s >= held.ranges_stamp_s:
+            held.ranges, held.ranges_stamp_s, held.ranges_fresh = ranges, stamp_s, True
+
+    def _on_scan(self, _key: str, scan: ScanMessage) -> None:
+        ranges = tuple(
+            r if echo else math.inf for r, echo in zip(scan.ranges_m, scan.echo, strict=True)
+        )
+        self._ring(scan.robot_id, scan.stamp_s, ranges)
+
+    def _on_sense(self, _key: str, frame: SenseFrame) -> None:
+        if frame.sonar_ranges_m:
+            self._ring(frame.robot_id, frame.t_s, frame.sonar_ranges_m)
+
+    # --- what goes out --------------------------------------------------------------------
+
+    def round(self) -> int:
+        """Take what arrived and publish it; how many ROS messages went out."""
+        start_cpu = time.process_time()
+        before = sum(self.stats.sent.values())
+        self._take()
+        now = time.monotonic()
+        links = [self._robot_round(rid, held, now) for rid, held in self._robots.items()]
+        fresh = [link for link in links if link is not None]
+        if fresh and self._wanted("tf"):
+            t_s = max(s for s, _ in fresh)
+            self._send("tf", "", self._msgs.transforms(t_s, [link for _, link in fresh]))
+        if now - self._markers_at >= SLOW_PERIOD_S:
+            self._publish_markers(now)
+        self.stats.rounds += 1
+        self.stats.cpu_s += time.process_time() - start_cpu
+        return sum(self.stats.sent.values()) - before
+
+    def _robot_round(
+        self, rid: str, held: _Robot, now: float
+    ) -> tuple[float, tuple[str, str, Pose2D]] | None:
+        """Publish robot `rid`'s news; its TF link (stamp, link) if it has a new state."""
+        if held.ranges_fresh and self._wanted("sonar", rid):
+            held.ranges_fresh = False
+            cloud = self._msgs.sonar_cloud(
+                held.ranges_stamp_s, robot_frame(rid), self.robot.sonar, held.ranges
+            )
+            self._send("sonar", rid, cloud)
+        state = held.state
+        if state is None:
+            return None
+        if state.fsm_state != held.said or now - held.said_at >= SLOW_PERIOD_S:
+            if self._wanted("state", rid):
+                self._send("state", rid, self._msgs.text(state.fsm_state))
+            held.said, held.said_at = state.fsm_state, now
+        if not held.fresh:
+            return None
+        held.fresh = False
+        frame = self.cfg.map_frame
+        if self._wanted("odom", rid):
+            odom = self._msgs.odometry(
+                state.stamp_s, frame_id=frame, child_frame_id=robot_frame(rid), pose=state.pose,
+                twist=state.twist, cov=state.cov,
+            )  # fmt: skip
+            self._send("odom", rid, odom)
+        if self._wanted("cmd_vel_out", rid):
+            self._send("cmd_vel_out", rid, self._msgs.twist(state.twist))
+        return state.stamp_s, (frame, robot_frame(rid), state.pose)
+
+    def _publish_markers(self, now: float) -> None:
+        states = [h.state for h in self._robots.values() if h.state is not None]
+        if not self._wanted("markers") or not states:
+            return
+        self._markers_at = now
+        newest = max(states, key=lambda s: s.stamp_s)
+        leader_id = newest.formation_leader_id or self._formation.root
+        leader = self._robots.get(leader_id)
+        if leader is None or leader.state is None:
+            return
+        slots = slot_positions(self._formation.positions, leader_id, leader.state.pose)
+        markers = self._msgs.markers(
+            newest.stamp_s, self.cfg.map_frame, slots=slots, radius_m=self.robot.radius_m,
+            world=self._world,
+        )  # fmt: skip
+        self._send("markers", "", markers)
+
+    def run(self, stop: Any, *, duration_s: float = math.inf) -> None:
+        """Publish `/tf_static`, then a round every 1/`rate_hz` s until `stop` is set (a
+        `threading.Event` or `phalanx.runtime.signals.SignalStop`) or `duration_s` passes.
+        """
+        self.publish_static()
+        period_s = 1.0 / self.cfg.rate_hz
+        ends = time.monotonic() + duration_s
+        next_at = time.monotonic()
+        while not stop.is_set() and time.monotonic() < ends:
+            self.round()
+            next_at = max(next_at + period_s, time.monotonic())
+            stop.wait(min(next_at, ends) - time.monotonic())
+
+
+def slot_positions(
+    positions: Any, leader_id: str, leader_pose: Pose2D
+) -> list[tuple[float, float]]:
+    """Every slot of the formation (`positions`: robot -> Vec2 in the formation frame),
+    in the world, laid out from the formation leader at `leader_pose`.
+    """
+    origin: Vec2 = positions[leader_id]
+    out = []
+    for position in positions.values():
+        world = leader_pose.to_world(position - origin)
+        out.append((world.x_m, world.y_m))
+    return out
