@@ -436,7 +436,7 @@ def results_markdown(
     header = [
         "# Results: the paper's section 4 scenario, every formation and controller",
         "",
-        "Reproduce with `phalanx report` (runs the matrix in two worker processes and "
+        "Reproduce with `phalanx report --docs docs` (runs the matrix in two worker processes and "
         "rewrites this file and `docs/figures/`). Each run: 3 P3DX robots, 200 s, "
         "control at 10 Hz, the leader's state 100 ms old when a follower uses it, the "
         "paper's bounds |v| <= 0.3 m/s and |omega| <= 40 deg/s, followers starting "

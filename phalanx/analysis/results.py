@@ -44,7 +44,7 @@ from phalanx.analysis.metrics import error_series, is_follower, run_metrics
 from phalanx.core.errors import PhalanxError
 from phalanx.core.files import atomic_write
 from phalanx.core.limits import KinematicLimits
-from phalanx.core.runlog import RunLog
+from phalanx.core.runlog import FloatArray, RobotTrace, RunLog
 from phalanx.core.scenarios import resolve_world
 
 
@@ -204,6 +204,26 @@ def write_traces(log: RunLog, path: Path) -> None:
             arrays[f"{rid}/{name}"] = getattr(trace, name)
         arrays[f"{rid}/state"] = np.array(trace.states, dtype=np.str_)
     atomic_write(path, lambda out: np.savez_compressed(out, **arrays))
+
+
+def read_run_traces(path: Path) -> tuple[FloatArray, dict[str, RobotTrace]]:
+    """A `traces.npz` back as the run's step times (s) and every robot's trace (the
+    fields `write_traces` keeps; the rest empty). KeyError or ValueError if it is not a
+    run's.
+    """
+    fields = read_traces(path)
+    t_s = np.asarray(fields.pop("")["t_s"], dtype=float)
+    traces = {}
+    for rid, arrays in fields.items():
+        trace = RobotTrace.empty(t_s.size)
+        for name in TRACE_FIELDS:
+            column = np.asarray(arrays[name], dtype=float)
+            if column.shape != t_s.shape:
+                raise ValueError(f"{rid}/{name}: {column.size} rows for {t_s.size} steps")
+            setattr(trace, name, column)
+        trace.states = [str(s) for s in arrays["state"]]
+        traces[rid] = trace
+    return t_s, traces
 
 
 def read_traces(path: Path) -> dict[str, dict[str, Any]]:

@@ -22,7 +22,7 @@ import math
 import os
 import shutil
 import tempfile
-from collections.abc import Iterable, Iterator, Mapping
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -33,9 +33,9 @@ import numpy.typing as npt
 from phalanx.core.config import Ros2Config, Ros2Topic, Scenario, WorldConfig
 from phalanx.core.errors import ConfigError
 from phalanx.core.formation import Formation, scenario_formation
-from phalanx.core.geometry import Pose2D, Twist2D
+from phalanx.core.geometry import Twist2D
 from phalanx.core.robot_params import RobotParams
-from phalanx.core.runlog import RunLog
+from phalanx.core.runlog import RobotTrace, RunLog
 from phalanx.core.scenarios import resolve_world
 from phalanx.ros2.bridge import slot_positions
 from phalanx.ros2.messages import RosMessages, sonar_mounts
@@ -54,55 +54,21 @@ class ExportError(ConfigError):
 
 
 @dataclass(frozen=True)
-class RobotRecord:
-    """One robot's run, a row per control step (SI units)."""
-
-    x_m: FloatArray
-    y_m: FloatArray
-    theta_rad: FloatArray
-    v_mps: FloatArray
-    omega_radps: FloatArray
-    cmd_v_mps: FloatArray
-    cmd_omega_radps: FloatArray
-    states: tuple[str, ...]
-
-    @classmethod
-    def of(cls, fields: Any, states: Iterable[str]) -> RobotRecord:
-        """From anything with its arrays as items or attributes (`fields[name]` first)."""
-
-        def array(name: str) -> FloatArray:
-            value = fields[name] if isinstance(fields, Mapping) else getattr(fields, name)
-            return np.asarray(value, dtype=float)
-
-        return cls(
-            x_m=array("x_m"), y_m=array("y_m"), theta_rad=array("theta_rad"),
-            v_mps=array("v_mps"), omega_radps=array("omega_radps"),
-            cmd_v_mps=array("cmd_v_mps"), cmd_omega_radps=array("cmd_omega_radps"),
-            states=tuple(str(s) for s in states),
-        )  # fmt: skip
-
-    def pose(self, k: int) -> Pose2D:
-        """The pose at step `k`."""
-        return Pose2D(float(self.x_m[k]), float(self.y_m[k]), float(self.theta_rad[k]))
-
-
-@dataclass(frozen=True)
-class RunRecord:
-    """What a bag is written from: the steps' times (s) and every robot's record."""
+class RunTraces:
+    """What a bag is written from: the steps' times (s) and every robot's trace."""
 
     t_s: FloatArray
-    robots: Mapping[str, RobotRecord]
+    robots: Mapping[str, RobotTrace]
 
     @classmethod
-    def from_log(cls, log: RunLog) -> RunRecord:
+    def from_log(cls, log: RunLog) -> RunTraces:
         """A run still in memory (`phalanx run --mcap`)."""
-        robots = {rid: RobotRecord.of(tr, tr.states) for rid, tr in log.traces.items()}
-        return cls(np.asarray(log.t_s, dtype=float), robots)
+        return cls(np.asarray(log.t_s, dtype=float), dict(log.traces))
 
     @classmethod
-    def from_folder(cls, folder: Path) -> RunRecord:
+    def from_folder(cls, folder: Path) -> RunTraces:
         """A results folder's `traces.npz` (ExportError if it has none)."""
-        from phalanx.analysis.results import read_traces
+        from phalanx.analysis.results import read_run_traces
 
         path = folder / "traces.npz"
         if not path.is_file():
@@ -111,9 +77,7 @@ class RunRecord:
                 "--no-figures, or export with `phalanx run --mcap`)"
             )
         try:
-            traces = read_traces(path)
-            robots = {rid: RobotRecord.of(f, f["state"]) for rid, f in traces.items() if rid}
-            return cls(np.asarray(traces[""]["t_s"], dtype=float), robots)
+            return cls(*read_run_traces(path))
         except (KeyError, ValueError, OSError) as exc:
             raise ExportError(f"{path}: not a run's traces ({exc})") from exc
 
@@ -142,7 +106,7 @@ class Extras:
 
 
 def write_bag(
-    record: RunRecord, out: Path, *, cfg: Ros2Config, extras: Extras | None = None
+    record: RunTraces, out: Path, *, cfg: Ros2Config, extras: Extras | None = None
 ) -> dict[str, int]:
     """Write `record` as a rosbag2 MCAP bag in folder `out` (replaced if there); how
     many messages each topic got.
@@ -206,7 +170,7 @@ def _bag_qos(qos: Qos) -> Any:
 
 
 def _messages(
-    record: RunRecord, cfg: Ros2Config, extras: Extras | None, topics: list[RosTopic]
+    record: RunTraces, cfg: Ros2Config, extras: Extras | None, topics: list[RosTopic]
 ) -> Iterator[tuple[RosTopic, float, Any]]:
     """Every message of the bag in time order: (topic, stamp in s, message)."""
     msgs = RosMessages(cfg.distro)
@@ -227,7 +191,7 @@ def _messages(
 
 
 def _step(
-    record: RunRecord, cfg: Ros2Config, msgs: RosMessages, by_kind: Topics, k: int, t: float
+    record: RunTraces, cfg: Ros2Config, msgs: RosMessages, by_kind: Topics, k: int, t: float
 ) -> Iterator[tuple[RosTopic, float, Any]]:
     links = []
     for rid, robot in record.robots.items():
@@ -246,7 +210,7 @@ def _step(
 
 
 def _markers(
-    msgs: RosMessages, record: RunRecord, cfg: Ros2Config, extras: Extras, k: int, t: float
+    msgs: RosMessages, record: RunTraces, cfg: Ros2Config, extras: Extras, k: int, t: float
 ) -> Any:
     root = extras.formation.root
     slots = slot_positions(extras.formation.positions, root, record.robots[root].pose(k))

@@ -33,11 +33,11 @@ def export(
     """Write RESULTS as ROS 2 messages in an MCAP bag (ros2 bag, Foxglove, PlotJuggler)."""
     from phalanx.core.config import Ros2Config
     from phalanx.core.config_files import load_robot, load_scenario
-    from phalanx.ros2.export import BAG_NAME, Extras, RunRecord, scenario_of_folder, write_bag
+    from phalanx.ros2.export import BAG_NAME, Extras, RunTraces, scenario_of_folder, write_bag
 
     if not mcap:
         raise typer.BadParameter("choose a format: --mcap", param_hint="'--mcap'")
-    record = RunRecord.from_folder(results)
+    record = RunTraces.from_folder(results)
     extras, cfg = None, Ros2Config()
     if scenario is not None:
         config = load_scenario(scenario)

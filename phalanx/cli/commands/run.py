@@ -10,10 +10,10 @@ import typer
 
 from phalanx.cli.outputs import ForceOpt, fresh_folder, results_name
 from phalanx.cli.style import choice
-from phalanx.core.config import ControllerKind
 
 if TYPE_CHECKING:
     from phalanx.analysis.figures import FigureFormat
+    from phalanx.core.config import ControllerKind
     from phalanx.core.runlog import RunLog
 
 ScenarioArg = Annotated[
@@ -82,15 +82,17 @@ def run(
 
 def _export_mcap(log: RunLog, folder: Path) -> None:
     """The run as a rosbag2 MCAP bag in `folder`/rosbag2 (docs/ROS2.md)."""
-    from phalanx.ros2.export import BAG_NAME, Extras, RunRecord, write_bag
+    from phalanx.ros2.export import BAG_NAME, Extras, RunTraces, write_bag
 
     bag = folder / BAG_NAME
     extras = Extras.of(log.scenario, log.robot)
-    counts = write_bag(RunRecord.from_log(log), bag, cfg=log.scenario.ros2, extras=extras)
+    counts = write_bag(RunTraces.from_log(log), bag, cfg=log.scenario.ros2, extras=extras)
     typer.echo(f"mcap: {sum(counts.values())} messages on {len(counts)} topics in {bag}")
 
 
 def _controller(name: str) -> ControllerKind:
+    from phalanx.core.config import ControllerKind
+
     valid: tuple[ControllerKind, ...] = get_args(ControllerKind)
     choice(name, valid, option="--controller")
     return next(kind for kind in valid if kind == name)
