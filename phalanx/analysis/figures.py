@@ -22,7 +22,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Literal, cast, get_args
+from typing import Any, cast
 
 import matplotlib as mpl
 
@@ -36,6 +36,15 @@ from matplotlib.lines import Line2D
 from matplotlib.patches import Circle, Patch, Polygon
 
 from phalanx.analysis.estimation import NEES_BAND, nees, pose_errors
+from phalanx.analysis.figure_files import DEFAULT_DPI as DEFAULT_DPI
+from phalanx.analysis.figure_files import DPI_MAX as DPI_MAX
+from phalanx.analysis.figure_files import DPI_MIN as DPI_MIN
+from phalanx.analysis.figure_files import ESTIMATION_FIGURE as ESTIMATION_FIGURE
+from phalanx.analysis.figure_files import FIGURE_FILES
+from phalanx.analysis.figure_files import FORMATS as FORMATS
+from phalanx.analysis.figure_files import PAPER_FIGURE as PAPER_FIGURE
+from phalanx.analysis.figure_files import FigureFormat as FigureFormat
+from phalanx.analysis.figure_files import figure_name as figure_name
 from phalanx.analysis.metrics import (
     error_series,
     is_follower,
@@ -57,11 +66,6 @@ from phalanx.core.runlog import RunLog
 from phalanx.core.scenarios import resolve_world
 from phalanx.core.states import State
 
-FigureFormat = Literal["png", "pdf", "svg"]
-FORMATS: tuple[FigureFormat, ...] = get_args(FigureFormat)
-DEFAULT_DPI = 150
-# Pixel density bounds: below is unreadable, above costs seconds and tens of megabytes.
-DPI_MIN, DPI_MAX = 50, 600
 # A style per robot besides its colour (no plain dotted: that marks desired values).
 LINESTYLES: tuple[str | tuple[int, tuple[int, ...]], ...] = (
     "-",
@@ -449,14 +453,10 @@ def deadend_escape(log: RunLog) -> Figure:
     return fig
 
 
-FIGURES = {
-    "fig4b_states.png": states,
-    "fig5_trajectories.png": trajectories,
-    "fig6_separations.png": separations,
-    "fig7_velocities.png": velocities,
-}
-PAPER_FIGURE = "paper.pdf"
-ESTIMATION_FIGURE = "estimation.png"
+# The paper's four by file name (their names, in this order, are `FIGURE_FILES`).
+FIGURES: dict[str, Callable[[RunLog], Figure]] = dict(
+    zip(FIGURE_FILES, (states, trajectories, separations, velocities), strict=True)
+)
 # The panels of the paper figure, in the paper's order: what each draws and its title.
 PAPER_PANELS: tuple[tuple[str, Callable[[FigureBase, RunLog, Titled], None]], ...] = (
     ("(a) fig. 4b", draw_states),
@@ -564,11 +564,6 @@ def estimation(log: RunLog) -> Figure:
         ]
         _legend_outside(fig, [*handles, *keys])
     return fig
-
-
-def figure_name(name: str, fmt: FigureFormat) -> str:
-    """The file name of figure `name` (a key of FIGURES) in format `fmt`."""
-    return str(Path(name).with_suffix(f".{fmt}"))
 
 
 def write_figures(

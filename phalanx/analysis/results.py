@@ -30,15 +30,15 @@ from typing import Any
 
 import numpy as np
 
-from phalanx.analysis.figures import (
+# The figures' names only: the drawing (matplotlib) is imported when figures are drawn.
+from phalanx.analysis.figure_files import (
     DEFAULT_DPI,
     ESTIMATION_FIGURE,
-    FIGURES,
+    FIGURE_FILES,
     FORMATS,
     PAPER_FIGURE,
     FigureFormat,
     figure_name,
-    write_figures,
 )
 from phalanx.analysis.metrics import error_series, is_follower, run_metrics
 from phalanx.core.errors import PhalanxError
@@ -63,7 +63,7 @@ RESULT_FILES = (
     "metrics.json",
     "traces.npz",
     "run.rrd",
-    *(figure_name(name, fmt) for fmt in FORMATS for name in (*FIGURES, ESTIMATION_FIGURE)),
+    *(figure_name(name, fmt) for fmt in FORMATS for name in (*FIGURE_FILES, ESTIMATION_FIGURE)),
     PAPER_FIGURE,
 )
 
@@ -249,6 +249,8 @@ def write_figures_atomically(
     also as one PDF), drawn into a temporary folder beside `folder`'s and moved in one by
     one: a figure is there whole or not at all.
     """
+    from phalanx.analysis.figures import write_figures
+
     drafts = Path(tempfile.mkdtemp(dir=folder, prefix=".figures."))
     try:
         for path in write_figures(log, drafts, fmt=fmt, dpi=dpi, paper=paper):

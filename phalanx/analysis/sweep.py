@@ -188,8 +188,6 @@ def run_sweep(
     on a local cluster of `workers` processes, or on the cluster at `address`; every
     job's row, in the order of `todo`.
     """
-    from dask.distributed import Client, LocalCluster, as_completed
-
     have = done_rows(results)
     pending = [j for j in todo if j.key not in have]
     total, finished = len(todo), len(todo) - len(pending)
@@ -197,6 +195,8 @@ def run_sweep(
         progress(finished, total)
     results.parent.mkdir(parents=True, exist_ok=True)
     if pending:
+        from dask.distributed import Client, LocalCluster, as_completed
+
         cluster = None
         if address is None:
             cluster = LocalCluster(  # type: ignore[no-untyped-call]

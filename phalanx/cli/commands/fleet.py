@@ -15,7 +15,7 @@ from phalanx.cli.commands.run import DpiOpt, FormatOpt
 from phalanx.cli.outputs import fresh_folder, results_name
 
 if TYPE_CHECKING:
-    from phalanx.analysis.figures import FigureFormat
+    from phalanx.analysis.figure_files import FigureFormat
     from phalanx.analysis.results import ResultsNotWritten
     from phalanx.core.config import Scenario
     from phalanx.core.runlog import RunLog

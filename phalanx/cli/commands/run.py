@@ -8,11 +8,12 @@ from typing import TYPE_CHECKING, Annotated, get_args
 
 import typer
 
+from phalanx.analysis.figure_files import DPI_MAX, DPI_MIN
 from phalanx.cli.outputs import ForceOpt, fresh_folder, results_name
 from phalanx.cli.style import choice
 
 if TYPE_CHECKING:
-    from phalanx.analysis.figures import FigureFormat
+    from phalanx.analysis.figure_files import FigureFormat
     from phalanx.core.config import ControllerKind
     from phalanx.core.runlog import RunLog
 
@@ -26,14 +27,15 @@ OutOpt = Annotated[
 ControllerOpt = Annotated[
     str | None, typer.Option(help="Override the controller: tracking, switching, icr, ours.")
 ]
-# The bounds of --dpi are `phalanx.analysis.figures`' DPI_MIN and DPI_MAX (not imported
-# here: that would load matplotlib for every command).
 FormatOpt = Annotated[
     str,
     typer.Option("--format", help="The figures' file format: png, pdf or svg (vector)."),
 ]
 DpiOpt = Annotated[
-    int, typer.Option(min=50, max=600, help="The PNG figures' pixels per inch (50-600).")
+    int,
+    typer.Option(
+        min=DPI_MIN, max=DPI_MAX, help=f"The PNG figures' pixels per inch ({DPI_MIN}-{DPI_MAX})."
+    ),
 ]
 SetOpt = Annotated[
     list[str] | None,
@@ -99,7 +101,7 @@ def _controller(name: str) -> ControllerKind:
 
 
 def _figure_format(name: str) -> FigureFormat:
-    from phalanx.analysis.figures import FORMATS
+    from phalanx.analysis.figure_files import FORMATS
 
     choice(name, FORMATS, option="--format")
     return next(fmt for fmt in FORMATS if fmt == name)
