@@ -14,7 +14,8 @@ A step, in order:
    sensing (which places the sonar echoes with the pose); later the memories move on
    (waypoints, blocked timers, the path crossed, the active behaviour's progress);
 4. **decide**: the guards' context is built once, and the behaviour state machine
-   (`phalanx.agents.behaviours.stack`) takes at most one transition;
+   (`phalanx.agents.behaviours.stack`) takes at most one transition (an operator's
+   twist in the observation, while young enough, puts a leader in TELEOP);
 5. **command**: the active state's behaviour turns the step into a twist;
 6. **limit**: the limiter saturates and rate-limits it.
 
@@ -42,7 +43,14 @@ from phalanx.agents.inputs import FleetView, Observation, now
 from phalanx.agents.leadership import Flags, Leadership, LeadershipChange, group_deadlock
 from phalanx.agents.masking import MaskInputs, SlotMasks
 from phalanx.agents.parts import Parts
-from phalanx.agents.sensing import STANDSTILL_MPS, ContactGuard, Sensing, Stance, way_clear
+from phalanx.agents.sensing import (
+    STANDSTILL_MPS,
+    ContactGuard,
+    Sensing,
+    Stance,
+    clear_towards,
+    way_clear,
+)
 from phalanx.core.config import Scenario
 from phalanx.core.formation import Formation
 from phalanx.core.geometry import ZERO_TWIST, Pose2D, Twist2D, wrap_angle
@@ -156,9 +164,13 @@ class Agent:
 
     @property
     def direction(self) -> int:
-        """+1 forwards, -1 backwards (the deadlock reverse under way, or following one)."""
+        """+1 forwards, -1 backwards (the deadlock reverse under way, or following one, or
+        an operator driving it backwards).
+        """
         if self.fsm.state == State.DEADLOCK_REVERSE:
             return 1 if self.parts.reverse.pausing else -1
+        if self.fsm.state == State.TELEOP:
+            return -1 if self.limiter.last.v_mps < -STANDSTILL_MPS else 1
         return -1 if self.fsm.state == State.FORMATION_REVERSE else 1
 
     @property
@@ -196,7 +208,7 @@ class Agent:
         self.view = view
         stance = Stance(self.fsm.state, self.direction, self.limiter.last)
         sensing = self._sense(observation, view, stance, t_s)
-        self._estimate(observation.odometry, sensing, view, t_s)  # the memories move on
+        self._estimate(observation, sensing, view, t_s)  # the memories move on
         event, moment = self._decide(observation, sensing, view, stance, t_s)
         wanted = self._command(moment, observation, peers)
         command = self.limiter.apply(
@@ -226,11 +238,12 @@ class Agent:
         """At most one transition, on a context built once; the step as the behaviour
         of the state the machine is now in sees it.
         """
-        ctx = self._context(observation, sensing, view, stance, t_s)
+        operator = _operator_twist(observation, t_s)
+        ctx = self._context(observation, sensing, view, stance, t_s, operator)
         event = self.fsm.update(ctx, t_s)
         moment = Moment(
             t_s, self.fsm.state, observation.odometry, sensing, view, ctx.others_busy,
-            self._last_forward,
+            self._last_forward, operator,
         )  # fmt: skip
         if event is not None:
             self._enter(event, moment)
@@ -351,13 +364,18 @@ class Agent:
             observation, odometry=Odometry(estimate.pose, odometry.twist, odometry.stamp_s)
         )
 
-    def _estimate(self, odometry: Odometry, sensing: Sensing, view: FleetView, t_s: float) -> None:
-        """Move the memories on: the leader's waypoints, how long each way has been
-        blocked, who stopped for an obstacle, the path crossed, the active behaviour's
-        progress (ground backed over, angle turned).
+    def _estimate(
+        self, observation: Observation, sensing: Sensing, view: FleetView, t_s: float
+    ) -> None:
+        """Move the memories on: the leader's waypoints (an operator's goal in place of
+        those not reached yet), how long each way has been blocked, who stopped for an
+        obstacle, the path crossed, the active behaviour's progress (ground backed over,
+        angle turned).
         """
-        parts = self.parts
+        parts, odometry, operator = self.parts, observation.odometry, observation.operator
         if view.is_leader:
+            if operator is not None and operator.goal is not None:
+                parts.take_goal(operator.goal)
             parts.advance_waypoints(odometry.pose)
             if self.fsm.state == State.NAVIGATE:
                 parts.weigh_shapes(odometry.pose, t_s)
@@ -380,8 +398,11 @@ class Agent:
         view: FleetView,
         stance: Stance,
         t_s: float,
+        operator: Twist2D | None = None,
     ) -> StackContext:
-        """What the guards read this step (built once, never written afterwards)."""
+        """What the guards read this step (built once, never written afterwards);
+        `operator`: the twist an operator drives the robot with (None: none does).
+        """
         parts, live, lead = self.parts, view.live, view.lead
         odometry = observation.odometry
         head = live.get(view.leader_id)
@@ -396,7 +417,7 @@ class Agent:
                 widened=parts.plan != "scripted",
                 queued=parts.shape.queued,
             )
-        waypoints = self.scenario.navigation.waypoints
+        waypoints = parts.route.waypoints
         in_estop = stance.state == State.EMERGENCY_STOP
         return StackContext(
             is_leader=view.is_leader,
@@ -435,6 +456,10 @@ class Agent:
             confirm_s=self.scenario.navigation.confirm_s,
             threshold_mps=self.scenario.controller.reverse_threshold_mps,
             others_busy=len(live.busy) > (self.robot_id in live.busy),
+            operator=operator is not None,
+            operator_clear=operator is None
+            or operator.v_mps == 0.0
+            or clear_towards(sensing, parts.shape, backwards=operator.v_mps < 0.0),
             **self._robot_condition(observation.status, stance.state),
         )
 
@@ -538,6 +563,14 @@ class Agent:
             self.parts.planner.scan,
             self.parts.keeper.scenario_fits,
         )
+
+
+def _operator_twist(observation: Observation, t_s: float) -> Twist2D | None:
+    """The twist an operator drives the robot with at `t_s` (None: none young enough)."""
+    operator = observation.operator
+    if operator is None or not operator.drives(t_s):
+        return None
+    return operator.twist
 
 
 def _fresh(

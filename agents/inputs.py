@@ -11,10 +11,34 @@ from phalanx.agents.leadership import LeadershipChange, LiveFlags
 from phalanx.agents.perception import MaskedEchoes, SonarEchoes
 from phalanx.core.fixes import PoseFix, RelativeFix
 from phalanx.core.frozen import quick_init
-from phalanx.core.geometry import Pose2D, Twist2D
+from phalanx.core.geometry import Pose2D, Twist2D, Vec2
 from phalanx.core.peers import PeerState, Scan
 from phalanx.core.rigid_body import predict_leader
 from phalanx.core.robot import Odometry, RobotStatus
+
+# An operator's twist drives the robot until it is this old (s on the fleet clock, from
+# when the robot heard it): commands that stop coming hand the leader back to its plan.
+OPERATOR_TIMEOUT_S = 0.5
+
+
+@quick_init
+@dataclass(frozen=True, slots=True)
+class OperatorInput:
+    """What an operator asks of the robot (`phalanx ros2`: ROS 2's `cmd_vel` and
+    `goal_pose`), as the runtime hands it in at a step: `twist`, the last twist heard
+    (m/s, rad/s, before every limit; None: none yet), heard at `stamp_s` on the fleet
+    clock (it drives a leader while younger than `OPERATOR_TIMEOUT_S`); `goal`, a goal
+    heard since the last step (world frame, m; None: none), which a navigating leader
+    takes in place of the waypoints it has not reached.
+    """
+
+    stamp_s: float
+    twist: Twist2D | None = None
+    goal: Vec2 | None = None
+
+    def drives(self, t_s: float) -> bool:
+        """Whether its twist is young enough at `t_s` to drive by."""
+        return self.twist is not None and t_s - self.stamp_s < OPERATOR_TIMEOUT_S - 1e-9
 
 
 @quick_init
@@ -31,7 +55,8 @@ class Observation:
     runner does both for every robot in one pass, `phalanx.agents.masking`); when None,
     the agent works them out itself. `near`: the robots near enough to this one to matter
     for keeping apart (a large fleet's batch runner sorts them out for all robots at
-    once); when None, every robot heard is checked.
+    once); when None, every robot heard is checked. `operator`: what an operator asks of
+    the robot (None: nothing heard from one).
     """
 
     odometry: Odometry
@@ -42,6 +67,7 @@ class Observation:
     relative: tuple[RelativeFix, ...] = ()
     scans: tuple[Scan, ...] = ()  # the fleet's sonar scans for the shared map (last step's)
     near: frozenset[str] | None = None
+    operator: OperatorInput | None = None
 
     def with_odometry(self, odometry: Odometry) -> Observation:
         """The observation with `odometry` (itself when that is already its own)."""
@@ -56,6 +82,7 @@ class Observation:
             self.relative,
             self.scans,
             self.near,
+            self.operator,
         )
 
     def with_masked(self, masked: MaskedEchoes) -> Observation:
@@ -69,6 +96,7 @@ class Observation:
             self.relative,
             self.scans,
             self.near,
+            self.operator,
         )
 
 

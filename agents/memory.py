@@ -36,6 +36,19 @@ class Progress:
 
 
 @dataclass
+class Route:
+    """The leader's waypoints (world frame, m): the scenario's, or, once an operator gave
+    it a goal, the waypoints reached before it and the goal in place of the rest.
+    """
+
+    waypoints: tuple[tuple[float, float], ...]
+
+    def replace_rest(self, reached: int, goal: tuple[float, float]) -> None:
+        """`goal` in place of every waypoint from index `reached` on."""
+        self.waypoints = (*self.waypoints[:reached], goal)
+
+
+@dataclass
 class BlockedTimers:
     """How long the path each way has been blocked (s): forwards (+1), backwards (-1)."""
 

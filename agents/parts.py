@@ -24,10 +24,11 @@ from phalanx.agents.behaviours.leader import (
     GoToGoal,
     Scripted,
     SteeredParts,
+    Teleop,
     Wander,
 )
 from phalanx.agents.control import make_controller
-from phalanx.agents.memory import BlockedTimers, Progress, StartUp, StopsBefore
+from phalanx.agents.memory import BlockedTimers, Progress, Route, StartUp, StopsBefore
 from phalanx.agents.navigation import (
     Breadcrumbs,
     Course,
@@ -75,6 +76,7 @@ class Parts:
             dt_s=scenario.dt_s,
         )  # fmt: skip
         self.progress = Progress()
+        self.route = Route(nav.waypoints)
         self.blocked = BlockedTimers()
         self.steering = Steering()
         self.course = Course(Breadcrumbs(2.0 * scenario.deadlock.safe_distance_m))
@@ -91,14 +93,15 @@ class Parts:
         self._applied: ShapeKey = NOMINAL_KEY
         self.senses = Senses(
             robot_id, self.settings, sonar=SonarGeometry.from_params(robot), shape=self.shape,
-            limits=limits, planner=self.planner, progress=self.progress, fold=self.keeper.fold,
+            limits=limits, planner=self.planner, progress=self.progress, route=self.route,
+            fold=self.keeper.fold,
         )  # fmt: skip
         self.reverse = DeadlockReverse(
             self.settings, shape=self.shape, course=self.course, progress=self.progress
         )
         self.turn = DeadlockTurn(
             self.settings, shape=self.shape, planner=self.planner, progress=self.progress,
-            course=self.course, blocked=self.blocked,
+            route=self.route, course=self.course, blocked=self.blocked,
         )  # fmt: skip
         self.avoid = Avoid(
             nav, dt_s=scenario.dt_s, shape=self.shape, limits=limits, steering=self.steering
@@ -107,7 +110,10 @@ class Parts:
         # (a leader going to waypoints drives on with its navigation while it reshapes)
         go = None
         if scenario.leader_profile is None and self.plan != "wander":
-            go = GoToGoal(steered, planner=self.planner, progress=self.progress, keeper=self.keeper)
+            go = GoToGoal(
+                steered, planner=self.planner, progress=self.progress, route=self.route,
+                keeper=self.keeper,
+            )  # fmt: skip
         self.reshape = Reshape(self.keeper, self.shape, dt_s=scenario.dt_s, drive=go)
         self.estop = EmergencyStop()
         seed = scenario.seed + formation.robot_ids.index(robot_id)
@@ -142,6 +148,7 @@ class Parts:
             State.ARRIVED: Arrived(self.reshape),
             State.HOLD: StandStill(emergency=True),
             State.EMERGENCY_STOP: self.estop,
+            State.TELEOP: Teleop(self.shape, limits),
         }
         return {state: table.get(state, still) for state in State}
 
@@ -168,7 +175,7 @@ class Parts:
 
     def weigh_shapes(self, pose: Pose2D, t_s: float) -> None:
         """The navigating leader weighs the shapes for the way to its next waypoint."""
-        waypoints = self.settings.nav.waypoints
+        waypoints = self.route.waypoints
         if self.keeper.enabled and self.progress.waypoint < len(waypoints):
             goal = self.course.escape or Vec2(*waypoints[self.progress.waypoint])
             self.keeper.decide(self.planner.map, pose, goal, t_s)
@@ -181,7 +188,7 @@ class Parts:
         """
         if self.progress.deadlocks < self.settings.deadlock.max_retries:
             return True
-        waypoints = self.settings.nav.waypoints
+        waypoints = self.route.waypoints
         if not deadlocked or self.plan != "goto" or self.progress.waypoint >= len(waypoints):
             return False
         goal = Vec2(*waypoints[self.progress.waypoint])
@@ -191,19 +198,32 @@ class Parts:
         """The leader's waypoint bookkeeping: a reached waypoint resets the retries (and
         the escape point a dead end left, once reached or passed by).
         """
-        nav, progress, course = self.settings.nav, self.progress, self.course
+        progress, course, waypoints = self.progress, self.course, self.route.waypoints
         if self.plan != "goto":
             return
-        near_m = nav.goal_tolerance_m
+        near_m = self.settings.nav.goal_tolerance_m
         if course.escape is not None and (pose.position - course.escape).norm() < near_m:
             course.escape = None
         while (
-            progress.waypoint < len(nav.waypoints)
-            and _to(pose, nav.waypoints[progress.waypoint]) < near_m
+            progress.waypoint < len(waypoints) and _to(pose, waypoints[progress.waypoint]) < near_m
         ):
             progress.waypoint += 1
             progress.deadlocks = 0
             course.escape = None
+
+    def take_goal(self, goal: Vec2) -> bool:
+        """An operator's goal, in place of the waypoints not reached yet (a fresh target:
+        no deadlock counted at it yet, no escape point, a route planned anew); taken by
+        a navigating leader only, and only on its map if it has one. Whether it was.
+        """
+        grid = self.planner.map
+        if self.plan != "goto" or (grid is not None and not grid.covers(goal)):
+            return False
+        self.route.replace_rest(self.progress.waypoint, (goal.x_m, goal.y_m))
+        self.progress.deadlocks = 0
+        self.course.escape = None
+        self.planner.forget_carrot()
+        return True
 
 
 def _to(pose: Pose2D, point: tuple[float, float]) -> float:

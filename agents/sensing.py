@@ -19,7 +19,7 @@ from phalanx.agents.masking import (
     SlotMasks,
     mask_readings,
 )
-from phalanx.agents.memory import Progress
+from phalanx.agents.memory import Progress, Route
 from phalanx.agents.navigation import (
     NavSettings,
     RoutePlanner,
@@ -96,6 +96,7 @@ class Senses:
         limits: KinematicLimits,
         planner: RoutePlanner,
         progress: Progress,
+        route: Route,
         fold: Callable[[], bool] = lambda: False,
     ) -> None:
         self.robot_id = robot_id
@@ -106,6 +107,7 @@ class Senses:
         self.dt_s = settings.dt_s
         self.sonar, self.shape, self.limits = sonar, shape, limits
         self.planner, self.progress, self.plan = planner, progress, settings.plan
+        self.route = route
         self.stall = StallWatch(self.nav.stall_s)
         self._boxed_since_s: float | None = None  # since when the route has led back
         # Asked before a dead end is declared: fold the group into a narrower shape
@@ -211,7 +213,7 @@ class Senses:
         """Whether the way to the goal goes on ahead of this robot (so it could lead):
         a follower asks its map only while the leader is blocked and might hand over.
         """
-        waypoints, waypoint = self.nav.waypoints, self.progress.waypoint
+        waypoints, waypoint = self.route.waypoints, self.progress.waypoint
         if self.plan != "goto" or self.planner.map is None or waypoint >= len(waypoints):
             return True
         if not view.is_leader:
@@ -270,6 +272,13 @@ def way_clear(sensing: Sensing, shape: Shape, view: FleetView, pose: Pose2D) -> 
         offset = target.position - pose.position
         along = offset.x_m * math.cos(pose.theta_rad) + offset.y_m * math.sin(pose.theta_rad)
         backwards = along < -INTENT_M or (abs(along) <= INTENT_M and ff.v_mps < 0.0)
+    return clear_towards(sensing, shape, backwards=backwards)
+
+
+def clear_towards(sensing: Sensing, shape: Shape, *, backwards: bool) -> bool:
+    """Room to brake from cruise speed (`release_gap_m`) straight ahead, or straight
+    behind.
+    """
     gap = clearance_along(
         sensing.raw, math.pi if backwards else 0.0, half_width_m=shape.radius_m + ESTOP_MARGIN_M
     )

@@ -33,6 +33,7 @@ KEYS = [
     ("realtime", "agent/flags"),
     ("realtime", "agent/state"),
     ("realtime", "agent/sense"),
+    ("realtime", "agent/operator"),
     ("navigating", "agent/scan"),
     ("driver", "agent/fix"),
     ("driver", "agent/relative"),

@@ -30,6 +30,7 @@ from phalanx.wire.messages import (
     AgentReport,
     LeaderAnnouncement,
     Message,
+    OperatorCommand,
     RobotFlags,
     RobotState,
     ScanMessage,
@@ -213,7 +214,20 @@ class AgentUnderTest:
             "agent/state": (RobotState, robot_key(FLEET, "r1", "state"), self._valid_state),
             "agent/sense": (SenseFrame, robot_key(FLEET, "r2", "sense"), self._valid_frame),
             "agent/scan": (ScanMessage, robot_key(FLEET, "r1", "scan"), self._valid_scan),
+            "agent/operator": (
+                OperatorCommand,
+                robot_key(FLEET, "r2", "operator"),
+                self._valid_operator,
+            ),
         }
+
+    def _valid_operator(self) -> list[Message]:
+        """An operator's twist, and a goal, for r2 (which leads while r1 is silent)."""
+        stamp = 1.8e9 + self.t_s
+        return [
+            OperatorCommand(robot_id="r2", stamp_s=stamp, twist=True, v_mps=0.2, omega_radps=0.3),
+            OperatorCommand(robot_id="r2", stamp_s=stamp, goal=True, goal_x_m=3.0, goal_y_m=1.0),
+        ]
 
     def _valid_scan(self) -> list[Message]:
         t = self.t_s

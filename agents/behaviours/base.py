@@ -28,8 +28,9 @@ from phalanx.core.robot import Odometry
 class Moment:
     """One step as a behaviour sees it: fleet time (s), the behaviour state the machine
     is in, the robot's odometry and sensing, its view of the fleet, whether robots of
-    the group are off their slots or holding still (`others_busy`), and the last forward
-    twist a behaviour drove (`last_forward`, reported by it as `drove_forward`).
+    the group are off their slots or holding still (`others_busy`), the last forward
+    twist a behaviour drove (`last_forward`, reported by it as `drove_forward`), and the
+    twist an operator drives the robot with (`operator`: None while none does).
     """
 
     t_s: float
@@ -39,6 +40,7 @@ class Moment:
     view: FleetView
     others_busy: bool = False
     last_forward: Twist2D = ZERO_TWIST
+    operator: Twist2D | None = None
 
     @property
     def pose(self) -> Pose2D:

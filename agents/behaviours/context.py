@@ -52,6 +52,9 @@ class StackContext:
     # the shape (a leader): another one wanted; a reshape done
     reshape_wanted: bool = False
     reshaped: bool = False
+    # an operator: a twist young enough to drive by, and room to brake the way it drives
+    operator: bool = False
+    operator_clear: bool = True
     # tunables the guards need
     confirm_s: float = 0.2
     threshold_mps: float = 0.02

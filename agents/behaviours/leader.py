@@ -1,6 +1,6 @@
 """Leader behaviours (the navigation layer of whichever robot leads): the scripted
-profile of the paper's runs, go-to-goal and wander with reactive steering, and the
-deadlock escape: back off in formation, then turn.
+profile of the paper's runs, go-to-goal and wander with reactive steering, the deadlock
+escape (back off in formation, then turn), and an operator's teleoperation.
 """
 
 from __future__ import annotations
@@ -9,7 +9,7 @@ import math
 from dataclasses import dataclass
 
 from phalanx.agents.behaviours.base import Behaviour, Moment, turn_on_spot
-from phalanx.agents.memory import BlockedTimers, Progress
+from phalanx.agents.memory import BlockedTimers, Progress, Route
 from phalanx.agents.navigation import (
     REORIENT_RAD,
     Clearances,
@@ -230,20 +230,22 @@ class GoToGoal(Steered):
         *,
         planner: RoutePlanner,
         progress: Progress,
+        route: Route,
         keeper: ShapeKeeper | None = None,
     ) -> None:
         super().__init__(parts)
-        self.planner, self.progress, self.keeper = planner, progress, keeper
+        self.planner, self.progress, self.route, self.keeper = planner, progress, route, keeper
 
     @property
     def has_goal(self) -> bool:
         """Whether there is a waypoint (or an escape point) left to go to."""
-        return self.course.escape is not None or self.progress.waypoint < len(self.nav.waypoints)
+        waypoints = self.route.waypoints
+        return self.course.escape is not None or self.progress.waypoint < len(waypoints)
 
     def desired(self, moment: Moment) -> tuple[float, float]:
         """Towards the route's next point."""
         pose = moment.pose
-        goal = self.course.escape or Vec2(*self.nav.waypoints[self.progress.waypoint])
+        goal = self.course.escape or Vec2(*self.route.waypoints[self.progress.waypoint])
         dist_m = (goal - pose.position).norm()
         return bearing_rad(pose, self.planner.towards(pose, goal, moment.t_s)), dist_m
 
@@ -344,13 +346,14 @@ class DeadlockTurn(Behaviour):
         shape: Shape,
         planner: RoutePlanner,
         progress: Progress,
+        route: Route,
         course: Course,
         blocked: BlockedTimers,
     ) -> None:
         self.deadlock, self.nav = settings.deadlock, settings.nav
         self.navigating = settings.plan == "goto"
         self.shape, self.planner, self.progress, self.course = shape, planner, progress, course
-        self.blocked = blocked
+        self.route, self.blocked = route, blocked
         self.side = 1
         self.target_rad = 0.0
         self.turned_rad = 0.0
@@ -367,7 +370,7 @@ class DeadlockTurn(Behaviour):
         angle = math.radians(self.deadlock.turn_away_deg) * max(1, self.progress.deadlocks)
         if self.navigating and self.planner.map is not None:
             self.planner.forget_carrot()
-            waypoints = self.nav.waypoints
+            waypoints = self.route.waypoints
             goal = Vec2(*waypoints[min(self.progress.waypoint, len(waypoints) - 1)])
             towards = bearing_rad(pose, self.planner.towards(pose, goal, moment.t_s))
             self.side, angle = (1 if towards >= 0.0 else -1), abs(towards)
@@ -390,3 +393,19 @@ class DeadlockTurn(Behaviour):
     def command(self, moment: Moment) -> Twist2D:
         """Turn on the spot, as fast as the shape allows."""
         return Twist2D(0.0, self.side * self.shape.turn_rate_radps(rigid=True))
+
+
+class Teleop(Behaviour):
+    """TELEOP: drive as the operator asks (the step's `Moment.operator`), no faster than
+    every slot of the shape can keep up with (`rigid_limit`, as the steered behaviours
+    lead); the spacing filter, the contact guard and the limiter then hold it like any
+    other command, and the emergency stop outranks it.
+    """
+
+    def __init__(self, shape: Shape, limits: KinematicLimits) -> None:
+        self.shape, self.limits = shape, limits
+
+    def command(self, moment: Moment) -> Twist2D:
+        """The operator's twist, kept to what the shape can follow."""
+        twist = moment.operator or ZERO_TWIST
+        return rigid_limit(twist, self.shape.follower_slots, self.limits.v_max_mps)

@@ -33,6 +33,7 @@ from phalanx.agents.behaviours.transitions import (
     P_ROBOT,
     P_ROLE,
     P_STUCK,
+    P_TELEOP,
     behaviour_transitions,
 )
 from phalanx.agents.fsm import StateMachine, Transition
@@ -75,6 +76,10 @@ PRIORITIES: dict[int, Priority] = {
         "leadership passed to or from this robot (handover, leader lost, newer epoch)"),
     P_HOLD: Priority("formation", "follower",
         "the formation leader or the tracked robot is gone or its state is stale"),
+    P_TELEOP: Priority("operator", "leader",
+        "an operator's commands keep coming (ROS 2's cmd_vel, each at most 0.5 s after the "
+        "last): drive as asked, within the shape's and the robot's limits; from an emergency "
+        "stop once standing with the way asked for clear"),
     P_GIVE_UP: Priority("navigation", "leader",
         "deadlock again, no retries left at this waypoint and no way to it on the map: "
         "stop for good"),
@@ -90,7 +95,8 @@ PRIORITIES: dict[int, Priority] = {
     P_ARRIVE: Priority("navigation", "leader", "the last waypoint is reached"),
     P_RESUME: Priority("navigation", "any",
         "default: go to the next waypoint (or run the script), or wander without one; "
-        "a stop, a join or a detour that is over returns to the plan or the slot"),
+        "a stop, a join, a detour or an operator's driving that is over returns to the plan "
+        "or the slot; a new goal ends a stop at the last one"),
 }  # fmt: skip
 
 
@@ -149,6 +155,7 @@ STATE_NOTES: dict[str, str] = {
     State.DEADLOCK_REVERSE: "leader: back off in formation (followers FORMATION_REVERSE)",
     State.DEADLOCK_TURN: "leader: turn in place towards the open side",
     State.RESHAPE: "leader: the group drives on slowly while its slots slide to another shape",
+    State.TELEOP: "leader: an operator drives it (ROS 2's cmd_vel), the group follows",
     State.AVOID: "follower off its slot, going round an obstacle",
     State.EMERGENCY_STOP: "brake to a standstill",
     State.STUCK: "stopped for good; the reason is in the transition log",

@@ -1,7 +1,8 @@
 """Every transition of the behaviour stack, layer by layer (the robot's own stops, the
-emergency stop and leadership, the formation layer, the navigation layer), with the
-priorities that arbitrate between them: a higher priority wins whenever its guard holds.
-The order of the transitions within one priority is the order they are tried in.
+emergency stop and leadership, the formation layer, the navigation layer, an operator
+driving the leader), with the priorities that arbitrate between them: a higher priority
+wins whenever its guard holds. The order of the transitions within one priority is the
+order they are tried in.
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ P_BEHIND = 95
 P_ESTOP = 90
 P_ROLE = 80
 P_HOLD = 70
+P_TELEOP = 68
 P_GIVE_UP = 65
 P_DEADLOCK = 60
 P_RESHAPE = 50
@@ -148,7 +150,7 @@ def _safety_transitions() -> list[Transition[StackContext]]:
         ),
         *_leader_targets(
             (State.EMERGENCY_STOP,),
-            lambda c: c.standstill and c.way_clear and not c.bumper,
+            lambda c: c.standstill and c.way_clear and not c.bumper and not c.operator,
             f"{stopped}, way clear: back to the plan",
             P_RESUME,
         ),
@@ -323,6 +325,48 @@ def _navigation_transitions() -> list[Transition[StackContext]]:
     ]
 
 
+# The leader's own driving an operator may take over: its plan, the deadlock escape, a
+# stop at the goal (a slide between shapes under way finishes first).
+_OPERATED = (
+    State.NAVIGATE, State.WANDER, State.ARRIVED, State.DEADLOCK_REVERSE, State.DEADLOCK_TURN,
+)  # fmt: skip
+
+
+def _operator_transitions() -> list[Transition[StackContext]]:
+    """An operator's twist drives the leader (TELEOP) while commands keep coming; from an
+    emergency stop only once the robot stands and the way it is asked to go is clear.
+    """
+    drives = "an operator drives the leader"
+    return [
+        *(
+            Transition(s, State.TELEOP, lambda c: c.is_leader and c.operator, drives, P_TELEOP)
+            for s in _OPERATED
+        ),
+        Transition(
+            State.EMERGENCY_STOP,
+            State.TELEOP,
+            lambda c: (
+                c.is_leader and c.operator and c.standstill and c.operator_clear and not c.bumper
+            ),
+            f"came to a standstill, {drives} a clear way",
+            P_TELEOP,
+        ),
+        *_leader_targets(
+            (State.TELEOP,),
+            lambda c: not c.operator,
+            "the operator's commands stopped: back to the plan",
+            P_RESUME,
+        ),
+        Transition(
+            State.ARRIVED,
+            State.NAVIGATE,
+            lambda c: c.is_leader and c.plan == "goto" and not c.arrived,
+            "a new goal",
+            P_RESUME,
+        ),
+    ]
+
+
 def _battery(c: StackContext) -> str:
     return "" if c.battery_v is None else f"{c.battery_v:.1f} V"
 
@@ -361,4 +405,5 @@ def behaviour_transitions() -> list[Transition[StackContext]]:
         *_role_transitions(),
         *_formation_transitions(),
         *_navigation_transitions(),
+        *_operator_transitions(),
     ]

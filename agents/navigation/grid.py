@@ -62,6 +62,12 @@ class OccupancyMap:
         inside = (col >= 0) & (col < self.cells) & (row >= 0) & (row < self.cells)
         return row, col, inside.astype(np.intp)
 
+    def covers(self, point: Vec2) -> bool:
+        """Whether `point` (world frame) lies on the grid."""
+        col = math.floor((point.x_m - self.x0_m) / self.cell_m)
+        row = math.floor((point.y_m - self.y0_m) / self.cell_m)
+        return 0 <= col < self.cells and 0 <= row < self.cells
+
     def centre(self, row: int, col: int) -> Vec2:
         """World position of a cell's centre."""
         return Vec2(self.x0_m + (col + 0.5) * self.cell_m, self.y0_m + (row + 0.5) * self.cell_m)

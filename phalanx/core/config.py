@@ -381,6 +381,11 @@ Ros2Topic = Literal["odom", "sonar", "cmd_vel_out", "state", "tf", "tf_static", 
 ROS2_TOPICS: tuple[Ros2Topic, ...] = (
     "odom", "sonar", "cmd_vel_out", "state", "tf", "tf_static", "markers",
 )  # fmt: skip
+# What the bridge takes from ROS 2: an operator's twists for the leader, and goals.
+Ros2Input = Literal["cmd_vel", "goal_pose"]
+ROS2_INPUTS: tuple[Ros2Input, ...] = ("cmd_vel", "goal_pose")
+# rmw_zenoh's router (`ros2 run rmw_zenoh_cpp rmw_zenohd`) listens here by default.
+ROS_ROUTER = "tcp/127.0.0.1:7447"
 # A ROS name's part (a namespace's or a node's): letters, digits and '_', not a digit first.
 _ROS_NAME = r"^[A-Za-z_][A-Za-z0-9_]{0,63}$"
 
@@ -394,8 +399,13 @@ class Ros2Config(Model):
     `domain_id`: ROS_DOMAIN_ID. `namespace`: put before every robot's own namespace
     (`""`: `/r1/odom`; `"lab"`: `/lab/r1/odom`, and the markers on `/lab/markers`).
     `node`: the bridge's node name. `topics`: which of `ROS2_TOPICS` are published.
+    `inputs`: what it takes from ROS 2 (`cmd_vel`: an operator's twists for the robot
+    that leads; `goal_pose`: a goal for a navigating leader; `[]`: nothing).
     `distro`: whose message definitions (and so type hashes) the keys carry.
     `rate_hz`: how often the bridge publishes what came in since its last round.
+    `connect`: where it meets the ROS 2 nodes: their Zenoh router's endpoints, joined by
+    a session of its own (empty: the session it reads the fleet on; a bridge that
+    `phalanx up` or a host daemon starts then joins `ROS_ROUTER`, rmw_zenoh's default).
     """
 
     enabled: bool = False
@@ -403,9 +413,13 @@ class Ros2Config(Model):
     namespace: str = Field(default="", pattern=r"^([A-Za-z_][A-Za-z0-9_]{0,63})?$")
     node: str = Field(default="phalanx_bridge", pattern=_ROS_NAME)
     topics: tuple[Ros2Topic, ...] = Field(default=ROS2_TOPICS, max_length=len(ROS2_TOPICS))
+    inputs: tuple[Ros2Input, ...] = Field(default=ROS2_INPUTS, max_length=len(ROS2_INPUTS))
     distro: Literal["jazzy", "kilted"] = "jazzy"
     map_frame: str = Field(default="map", pattern=_ROS_NAME)
     rate_hz: float = Field(default=10.0, gt=0.0, le=MAX_CONTROL_RATE_HZ)
+    connect: tuple[Annotated[str, Field(min_length=1, max_length=300)], ...] = Field(
+        default=(), max_length=8
+    )
 
 
 class Scenario(Model):

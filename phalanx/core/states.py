@@ -23,6 +23,7 @@ class State(StrEnum):
     DEADLOCK_REVERSE = "DEADLOCK_REVERSE"
     DEADLOCK_TURN = "DEADLOCK_TURN"
     RESHAPE = "RESHAPE"  # the group drives on slowly while its slots slide to another shape
+    TELEOP = "TELEOP"  # an operator drives the leader (ROS 2's cmd_vel), the group follows
     # navigation layer, every robot: reactive avoidance and safety
     AVOID = "AVOID"
     EMERGENCY_STOP = "EMERGENCY_STOP"
@@ -55,7 +56,7 @@ class StateGroup(StrEnum):
     them (`phalanx fsm` draws one box per group).
     """
 
-    DRIVING = "driving"  # the leader drives the group: its plan, reshaping, deadlock escape
+    DRIVING = "driving"  # the leader drives the group: plan, operator, reshaping, deadlock escape
     FORMATION = "formation"  # a follower in (or making for) its slot, or waiting for one
     SAFETY = "safety"  # stopped by what is around it, until the fleet is heard, or for good
     ROBOT = "robot faults"  # stopped by what the robot's own driver reports
@@ -69,6 +70,7 @@ STATE_GROUPS: dict[State, StateGroup] = {
     State.RESHAPE: StateGroup.DRIVING,
     State.DEADLOCK_REVERSE: StateGroup.DRIVING,
     State.DEADLOCK_TURN: StateGroup.DRIVING,
+    State.TELEOP: StateGroup.DRIVING,
     State.FORMATION_TRACK: StateGroup.FORMATION,
     State.FORMATION_REVERSE: StateGroup.FORMATION,
     State.AVOID: StateGroup.FORMATION,

@@ -17,10 +17,11 @@ Default deny. At host H's router, by certificate common name:
   and forward queries to the daemons (an operator's identity is checked again by the
   daemon itself, on the request's signature: `phalanx.hosts.request_auth`);
 - `viewer.<identity>` of an enabled `[ros2]` (at its host's router: `ros2.host`, else the
-  world's): publish exactly the ROS 2 bridge's data keys, hold its node's and publishers'
-  liveliness tokens, and serve its transient-local topics' caches
-  (`phalanx.ros2.topics.bridge_keys`); the other hosts' routers carry the same from that
-  host;
+  world's): publish exactly the ROS 2 bridge's data keys, hold its node's, publishers'
+  and subscriptions' liveliness tokens, and serve its transient-local topics' caches
+  (`phalanx.ros2.topics.bridge_keys`); with `[ros2] inputs`, publish on every robot's
+  `operator` key (what ROS 2's operator asks of the robot that leads), and on no other
+  key of the fleet; the other hosts' routers carry the same from that host;
 - every identity of the fleet may subscribe to and receive anything under the fleet's
   prefix, and the bridge's ROS keys.
 """
@@ -153,10 +154,19 @@ def bridge_keys(spec: Deployment) -> BridgeKeys | None:
     return keys_of(spec.ros2, [r.id for r in spec.robots])
 
 
-def _bridge_rules(rule_id: str, keys: BridgeKeys) -> list[AclRule]:
+def operator_keys(spec: Deployment) -> list[str]:
+    """The fleet's keys the deployment's ROS 2 bridge publishes on: every robot's
+    `operator` (the robot that leads is any of them), if it takes anything from ROS 2.
+    """
+    if spec.ros2 is None or bridge_host(spec) is None or not spec.ros2.inputs:
+        return []
+    return [f"phalanx/{spec.fleet}/robot/{r.id}/operator" for r in spec.robots]
+
+
+def _bridge_rules(rule_id: str, keys: BridgeKeys, operator: list[str]) -> list[AclRule]:
     """What the bridge (or the router of its host) may originate: exactly its keys."""
     rules = [
-        _allow(f"{rule_id}-put", ("put",), list(keys.puts)),
+        _allow(f"{rule_id}-put", ("put",), [*keys.puts, *operator]),
         _allow(f"{rule_id}-token", ("liveliness_token",), list(keys.tokens)),
     ]
     if keys.caches:
@@ -250,7 +260,8 @@ def host_acl(spec: Deployment, host: str) -> AccessControl:
         policies.append(_policy("viewers", names, rules))
     if ros is not None and spec.ros2 is not None and bridge_host(spec) == host:
         cn = common_name("viewer", spec.ros2.identity)
-        policies.append(_policy("ros2", [cn], [*_bridge_rules("ros2", ros), *common]))
+        rules = _bridge_rules("ros2", ros, operator_keys(spec))
+        policies.append(_policy("ros2", [cn], [*rules, *common]))
     for other in spec.hosts:
         if other.name != host:
             policies.append(_peer_host_policy(spec, other.name, common))
@@ -277,7 +288,7 @@ def _peer_host_policy(spec: Deployment, other: str, common: list[AclRule]) -> Ac
     ]
     ros = bridge_keys(spec)
     if ros is not None and bridge_host(spec) == other:
-        rules += _bridge_rules(f"{cn}-ros2", ros)
+        rules += _bridge_rules(f"{cn}-ros2", ros, operator_keys(spec))
     return _policy(cn, [cn], rules)
 
 

@@ -4,9 +4,10 @@ The daemon is its host's Zenoh router (endpoints from the deployment file), hold
 liveliness token `phalanx/<fleet>/host/<name>/alive`, and answers spawn, stop and status
 requests on its queryables (see `phalanx.hosts.protocol`). It starts only what its own
 copy of the deployment assigns to its host: the agents of those robots and, if the world
-runs here, the world. What each runs is built from the deployment alone (an agent's spec,
-handed on its standard input; the world's command line); a request names the
-deployment and carries a run id, an epoch and scenario overrides, all checked first
+runs here, the world; on the host the deployment's `[ros2]` names, the ROS 2 bridge,
+with the world. What each runs is built from the deployment alone (an agent's spec,
+handed on its standard input; the world's and the bridge's command lines); a request
+names the deployment and carries a run id, an epoch and scenario overrides, all checked first
 (`phalanx.hosts.request_checks`). A malformed or refused request is answered with the
 reason and counted; it never ends the daemon. A secured daemon remembers the signed
 requests it served in its state folder (`default_state_dir`), so that one sent again is
@@ -39,7 +40,7 @@ from typing import Any, Literal
 from pydantic import ValidationError
 
 from phalanx.core.errors import PhalanxError, RequestRefused
-from phalanx.hosts.access import ca_path, security_of
+from phalanx.hosts.access import bridge_host, ca_path, security_of
 from phalanx.hosts.children import LogLevel, ManagedChild, backoff_delay_s, exit_reason
 from phalanx.hosts.deployment import LoadedDeployment
 from phalanx.hosts.protocol import (
@@ -52,7 +53,13 @@ from phalanx.hosts.protocol import (
 )
 from phalanx.hosts.request_auth import RequestVerifier
 from phalanx.hosts.request_checks import RequestChecks, validation_summary
-from phalanx.hosts.wiring import RunParameters, agent_spec, secured_host_transport, world_argv
+from phalanx.hosts.wiring import (
+    RunParameters,
+    agent_spec,
+    bridge_argv,
+    secured_host_transport,
+    world_argv,
+)
 from phalanx.runtime.exits import EXIT_INCOMPLETE
 from phalanx.runtime.local_fleet import GRACE_S
 from phalanx.runtime.process_spec import AgentSpec, spawn_argv
@@ -63,6 +70,7 @@ from phalanx.wire.transport import FleetSession, TransportConfig, open_session
 log = logging.getLogger("phalanx.host")
 child_log = logging.getLogger("phalanx.host.child")
 TOPICS = ("spawn", "stop", "status")
+BRIDGE = "ros2-bridge"  # the ROS 2 bridge's child (started and stopped with the world)
 
 
 @dataclass
@@ -228,6 +236,9 @@ class HostDaemon:
         if world:
             out = self._results_dir(request.run_id)
             self._ensure("world", "world", world_argv(self.loaded, run=run, out=out, python=python))
+        if request.world and bridge_host(self.spec) == self.name:
+            # (a bridge that crashes is started again, as an agent is)
+            self._ensure(BRIDGE, "agent", bridge_argv(self.loaded, run=run, python=python))
 
     def stop(self, request: StopRequest) -> None:
         """Stop some or all of this host's processes (SIGTERM, then SIGKILL)."""
@@ -238,7 +249,7 @@ class HostDaemon:
             )
         names = list(self.checks.requested_robots(request.robots))
         if request.world:
-            names.append("world")
+            names += ["world", BRIDGE]
         now = time.monotonic()
         for name in names:
             child = self.children.get(name)

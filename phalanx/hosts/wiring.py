@@ -19,8 +19,12 @@ configured by hand.
   agent reads it.
 - A secured deployment (`[security] mode = "mtls"`, see `Deployment.secured`) uses `tls/`
   endpoints everywhere, loopback included: every process presents its own certificate
-  (`robot.<id>`, `world`, `host.<name>`, `operator.<name>`), and each daemon's router
-  applies the access-control list of `phalanx.hosts.access`.
+  (`robot.<id>`, `world`, `host.<name>`, `operator.<name>`, the ROS 2 bridge's
+  `viewer.<identity>`), and each daemon's router applies the access-control list of
+  `phalanx.hosts.access`.
+- With `[ros2] enabled`, the bridge's host (`ros2.host`, else the world's) runs `phalanx
+  ros2 --deployment`: a client of its daemon, meeting ROS 2 at `[ros2] connect` (else
+  rmw_zenoh's default router) on a session of its own.
 """
 
 from __future__ import annotations
@@ -31,8 +35,9 @@ import uuid
 from dataclasses import dataclass
 from pathlib import Path
 
+from phalanx.core.config import ROS_ROUTER
 from phalanx.core.errors import ConfigError
-from phalanx.hosts.access import host_acl, host_files, identity_files
+from phalanx.hosts.access import bridge_host, host_acl, host_files, identity_files
 from phalanx.hosts.deployment import Deployment, LoadedDeployment, RouterEntry
 from phalanx.hosts.pki import common_name
 from phalanx.runtime.process_spec import AgentSpec, DriverChoice, TelemetryTarget
@@ -122,7 +127,11 @@ def secured_host_transport(loaded: LoadedDeployment, name: str) -> TransportConf
         return transport
     update = {"tls": host_files(loaded, name), "acl": host_acl(loaded.spec, name)}
     children = [common_name("robot", r) for r in loaded.spec.robots_on(name)]
-    for identity in children + (["world"] if loaded.spec.runs_world(name) else []):
+    children += ["world"] if loaded.spec.runs_world(name) else []
+    ros2 = loaded.spec.ros2
+    if ros2 is not None and bridge_host(loaded.spec) == name:
+        children.append(common_name("viewer", ros2.identity))
+    for identity in children:
         identity_files(loaded, identity)  # every child's files are here, or say which is not
     return transport.model_copy(update=update)
 
@@ -302,3 +311,21 @@ def world_argv(
     # robots on real drivers move on their own: the world records them, never moves them
     real = [r.id for r in spec.robots if loaded.driver_of(r.id) != "sim"]
     return argv + [arg for rid in real for arg in ("--observe", rid)]
+
+
+def bridge_argv(loaded: LoadedDeployment, *, run: RunParameters, python: str) -> list[str]:
+    """The command line of the deployment's ROS 2 bridge, built from the deployment
+    alone: `phalanx ros2 --deployment` (the scenario, `[ros2]`, the fleet and a client
+    of its host's daemon come from the file), the bridge's certificate when secured,
+    the run's overrides, and where it meets ROS 2.
+    """
+    spec, bridge = loaded.spec, loaded.spec.ros2
+    if bridge is None or bridge_host(spec) is None:
+        raise ConfigError(f"deployment {spec.name!r} runs no ROS 2 bridge ([ros2] enabled)")
+    argv = [python, "-m", "phalanx", "ros2", "--deployment", str(loaded.path)]
+    if spec.secured:
+        argv += ["--identity", common_name("viewer", bridge.identity)]
+    argv += [f"--set={o}" for o in run.overrides]  # (the file's own: with the file)
+    for endpoint in bridge.connect or (ROS_ROUTER,):
+        argv += ["--ros-connect", endpoint]
+    return argv

@@ -11,7 +11,16 @@ formation's slots (laid out from the formation leader's pose) with the world's
 obstacles. `/tf_static` (every robot's sonar mounts) goes out once, from a cache late
 subscribers query.
 
-Nothing is published on phalanx's keys, and nothing it publishes is read by a robot.
+The other way, it subscribes to `cmd_vel` and `goal_pose` in the fleet's namespace
+(`[ros2] inputs`) with rmw_zenoh's subscription tokens: each round, the newest twist
+(clamped to the robot's rating) and the newest goal (in the map frame) that came since
+the last go to the robot that leads, as one `OperatorCommand` on its `operator` key,
+the only phalanx key the bridge publishes on. The robot's behaviour stack decides what
+to do with it (`phalanx.agents`: TELEOP, within its limits, the emergency stop first).
+
+The fleet's keys are read (and the operator's commands sent) on `session`; the ROS 2
+side can have a session of its own (`ros`: joined to ROS 2's router), else it is the
+same one.
 """
 
 from __future__ import annotations
@@ -23,20 +32,22 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
+from pydantic import ValidationError
+
 from phalanx.core.config import Ros2Config, Scenario
 from phalanx.core.formation import scenario_formation
-from phalanx.core.geometry import Pose2D, Vec2
+from phalanx.core.geometry import Pose2D, Twist2D, Vec2
 from phalanx.core.robot_params import RobotParams
 from phalanx.core.scenarios import resolve_world
-from phalanx.ros2.graph import RosNode, RosPublisher
-from phalanx.ros2.messages import RosMessages, sonar_mounts
+from phalanx.ros2.graph import RosNode, RosPublisher, RosSubscription
+from phalanx.ros2.messages import RosMessages, planar_twist, sonar_mounts, stamped_position
 from phalanx.ros2.names import fleet_namespace, robot_frame
-from phalanx.ros2.topics import fleet_topics
-from phalanx.ros2.typestore import to_cdr
-from phalanx.wire.bounds import FleetBounds
+from phalanx.ros2.topics import fleet_inputs, fleet_topics
+from phalanx.ros2.typestore import from_cdr, to_cdr
+from phalanx.wire.bounds import MAX_EXTENT_M, FleetBounds
 from phalanx.wire.delivery import Polled
-from phalanx.wire.keys import robots_key
-from phalanx.wire.messages import RobotState, ScanMessage, SenseFrame
+from phalanx.wire.keys import robot_key, robots_key
+from phalanx.wire.messages import OperatorCommand, RobotState, ScanMessage, SenseFrame
 from phalanx.wire.transport import FleetSession
 
 SLOW_PERIOD_S = 1.0  # the behaviour state's heartbeat and the markers' period
@@ -45,13 +56,17 @@ RING_PER_ROBOT = 8  # messages of one kind a robot may have waiting between two 
 
 @dataclass
 class BridgeStats:
-    """What the bridge did: rounds, messages in (by phalanx key) and out (by ROS topic
-    kind), and the CPU time its rounds took.
+    """What the bridge did: rounds, messages in (by phalanx key, and by ROS topic kind
+    for what ROS 2 sent), out (by ROS topic kind, and `operator`), what it refused of
+    ROS 2's (by topic kind: undecodable, not finite, a goal in another frame or with
+    nobody leading) with the last reason, and the CPU time its rounds took.
     """
 
     rounds: int = 0
     heard: Counter[str] = field(default_factory=Counter)
     sent: Counter[str] = field(default_factory=Counter)
+    refused: Counter[str] = field(default_factory=Counter)
+    last_refusal: str = ""
     cpu_s: float = 0.0
 
 
@@ -73,22 +88,25 @@ class Bridge:
 
     def __init__(
         self, session: FleetSession, *, fleet: str, scenario: Scenario, robot: RobotParams,
-        cfg: Ros2Config,
+        cfg: Ros2Config, ros: FleetSession | None = None,
     ) -> None:  # fmt: skip
         self.cfg, self.scenario, self.robot = cfg, scenario, robot
         self.stats = BridgeStats()
         ids = [r.id for r in scenario.robots]
         self.topics = fleet_topics(cfg, ids)
+        self.inputs = fleet_inputs(cfg)
         self._robots = {rid: _Robot() for rid in ids}
         self._msgs = RosMessages(cfg.distro)
         self._formation = scenario_formation(scenario)
         self._world = resolve_world(scenario.world)
+        self._session, self._fleet = session, fleet
         node = RosNode(
-            session, domain_id=cfg.domain_id, namespace=fleet_namespace(cfg), name=cfg.node
+            ros or session, domain_id=cfg.domain_id, namespace=fleet_namespace(cfg), name=cfg.node
         )
         self._pubs: dict[tuple[str, str], RosPublisher] = {
             (t.kind, t.robot_id): node.publisher(t) for t in self.topics
         }
+        self._subs: dict[str, RosSubscription] = {t.kind: node.subscription(t) for t in self.inputs}
         self.node_token = node.token
         self._markers_at = -math.inf
         bounds = FleetBounds.of(scenario, robot)
@@ -118,6 +136,10 @@ class Bridge:
     def publishers(self) -> list[RosPublisher]:
         """Every ROS publisher of the bridge."""
         return list(self._pubs.values())
+
+    def subscriptions(self) -> list[RosSubscription]:
+        """Every ROS subscription of the bridge."""
+        return list(self._subs.values())
 
     def _send(self, kind: str, robot_id: str, message: Any) -> None:
         publisher = self._pubs.get((kind, robot_id))
@@ -160,6 +182,83 @@ class Bridge:
         if frame.sonar_ranges_m:
             self._ring(frame.robot_id, frame.t_s, frame.sonar_ranges_m)
 
+    # --- what ROS 2 sends ---------------------------------------------------------------
+
+    def _operate(self) -> None:
+        """The newest twist and goal ROS 2 sent since the last round, to the robot that
+        leads, in one operator command.
+        """
+        twist = self._newest("cmd_vel", self._twist_of)
+        goal = self._newest("goal_pose", self._goal_of)
+        if twist is None and goal is None:
+            return
+        leader = self._leader()
+        if leader is None:
+            self._refuse("operator", "nobody leads yet: no robot's state heard")
+            return
+        try:
+            command = OperatorCommand(
+                robot_id=leader, stamp_s=time.time(), twist=twist is not None,
+                v_mps=twist.v_mps if twist else 0.0,
+                omega_radps=twist.omega_radps if twist else 0.0,
+                goal=goal is not None, goal_x_m=goal.x_m if goal else 0.0,
+                goal_y_m=goal.y_m if goal else 0.0,
+            )  # fmt: skip
+        except ValidationError as exc:
+            self._refuse("operator", f"not a command a robot takes: {exc.errors()[0]['msg']}")
+            return
+        self._session.publish(robot_key(self._fleet, leader, "operator"), command)
+        self.stats.sent["operator"] += 1
+
+    def _newest(self, kind: str, read: Callable[[Any], Any]) -> Any:
+        """The newest of what arrived on input `kind` that `read` makes a value of (it
+        raises ValueError for one the bridge refuses); None: none.
+        """
+        subscription = self._subs.get(kind)
+        if subscription is None:
+            return None
+        newest = None
+        for payload in subscription.take():
+            self.stats.heard[kind] += 1
+            try:
+                newest = read(from_cdr(payload, subscription.topic.ros_type, self.cfg.distro))
+            except Exception as exc:  # a hostile payload may trip anything: count it
+                self._refuse(kind, f"{type(exc).__name__}: {str(exc)[:200]}")
+        return newest
+
+    def _twist_of(self, message: Any) -> Twist2D:
+        """A twist to pass on: finite, clamped to the robot's rating (the robot's own
+        limits then hold it to the run's).
+        """
+        twist = planar_twist(message)
+        if not (math.isfinite(twist.v_mps) and math.isfinite(twist.omega_radps)):
+            raise ValueError(f"a twist that is not finite: {twist}")
+        v_max, w_max = self.robot.v_max_mps, self.robot.omega_max_radps
+        return Twist2D(
+            min(v_max, max(-v_max, twist.v_mps)), min(w_max, max(-w_max, twist.omega_radps))
+        )
+
+    def _goal_of(self, message: Any) -> Vec2:
+        """A goal to pass on: in the map frame, finite and within the world's extent."""
+        frame, goal = stamped_position(message)
+        if frame != self.cfg.map_frame:
+            raise ValueError(f"a goal in frame {frame[:40]!r}, not {self.cfg.map_frame!r}")
+        if not (abs(goal.x_m) <= MAX_EXTENT_M and abs(goal.y_m) <= MAX_EXTENT_M):
+            raise ValueError(f"a goal out of the world: {goal}")
+        return goal
+
+    def _leader(self) -> str | None:
+        """The robot that leads, as the newest state heard says (None: none heard)."""
+        states = [h.state for h in self._robots.values() if h.state is not None]
+        if not states:
+            return None
+        newest = max(states, key=lambda s: s.stamp_s)
+        return newest.formation_leader_id or self._formation.root
+
+    def _refuse(self, kind: str, why: str) -> None:
+        self.stats.refused[kind] += 1
+        self.stats.last_refusal = f"{kind}: {why}"
+
     # --- what goes out --------------------------------------------------------------------
 
     def round(self) -> int:
@@ -167,6 +266,7 @@ class Bridge:
         start_cpu = time.process_time()
         before = sum(self.stats.sent.values())
         self._take()
+        self._operate()
         now = time.monotonic()
         links = [self._robot_round(rid, held, now) for rid, held in self._robots.items()]
         fresh = [link for link in links if link is not None]

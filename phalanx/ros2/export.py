@@ -30,7 +30,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from phalanx.core.config import Ros2Config, Ros2Topic, Scenario, WorldConfig
+from phalanx.core.config import Ros2Config, Scenario, WorldConfig
 from phalanx.core.errors import ConfigError
 from phalanx.core.formation import Formation, scenario_formation
 from phalanx.core.geometry import Twist2D
@@ -46,7 +46,7 @@ from phalanx.ros2.typestore import store, to_cdr
 BAG_NAME = "rosbag2"
 MARKER_PERIOD_S = 1.0
 FloatArray = npt.NDArray[np.float64]
-Topics = Mapping[tuple[Ros2Topic, str], RosTopic]  # (kind, robot id) -> topic
+Topics = Mapping[tuple[str, str], RosTopic]  # (kind, robot id) -> topic
 
 
 class ExportError(ConfigError):
@@ -174,7 +174,7 @@ def _messages(
 ) -> Iterator[tuple[RosTopic, float, Any]]:
     """Every message of the bag in time order: (topic, stamp in s, message)."""
     msgs = RosMessages(cfg.distro)
-    by_kind = {(t.kind, t.robot_id): t for t in topics}
+    by_kind: dict[tuple[str, str], RosTopic] = {(t.kind, t.robot_id): t for t in topics}
     if extras is not None and record.t_s.size:
         links = sonar_mounts(record.robots, extras.robot.sonar)
         yield (

@@ -1,6 +1,7 @@
-"""A ROS 2 node over a phalanx Zenoh session, as rmw_zenoh makes one: the node's and each
-publisher's liveliness token (what `ros2 node list` and `ros2 topic list` read), and
-publishers that put CDR payloads on rmw_zenoh's data keys with its attachment.
+"""A ROS 2 node over a phalanx Zenoh session, as rmw_zenoh makes one: the node's, each
+publisher's and each subscription's liveliness token (what `ros2 node list` and `ros2
+topic list` read), publishers that put CDR payloads on rmw_zenoh's data keys with its
+attachment, and subscriptions on those keys.
 
 The attachment of every sample (rmw_zenoh's design.md, "Publishers"): the publisher's
 sequence number (int64, from 1), the source timestamp (int64 ns since the Unix epoch)
@@ -19,9 +20,10 @@ from __future__ import annotations
 import hashlib
 import threading
 import time
+from collections import deque
 from typing import Any
 
-from phalanx.ros2.names import NodeId, node_token, publisher_token
+from phalanx.ros2.names import SUBSCRIPTION, NodeId, node_token, publisher_token
 from phalanx.ros2.topics import RosTopic
 from phalanx.wire.transport import FleetSession
 
@@ -66,6 +68,40 @@ class RosPublisher:
             self._publisher.put(payload, attachment=extra)
 
 
+class RosSubscription:
+    """One topic's subscription: its token held; Zenoh's thread only keeps each sample's
+    CDR payload, in a ring of the topic's depth (the oldest dropped, counted), until
+    `take` (the attachment is not needed: the newest sample is what counts).
+    """
+
+    def __init__(self, fleet: FleetSession, node: NodeId, entity_id: int, topic: RosTopic) -> None:
+        self.topic = topic
+        self.key = topic.key(node.domain_id)
+        self.token = publisher_token(
+            node, entity_id, topic=topic.name, ros_type=topic.ros_type,
+            type_hash=topic.type_hash, qos=topic.qos, kind=SUBSCRIPTION,
+        )  # fmt: skip
+        self.dropped = 0
+        self._ring: deque[bytes] = deque(maxlen=topic.qos.depth)
+        self._lock = threading.Lock()
+        fleet.hold(fleet.zenoh.declare_subscriber(self.key, self._put))
+        fleet.hold(fleet.zenoh.liveliness().declare_token(self.token))
+
+    def _put(self, sample: Any) -> None:
+        payload = sample.payload.to_bytes()
+        with self._lock:
+            if len(self._ring) == self._ring.maxlen:
+                self.dropped += 1
+            self._ring.append(payload)
+
+    def take(self) -> list[bytes]:
+        """The payloads that arrived since the last call, oldest first."""
+        with self._lock:
+            taken = list(self._ring)
+            self._ring.clear()
+        return taken
+
+
 def _declare(session: Any, key: str, topic: RosTopic) -> Any:
     import zenoh
     from zenoh.ext import CacheConfig, MissDetectionConfig, declare_advanced_publisher
@@ -102,3 +138,8 @@ class RosNode:
         """Declare a publisher of `topic` (and its token)."""
         self._entities += 1
         return RosPublisher(self._fleet, self.node, self._entities, topic)
+
+    def subscription(self, topic: RosTopic) -> RosSubscription:
+        """Declare a subscription to `topic` (and its token)."""
+        self._entities += 1
+        return RosSubscription(self._fleet, self.node, self._entities, topic)

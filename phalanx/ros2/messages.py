@@ -1,5 +1,6 @@
-"""phalanx's values as ROS 2 messages (the classes of `rosbags`' type store): the
-conventions REP-103 and REP-105 ask for, one place for the bridge and the export.
+"""phalanx's values as ROS 2 messages (the classes of `rosbags`' type store), and back
+for what the bridge takes in: the conventions REP-103 and REP-105 ask for, one place
+for the bridge and the export.
 
 Poses are planar: z = 0, the heading a rotation about z (quaternion `(0, 0, sin(t/2),
 cos(t/2))`). A pose's covariance, when the robot publishes one (x, y, heading), fills
@@ -16,7 +17,7 @@ from typing import Any
 import numpy as np
 
 from phalanx.core.config import WorldConfig
-from phalanx.core.geometry import Pose2D, Twist2D
+from phalanx.core.geometry import Pose2D, Twist2D, Vec2
 from phalanx.core.robot_params import SonarParams
 from phalanx.ros2.names import robot_frame
 from phalanx.ros2.typestore import Distro, store
@@ -195,6 +196,21 @@ class RosMessages:
             mesh_file=self._new("visualization_msgs/msg/MeshFile", filename="", data=empty),
             mesh_use_embedded_materials=False,
         )  # fmt: skip
+
+
+def planar_twist(message: Any) -> Twist2D:
+    """A geometry_msgs/Twist as the robot drives it: forward speed (linear x, m/s) and yaw
+    rate (angular z, rad/s); a differential drive has no other (the rest is ignored).
+    """
+    return Twist2D(float(message.linear.x), float(message.angular.z))
+
+
+def stamped_position(message: Any) -> tuple[str, Vec2]:
+    """A geometry_msgs/PoseStamped's frame and its position in it (m; the orientation
+    and z are ignored: a goal is a place to get to).
+    """
+    position = message.pose.position
+    return str(message.header.frame_id), Vec2(float(position.x), float(position.y))
 
 
 def sonar_mounts(robot_ids: Iterable[str], sonar: SonarParams) -> list[tuple[str, str, Pose2D]]:

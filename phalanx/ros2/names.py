@@ -5,12 +5,13 @@ rmw_zenoh (its docs/design.md and `liveliness_utils.cpp`) maps ROS 2 onto Zenoh 
 - a topic's data travels on `<domain_id>/<fully qualified name, no leading or trailing
   '/'>/<DDS type name>/<type hash>`, e.g.
   `0/r1/odom/nav_msgs::msg::dds_::Odometry_/RIHS01_3cc9...`;
-- every node and every publisher holds a liveliness token under the admin space
-  `@ros2_lv` (a verbatim chunk: `*` and `**` never match it):
+- every node, publisher and subscription holds a liveliness token under the admin
+  space `@ros2_lv` (a verbatim chunk: `*` and `**` never match it):
   `@ros2_lv/<domain>/<session id>/<node id>/<entity id>/<kind>/<enclave>/<namespace>/
   <node name>` for a node (`NN`, its entity id is its node id), and for a publisher
-  (`MP`) the same followed by `/<topic>/<DDS type name>/<type hash>/<qos>`, each name
-  "mangled": every '/' replaced by '%' (an empty namespace is `%`);
+  (`MP`) or a subscription (`MS`) the same followed by `/<topic>/<DDS type name>/
+  <type hash>/<qos>`, each name "mangled": every '/' replaced by '%' (an empty
+  namespace is `%`);
 - the QoS is written compactly (`qos_text`): only what differs from rmw_zenoh's
   defaults (reliable, volatile, keep last 42, infinite deadline, lifespan and lease).
 
@@ -27,7 +28,7 @@ from phalanx.core.config import Ros2Config
 from phalanx.core.errors import ConfigError
 
 ADMIN_SPACE = "@ros2_lv"
-NODE, PUBLISHER = "NN", "MP"
+NODE, PUBLISHER, SUBSCRIPTION = "NN", "MP", "MS"
 # rmw_zenoh's default QoS, which the compact form leaves out (qos.cpp).
 DEFAULT_DEPTH = 42
 RELIABLE: Final = 1  # rmw's RMW_QOS_POLICY_RELIABILITY_RELIABLE
@@ -153,22 +154,28 @@ def node_token(node: NodeId) -> str:
 
 
 def publisher_token(
-    node: NodeId, entity_id: int, *, topic: str, ros_type: str, type_hash: str, qos: Qos
-) -> str:
-    """A publisher's liveliness token: the node's part, then topic, type, hash and QoS."""
+    node: NodeId, entity_id: int, *, topic: str, ros_type: str, type_hash: str, qos: Qos,
+    kind: str = PUBLISHER,
+) -> str:  # fmt: skip
+    """A publisher's liveliness token (a subscription's with `kind` `SUBSCRIPTION`): the
+    node's part, then topic, type, hash and QoS.
+    """
     tail = f"{mangle(topic)}/{dds_type_name(ros_type)}/{type_hash}/{qos_text(qos)}"
-    return f"{node.prefix(entity_id, PUBLISHER)}/{tail}"
+    return f"{node.prefix(entity_id, kind)}/{tail}"
 
 
 def publisher_token_pattern(
     node_name: str, namespace: str, domain_id: int, *, topic: str, ros_type: str, type_hash: str,
-    qos: Qos,
+    qos: Qos, kind: str = PUBLISHER,
 ) -> str:  # fmt: skip
-    """Every token a publisher of this node could hold, whatever its session and ids:
-    the session, node and entity ids as `*` (what an access rule allows).
+    """Every token a publisher (or, `kind` `SUBSCRIPTION`, a subscription) of this node
+    could hold, whatever its session and ids: the session, node and entity ids as `*`
+    (what an access rule allows).
     """
     node = NodeId(domain_id, "*", 0, namespace, node_name)
-    token = publisher_token(node, 0, topic=topic, ros_type=ros_type, type_hash=type_hash, qos=qos)
+    token = publisher_token(
+        node, 0, topic=topic, ros_type=ros_type, type_hash=type_hash, qos=qos, kind=kind
+    )
     return _wild_ids(token)
 
 

@@ -8,6 +8,10 @@ limiter), `state` (std_msgs/String: its behaviour state). For the fleet: `/tf` (
 `rN/base_link`), `/tf_static` (`rN/base_link` -> `rN/sonar_<i>`, the sonar mounts of
 the robot's parameter file; transient local) and `markers` in the fleet's namespace
 (visualization_msgs/MarkerArray: the formation's slots and the world's obstacles).
+
+What the bridge takes from ROS 2, in the fleet's namespace: `cmd_vel` (geometry_msgs/
+Twist, an operator's twist for the robot that leads, as teleop tools send it) and
+`goal_pose` (geometry_msgs/PoseStamped, as RViz's goal tool sends it).
 """
 
 from __future__ import annotations
@@ -15,8 +19,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Final
 
-from phalanx.core.config import Ros2Config, Ros2Topic
+from phalanx.core.config import Ros2Config, Ros2Input, Ros2Topic
 from phalanx.ros2.names import (
+    PUBLISHER,
+    SUBSCRIPTION,
     TRANSIENT_LOCAL,
     Qos,
     data_key,
@@ -39,6 +45,10 @@ ROS_TYPES: Final[dict[Ros2Topic, str]] = {
     "markers": "visualization_msgs/msg/MarkerArray",
 }
 ROBOT_TOPICS: Final[tuple[Ros2Topic, ...]] = ("odom", "sonar", "cmd_vel_out", "state")
+INPUT_TYPES: Final[dict[Ros2Input, str]] = {
+    "cmd_vel": "geometry_msgs/msg/Twist",
+    "goal_pose": "geometry_msgs/msg/PoseStamped",
+}
 # tf2's own choices: a dynamic broadcaster keeps 100, a static one 1, transient local.
 QOS: Final[dict[Ros2Topic, Qos]] = {
     "tf": Qos(depth=100),
@@ -50,7 +60,7 @@ QOS: Final[dict[Ros2Topic, Qos]] = {
 class RosTopic:
     """One topic the fleet has in ROS 2."""
 
-    kind: Ros2Topic
+    kind: Ros2Topic | Ros2Input
     name: str  # fully qualified: /r1/odom
     ros_type: str
     type_hash: str
@@ -78,43 +88,61 @@ def fleet_topics(cfg: Ros2Config, robot_ids: list[str]) -> list[RosTopic]:
     return out
 
 
+def fleet_inputs(cfg: Ros2Config) -> list[RosTopic]:
+    """Every topic the bridge takes from ROS 2 (`cfg.inputs`), in the fleet's namespace."""
+    return [
+        RosTopic(
+            kind,
+            fleet_topic(cfg, kind),
+            INPUT_TYPES[kind],
+            type_hash(INPUT_TYPES[kind], cfg.distro),
+            Qos(),
+        )
+        for kind in cfg.inputs
+    ]
+
+
 @dataclass(frozen=True)
 class BridgeKeys:
-    """The key expressions a bridge of these topics originates (what access rules allow):
-    its data keys (`put`), its node's and publishers' liveliness tokens, whatever its
-    session and ids (`tokens`), and under each transient-local topic's key the Zenoh
-    advanced publisher's own keys (`caches`: its cache's queryable and replies, its
-    detection token and heartbeat, `<key>/@adv/pub/...`).
+    """The key expressions of a bridge of these topics (what access rules allow): its
+    data keys (`put`), its node's, publishers' and subscriptions' liveliness tokens,
+    whatever its session and ids (`tokens`), under each transient-local topic's key the
+    Zenoh advanced publisher's own keys (`caches`: its cache's queryable and replies, its
+    detection token and heartbeat, `<key>/@adv/pub/...`), and the data keys of what it
+    takes from ROS 2 (`inputs`).
     """
 
     puts: tuple[str, ...]
     tokens: tuple[str, ...]
     caches: tuple[str, ...]
+    inputs: tuple[str, ...] = ()
 
     def all(self) -> tuple[str, ...]:
         """Every key expression above."""
-        return (*self.puts, *self.tokens, *self.caches)
+        return (*self.puts, *self.tokens, *self.caches, *self.inputs)
 
 
 def bridge_keys(cfg: Ros2Config, robot_ids: list[str]) -> BridgeKeys:
-    """The keys a bridge configured by `cfg` for robots `robot_ids` originates."""
+    """The keys of a bridge configured by `cfg` for robots `robot_ids`."""
     topics = fleet_topics(cfg, robot_ids)
     namespace = fleet_namespace(cfg)
+    inputs = fleet_inputs(cfg)
     tokens = [node_token_pattern(cfg.node, namespace, cfg.domain_id)]
     tokens += [
         publisher_token_pattern(
-            cfg.node,
-            namespace,
-            cfg.domain_id,
-            topic=t.name,
-            ros_type=t.ros_type,
-            type_hash=t.type_hash,
-            qos=t.qos,
+            cfg.node, namespace, cfg.domain_id, topic=t.name, ros_type=t.ros_type,
+            type_hash=t.type_hash, qos=t.qos, kind=kind,
         )
-        for t in topics
-    ]
+        for kind, group in ((PUBLISHER, topics), (SUBSCRIPTION, inputs))
+        for t in group
+    ]  # fmt: skip
     caches = [f"{t.key(cfg.domain_id)}/@adv/pub/**" for t in topics if t.qos.transient_local]
-    return BridgeKeys(tuple(t.key(cfg.domain_id) for t in topics), tuple(tokens), tuple(caches))
+    return BridgeKeys(
+        tuple(t.key(cfg.domain_id) for t in topics),
+        tuple(tokens),
+        tuple(caches),
+        tuple(t.key(cfg.domain_id) for t in inputs),
+    )
 
 
 def _topic(cfg: Ros2Config, kind: Ros2Topic, name: str, robot_id: str) -> RosTopic:

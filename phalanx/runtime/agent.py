@@ -7,7 +7,8 @@ its own clock (`EpochClock`) and commands its robot through the safety wrapper
 said, the agent's step, the command out, the state, flags, transitions and leadership
 published, telemetry logged. A robot started while its fleet is already running (its
 first tick is not 0) joins: it stays still until it has heard the fleet's leader and
-epoch.
+epoch. What an operator asks of the robot (`phalanx.runtime.operator`) goes into its
+observation.
 """
 
 from __future__ import annotations
@@ -27,6 +28,7 @@ from phalanx.core.peers import PeerState
 from phalanx.core.rigid_body import live_errors
 from phalanx.core.robot_params import RobotParams
 from phalanx.runtime.clock import Clock, Tick
+from phalanx.runtime.operator import OperatorInbox
 from phalanx.runtime.peers import FlagsThrottle, PeerInbox, ScanInbox
 from phalanx.runtime.robot_io import RobotIO
 from phalanx.runtime.signals import Stoppable
@@ -86,6 +88,7 @@ class AgentRuntime:
             bounds=self.bounds,
         )  # fmt: skip
         self.scans = ScanInbox(robot_id, self.formation, fleet=options.fleet)
+        self.operator = OperatorInbox(options.fleet, robot_id)
         self._scan_sent_s = -1.0
         self.flags_out = FlagsThrottle(min(FLAGS_HEARTBEAT_S, scenario.leader_timeout_s / 3))
         self.step_times_s: list[float] = []
@@ -146,6 +149,7 @@ class AgentRuntime:
         self.io.attach(session)
         self.inbox.attach(session, self.watched)
         self.scans.attach(session, self.bounds)
+        self.operator.attach(session, self.bounds)
         session.watch_alive(alive_pattern(fleet), self._on_alive)
         session.serve_status(status_key(fleet, rid), self._status)
 
@@ -171,6 +175,7 @@ class AgentRuntime:
             "leader_claims_refused": self.agent.leadership.refused,
             "late_peer_steps": self.inbox.late_steps,
             "scans_heard": self.scans.heard,
+            **self.operator.counters(),
             "flags_skipped": self.flags_out.skipped,
             "unsent": self.unsent,
             "stale_steps": self.stale_steps,
@@ -199,6 +204,9 @@ class AgentRuntime:
         heard = self.scans.take()
         if heard:
             observation = dataclasses.replace(observation, scans=observation.scans + heard)
+        operator = self.operator.take(tick.t_s)
+        if operator is not None:
+            observation = dataclasses.replace(observation, operator=operator)
         started = time.perf_counter()
         out = self.agent.step(observation, peers, tick.t_s, None if self.lockstep else flags)
         self._count_refusals()

@@ -9,8 +9,11 @@ join the fleet nor publish on it; every process `up` starts (world, agents, emul
 connects there.
 
 Every agent is started from its spec (`phalanx.runtime.process_spec`), handed on its
-standard input, not from options. A crashed agent is reported and, with `restart`,
-started again. Everything is stopped
+standard input, not from options. With the scenario's `[ros2] enabled`, the ROS 2 bridge
+(`phalanx ros2`) runs with them: it reads the fleet on the same private socket (it is
+this user's process) and meets ROS 2's nodes at `[ros2] connect`, rmw_zenoh's own router
+by default, on a session of its own. A crashed agent (or bridge) is reported and, with
+`restart`, started again. Everything is stopped
 on the way out: SIGTERM first, SIGKILL after a grace period. The outcome says whether
 the run ended as asked (the world finished, no process died on its own) and, if not,
 which process ended how; a world that finished a run its results mark incomplete
@@ -41,7 +44,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
-from phalanx.core.config import Scenario
+from phalanx.core.config import ROS_ROUTER, Scenario
 from phalanx.core.errors import TransportError
 from phalanx.runtime.amrisim import AmrisimCommand, amrisim_map, amrisim_ports
 from phalanx.runtime.exits import (
@@ -111,9 +114,9 @@ class AmrisimRun:
 
 @dataclass
 class Child:
-    """A supervised process: one of ours (`kind` agent, emulator or world; an agent with
-    its `spec`, written to its standard input at each start), or a third party's (`env`
-    given: a simulator such as AMRISim, its output to `output`).
+    """A supervised process: one of ours (`kind` agent, emulator, world or bridge; an
+    agent with its `spec`, written to its standard input at each start), or a third
+    party's (`env` given: a simulator such as AMRISim, its output to `output`).
     """
 
     name: str
@@ -339,7 +342,24 @@ def plan(
         children.append(Child(entry.id, spawn_argv(spec, python=sys.executable), spec=spec))
     if options.pinned:
         assign_cpus(children, usable_cpus())
+    if scenario.ros2.enabled:  # (on no CPU of its own: it does not pace the fleet)
+        children.append(_bridge_child(scenario_path, scenario, options, transport))
     return children
+
+
+def _bridge_child(
+    scenario_path: Path, scenario: Scenario, options: UpOptions, fleet: TransportConfig
+) -> Child:
+    """`phalanx ros2`: a client of the fleet's router like the agents (`fleet`), meeting
+    ROS 2 at `[ros2] connect`, or at rmw_zenoh's default router.
+    """
+    argv = [*_cli(), "ros2", str(scenario_path), "--fleet", options.fleet, "--mode", "client"]
+    argv += [arg for endpoint in fleet.connect for arg in ("--connect", endpoint)]
+    argv += ["--lowlatency"] if fleet.lowlatency else []
+    argv += [f"--set={o}" for o in options.overrides]
+    for endpoint in scenario.ros2.connect or (ROS_ROUTER,):
+        argv += ["--ros-connect", endpoint]
+    return Child("ros2-bridge", argv, kind="bridge")
 
 
 def _epoch(options: UpOptions) -> float:

@@ -32,6 +32,7 @@ from phalanx.wire.messages import (
     ClockTick,
     LeaderAnnouncement,
     Message,
+    OperatorCommand,
     RobotFlags,
     RobotState,
     ScanMessage,
@@ -188,6 +189,19 @@ LAYOUTS: dict[type[Message], tuple[int, tuple[tuple[str, str], ...]]] = {
             ("omega_radps", "d"),
             ("clock_rate", "d"),
             ("source", "s"),
+        ),
+    ),
+    OperatorCommand: (
+        13,
+        (
+            ("robot_id", "s"),
+            ("stamp_s", "d"),
+            ("twist", "?"),
+            ("v_mps", "d"),
+            ("omega_radps", "d"),
+            ("goal", "?"),
+            ("goal_x_m", "d"),
+            ("goal_y_m", "d"),
         ),
     ),
 }

@@ -15,6 +15,8 @@ robot/<id>/truth    TruthMessage: where a simulator says the robot is (the robot
                     from its driver: AMRISim), for the run's record
 robot/<id>/relative RelativeFixMessage: another robot seen by this one's camera (the world
                     simulating it for robots on drivers)
+robot/<id>/operator OperatorCommand: what an operator asks of the robot that leads (a
+                    twist, a goal), from `phalanx ros2` (ROS 2's cmd_vel and goal_pose)
 leader              LeaderAnnouncement (who leads, under which epoch)
 alive/<id>          liveliness token of each process
 status/<id>         queryable: a process's counters as JSON

@@ -46,6 +46,7 @@ from phalanx.wire.bounds import (
     StateName,
     Text,
     Tick,
+    UnixStamp,
     YawRate,
     _bounds,
 )
@@ -257,6 +258,35 @@ class VelocityCommand(Message):
     stamp_s: Stamp
     v_mps: Speed
     omega_radps: YawRate
+
+
+class OperatorCommand(Message):
+    """What an operator asks of robot `robot_id`, the robot that leads, on
+    `.../robot/<id>/operator` (`phalanx ros2` passes ROS 2's `cmd_vel` and `goal_pose`
+    on): a twist to drive by (`twist`: `v_mps`, `omega_radps`, before the robot's limits),
+    a goal to go to (`goal`: `goal_x_m`, `goal_y_m` in the fleet's world frame), or both.
+
+    `stamp_s`: when the operator sent it (Unix time); a receiver takes none stamped no
+    later than the last it took, and a twist drives the robot for a short while from
+    when the robot heard it (`phalanx.agents.inputs.OPERATOR_TIMEOUT_S`). Speeds are
+    held to the robots' rating, like a state's.
+    """
+
+    version: Literal[1] = 1
+    robot_id: RobotId
+    stamp_s: UnixStamp
+    twist: bool = False
+    v_mps: Speed = 0.0
+    omega_radps: YawRate = 0.0
+    goal: bool = False
+    goal_x_m: Coordinate = 0.0
+    goal_y_m: Coordinate = 0.0
+
+    @model_validator(mode="after")
+    def _asks_something(self) -> Self:
+        if not (self.twist or self.goal):
+            raise ValueError("an operator command asks for a twist, a goal, or both")
+        return self
 
 
 class SenseFrame(Message):

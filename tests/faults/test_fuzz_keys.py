@@ -32,7 +32,7 @@ from receivers import (
 from phalanx.core.runlog import ESTIMATE_POSE, SIMULATED_POSE
 
 FUZZ_EXAMPLES = int(os.environ.get("PHALANX_FUZZ_EXAMPLES", "150"))
-AGENT_KEYS = ("agent/flags", "agent/state", "agent/sense")
+AGENT_KEYS = ("agent/flags", "agent/state", "agent/sense", "agent/operator")
 POSITIONING_KEYS = ("agent/fix", "agent/relative")
 WORLD_KEYS = ("world/cmd", "world/state", "world/event", "world/report", "world/leader")
 OBSERVING_KEYS = ("world/truth", "world/fix")
@@ -56,6 +56,8 @@ def test_no_payload_crashes_an_agent_or_moves_it_beyond_its_limits(clock: str, k
     assert sent == FUZZ_EXAMPLES
     assert agent.steps >= swept + sent  # it stepped on every tick, whatever came between
     assert agent.session.stats.dropped > 0  # and what it refused, it counted
+    if key == "agent/operator":  # valid commands got through to the agent
+        assert agent.runtime.operator.heard > 0
 
 
 def test_no_scan_crashes_a_navigating_agent_or_reaches_its_map_unchecked() -> None:

@@ -27,6 +27,7 @@ MSG_DEFINITIONS = {
     "geometry_msgs/msg/Quaternion": "float64 x 0\nfloat64 y 0\nfloat64 z 0\nfloat64 w 1\n",
     "geometry_msgs/msg/Pose": "Point position\nQuaternion orientation\n",
     "geometry_msgs/msg/PoseWithCovariance": "Pose pose\nfloat64[36] covariance\n",
+    "geometry_msgs/msg/PoseStamped": "std_msgs/Header header\nPose pose\n",
     "geometry_msgs/msg/Vector3": "float64 x\nfloat64 y\nfloat64 z\n",
     "geometry_msgs/msg/Twist": "Vector3  linear\nVector3  angular\n",
     "geometry_msgs/msg/TwistWithCovariance": "Twist twist\nfloat64[36] covariance\n",

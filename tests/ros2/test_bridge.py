@@ -293,6 +293,7 @@ def test_an_independent_ros_2_client_lists_the_topics_and_decodes_odometry(
         where = {"router_ip": "127.0.0.1", "router_port": it.port, "domain_id": 0}
         listed = dict(get_topic_names_and_types(timeout=1.0, **where))
         info = get_topic_info("/r1/odom", **where)
+        teleop = get_topic_info("/cmd_vel", **where)
         sub = ROS2Subscriber("/r1/odom", "nav_msgs/msg/Odometry", got.append, **where)
         try:
             time.sleep(0.3)
@@ -300,7 +301,8 @@ def test_an_independent_ros_2_client_lists_the_topics_and_decodes_odometry(
             assert it.rounds_until(lambda: bool(got))
         finally:
             sub.close()
-    assert listed == {t.name: [t.ros_type] for t in it.bridge.topics}
+    assert listed == {t.name: [t.ros_type] for t in (*it.bridge.topics, *it.bridge.inputs)}
     assert (info.topic_types, info.publisher_count) == (["nav_msgs/msg/Odometry"], 1)
+    assert (teleop.topic_types, teleop.subscriber_count) == (["geometry_msgs/msg/Twist"], 1)
     assert got[0].pose.pose.position.x == 7.5
     assert got[0].child_frame_id == "r1/base_link"

@@ -24,6 +24,7 @@ from phalanx.core.config import Ros2Config, Scenario
 from phalanx.core.errors import ConfigError
 from phalanx.ros2.graph import attachment, gid_of
 from phalanx.ros2.names import (
+    SUBSCRIPTION,
     TRANSIENT_LOCAL,
     NodeId,
     Qos,
@@ -35,7 +36,7 @@ from phalanx.ros2.names import (
     robot_topic,
     ros_token,
 )
-from phalanx.ros2.topics import fleet_topics
+from phalanx.ros2.topics import fleet_inputs, fleet_topics
 from phalanx.ros2.typestore import type_hash
 
 STRING = "std_msgs/msg/String"
@@ -113,6 +114,27 @@ def test_every_key_and_token_of_the_bridge_follows_rmw_zenohs_rules(wedge: Scena
         assert key[-2:] == [parsed["type"], parsed["hash"]]
 
 
+def test_the_bridges_subscriptions_follow_rmw_zenohs_rules() -> None:
+    cfg = Ros2Config(namespace="lab", domain_id=7)
+    inputs = {t.kind: t for t in fleet_inputs(cfg)}
+    assert {k: (t.name, t.ros_type) for k, t in inputs.items()} == {
+        "cmd_vel": ("/lab/cmd_vel", "geometry_msgs/msg/Twist"),
+        "goal_pose": ("/lab/goal_pose", "geometry_msgs/msg/PoseStamped"),
+    }
+    node = NodeId(7, "0123456789abcdef0123456789abcdef", 0, "/lab", "phalanx_bridge")
+    for entity_id, topic in enumerate(inputs.values(), start=20):
+        token = publisher_token(
+            node, entity_id, topic=topic.name, ros_type=topic.ros_type,
+            type_hash=topic.type_hash, qos=topic.qos, kind=SUBSCRIPTION,
+        )  # fmt: skip
+        parsed = _entity(token)
+        assert (parsed["kind"], parsed["topic"]) == ("MS", topic.name)
+        assert parsed["eid"] == str(entity_id)
+        assert parsed["hash"] == type_hash(topic.ros_type)
+        assert topic.key(7) == f"7/lab/{topic.kind}/{parsed['type']}/{parsed['hash']}"
+    assert fleet_inputs(Ros2Config(inputs=())) == []
+
+
 def test_robot_ids_become_ros_names_and_clashes_are_refused() -> None:
     assert ros_token("r1") == "r1"
     assert ros_token("robot-a") == "robot_a"
@@ -169,10 +191,28 @@ def test_an_independent_implementation_builds_the_same_keys_and_tokens(wedge: Sc
             type_hash=topic.type_hash, qos=topic.qos,
         )  # fmt: skip
         assert token == endpoint_liveliness_keyexpr(endpoint)
+    for entity_id, topic in enumerate(fleet_inputs(cfg), 100):  # what the bridge takes in
+        dds = ros2_to_dds_type(topic.ros_type)
+        assert topic.key(0) == topic_keyexpr(0, topic.name, dds, topic.type_hash)
+        endpoint = EndpointEntity(
+            node=theirs, entity_id=entity_id, kind=EntityKind.SUBSCRIPTION, name=topic.name,
+            dds_type_name=dds, type_hash=topic.type_hash, qos=qos_text(topic.qos),
+        )  # fmt: skip
+        token = publisher_token(
+            ours, entity_id, topic=topic.name, ros_type=topic.ros_type,
+            type_hash=topic.type_hash, qos=topic.qos, kind=SUBSCRIPTION,
+        )  # fmt: skip
+        assert token == endpoint_liveliness_keyexpr(endpoint)
 
 
 @pytest.mark.parametrize(
-    "ros_type", ["std_msgs/msg/String", "geometry_msgs/msg/Twist", "nav_msgs/msg/Odometry"]
+    "ros_type",
+    [
+        "std_msgs/msg/String",
+        "geometry_msgs/msg/Twist",
+        "nav_msgs/msg/Odometry",
+        "geometry_msgs/msg/PoseStamped",
+    ],
 )
 def test_an_independent_rihs01_of_ros_own_definitions_is_ours(
     ros_type: str, msg_folder: Path, sdk_registry: None

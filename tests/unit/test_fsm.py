@@ -135,7 +135,7 @@ CASES: list[tuple[str, str, str, StackContext]] = [
     *_took(S.HOLD),
     *[(s, S.FORMATION_TRACK, "handed the lead on", FOLLOWER)
       for s in (S.NAVIGATE, S.WANDER, S.ARRIVED, S.DEADLOCK_REVERSE, S.DEADLOCK_TURN,
-                S.RESHAPE)],
+                S.RESHAPE, S.TELEOP)],
     *[(S.JOIN, t, "joined the fleet", replace(FOLLOWER, **kw)) for t, kw in LEADS.items()],
     (S.JOIN, S.FORMATION_TRACK, "joined the fleet", FOLLOWER),
     # formation layer
@@ -170,6 +170,15 @@ CASES: list[tuple[str, str, str, StackContext]] = [
     # at the goal mid-slide (or settled, or not): it arrives, the slide ends standing
     *[(S.RESHAPE, S.ARRIVED, "last waypoint reached", replace(LEADER, arrived=True, reshaped=r))
       for r in (False, True)],
+    (S.ARRIVED, S.NAVIGATE, "a new goal", LEADER),
+    # an operator drives the leader, and hands it back to its plan when it stops
+    *[(s, S.TELEOP, "an operator drives the leader", replace(LEADER, operator=True, **kw))
+      for s, kw in ((S.NAVIGATE, {}), (S.WANDER, {"plan": "wander"}),
+                    (S.ARRIVED, {"arrived": True}), (S.DEADLOCK_REVERSE, {}),
+                    (S.DEADLOCK_TURN, {}))],
+    (S.EMERGENCY_STOP, S.TELEOP, "came to a standstill, an operator drives the leader a clear",
+     replace(LEADER, operator=True, way_clear=False)),
+    *_plan(S.TELEOP, "the operator's commands stopped: back to the plan"),
 ]  # fmt: skip
 
 
@@ -244,6 +253,29 @@ def test_mermaid_names_every_state_and_transition() -> None:
         assert state.value in text
     assert text.count(" --> ") >= len(machine.transitions)
     assert "STUCK --> [*]" in text
+
+
+def test_an_operator_outranks_the_plan_and_the_deadlock_but_not_the_stops() -> None:
+    driven = replace(LEADER, operator=True)
+    for ctx, target in (
+        (replace(driven, deadlock=True, retries_left=False), S.TELEOP),  # not STUCK
+        (replace(driven, deadlock=True), S.TELEOP),  # not DEADLOCK_REVERSE
+        (replace(driven, imminent=True), S.EMERGENCY_STOP),
+        (replace(driven, estopped=True), S.ESTOPPED),
+        (replace(driven, is_leader=False, parent_fresh=True), S.FORMATION_TRACK),
+    ):
+        event = behaviour_machine(S.NAVIGATE).update(ctx, 0.0)
+        assert event is not None
+        assert event.target == target, ctx
+    # Stopped for an obstacle, the operator asking that way: it stays stopped, even
+    # with the plan's way clear (the plan would drive it straight back to the operator).
+    stopped = behaviour_machine(S.EMERGENCY_STOP)
+    assert stopped.update(replace(driven, operator_clear=False), 0.0) is None
+    released = stopped.update(replace(driven, operator_clear=True), 1.0)
+    assert released is not None
+    assert released.target == S.TELEOP
+    # A slide between shapes under way finishes before an operator takes over.
+    assert behaviour_machine(S.RESHAPE).update(driven, 0.0) is None
 
 
 def test_the_robots_own_stop_outranks_everything_and_does_not_flap() -> None:

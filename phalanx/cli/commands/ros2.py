@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 from pathlib import Path
@@ -11,7 +12,7 @@ import typer
 
 if TYPE_CHECKING:
     from phalanx.core.config import Ros2Config, Scenario
-    from phalanx.wire.transport import TransportConfig
+    from phalanx.wire.transport import FleetSession, TransportConfig
 
 ScenarioArg = Annotated[
     Path | None,
@@ -43,11 +44,20 @@ def ros2(
         typer.Option("--set", help="Override a scenario field, e.g. --set ros2.domain_id=3."),
     ] = None,
     duration: Annotated[float, typer.Option(help="Stop after this many seconds.")] = math.inf,
+    ros_connect: Annotated[
+        list[str] | None,
+        typer.Option(
+            help="Endpoint of ROS 2's Zenoh router, joined by a session of its own "
+            "(repeatable; default: [ros2] connect; none: ROS 2 on the fleet's session)."
+        ),
+    ] = None,
 ) -> None:
-    """Publish a fleet's robots to ROS 2 over rmw_zenoh's keys (odom, TF, sonar, markers).
+    """Publish a fleet's robots to ROS 2 over rmw_zenoh's keys (odom, TF, sonar, markers),
+    and pass ROS 2's cmd_vel and goal_pose on to the robot that leads.
 
     Give the scenario and the fleet's endpoints (`--connect` the fleet's router and, for
-    ROS 2 tools, rmw_zenoh's router), or a deployment. Stops on Ctrl-C or SIGTERM.
+    ROS 2 tools, rmw_zenoh's router, or `--ros-connect` it), or a deployment. Stops on
+    Ctrl-C or SIGTERM.
     """
     from phalanx.core.config_files import apply_overrides, load_robot, load_scenario
     from phalanx.core.errors import ConfigError
@@ -71,16 +81,27 @@ def ros2(
         config = apply_overrides(config, list(set_), source="--set")
         cfg = config.ros2 if deployment is None else cfg
     stop = stop_on_signals()
-    with open_session(transport) as session:
+    ros_endpoints = tuple(ros_connect or ()) or cfg.connect
+    with contextlib.ExitStack() as stack:
+        session = stack.enter_context(open_session(transport))
+        ros: FleetSession | None = None
+        if ros_endpoints:  # (a peer: it waits for the router, and meets the nodes directly)
+            ros = stack.enter_context(open_session(TransportConfig(connect=ros_endpoints)))
         bridge = Bridge(
-            session, fleet=fleet, scenario=config, robot=load_robot(config.robot), cfg=cfg
+            session, fleet=fleet, scenario=config, robot=load_robot(config.robot), cfg=cfg,
+            ros=ros,
+        )  # fmt: skip
+        typer.echo(
+            f"ros2: node {bridge.node_token}, {len(bridge.topics)} topics out, "
+            f"{len(bridge.inputs)} in",
+            err=True,
         )
-        typer.echo(f"ros2: node {bridge.node_token}, {len(bridge.topics)} topics", err=True)
         bridge.run(stop, duration_s=duration)
     s = bridge.stats
+    refused = f", {sum(s.refused.values())} refused ({s.last_refusal})" if s.refused else ""
     typer.echo(
         f"ros2: {s.rounds} rounds, {sum(s.heard.values())} messages in, "
-        f"{sum(s.sent.values())} out, {s.cpu_s:.2f} s CPU",
+        f"{sum(s.sent.values())} out{refused}, {s.cpu_s:.2f} s CPU",
         err=True,
     )
 
