@@ -320,6 +320,7 @@ STATE_ROWS = (
     State.DEADLOCK_TURN,
     State.DEADLOCK_REVERSE,
     State.RESHAPE,
+    State.TELEOP,
     State.WANDER,
     State.NAVIGATE,
     State.AVOID,

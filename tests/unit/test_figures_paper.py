@@ -15,9 +15,11 @@ from matplotlib.legend import Legend
 from typer.testing import CliRunner
 
 from phalanx.analysis import figures
+from phalanx.analysis.figures import STATE_ROWS
 from phalanx.cli import app
 from phalanx.core.config_files import CONFIG_ROOT, load_scenario
 from phalanx.core.runlog import RunLog
+from phalanx.core.states import State
 from phalanx.runtime.batch import run_batch
 
 SCENARIOS = ("paper_wedge", "paper_inline")
@@ -204,3 +206,8 @@ def test_save_figure_refuses_an_absurd_dpi(tmp_path: Path) -> None:
     fig = plt.figure()
     with pytest.raises(ValueError, match="dpi"):
         figures.save_figure(fig, tmp_path / "x.png", dpi=100_000)
+
+
+def test_figure_4b_has_a_row_for_every_behaviour_state() -> None:
+    assert sorted(STATE_ROWS) == sorted(State)  # a new state gets its place, not the top
+    assert len(set(STATE_ROWS)) == len(STATE_ROWS)
