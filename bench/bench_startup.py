@@ -26,23 +26,13 @@ import tempfile
 import time
 from pathlib import Path
 
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "lab"))
+
 from calibration import Calibration, load
+from heavy_imports import HEAVY
 
 REPO = Path(__file__).resolve().parents[1]
 SCENARIO = REPO / "configs" / "scenarios" / "paper_wedge.toml"
-# What a command should import only when it needs it.
-HEAVY = (
-    "numpy",
-    "pydantic",
-    "rich",
-    "rerun",
-    "matplotlib",
-    "cryptography",
-    "dask",
-    "distributed",
-    "zenoh",
-    "rosbags",
-)
 
 
 def commands(out: Path) -> dict[str, list[str]]:

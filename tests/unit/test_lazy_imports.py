@@ -12,22 +12,10 @@ import subprocess
 import sys
 from pathlib import Path
 
+from heavy_imports import HEAVY, WORK_LIBRARIES
+
 REPO = Path(__file__).resolve().parents[2]
 WEDGE = REPO / "configs" / "scenarios" / "paper_wedge.toml"
-# What a command's work needs, and nothing before it: plotting, recording, certificates,
-# a cluster, the middleware, ROS bags.
-WORK_LIBRARIES = (
-    "matplotlib",
-    "rerun",
-    "cryptography",
-    "dask",
-    "distributed",
-    "zenoh",
-    "rosbags",
-    "scipy",
-)
-# Also left out of the import and the top-level help: arrays, models, rich text.
-HEAVY = (*WORK_LIBRARIES, "numpy", "pydantic", "rich")
 # A fresh interpreter runs `work`, then prints the heavy libraries it has loaded.
 PROBE = """
 import json, sys
