@@ -57,6 +57,7 @@ PHASES: tuple[tuple[str, tuple[str, ...]], ...] = (
             "phalanx.agents.navigation.fleet_map:FleetMap.add",
             "phalanx.agents.navigation.route:RoutePlanner.see",
             "phalanx.agents.navigation.grid:OccupancyMap.update",
+            "phalanx.agents.navigation.grid:OccupancyMap.update_many",
         ),
     ),
     (

@@ -11,11 +11,11 @@ and each scan is added once). A prior map (`phalanx.core.mapfile`) is where it s
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator
 
 import numpy as np
 
-from phalanx.agents.navigation.grid import OccupancyMap
+from phalanx.agents.navigation.grid import OccupancyMap, Reading
 from phalanx.agents.perception import BoolArray, FloatArray, SonarGeometry
 from phalanx.core.geometry import Pose2D, Vec2
 from phalanx.core.mapfile import GridMap
@@ -45,11 +45,16 @@ class FleetMap:
         """Add the scans not added yet (oldest first, then in the formation's order)."""
         fresh = [s for s in scans if s.stamp_s > self.added.get(s.robot_id, -np.inf) and s.ranges_m]
         fresh.sort(key=lambda s: (s.stamp_s, self.rank.get(s.robot_id, len(self.rank))))
+        self.map.update_many(self.sonar, self._readings(fresh))
+
+    def _readings(self, fresh: list[Scan]) -> Iterator[Reading]:
+        """The scans as the map's readings, each counted as added once the map has taken
+        it (as it asks for the next one; one it fails on is not).
+        """
         for scan in fresh:
             if scan.stamp_s <= self.added.get(scan.robot_id, -np.inf):
                 continue  # (two of one robot in one batch: the first counts)
-            echo = np.asarray(scan.echo, dtype=bool)
-            self.map.update(scan.pose, self.sonar, scan.ranges_m, echo)
+            yield scan.pose, scan.ranges_m, np.asarray(scan.echo, dtype=bool)
             self.added[scan.robot_id] = scan.stamp_s
             self.scans_added += 1
 
@@ -62,6 +67,7 @@ def scan_of(robot_id: str, t_s: float, pose: Pose2D, ranges: FloatArray, echo: B
         pose.x_m,
         pose.y_m,
         pose.theta_rad,
-        tuple(float(r) for r in np.asarray(ranges, dtype=np.float64).tolist()),
-        tuple(bool(e) for e in np.asarray(echo, dtype=bool).tolist()),
+        # (`tolist` gives Python floats and bools)
+        tuple(np.asarray(ranges, dtype=np.float64).tolist()),
+        tuple(np.asarray(echo, dtype=bool).tolist()),
     )

@@ -15,8 +15,9 @@ The reactive layer (`phalanx.agents.navigation.steering`) still decides the actu
 
 from __future__ import annotations
 
+import functools
 import math
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from typing import Any
 
 import numpy as np
@@ -28,6 +29,8 @@ from phalanx.core.mapfile import FREE, UNKNOWN, GridMap
 from phalanx.core.mapfile import OCCUPIED as OCCUPIED_CELL
 
 FloatArray = npt.NDArray[np.float64]
+# A sonar reading to add: where it was taken, its ranges (m), its echoes (None: every one).
+Reading = tuple[Pose2D, Sequence[float] | FloatArray, BoolArray | None]
 CELL_M = 0.5
 HALF_SIZE_M = 40.0
 HIT = 3  # evidence added by an echo, capped at MAX_EVIDENCE; a free sighting takes 1
@@ -37,8 +40,11 @@ FREE_REACH_M = 3.0  # a max-range reading clears its ray this far (specular miss
 MAP_RANGE_M = 3.0  # echoes further than this are not marked (too vague a place)
 PLAN_MARGIN_M = 10.0
 MAX_PATH_CELLS = 400
+SIGHT_BATCH = 16  # route points looked at together for the furthest in sight
 NEAR_COST = 4.0  # a cell near an obstacle costs this many free ones
 UNREACHABLE = 1e9
+_STRAIGHT, _DIAGONAL = math.hypot(0, 1), math.hypot(1, 1)  # a move's length (cells)
+_ARC_OFFSETS = np.array([[-1.0], [0.0], [1.0]])  # edge, centre, edge of a beam
 _MOVES = tuple((dy, dx, math.hypot(dy, dx)) for dy in (-1, 0, 1) for dx in (-1, 0, 1) if dy or dx)
 
 
@@ -82,47 +88,99 @@ class OccupancyMap:
         """Add one reading taken at `pose`: the echoes `echo` marks (`sonar.echoes`: the
         formation's robots left out), every echo if not given.
         """
-        ranges = np.asarray(ranges_m, dtype=np.float64)
-        units = sonar.unit_x_m.size
-        if ranges.size < units:
-            return
-        r = ranges[:units]
-        if echo is None:
-            echo = sonar.echoes(ranges)
-        c, s = math.cos(pose.theta_rad), math.sin(pose.theta_rad)
-        ox = pose.x_m + c * sonar.unit_x_m - s * sonar.unit_y_m
-        oy = pose.y_m + s * sonar.unit_x_m + c * sonar.unit_y_m
-        heading = pose.theta_rad + sonar.unit_heading_rad
-        self._see_free(ox, oy, heading, np.where(echo, r - self.cell_m, FREE_REACH_M))
-        near = echo & (r < MAP_RANGE_M)  # far echoes are too vague to remember
-        half = np.minimum(sonar.half_beam_rad, np.arctan2(ARC_SPREAD_M, np.maximum(r, 1e-6)))
-        for offset in (-1.0, 0.0, 1.0):
-            angle = heading + offset * half
-            hx, hy = ox + r * np.cos(angle), oy + r * np.sin(angle)
-            self._add(hx[near], hy[near], HIT)
+        self.update_many(sonar, [(pose, ranges_m, echo)])
 
-    def _see_free(
-        self, ox: FloatArray, oy: FloatArray, heading: FloatArray, reach: FloatArray
+    def update_many(self, sonar: SonarGeometry, readings: Iterable[Reading]) -> None:
+        """`update` with each reading (pose, ranges, echoes) in turn, worked out together.
+        One that raises (its echoes do not fit its ranges) leaves those before it added.
+        """
+        taken: list[tuple[Pose2D, FloatArray, BoolArray]] = []
+        units = sonar.unit_x_m.size
+        try:
+            for pose, ranges_m, echo in readings:
+                ranges = np.asarray(ranges_m, dtype=np.float64)
+                if ranges.size < units:
+                    continue
+                r = ranges[:units]
+                if echo is None:
+                    echo = sonar.echoes(ranges)
+                elif not (isinstance(echo, np.ndarray) and echo.shape == r.shape):
+                    echo = np.broadcast_to(echo, r.shape)
+                taken.append((pose, r, echo))
+        finally:
+            if taken:
+                self._add_readings(sonar, taken)
+
+    def _add_readings(
+        self, sonar: SonarGeometry, readings: Sequence[tuple[Pose2D, FloatArray, BoolArray]]
     ) -> None:
+        """Each reading's rays seen free, then its echoes, reading after reading (the
+        cells of all of them found in one pass).
+        """
+        rays = [_sonar_rays(pose, sonar) for pose, _, _ in readings]
+        ox, oy, heading = (_rows([ray[i] for ray in rays]) for i in range(3))
+        r = _rows([reading[1] for reading in readings])
+        echo = _rows([reading[2] for reading in readings])
+        free_x, free_y, free_counts = self._free_points(
+            ox, oy, heading, np.where(echo, r - self.cell_m, FREE_REACH_M)
+        )
+        near = echo & (r < MAP_RANGE_M)  # far echoes are too vague to remember
+        arc_x, arc_y = _arc_points(sonar, (ox, oy, heading), r, near)
+        cells = self._cells(np.concatenate((free_x, arc_x)), np.concatenate((free_y, arc_y)))
+        free_cells, arc_cells = cells[: free_x.size], cells[free_x.size :]
+        free_at = arc_at = 0
+        for free_count, echoes in zip(free_counts.tolist(), near.sum(axis=1).tolist(), strict=True):
+            marked = free_cells[free_at : free_at + free_count]
+            self._mark(marked[marked >= 0], -1)
+            free_at += free_count
+            # each echo marks its beam's right edge, centre and left edge at its range,
+            # one after the other (a cell two of them fall in gains twice)
+            for _ in _ARC_OFFSETS:
+                marked = arc_cells[arc_at : arc_at + echoes]
+                self._mark(marked[marked >= 0], HIT)
+                arc_at += echoes
+        self.seen.reshape(-1)[cells[cells >= 0]] = True
+
+    def _free_points(
+        self, ox: FloatArray, oy: FloatArray, heading: FloatArray, reach: FloatArray
+    ) -> tuple[FloatArray, FloatArray, npt.NDArray[np.intp]]:
+        """Points every half cell along each ray from (ox, oy) short of its `reach`, and
+        how many of them each reading (row) has.
+        """
         steps = np.arange(0.0, float(reach.max(initial=0.0)), self.cell_m / 2)
-        if steps.size == 0:
-            return
-        along = steps[None, :]
-        mask = along < reach[:, None]
-        x = (ox[:, None] + along * np.cos(heading)[:, None])[mask]
-        y = (oy[:, None] + along * np.sin(heading)[:, None])[mask]
-        self._add(x, y, -1)
+        along = steps[None, None, :]
+        mask = along < reach[:, :, None]
+        x = (ox[:, :, None] + along * np.cos(heading)[:, :, None])[mask]
+        y = (oy[:, :, None] + along * np.sin(heading)[:, :, None])[mask]
+        return x, y, mask.sum(axis=(1, 2))
 
     def _add(self, x: FloatArray, y: FloatArray, amount: int) -> None:
-        row, col, inside = self.index(x, y)
-        keep = inside.astype(bool)
-        row, col = row[keep], col[keep]
-        if row.size == 0:
-            return
-        cells = np.unique(row * self.cells + col)
-        flat = self.evidence.reshape(-1)
-        flat[cells] = np.clip(flat[cells].astype(np.int16) + amount, 0, MAX_EVIDENCE)
+        """Add `amount` to the evidence of every cell holding one of the points (once a
+        cell, however many fall in it; clipped to 0 to `MAX_EVIDENCE`), and mark it seen.
+        """
+        cells = self._cells(x, y)
+        cells = cells[cells >= 0]
+        self._mark(cells, amount)
         self.seen.reshape(-1)[cells] = True
+
+    def _cells(self, x: FloatArray, y: FloatArray) -> npt.NDArray[np.intp]:
+        """Flat index of the cell each world point lies in, -1 for one off the grid
+        (`index`, as one number).
+        """
+        n = self.cells
+        col = np.floor((x - self.x0_m) / self.cell_m).astype(np.intp)
+        row = np.floor((y - self.y0_m) / self.cell_m).astype(np.intp)
+        # (a negative index, seen unsigned, is past the grid's end too)
+        inside = (col.view(np.uintp) < n) & (row.view(np.uintp) < n)
+        return np.where(inside, row * n + col, -1)
+
+    def _mark(self, cells: npt.NDArray[np.intp], amount: int) -> None:
+        """Add `amount` to the evidence of `cells` (flat indices), clipped to 0 to
+        `MAX_EVIDENCE`: a cell listed twice gets it once (both writes are of the value
+        read before either).
+        """
+        flat = self.evidence.reshape(-1)
+        flat[cells] = _added(amount)[flat[cells].view(np.uint8)]
 
     def load_prior(self, prior: GridMap) -> None:
         """Start from a known map: a cell holding any of its occupied cells is occupied
@@ -190,7 +248,7 @@ class OccupancyMap:
             round_start = (rows - r0) ** 2 + (cols - c0) ** 2 <= reach * reach
             blocked &= ~round_start | occupied  # where it stands it may move off from
         blocked[r0, c0] = False  # the robot's own cell: it is where it is
-        dist = _wavefront(blocked, cost, rg, cg)
+        dist = _wavefront(blocked, cost, rg, cg, start=(r0, c0))
         if dist[r0, c0] >= UNREACHABLE:
             return None
         length_m = float(dist[r0, c0]) * self.cell_m
@@ -200,10 +258,7 @@ class OccupancyMap:
             path.append(_downhill(dist, *path[-1]))
         points = [self.centre(r + offset[0], c + offset[1]) for r, c in path[1:]] + [goal]
         minimum = min(len(points) - 1, max(0, round(ahead_m / self.cell_m) - 1))
-        for point in reversed(points[minimum:]):
-            if self._in_sight(start, point, blocked, offset):
-                return point, length_m
-        return points[minimum], length_m
+        return self._furthest_in_sight(start, points[minimum:], blocked, offset), length_m
 
     def clear_within(self, point: Vec2, radius_m: float) -> bool:
         """Whether no cell within `radius_m` of `point` is believed occupied."""
@@ -220,17 +275,45 @@ class OccupancyMap:
         near = np.hypot(x - point.x_m, y - point.y_m) - self.cell_m / 2
         return bool((near >= radius_m).all())
 
+    def _furthest_in_sight(
+        self,
+        a: Vec2,
+        points: Sequence[Vec2],
+        blocked: npt.NDArray[np.bool_],
+        offset: tuple[int, int],
+    ) -> Vec2:
+        """The last of `points` in sight from `a` (`_in_sight`), the first if none is;
+        looked for from the end, `SIGHT_BATCH` at a time.
+        """
+        for end in range(len(points), 0, -SIGHT_BATCH):
+            batch = points[max(0, end - SIGHT_BATCH) : end]
+            seen = np.flatnonzero(self._in_sight(a, batch, blocked, offset))
+            if seen.size:
+                return batch[int(seen[-1])]
+        return points[0]
+
     def _in_sight(
-        self, a: Vec2, b: Vec2, blocked: npt.NDArray[np.bool_], offset: tuple[int, int]
-    ) -> bool:
-        """Whether the segment a-b crosses only free cells of `blocked` (a window)."""
-        steps = max(2, math.ceil((b - a).norm() / (self.cell_m / 2)))
-        f = np.linspace(0.0, 1.0, steps)
-        row, col, _ = self.index(a.x_m + f * (b.x_m - a.x_m), a.y_m + f * (b.y_m - a.y_m))
+        self,
+        a: Vec2,
+        ends: Sequence[Vec2],
+        blocked: npt.NDArray[np.bool_],
+        offset: tuple[int, int],
+    ) -> npt.NDArray[np.bool_]:
+        """Whether each segment from `a` to one of `ends` crosses only free cells of
+        `blocked` (a window at `offset`), sampled every half cell.
+        """
+        across = [(b.x_m - a.x_m, b.y_m - a.y_m) for b in ends]
+        samples = [max(2, math.ceil(math.hypot(*d) / (self.cell_m / 2))) for d in across]
+        f = np.concatenate([_fractions(n) for n in samples])
+        dx, dy = np.repeat(np.array(across), samples, axis=0).T
+        row, col, _ = self.index(a.x_m + f * dx, a.y_m + f * dy)
         row, col = row - offset[0], col - offset[1]
         h, w = blocked.shape
         inside = (row >= 0) & (row < h) & (col >= 0) & (col < w)
-        return bool(inside.all()) and not bool(blocked[row, col].any())
+        clear = inside & ~blocked[np.where(inside, row, 0), np.where(inside, col, 0)]
+        starts = np.cumsum([0, *samples[:-1]])
+        sight: npt.NDArray[np.bool_] = np.logical_and.reduceat(clear, starts)
+        return sight
 
     def _window(self, a: Vec2, b: Vec2) -> tuple[slice, slice]:
         xs, ys = (a.x_m, b.x_m), (a.y_m, b.y_m)
@@ -238,14 +321,63 @@ class OccupancyMap:
             np.array([min(xs) - PLAN_MARGIN_M, max(xs) + PLAN_MARGIN_M]),
             np.array([min(ys) - PLAN_MARGIN_M, max(ys) + PLAN_MARGIN_M]),
         )
-        clip = np.clip
-        rows = slice(int(clip(row[0], 0, self.cells)), int(clip(row[1] + 1, 0, self.cells)))
-        cols = slice(int(clip(col[0], 0, self.cells)), int(clip(col[1] + 1, 0, self.cells)))
+        n = self.cells  # (clamped in Python: np.clip costs more than the rest)
+        rows = slice(min(max(int(row[0]), 0), n), min(max(int(row[1]) + 1, 0), n))
+        cols = slice(min(max(int(col[0]), 0), n), min(max(int(col[1]) + 1, 0), n))
         return rows, cols
 
     def _cell(self, p: Vec2, window: tuple[slice, slice]) -> tuple[int, int]:
         row, col, _ = self.index(np.array([p.x_m]), np.array([p.y_m]))
         return int(row[0]) - window[0].start, int(col[0]) - window[1].start
+
+
+def _sonar_rays(pose: Pose2D, sonar: SonarGeometry) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Where each transducer is at `pose` (world frame, m) and which way it looks (rad)."""
+    c, s = math.cos(pose.theta_rad), math.sin(pose.theta_rad)
+    ox = pose.x_m + c * sonar.unit_x_m - s * sonar.unit_y_m
+    oy = pose.y_m + s * sonar.unit_x_m + c * sonar.unit_y_m
+    return ox, oy, pose.theta_rad + sonar.unit_heading_rad
+
+
+def _arc_points(
+    sonar: SonarGeometry, rays: tuple[FloatArray, ...], r: FloatArray, near: BoolArray
+) -> tuple[FloatArray, FloatArray]:
+    """Where the `near` echoes mark their beams' right edge, centre and left edge (in that
+    order per reading, the readings rows of `r` and of the `rays` (x, y, heading)).
+    """
+    if not near.any():
+        return np.empty(0), np.empty(0)
+    ox, oy, heading = (a[:, None, :] for a in rays)
+    half = np.minimum(sonar.half_beam_rad, np.arctan2(ARC_SPREAD_M, np.maximum(r, 1e-6)))
+    angle = heading + _ARC_OFFSETS * half[:, None, :]
+    arcs = np.broadcast_to(near[:, None, :], angle.shape)
+    x = (ox + r[:, None, :] * np.cos(angle))[arcs]
+    y = (oy + r[:, None, :] * np.sin(angle))[arcs]
+    return x, y
+
+
+def _rows(arrays: Sequence[npt.NDArray[Any]]) -> npt.NDArray[Any]:
+    """The arrays as the rows of one (a view of the only one)."""
+    return arrays[0][None] if len(arrays) == 1 else np.stack(arrays)
+
+
+@functools.lru_cache(maxsize=16)
+def _added(amount: int) -> npt.NDArray[np.int8]:
+    """Evidence after adding `amount`, clipped to 0 to `MAX_EVIDENCE`, for every value
+    (indexed by its byte: shared, never written).
+    """
+    before = np.arange(256, dtype=np.uint8).view(np.int8).astype(np.int16)
+    after = np.clip(before + amount, 0, MAX_EVIDENCE).astype(np.int8)
+    after.flags.writeable = False
+    return after
+
+
+@functools.lru_cache(maxsize=512)
+def _fractions(samples: int) -> FloatArray:
+    """`samples` fractions from 0 to 1 evenly (shared: never written)."""
+    f = np.linspace(0.0, 1.0, samples)
+    f.flags.writeable = False
+    return f
 
 
 def _cells_within(distance_m: float, cell_m: float) -> int:
@@ -284,13 +416,72 @@ def _grow(occupied: npt.NDArray[np.bool_], cells: int) -> npt.NDArray[np.bool_]:
     return grown
 
 
-def _wavefront(blocked: npt.NDArray[np.bool_], cost: FloatArray, row: int, col: int) -> FloatArray:
+def _wavefront(
+    blocked: npt.NDArray[np.bool_],
+    cost: FloatArray,
+    row: int,
+    col: int,
+    *,
+    start: tuple[int, int] | None = None,
+) -> FloatArray:
     """Cost to reach (row, col) from every free cell: 8-connected moves, each costing its
-    length (in cells) times the cost of the cell moved into.
+    length (in cells) times the cost of the cell moved into; UNREACHABLE where no way is.
+
+    Dijkstra's order a bucket at a time: the cells within the cheapest move of the least
+    cost not final yet are final together (no way through another comes in under them),
+    and a bucket is one numpy pass over the cells next to it. With `start`, it stops once
+    `start`'s cost is final: every cell no costlier is final then, and every other is
+    left above it (all `_downhill` from `start` reads). The costs are `_relaxed`'s, float
+    for float: each is the least over the ways of the same sums in the same order.
+    """
+    cheapest = float(cost[~blocked].min(initial=np.inf))  # (the straight move's)
+    if not 0.0 < cheapest < math.inf:
+        return _relaxed(blocked, cost, row, col)
+    h, w = blocked.shape
+    wide, size = w + 2, (h + 2) * (w + 2)  # a border of closed cells: no bounds to check
+    into = np.full((2, h + 2, w + 2), np.inf)  # a move's cost into a cell: straight, diagonal
+    free = ~blocked
+    into[0, 1:-1, 1:-1][free] = (_STRAIGHT * cost)[free]
+    into[1, 1:-1, 1:-1][free] = (_DIAGONAL * cost)[free]
+    moves = np.array([dy * wide + dx for dy, dx, _ in _MOVES])
+    into_moves = moves + size * np.array([dy * dx != 0 for dy, dx, _ in _MOVES])
+    costs, into_flat = np.full(size, UNREACHABLE), into.reshape(-1)
+    pending = np.full(size, np.inf)  # the cost of a cell reached, not final yet
+    goal = (row + 1) * wide + col + 1
+    costs[goal] = pending[goal] = 0.0
+    until = -1 if start is None else (start[0] + 1) * wide + start[1] + 1
+    while (least := float(np.minimum.reduce(pending))) < math.inf:
+        bound = least + cheapest
+        if until >= 0 and costs[until] < bound:
+            break
+        bucket = (pending < bound).nonzero()[0]
+        pending[bucket] = np.inf
+        offered = costs[bucket][:, None] + into_flat[bucket[:, None] + into_moves]
+        reached = bucket[:, None] + moves
+        better = offered < costs[reached]
+        reached, offered = reached[better], offered[better]
+        np.minimum.at(costs, reached, offered)
+        pending[reached] = costs[reached]
+    dist = costs.reshape(h + 2, w + 2)[1:-1, 1:-1]
+    ends = dist[start] if start is not None else dist
+    furthest = float(np.max(ends, where=ends < UNREACHABLE, initial=0.0))
+    if furthest >= (_sweeps(blocked) - 1) * cheapest:
+        return _relaxed(blocked, cost, row, col)  # a way too long for its sweeps to reach
+    return dist
+
+
+def _sweeps(blocked: npt.NDArray[np.bool_]) -> int:
+    """How many sweeps `_relaxed` makes at most."""
+    return 8 * sum(blocked.shape)
+
+
+def _relaxed(blocked: npt.NDArray[np.bool_], cost: FloatArray, row: int, col: int) -> FloatArray:
+    """`_wavefront` by relaxing every cell at once until nothing changes (or `_sweeps`
+    times: a cell more moves than that from (row, col) keeps the best it had by then).
     """
     dist = np.full(blocked.shape, UNREACHABLE)
     dist[row, col] = 0.0
-    for _ in range(8 * sum(blocked.shape)):
+    for _ in range(_sweeps(blocked)):
         best = dist
         for dy, dx, step in _MOVES:
             best = np.minimum(best, _shift_cost(dist, dy, dx) + step * cost)

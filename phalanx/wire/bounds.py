@@ -53,6 +53,10 @@ class FleetBounds:
     t_max_s: float
     dt_s: float
     ticks: int
+    # Transducers in each robot's sonar ring (0: not known, not checked). The fleet's
+    # map reads every scan with its own robot's ring, so a scan of another length is
+    # no scan of this fleet.
+    sonars: int = 0
 
     @classmethod
     def of(cls, scenario: Scenario, robot: RobotParams) -> FleetBounds:
@@ -65,44 +69,46 @@ class FleetBounds:
             t_max_s=ticks * scenario.dt_s + 1.0,
             dt_s=scenario.dt_s,
             ticks=ticks,
+            sonars=len(robot.sonar.units),
         )
 
 
-def _bounds(info: ValidationInfo) -> FleetBounds | None:
+def fleet_bounds(info: ValidationInfo) -> FleetBounds | None:
+    """The fleet's bounds a message is validated against, if the decoder was given them."""
     context = info.context
     return context if isinstance(context, FleetBounds) else None
 
 
 def _fleet_member(value: str, info: ValidationInfo) -> str:
-    bounds = _bounds(info)
+    bounds = fleet_bounds(info)
     if bounds is not None and value and value not in bounds.robot_ids:
         raise ValueError(f"{value!r} is not a robot of this fleet")
     return value
 
 
 def _within_rating_v(value: float, info: ValidationInfo) -> float:
-    bounds = _bounds(info)
+    bounds = fleet_bounds(info)
     if bounds is not None and abs(value) > bounds.v_max_mps:
         raise ValueError(f"{value} m/s is beyond the robots' rating")
     return value
 
 
 def _within_rating_w(value: float, info: ValidationInfo) -> float:
-    bounds = _bounds(info)
+    bounds = fleet_bounds(info)
     if bounds is not None and abs(value) > bounds.omega_max_radps:
         raise ValueError(f"{value} rad/s is beyond the robots' rating")
     return value
 
 
 def _within_run(value: float, info: ValidationInfo) -> float:
-    bounds = _bounds(info)
+    bounds = fleet_bounds(info)
     if bounds is not None and value > bounds.t_max_s:
         raise ValueError(f"fleet time {value} s is past the run's end ({bounds.t_max_s} s)")
     return value
 
 
 def _within_ticks(value: int, info: ValidationInfo) -> int:
-    bounds = _bounds(info)
+    bounds = fleet_bounds(info)
     if bounds is not None and value > bounds.ticks:
         raise ValueError(f"tick {value} is past the run's last ({bounds.ticks})")
     return value

@@ -48,7 +48,7 @@ from phalanx.wire.bounds import (
     Tick,
     UnixStamp,
     YawRate,
-    _bounds,
+    fleet_bounds,
 )
 
 WIRE_VERSION: Final = 1
@@ -334,7 +334,7 @@ class SenseFrame(Message):
         # world's (the run's clock would jump to wherever it says).
         if abs(self.t_s - self.tick * self.dt_s) > 1e-6 * max(1.0, self.t_s):
             raise ValueError(f"t_s {self.t_s} is not tick {self.tick} x dt_s {self.dt_s}")
-        bounds = _bounds(info)
+        bounds = fleet_bounds(info)
         if bounds is not None and abs(self.dt_s - bounds.dt_s) > 1e-9:
             raise ValueError(f"dt_s {self.dt_s} is not the run's {bounds.dt_s}")
         ids = [p.robot_id for p in self.peers]  # (a state of this tick is none heard yet)
@@ -361,9 +361,14 @@ class ScanMessage(Message):
     echo: tuple[bool, ...] = Field(max_length=MAX_SONARS)
 
     @model_validator(mode="after")
-    def _an_echo_flag_per_range(self) -> Self:
+    def _an_echo_flag_per_range(self, info: ValidationInfo) -> Self:
         if len(self.echo) != len(self.ranges_m):
             raise ValueError(f"{len(self.echo)} echo flags for {len(self.ranges_m)} ranges")
+        bounds = fleet_bounds(info)
+        if bounds is not None and bounds.sonars and len(self.ranges_m) not in (0, bounds.sonars):
+            raise ValueError(
+                f"{len(self.ranges_m)} ranges from a fleet whose robots have {bounds.sonars} sonars"
+            )
         return self
 
     @classmethod

@@ -30,6 +30,8 @@ from receivers import (
 )
 
 from phalanx.core.runlog import ESTIMATE_POSE, SIMULATED_POSE
+from phalanx.wire.codec import encode
+from phalanx.wire.messages import ScanMessage
 
 FUZZ_EXAMPLES = int(os.environ.get("PHALANX_FUZZ_EXAMPLES", "150"))
 AGENT_KEYS = ("agent/flags", "agent/state", "agent/sense", "agent/operator")
@@ -127,3 +129,22 @@ def test_no_payload_crashes_the_launcher(key: str) -> None:
     launcher: Any = LauncherUnderTest()
     assert sweep(launcher, key)
     assert campaign(launcher, key, FUZZ_EXAMPLES, seed=zlib.crc32(key.encode()))
+
+
+def test_a_scan_of_another_ring_than_the_fleets_is_dropped_and_counted() -> None:
+    """The map reads every robot's scan with its own robot's ring (16 sonars): a scan
+    of 24 ranges, each with its echo flag, is well formed but no scan of this fleet. It
+    is dropped and counted; the agent steps on, and takes the next scan of 16."""
+    agent = AgentUnderTest(navigating=True)
+    _, key, _ = agent.keys()["agent/scan"]
+    for ring, taken in ((24, False), (16, True)):
+        scan = ScanMessage(
+            robot_id="r1", stamp_s=agent.t_s, x_m=0.0, y_m=0.0, theta_rad=0.0,
+            ranges_m=(2.0,) * ring, echo=(True,) * ring,
+        )  # fmt: skip
+        dropped, heard, steps = agent.session.stats.dropped, agent.runtime.scans.heard, agent.steps
+        agent.inject(key, encode(scan))
+        agent.step()
+        assert agent.steps == steps + 1
+        assert agent.session.stats.dropped == dropped + (not taken)
+        assert agent.runtime.scans.heard == heard + taken
