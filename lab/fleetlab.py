@@ -191,7 +191,10 @@ class Fleet:
         """A client session on the fleet's router, watching states and announcements."""
         from phalanx.wire.messages import LeaderAnnouncement, RobotState
 
-        session = open_session(TransportConfig(mode="client", connect=(self.endpoint,)))
+        # (the world's router comes up once its process has imported phalanx, which takes
+        # a loaded machine far longer than the session's default 15 s)
+        config = TransportConfig(mode="client", connect=(self.endpoint,), open_timeout_s=60.0)
+        session = open_session(config)
         session.subscribe(robots_key(self.fleet, "state"), RobotState, self.watch.on_state)
         session.subscribe(leader_key(self.fleet), LeaderAnnouncement, self.watch.on_announcement)
         self.session = session

@@ -3,13 +3,14 @@
 It joins the fleet's Zenoh fabric and only reads phalanx's keys: every robot's `state`
 (pose, the twist it drives, its behaviour state, who leads), and for the sonar its
 `scan` (a navigating robot's echoes) and `sense` frames (a simulated robot's ring). What
-arrives waits in bounded rings (Zenoh's threads only append bytes); `rate_hz` times a
-second a round takes the newest of each robot and publishes, on the same session, in
-rmw_zenoh's key space (`phalanx.ros2.topics`): odometry, the command, TF, the behaviour
-state (when it changes, and once a second), the sonar ring, and once a second the
-formation's slots (laid out from the formation leader's pose) with the world's
-obstacles. `/tf_static` (every robot's sonar mounts) goes out once, from a cache late
-subscribers query.
+arrives waits in Zenoh's own bounded rings (`_Inbox`: no Python runs on Zenoh's
+threads); `rate_hz` times a second a round decodes it, takes the newest of each robot
+and publishes in rmw_zenoh's key space (`phalanx.ros2.topics`): odometry, the command,
+TF, the behaviour state (when it changes, and once a second), the sonar ring, and once
+a second the formation's slots (laid out from the formation leader's pose) with the
+world's obstacles. `/tf_static` (every robot's sonar mounts) goes out once, from a cache
+late subscribers query. Each robot's messages are built once and refilled every round
+(`RobotMessages`), and each type's CDR serialiser is looked up once (`CdrWriter`).
 
 The other way, it subscribes to `cmd_vel` and `goal_pose` in the fleet's namespace
 (`[ros2] inputs`) with rmw_zenoh's subscription tokens: each round, the newest twist
@@ -30,7 +31,7 @@ import time
 from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Generic, TypeVar
 
 from pydantic import ValidationError
 
@@ -40,18 +41,26 @@ from phalanx.core.geometry import Pose2D, Twist2D, Vec2
 from phalanx.core.robot_params import RobotParams
 from phalanx.core.scenarios import resolve_world
 from phalanx.ros2.graph import RosNode, RosPublisher, RosSubscription
-from phalanx.ros2.messages import RosMessages, planar_twist, sonar_mounts, stamped_position
-from phalanx.ros2.names import fleet_namespace, robot_frame
+from phalanx.ros2.messages import (
+    FleetMarkers,
+    RobotMessages,
+    RosMessages,
+    planar_twist,
+    sonar_mounts,
+    stamped_position,
+)
+from phalanx.ros2.names import fleet_namespace
 from phalanx.ros2.topics import fleet_inputs, fleet_topics
-from phalanx.ros2.typestore import from_cdr, to_cdr
+from phalanx.ros2.typestore import CdrWriter, cdr_writer, from_cdr
 from phalanx.wire.bounds import MAX_EXTENT_M, FleetBounds
-from phalanx.wire.delivery import Polled
+from phalanx.wire.delivery import deliver
 from phalanx.wire.keys import robot_key, robots_key
-from phalanx.wire.messages import OperatorCommand, RobotState, ScanMessage, SenseFrame
+from phalanx.wire.messages import Message, OperatorCommand, RobotState, ScanMessage, SenseFrame
 from phalanx.wire.transport import FleetSession
 
 SLOW_PERIOD_S = 1.0  # the behaviour state's heartbeat and the markers' period
 RING_PER_ROBOT = 8  # messages of one kind a robot may have waiting between two rounds
+M = TypeVar("M", bound=Message)
 
 
 @dataclass
@@ -74,6 +83,7 @@ class BridgeStats:
 class _Robot:
     """What the bridge holds of one robot between rounds."""
 
+    messages: RobotMessages
     state: RobotState | None = None
     fresh: bool = False
     said: str = ""  # the behaviour state last published
@@ -95,10 +105,17 @@ class Bridge:
         ids = [r.id for r in scenario.robots]
         self.topics = fleet_topics(cfg, ids)
         self.inputs = fleet_inputs(cfg)
-        self._robots = {rid: _Robot() for rid in ids}
         self._msgs = RosMessages(cfg.distro)
+        self._robots = {
+            rid: _Robot(RobotMessages(self._msgs, rid, map_frame=cfg.map_frame, sonar=robot.sonar))
+            for rid in ids
+        }
         self._formation = scenario_formation(scenario)
-        self._world = resolve_world(scenario.world)
+        self._markers = FleetMarkers(
+            self._msgs, cfg.map_frame, slots=len(self._formation.positions),
+            radius_m=robot.radius_m, world=resolve_world(scenario.world),
+        )  # fmt: skip
+        self._tf = self._msgs.transforms(0.0, [])
         self._session, self._fleet = session, fleet
         node = RosNode(
             ros or session, domain_id=cfg.domain_id, namespace=fleet_namespace(cfg), name=cfg.node
@@ -106,31 +123,25 @@ class Bridge:
         self._pubs: dict[tuple[str, str], RosPublisher] = {
             (t.kind, t.robot_id): node.publisher(t) for t in self.topics
         }
+        self._cdr: dict[str, CdrWriter] = {
+            t.ros_type: cdr_writer(t.ros_type, cfg.distro) for t in self.topics
+        }
         self._subs: dict[str, RosSubscription] = {t.kind: node.subscription(t) for t in self.inputs}
         self.node_token = node.token
         self._markers_at = -math.inf
         bounds = FleetBounds.of(scenario, robot)
         ring = RING_PER_ROBOT * len(ids)
-        sub = session.subscribe_polled
-        self._rings: list[tuple[str, Polled[Any], Callable[[str, Any], None]]] = [
-            (
-                "state",
-                sub(robots_key(fleet, "state"), RobotState, ring, context=bounds),
-                self._on_state,
-            )
+
+        def inbox(kind: str, model: type[M]) -> _Inbox[M]:
+            return _Inbox(session, robots_key(fleet, kind), model, ring, context=bounds)
+
+        self._rings: list[tuple[str, _Inbox[Any], Callable[[str, Any], None]]] = [
+            ("state", inbox("state", RobotState), self._on_state)
         ]
         if "sonar" in cfg.topics:
             self._rings += [
-                (
-                    "scan",
-                    sub(robots_key(fleet, "scan"), ScanMessage, ring, context=bounds),
-                    self._on_scan,
-                ),
-                (
-                    "sense",
-                    sub(robots_key(fleet, "sense"), SenseFrame, ring, context=bounds),
-                    self._on_sense,
-                ),
+                ("scan", inbox("scan", ScanMessage), self._on_scan),
+                ("sense", inbox("sense", SenseFrame), self._on_sense),
             ]
 
     def publishers(self) -> list[RosPublisher]:
@@ -144,8 +155,11 @@ class Bridge:
     def _send(self, kind: str, robot_id: str, message: Any) -> None:
         publisher = self._pubs.get((kind, robot_id))
         if publisher is not None:
-            publisher.put(to_cdr(message, publisher.topic.ros_type, self.cfg.distro))
-            self.stats.sent[kind] += 1
+            self._send_cdr(publisher, self._cdr[publisher.topic.ros_type](message))
+
+    def _send_cdr(self, publisher: RosPublisher, payload: bytes | bytearray) -> None:
+        publisher.put(payload)
+        self.stats.sent[publisher.topic.kind] += 1
 
     def _wanted(self, kind: str, robot_id: str = "") -> bool:
         return (kind, robot_id) in self._pubs
@@ -268,47 +282,45 @@ class Bridge:
         self._take()
         self._operate()
         now = time.monotonic()
-        links = [self._robot_round(rid, held, now) for rid, held in self._robots.items()]
-        fresh = [link for link in links if link is not None]
+        moved = [self._robot_round(rid, held, now) for rid, held in self._robots.items()]
+        fresh = [(held, state) for held, state in moved if state is not None]
         if fresh and self._wanted("tf"):
-            t_s = max(s for s, _ in fresh)
-            self._send("tf", "", self._msgs.transforms(t_s, [link for _, link in fresh]))
+            t_s = max(state.stamp_s for _, state in fresh)
+            self._tf.transforms = [held.messages.link(t_s, state.pose) for held, state in fresh]
+            self._send("tf", "", self._tf)
         if now - self._markers_at >= SLOW_PERIOD_S:
             self._publish_markers(now)
         self.stats.rounds += 1
         self.stats.cpu_s += time.process_time() - start_cpu
         return sum(self.stats.sent.values()) - before
 
-    def _robot_round(
-        self, rid: str, held: _Robot, now: float
-    ) -> tuple[float, tuple[str, str, Pose2D]] | None:
-        """Publish robot `rid`'s news; its TF link (stamp, link) if it has a new state."""
-        if held.ranges_fresh and self._wanted("sonar", rid):
+    def _robot_round(self, rid: str, held: _Robot, now: float) -> tuple[_Robot, RobotState | None]:
+        """Publish robot `rid`'s news; with its state if it is new (for its TF link)."""
+        messages = held.messages
+        sonar = self._pubs.get(("sonar", rid))
+        if held.ranges_fresh and sonar is not None:
             held.ranges_fresh = False
-            cloud = self._msgs.sonar_cloud(
-                held.ranges_stamp_s, robot_frame(rid), self.robot.sonar, held.ranges
-            )
-            self._send("sonar", rid, cloud)
+            self._send_cdr(sonar, messages.sonar_cdr(held.ranges_stamp_s, held.ranges))
         state = held.state
         if state is None:
-            return None
+            return held, None
         if state.fsm_state != held.said or now - held.said_at >= SLOW_PERIOD_S:
             if self._wanted("state", rid):
-                self._send("state", rid, self._msgs.text(state.fsm_state))
+                self._send("state", rid, messages.text(state.fsm_state))
             held.said, held.said_at = state.fsm_state, now
         if not held.fresh:
-            return None
+            return held, None
         held.fresh = False
-        frame = self.cfg.map_frame
-        if self._wanted("odom", rid):
-            odom = self._msgs.odometry(
-                state.stamp_s, frame_id=frame, child_frame_id=robot_frame(rid), pose=state.pose,
-                twist=state.twist, cov=state.cov,
-            )  # fmt: skip
-            self._send("odom", rid, odom)
-        if self._wanted("cmd_vel_out", rid):
-            self._send("cmd_vel_out", rid, self._msgs.twist(state.twist))
-        return state.stamp_s, (frame, robot_frame(rid), state.pose)
+        odom = self._pubs.get(("odom", rid))
+        if odom is not None:
+            cdr = messages.odometry_cdr(
+                state.stamp_s, pose=state.pose, twist=state.twist, cov=state.cov
+            )
+            self._send_cdr(odom, cdr)
+        command = self._pubs.get(("cmd_vel_out", rid))
+        if command is not None:
+            self._send_cdr(command, messages.twist_cdr(state.twist))
+        return held, state
 
     def _publish_markers(self, now: float) -> None:
         states = [h.state for h in self._robots.values() if h.state is not None]
@@ -321,11 +333,7 @@ class Bridge:
         if leader is None or leader.state is None:
             return
         slots = slot_positions(self._formation.positions, leader_id, leader.state.pose)
-        markers = self._msgs.markers(
-            newest.stamp_s, self.cfg.map_frame, slots=slots, radius_m=self.robot.radius_m,
-            world=self._world,
-        )  # fmt: skip
-        self._send("markers", "", markers)
+        self._send("markers", "", self._markers.fill(newest.stamp_s, slots))
 
     def run(self, stop: Any, *, duration_s: float = math.inf) -> None:
         """Publish `/tf_static`, then a round every 1/`rate_hz` s until `stop` is set (a
@@ -339,6 +347,41 @@ class Bridge:
             self.round()
             next_at = max(next_at + period_s, time.monotonic())
             stop.wait(min(next_at, ends) - time.monotonic())
+
+
+class _Inbox(Generic[M]):
+    """The bridge's subscription to one kind of phalanx message: Zenoh keeps the newest
+    `capacity` samples in a ring of its own (`zenoh.handlers.RingChannel`: no Python runs
+    on Zenoh's threads, and what the ring drops is not counted), and `drain`, on the
+    bridge's thread, decodes and checks them as every subscription of a fleet session does
+    (`phalanx.wire.delivery.deliver`, counted in the session's `DecodeStats`).
+    """
+
+    def __init__(
+        self, session: FleetSession, key_expr: str, model: type[M], capacity: int, *,
+        context: Any,
+    ) -> None:  # fmt: skip
+        import zenoh
+
+        ring: Any = zenoh.handlers.RingChannel(capacity)
+        self._subscriber = session.hold(session.zenoh.declare_subscriber(key_expr, ring))
+        self._model, self._stats, self._context = model, session.stats, context
+        self._capacity = capacity
+
+    def drain(self, on_message: Callable[[str, M], None]) -> int:
+        """Call `on_message(key, value)` for every valid message waiting (at most a ring's
+        worth: what arrives meanwhile waits for the next call); how many were taken.
+        """
+        taken = 0
+        while taken < self._capacity:
+            sample = self._subscriber.try_recv()
+            if sample is None:
+                break
+            payload = sample.payload.to_bytes()
+            key = str(sample.key_expr)
+            deliver(key, payload, self._model, self._stats, on_message, self._context)
+            taken += 1
+        return taken
 
 
 def slot_positions(

@@ -5,10 +5,12 @@ attachment, and subscriptions on those keys.
 
 The attachment of every sample (rmw_zenoh's design.md, "Publishers"): the publisher's
 sequence number (int64, from 1), the source timestamp (int64 ns since the Unix epoch)
-and the publisher's GID (16 bytes, a length byte first), in Zenoh's own serialisation
-(`zenoh.ext.z_serialize`), which is what rmw_zenoh's `AttachmentData` uses. rmw_zenoh
-makes a GID by hashing the entity's token with XXH3; ours hashes it with BLAKE2b: a
-receiver only compares GIDs, so any 16 bytes unique to the publisher do.
+and the publisher's GID (16 bytes, a length byte first), in Zenoh's own serialisation,
+which is what rmw_zenoh's `AttachmentData` uses: each int64 little-endian, the bytes
+after their LEB128 length, packed here with `struct` (the tests hold it to
+`zenoh.ext.z_serialize`'s bytes). rmw_zenoh makes a GID by hashing the entity's token
+with XXH3; ours hashes it with BLAKE2b: a receiver only compares GIDs, so any 16 bytes
+unique to the publisher do.
 
 A transient-local publisher (`/tf_static`) is a Zenoh advanced publisher with a cache of
 its depth, publisher detection and sample-miss detection (a reliable one), as
@@ -18,6 +20,7 @@ rmw_zenoh declares one, so a late subscriber's query gets the last message.
 from __future__ import annotations
 
 import hashlib
+import struct
 import threading
 import time
 from collections import deque
@@ -30,18 +33,21 @@ from phalanx.wire.transport import FleetSession
 # rmw_zenoh's heartbeat period of a reliable transient-local publisher (s), by which
 # subscribers notice a message they missed and fetch it from the cache.
 HEARTBEAT_S = 0.5
+_SEQUENCE_AND_STAMP = struct.Struct("<qq")
+GID_BYTES = 16
+_GID_LENGTH = bytes((GID_BYTES,))  # LEB128: one byte under 128
 
 
 def gid_of(token: str) -> bytes:
     """A publisher's 16-byte GID, from its liveliness token."""
-    return hashlib.blake2b(token.encode("utf-8"), digest_size=16).digest()
+    return hashlib.blake2b(token.encode("utf-8"), digest_size=GID_BYTES).digest()
 
 
-def attachment(sequence: int, source_ns: int, gid: bytes) -> Any:
-    """rmw_zenoh's attachment of a sample, as Zenoh bytes."""
-    from zenoh.ext import Int64, z_serialize
-
-    return z_serialize((Int64(sequence), Int64(source_ns), gid))
+def attachment(sequence: int, source_ns: int, gid: bytes) -> bytes:
+    """rmw_zenoh's attachment of a sample (33 bytes with a 16-byte GID)."""
+    if len(gid) != GID_BYTES:
+        raise ValueError(f"a GID has {GID_BYTES} bytes, not {len(gid)}")
+    return _SEQUENCE_AND_STAMP.pack(sequence, source_ns) + _GID_LENGTH + gid
 
 
 class RosPublisher:
@@ -60,7 +66,7 @@ class RosPublisher:
         self._publisher = fleet.hold(_declare(fleet.zenoh, self.key, topic))
         fleet.hold(fleet.zenoh.liveliness().declare_token(self.token))
 
-    def put(self, payload: bytes) -> None:
+    def put(self, payload: bytes | bytearray) -> None:
         """Send `payload` (CDR) with the attachment of the next sequence number."""
         with self._lock:
             self.sent += 1

@@ -166,6 +166,8 @@ def _declared(wedge: Scenario, p3dx: RobotParams, loaded: LoadedDeployment) -> l
         wanted = 2 * len(bridge.topics) + len(bridge.inputs) + 2 + 3
 
         def everything() -> bool:
+            for rid in ("r1", "r2", "r3"):  # a key's first sample can be lost: sent again
+                robots.publish(robot_key("sec", rid, "sense"), _frame(rid))
             bridge.round()
             with lock:
                 return len(seen - {cmd_vel}) >= wanted

@@ -3,14 +3,17 @@ go in on phalanx's keys, and a separate session that knows only rmw_zenoh's key 
 (built here from the design document's rule, the type hash from rosbags' type store)
 takes what comes out and decodes it with rosbags' CDR deserialiser: every message of the
 right type with the right values, every sample with rmw_zenoh's attachment, the node and
-its publishers in the ROS graph, `/tf_static` served to a late subscriber from the cache.
-Last, ROBOTIS' zenoh-ros2-sdk (its own graph discovery, its own subscriber) sees the
-topics and decodes a robot's odometry.
+its publishers in the ROS graph, `/tf_static` served to a late subscriber from the cache,
+what the robots send checked on the bridge's thread and the newest kept. The CDR the
+bridge writes from templates is what rosbags writes of the same messages. Last, ROBOTIS'
+zenoh-ros2-sdk (its own graph discovery, its own subscriber) sees the topics and decodes
+a robot's odometry.
 """
 
 from __future__ import annotations
 
 import math
+import random
 import struct
 import threading
 import time
@@ -26,8 +29,11 @@ from fleetlab import wait_for
 from rosbags.typesys import Stores, get_typestore
 
 from phalanx.core.config import Ros2Config, Scenario
+from phalanx.core.geometry import Pose2D, Twist2D
 from phalanx.core.robot_params import RobotParams
-from phalanx.ros2.bridge import Bridge
+from phalanx.ros2.bridge import RING_PER_ROBOT, Bridge
+from phalanx.ros2.messages import RobotMessages, RosMessages
+from phalanx.ros2.typestore import CdrTemplate, message_class
 from phalanx.wire.keys import robot_key
 from phalanx.wire.messages import Message, RobotState, ScanMessage, SenseFrame
 from phalanx.wire.transport import (
@@ -74,6 +80,7 @@ class Lab:
     """A bridge, the robots' session and a plain Zenoh session on rmw_zenoh's keys."""
 
     bridge: Bridge
+    hub: FleetSession  # the bridge's session
     robots: FleetSession
     ros: Any
     port: int
@@ -106,7 +113,7 @@ def lab(wedge: Scenario, p3dx: RobotParams, cfg: Ros2Config | None = None) -> It
         ros = zenoh.open(zenoh_config(TransportConfig(connect=(endpoint,))))
         stack.callback(ros.close)
         bridge = Bridge(hub, fleet=FLEET, scenario=wedge, robot=p3dx, cfg=cfg or wedge.ros2)
-        yield Lab(bridge, robots, ros, port)
+        yield Lab(bridge, hub, robots, ros, port)
 
 
 def state(rid: str, seq: int, **values: Any) -> RobotState:
@@ -234,6 +241,97 @@ def test_markers_lay_the_slots_out_from_the_leader_and_draw_the_wall(
     (wall,) = [m for m in array.markers if m.ns == "walls"]
     assert wall.type == 4  # LINE_STRIP, closed
     assert len(wall.points) == len(wedge.world.polygons[0].vertices_m) + 1
+
+
+def test_what_the_robots_send_is_checked_on_the_bridges_thread_and_the_newest_kept(
+    wedge: Scenario, p3dx: RobotParams
+) -> None:
+    ring = RING_PER_ROBOT * len(wedge.robots)
+    newest = 3 * ring + 1
+    with lab(wedge, p3dx) as it:
+        odom = it.listen("/r1/odom", "nav_msgs/msg/Odometry")
+        time.sleep(0.3)
+
+        def r1_heard() -> bool:  # (a key's first sample can be lost: sent until heard)
+            it.send("state", state("r1", 1))
+            return bool(odom.samples)
+
+        assert it.rounds_until(r1_heard)
+        stats, heard = it.hub.stats, it.bridge.stats.heard
+        key = robot_key(FLEET, "r1", "state")
+        it.robots.zenoh.put(key, b"{ not a state")
+        it.robots.publish(key, state("r2", 2))  # r2's state on r1's key
+        time.sleep(0.3)
+        assert stats.malformed.total() + stats.rejected.total() == 0  # not decoded yet
+        it.bridge.round()
+        assert (stats.malformed["RobotState"], stats.rejected["RobotState"]) == (1, 1)
+        before = heard["state"]
+        for seq in range(2, newest + 1):  # three rings' worth before the next round
+            it.send("state", state("r1", seq, x_m=0.01 * seq))
+        time.sleep(0.5)
+        it.bridge.round()
+
+        def last_x() -> float:
+            return float(odom.decoded("nav_msgs/msg/Odometry")[-1].pose.pose.position.x)
+
+        assert wait_for(lambda: last_x() == pytest.approx(0.01 * newest), WAIT_S)
+    assert heard["state"] - before == ring  # the newest ring's worth, the rest dropped
+
+
+def test_the_bridges_cdr_templates_write_what_rosbags_writes(p3dx: RobotParams) -> None:
+    ours = RosMessages()
+    r1 = RobotMessages(ours, "r1", map_frame="map", sonar=p3dx.sonar)
+    rng = random.Random(48)
+    for _ in range(300):
+        t_s = rng.choice((rng.uniform(0.0, 600.0), rng.uniform(1.7e9, 1.8e9)))
+        pose = Pose2D(rng.uniform(-50, 50), rng.uniform(-50, 50), rng.uniform(-4.0, 4.0))
+        twist = Twist2D(rng.uniform(-1.0, 1.0), rng.uniform(-2.0, 2.0))
+        cov = tuple(rng.uniform(-1.0, 1.0) for _ in range(6)) if rng.random() < 0.5 else ()
+        ranges = tuple(rng.choice((rng.uniform(0.0, 5.0), 5.0)) for _ in p3dx.sonar.units)
+        odom = ours.odometry(
+            t_s, frame_id="map", child_frame_id="r1/base_link", pose=pose, twist=twist, cov=cov
+        )
+        cloud = ours.sonar_cloud(t_s, "r1/base_link", p3dx.sonar, ranges)
+        for cdr, message, ros_type in (
+            (r1.odometry_cdr(t_s, pose=pose, twist=twist, cov=cov), odom, "nav_msgs/msg/Odometry"),
+            (r1.twist_cdr(twist), ours.twist(twist), "geometry_msgs/msg/Twist"),
+            (r1.sonar_cdr(t_s, ranges), cloud, "sensor_msgs/msg/PointCloud2"),
+        ):
+            assert bytes(cdr) == bytes(ROSBAGS.serialize_cdr(message, ros_type))
+    back = ROSBAGS.deserialize_cdr(bytes(r1.odometry_cdr(t_s, pose=pose, twist=twist, cov=cov)),
+                                   "nav_msgs/msg/Odometry")  # fmt: skip
+    assert (back.header.stamp.sec, back.pose.pose.position.x) == (int(t_s), pose.x_m)
+    assert back.twist.twist.angular.z == twist.omega_radps
+    points = ROSBAGS.deserialize_cdr(
+        bytes(r1.sonar_cdr(t_s, ranges)), "sensor_msgs/msg/PointCloud2"
+    )
+    assert points.width == sum(r < p3dx.sonar.max_range_m for r in ranges)
+    assert len(points.data) == 12 * points.width
+
+
+def test_a_cdr_template_takes_numbers_in_one_place_and_a_byte_tail_with_nothing_after_it() -> None:
+    odom = RosMessages().odometry(
+        0.0, frame_id="map", child_frame_id="r1/base_link", pose=Pose2D(0.0, 0.0, 0.0),
+        twist=Twist2D(0.0, 0.0),
+    )  # fmt: skip
+    with pytest.raises(ValueError, match="not a number"):
+        CdrTemplate(odom, "nav_msgs/msg/Odometry", ["child_frame_id"])
+    with pytest.raises(ValueError, match="no field 'seconds'"):
+        CdrTemplate(odom, "nav_msgs/msg/Odometry", ["header.stamp.seconds"])
+    value = message_class("rcl_interfaces/msg/ParameterValue")(
+        type=0, bool_value=False, integer_value=0, double_value=0.0, string_value="",
+        byte_array_value=np.zeros(0, np.uint8), bool_array_value=np.zeros(0, bool),
+        integer_array_value=np.zeros(0, np.int64), double_array_value=np.zeros(0),
+        string_array_value=[],
+    )  # fmt: skip
+    # int64s follow the bytes: where they start depends on how many bytes there are.
+    with pytest.raises(ValueError, match="nothing after it"):
+        CdrTemplate(value, "rcl_interfaces/msg/ParameterValue", [], tail="byte_array_value")
+    numbers = CdrTemplate(
+        value, "rcl_interfaces/msg/ParameterValue", ["integer_value", "double_value"]
+    )
+    back = ROSBAGS.deserialize_cdr(bytes(numbers((-7, 2.5))), "rcl_interfaces/msg/ParameterValue")
+    assert (back.integer_value, back.double_value, back.string_value) == (-7, 2.5, "")
 
 
 def test_the_node_and_its_publishers_are_in_the_ros_graph(

@@ -155,11 +155,19 @@ def test_the_ros2_section_refuses_what_ros_names_cannot_hold() -> None:
 def test_the_attachment_is_the_documented_33_bytes() -> None:
     gid = gid_of("@ros2_lv/0/x/0/1/MP/%/%/n/%t/std_msgs::msg::dds_::String_/RIHS01_0/::,10:,:,:,,")
     now_ns = time.time_ns()
-    raw = attachment(12, now_ns, gid).to_bytes()
+    raw = attachment(12, now_ns, gid)
     # design.md: int64 LE sequence number, int64 LE ns since the epoch, GID length, GID.
     assert len(raw) == 33
     assert struct.unpack("<qqB", raw[:17]) == (12, now_ns, 16)
     assert raw[17:] == gid
+    # What rmw_zenoh's AttachmentData reads: Zenoh's own serialisation of the tuple.
+    import zenoh
+    from zenoh.ext import Int64, z_deserialize, z_serialize
+
+    assert raw == z_serialize((Int64(12), Int64(now_ns), gid)).to_bytes()
+    assert z_deserialize(tuple[Int64, Int64, bytes], zenoh.ZBytes(raw)) == (12, now_ns, gid)
+    with pytest.raises(ValueError, match="16 bytes"):
+        attachment(1, now_ns, gid[:8])
 
 
 # --- ROBOTIS' zenoh-ros2-sdk: an implementation of the same key format -----------------------
@@ -229,7 +237,7 @@ def test_an_independent_parser_reads_our_attachment() -> None:
     from zenoh_ros2_sdk.attachment import Attachment
 
     gid = gid_of("a token")
-    parsed = Attachment.from_bytes(attachment(3, 1_700_000_000_123_456_789, gid).to_bytes())
+    parsed = Attachment.from_bytes(attachment(3, 1_700_000_000_123_456_789, gid))
     assert (parsed.sequence_id, parsed.timestamp_ns, parsed.gid) == (
         3,
         1_700_000_000_123_456_789,
