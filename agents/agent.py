@@ -316,11 +316,12 @@ class Agent:
         live = lsh.live(flags if flags is not None else peers, t_s)
         was_leader = lsh.is_leader
         change = lsh.update(live, t_s)
+        is_leader = lsh.is_leader
         others = len(live) - (self.robot_id in live)
         if others or self.parts.startup.waited_s(t_s) >= self.scenario.leadership.join_timeout_s:
             self.joined = True
         leader_flags = live.get(lsh.leader_id)
-        if not lsh.is_leader and leader_flags is not None:
+        if not is_leader and leader_flags is not None:
             self.parts.progress.copy_from(leader_flags)
             self.parts.keeper.copy_from(leader_flags)
         self.parts.apply_shape()
@@ -332,14 +333,14 @@ class Agent:
             head = _fresh(peers, lsh.leader_id, t_s, timeout_s)
         if change is not None:
             self.role_reason = f"{change.reason} (epoch {change.epoch}, leader {change.leader_id})"
-        took = change if lsh.is_leader and not was_leader else None
+        took = change if is_leader and not was_leader else None
         lead_now, head_now = now(lead, t_s), now(head, t_s)
         anchor, anchor_now = (head, head_now) if head is not None else (lead, lead_now)
         slot = None
         if anchor is not None and anchor_now is not None:
             slot = self.parts.shape.slot_target(anchor, anchor_now)
         return FleetView(
-            live, took, lsh.is_leader, lsh.leader_id, self.parent_id, lead, head,
+            live, took, is_leader, lsh.leader_id, self.parent_id, lead, head,
             lead_now, head_now, slot,
         )  # fmt: skip
 
@@ -442,10 +443,12 @@ class Agent:
             deadlock_reason=reason,
             someone_stopped=parts.stops.someone_stopped(live, self.robot_id),
             retries_left=parts.retries_left(odometry.pose, deadlocked=bool(reason)),
-            stuck_reason=(
+            stuck_reason=(  # (read only in a deadlock: no text to format otherwise)
                 f"{reason}; {progress.deadlocks} deadlock reverses already at waypoint "
                 f"{progress.waypoint} (deadlock.max_retries = {deadlock_cfg.max_retries})"
                 f"{'' if parts.planner.map is None else ' and no way to it on the map'}"
+                if reason
+                else ""
             ),
             reversed_m=parts.reverse.reversed_m,
             safe_distance_m=deadlock_cfg.safe_distance_m,

@@ -145,6 +145,11 @@ class LiveFlags(dict[str, FlagsView]):
     one per control step, so a step costs each of them O(1) in the group's size, not O(n).
     """
 
+    claims: dict[Claim, int]  # how many robots heard name each (epoch, leader) of the formation
+    stopped: frozenset[str]  # the robots in an emergency stop
+    stopped_behind: frozenset[str]  # ... that they came to backwards: for what lies behind
+    busy: frozenset[str]  # the robots out of formation or holding still
+
     def __init__(
         self,
         flags: Mapping[str, FlagsView] | Iterable[tuple[str, FlagsView]],
@@ -152,6 +157,23 @@ class LiveFlags(dict[str, FlagsView]):
     ) -> None:
         super().__init__(flags)
         self.formation = formation
+        # What every robot's step reads, in one pass over the flags.
+        rank = formation.rank
+        claims: dict[Claim, int] = {}
+        stopped, behind, busy = [], [], []
+        for r, f in self.items():
+            if f.formation_leader_id in rank:
+                claim = (f.epoch, f.formation_leader_id)
+                claims[claim] = claims.get(claim, 0) + 1
+            if f.fsm_state == State.EMERGENCY_STOP:
+                stopped.append(r)
+                if f.direction < 0:
+                    behind.append(r)
+            if f.fsm_state in _BUSY_STATES:
+                busy.append(r)
+        self.claims = claims
+        self.stopped, self.stopped_behind = frozenset(stopped), frozenset(behind)
+        self.busy = frozenset(busy)
 
     @cached_property
     def newest(self) -> tuple[int, str] | None:
@@ -162,32 +184,9 @@ class LiveFlags(dict[str, FlagsView]):
         return max(valid, key=lambda c: (c[0], -rank[c[1]])) if valid else None
 
     @cached_property
-    def claims(self) -> Counter[Claim]:
-        """How many robots heard name each `(epoch, leader)` (leaders of the formation)."""
-        rank = self.formation.rank
-        return Counter(
-            (f.epoch, f.formation_leader_id) for f in self.values() if f.formation_leader_id in rank
-        )
-
-    @cached_property
     def all_blocked(self) -> bool:
         """Whether every robot heard reports an obstacle on its path."""
         return all(f.obstacle for f in self.values())
-
-    @cached_property
-    def stopped(self) -> frozenset[str]:
-        """The robots in an emergency stop."""
-        return frozenset(r for r, f in self.items() if f.fsm_state == State.EMERGENCY_STOP)
-
-    @cached_property
-    def stopped_behind(self) -> frozenset[str]:
-        """The robots in an emergency stop they came to backwards: for what lies behind."""
-        return frozenset(r for r in self.stopped if self[r].direction < 0)
-
-    @cached_property
-    def busy(self) -> frozenset[str]:
-        """The robots out of formation or holding still."""
-        return frozenset(r for r, f in self.items() if f.fsm_state in _BUSY_STATES)
 
 
 class _LastLive:
@@ -383,14 +382,14 @@ class Leadership:
         flags, which may be a step old), of how many.
         """
         own = live.get(self.robot_id)
-        held = live.claims[claim] + (claim == (self.epoch, self.leader_id))
+        held = live.claims.get(claim, 0) + (claim == (self.epoch, self.leader_id))
         if own is not None and (own.epoch, own.formation_leader_id) == claim:
             held -= 1
         return held, len(live) + (own is None)
 
     def _join(self, live: LiveFlags, t_s: float) -> LeadershipChange | None:
         """A restarted robot: the pair most of the other live robots hold (ties: newer)."""
-        others = live.claims.copy()
+        others = Counter(live.claims)
         own = live.get(self.robot_id)
         if own is not None:
             others[(own.epoch, own.formation_leader_id)] -= 1

@@ -205,6 +205,25 @@ def mask_readings(
     (`clearance_along` with each robot's half-width), rows in the order of `readings`.
     """
     batch = _batch_of(readings)
+    if not np.count_nonzero(batch.echo):  # (open space: nothing heard, nothing to mask)
+        return [unmasked(rd, h.robot_id, h.t_s) for rd, h in zip(readings, inputs, strict=True)]
+    return _masked(sonar, batch, inputs, slots)
+
+
+def unmasked(reading: SonarEchoes, robot_id: str, t_s: float) -> MaskedEchoes:
+    """A reading without an echo (`reading.echo` all False), masked for robot `robot_id`
+    at `t_s`: what `mask_readings` makes of it, without its arithmetic (no echo, no
+    points, no end to the free way either side).
+    """
+    return MaskedEchoes(robot_id, t_s, reading.echo, reading.raw, math.inf, math.inf)
+
+
+def _masked(
+    sonar: SonarGeometry, batch: SonarBatch, inputs: Sequence[MaskInputs], slots: SlotMasks
+) -> list[MaskedEchoes]:
+    """`mask_readings`' arithmetic (what it gives readings without an echo, `unmasked`
+    gives without it).
+    """
     r, every = batch.ranges_m, batch.echo
     rows = slots.rows(inputs)
     if rows.size > REACH_FROM_DISCS:

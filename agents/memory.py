@@ -107,6 +107,9 @@ class StopsBefore:
         """Every step: forget a robot that moved again; outside the reverse, take who is
         stopped now (and may be passed over, should a reverse begin).
         """
+        if not live.stopped:  # (what follows, when nobody is stopped)
+            self.cut_by = self.before = frozenset()
+            return
         self.cut_by &= live.stopped_behind
         if not reversing:
             self.before = live.stopped - (live.stopped_behind - self.cut_by) - {own_id}
@@ -119,4 +122,4 @@ class StopsBefore:
 
     def someone_stopped(self, live: LiveFlags, own_id: str) -> bool:
         """Whether a robot is stopped that the reverse does not pass over."""
-        return bool(live.stopped - {own_id} - self.before)
+        return bool(live.stopped) and bool(live.stopped - {own_id} - self.before)

@@ -10,6 +10,8 @@ import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
+import numpy as np
+
 from phalanx.agents.inputs import FleetView, Observation
 from phalanx.agents.masking import (
     EXPECTED_MASK_M,
@@ -18,6 +20,7 @@ from phalanx.agents.masking import (
     MaskInputs,
     SlotMasks,
     mask_readings,
+    unmasked,
 )
 from phalanx.agents.memory import Progress, Route
 from phalanx.agents.navigation import (
@@ -27,7 +30,7 @@ from phalanx.agents.navigation import (
     bearing_rad,
     clearance_along,
 )
-from phalanx.agents.perception import SonarGeometry, braking_gap_m
+from phalanx.agents.perception import MaskedEchoes, SonarEchoes, SonarGeometry, braking_gap_m
 from phalanx.agents.shape import Points, Shape
 from phalanx.core.frozen import quick_init
 from phalanx.core.geometry import Pose2D, Twist2D, Vec2
@@ -110,6 +113,7 @@ class Senses:
         self.route = route
         self.stall = StallWatch(self.nav.stall_s)
         self._boxed_since_s: float | None = None  # since when the route has led back
+        self._quiet: tuple[tuple[float, ...], SonarEchoes] | None = None  # (`_read`)
         # Asked before a dead end is declared: fold the group into a narrower shape
         # if it has one (True: a fold is coming, the way may open for it).
         self.fold = fold
@@ -162,11 +166,10 @@ class Senses:
         odometry, status = observation.odometry, observation.status
         pose = odometry.pose
         # (the batch runner reads and masks every robot's ring in one pass; alone, here)
-        reading = observation.sonar or self.sonar.read(status.sonar_ranges_m)
+        reading = observation.sonar or self._read(status.sonar_ranges_m)
         mask = observation.masked
         if mask is None or mask.robot_id != self.robot_id or mask.t_s != t_s:
-            inputs = MaskInputs(self.robot_id, view, stance.state, pose, assume_formed, t_s)
-            mask = mask_readings(self.sonar, [reading], [inputs], self.slot_masks)[0]
+            mask = self._mask(reading, view, stance.state, pose, assume_formed, t_s)
         raw, masked, ahead_m, behind_m = reading.raw, mask.points, mask.ahead_m, mask.behind_m
         if self.plan != "scripted" and self.nav.reactive:
             self.planner.add(observation.scans)
@@ -190,6 +193,37 @@ class Senses:
             bumper=bumper,
             dead_end=dead_end,
         )
+
+    def _read(self, ranges_m: tuple[float, ...]) -> SonarEchoes:
+        """`SonarGeometry.read` of the ranges; a reading without an echo (open space) is
+        kept, and the same ranges next time are the same reading.
+        """
+        quiet = self._quiet
+        if type(ranges_m) is not tuple:  # (a tuple's values cannot change behind it)
+            return self.sonar.read(ranges_m)
+        if quiet is not None and quiet[0] == ranges_m:
+            return quiet[1]
+        reading = self.sonar.read(ranges_m)
+        if not np.count_nonzero(reading.echo):
+            self._quiet = (ranges_m, reading)
+        return reading
+
+    def _mask(
+        self,
+        reading: SonarEchoes,
+        view: FleetView,
+        state: str,
+        pose: Pose2D,
+        assume_formed: bool,
+        t_s: float,
+    ) -> MaskedEchoes:
+        """The reading with the formation's robots masked out (`mask_readings`); the one
+        `_read` kept, without an echo, has nothing to mask.
+        """
+        if self._quiet is not None and reading is self._quiet[1]:
+            return unmasked(reading, self.robot_id, t_s)
+        inputs = MaskInputs(self.robot_id, view, state, pose, assume_formed, t_s)
+        return mask_readings(self.sonar, [reading], [inputs], self.slot_masks)[0]
 
     def _follower_near_m(self, state: str) -> float:
         """How near ahead an obstacle blocks this robot as a follower: `avoid_range_m`,

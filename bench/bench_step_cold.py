@@ -4,22 +4,24 @@
 process) plus the follower's step, run once per state, 50 ms apart. This steps the same
 follower (`g1` of a 10-robot grid, the benchmark's inputs) in one process, with
 nothing between two steps, 5, 20 or 50 ms of busy waiting, or 50 ms asleep (also with
-the garbage collector frozen after warm-up).
+the garbage collector frozen after warm-up); its sonar reading open space, or its
+formation's robots (`bench_zenoh_latency.sonar_ranges`).
 Each row: p50 / p90 / p99 of the step's wall time, and p99 as a ratio to the
 calibration workload timed in the same run (`bench/calibration.py`).
 
-    .venv/bin/python bench/bench_step_cold.py [--steps 300]
+    .venv/bin/python bench/bench_step_cold.py [--steps 300] [--sonar open formation]
 """
 
 from __future__ import annotations
 
 import argparse
 import gc
+import itertools
 import statistics
 import time
 from collections.abc import Callable
 
-from bench_zenoh_latency import driving, fleet_scenario
+from bench_zenoh_latency import driving, fleet_scenario, sonar_ranges
 from calibration import Calibration, load
 
 from phalanx.agents.agent import Agent, Observation
@@ -32,8 +34,10 @@ PAUSE_S = 0.05  # a 20 Hz leader's states, one step each
 WARMUP = 50
 
 
-def follower() -> Callable[[int], float]:
-    """One step of the benchmark's follower on its leader's state `seq`: its wall time."""
+def follower(sonar: str = "open") -> Callable[[int], float]:
+    """One step of the benchmark's follower on its leader's state `seq`: its wall time;
+    `sonar`: what it reads (`sonar_ranges`).
+    """
     scenario = fleet_scenario(10)
     formation = scenario_formation(scenario)
     rid = "g1"
@@ -42,7 +46,7 @@ def follower() -> Callable[[int], float]:
     if leader_id is None:
         raise SystemExit(f"{rid} has no leader in the grid")
     here, there = formation.positions[rid], formation.positions[leader_id]
-    status = RobotStatus(sonar_ranges_m=(5.0,) * 16)
+    status = RobotStatus(sonar_ranges_m=sonar_ranges(10, sonar)[rid])
 
     def step(seq: int) -> float:
         now = time.monotonic()
@@ -79,12 +83,15 @@ def pause(busy: bool, seconds: float) -> None:
 def main() -> None:
     parser = argparse.ArgumentParser()
     parser.add_argument("--steps", type=int, default=300)
+    parser.add_argument(
+        "--sonar", nargs="+", default=["open", "formation"], choices=["open", "formation"]
+    )
     args = parser.parse_args()
     cal = Calibration.measure()
     print("the follower's step after a pause (ms)")
-    print("between steps       p50     p90     p99  p99_mcal  load")
-    for label, busy, seconds, frozen in PAUSES:
-        step = follower()
+    print("sonar      between steps       p50     p90     p99  p99_mcal  load")
+    for sonar, (label, busy, seconds, frozen) in itertools.product(args.sonar, PAUSES):
+        step = follower(sonar)
         for k in range(WARMUP):
             step(k)
         if frozen:
@@ -96,7 +103,7 @@ def main() -> None:
         gc.unfreeze()
         q = statistics.quantiles(times, n=100)
         print(
-            f"{label:17s}  {1e3 * q[49]:6.3f}  {1e3 * q[89]:6.3f}  {1e3 * q[98]:6.3f}  "
+            f"{sonar:9s}  {label:17s}  {1e3 * q[49]:6.3f}  {1e3 * q[89]:6.3f}  {1e3 * q[98]:6.3f}  "
             f"{1e3 * cal.ratio(q[98]):8.1f}  {load()}",
             flush=True,
         )

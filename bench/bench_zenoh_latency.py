@@ -6,7 +6,12 @@ agents do; each follower subscribes to its own leader in a grid formation (rows 
 behind the root) and, on every state received, runs the real agent core's step and
 publishes its command. Latency = command computed (follower) - state stamped (leader),
 both read from CLOCK_MONOTONIC, one clock for every process on this machine. Beside
-it, the hop alone (state received - state stamped): the rest is the follower's step.
+it, the hop alone (state received - state stamped): the rest is the follower's step,
+and `step_ms` the step's share of the tail, p99 - hop p99. Two sonar readings, each
+robot's the same every step: open space (every transducer at its maximum range: nothing
+to mask, the benchmark's reading by default), and the formation's own robots as the
+simulated world's ring hears them with every robot in its slot (`--sonar formation`:
+masking them out is then part of every step).
 
 Two topologies: every process a Zenoh client of one router (as `phalanx up` runs), and
 peers connected directly (each listens on its own endpoint and connects to the others).
@@ -20,6 +25,7 @@ robot's error on stderr), its processes killed, and the benchmark goes on.
 
     .venv/bin/python bench/bench_zenoh_latency.py [--robots 3 10 30] [--seconds 10]
         [--topology router peer] [--transport default lowlatency] [--link tcp unixsock]
+        [--sonar open formation]
 """
 
 from __future__ import annotations
@@ -43,6 +49,7 @@ from phalanx.core.formation import scenario_formation
 from phalanx.core.geometry import Pose2D, Twist2D, Vec2
 from phalanx.core.robot import Odometry, RobotStatus
 from phalanx.core.scenarios import grid_scenario
+from phalanx.runtime.batch import BatchRunner
 from phalanx.wire.keys import robot_key
 from phalanx.wire.messages import RobotState, VelocityCommand
 from phalanx.wire.transport import (
@@ -84,8 +91,33 @@ def driving(rid: str, at: Vec2, seq: int = 0, stamp_s: float = 0.0) -> RobotStat
     )
 
 
-def robot(cfg: TransportConfig, rid: str, n: int, seconds: float, ready: Any, out: Any) -> None:
-    """One robot: publish own state at RATE_HZ, step on every leader state received."""
+def sonar_ranges(n: int, sonar: str) -> dict[str, tuple[float, ...]]:
+    """Every robot's sonar ranges (m) in the `n`-robot grid, read the same every step:
+    `open` space (every transducer at its maximum range), or the `formation`'s own
+    robots as the simulated world's ring hears them with every robot in its slot.
+    """
+    scenario = fleet_scenario(n)
+    if sonar == "open":
+        ring = load_robot("p3dx").sonar
+        ranges = (ring.max_range_m,) * len(ring.units)
+        return dict.fromkeys(scenario_formation(scenario).robot_ids, ranges)
+    runner = BatchRunner(scenario)
+    statuses, _ = runner.world.statuses()
+    return {rid: s.sonar_ranges_m for rid, s in zip(runner.agents, statuses, strict=True)}
+
+
+def robot(
+    cfg: TransportConfig,
+    rid: str,
+    n: int,
+    seconds: float,
+    ranges: tuple[float, ...],
+    sync: tuple[Any, Any],
+) -> None:
+    """One robot: publish own state at RATE_HZ, step on every leader state received (its
+    sonar reading `ranges`); `sync`: the fleet's start barrier and the results' queue.
+    """
+    ready, out = sync
     scenario = fleet_scenario(n)
     formation = scenario_formation(scenario)
     agent = Agent(rid, scenario=scenario, robot=load_robot("p3dx"), formation=formation)
@@ -94,6 +126,7 @@ def robot(cfg: TransportConfig, rid: str, n: int, seconds: float, ready: Any, ou
     inbox: queue.SimpleQueue[RobotState] = queue.SimpleQueue()
     latencies: list[tuple[float, float]] = []  # (state -> command, state -> received)
     state = driving(rid, here)
+    status = RobotStatus(sonar_ranges_m=ranges)
     with open_session(cfg) as session:
         if leader_id is not None:
             session.subscribe(
@@ -117,7 +150,6 @@ def robot(cfg: TransportConfig, rid: str, n: int, seconds: float, ready: Any, ou
                 continue
             got = time.monotonic()
             odo = Odometry(Pose2D(here.x_m, here.y_m, 0.0), Twist2D(0.15, 0.0), got)
-            status = RobotStatus(sonar_ranges_m=(5.0,) * 16)
             result = agent.step(Observation(odo, status), {lead.robot_id: lead.peer()}, got)
             done = time.monotonic()
             session.publish(
@@ -161,18 +193,28 @@ def _configs(
 
 
 def measure(
-    n: int, seconds: float, topology: str, lowlatency: bool = False, link: str = "tcp"
+    n: int,
+    seconds: float,
+    topology: str,
+    lowlatency: bool = False,
+    link: str = "tcp",
+    sonar: str = "open",
 ) -> list[tuple[float, float]]:
     """Every follower command's latency and its hop's (s), in an `n`-robot fleet; `link`
-    tcp (loopback) or unixsock (sockets in a new directory of mode 0700).
+    tcp (loopback) or unixsock (sockets in a new directory of mode 0700); `sonar`: see
+    `sonar_ranges`.
     """
     with tempfile.TemporaryDirectory(prefix="phalanx-bench-") as folder:  # (mode 0700)
         here = Path(folder) if link == "unixsock" else None
-        return _measure(n, seconds, _configs(n, topology, lowlatency, here))
+        configs = _configs(n, topology, lowlatency, here)
+        return _measure(n, seconds, configs, sonar_ranges(n, sonar))
 
 
 def _measure(
-    n: int, seconds: float, configs: tuple[TransportConfig | None, list[TransportConfig]]
+    n: int,
+    seconds: float,
+    configs: tuple[TransportConfig | None, list[TransportConfig]],
+    ranges: dict[str, tuple[float, ...]],
 ) -> list[tuple[float, float]]:
     router_cfg, cfgs = configs
     ctx = mp.get_context("spawn")
@@ -180,7 +222,11 @@ def _measure(
     out = ctx.Queue()
     router = open_session(router_cfg) if router_cfg else None
     procs = [
-        ctx.Process(target=robot, args=(cfgs[i], f"g{i}", n, seconds, ready, out), daemon=True)
+        ctx.Process(
+            target=robot,
+            args=(cfgs[i], f"g{i}", n, seconds, ranges[f"g{i}"], (ready, out)),
+            daemon=True,
+        )
         for i in range(n)
     ]
     try:
@@ -217,22 +263,24 @@ def main() -> None:
         "--transport", nargs="+", default=["default"], choices=["default", "lowlatency"]
     )
     parser.add_argument("--link", nargs="+", default=["tcp"], choices=["tcp", "unixsock"])
+    parser.add_argument("--sonar", nargs="+", default=["open"], choices=["open", "formation"])
     args = parser.parse_args()
     cal = Calibration.measure()
     print(f"leader state -> follower command over Zenoh, {RATE_HZ:.0f} Hz per robot, one host")
     print(
-        "link      topology  transport   robots  samples  p50_ms  p90_ms  p99_ms  max_ms"
-        "  p99_mcal  hop_p50_ms  hop_p99_ms  load"
+        "sonar      link      topology  transport   robots  samples  p50_ms  p90_ms  p99_ms  max_ms"
+        "  p99_mcal  hop_p50_ms  hop_p99_ms  step_ms  load"
     )
     rows: dict[Row, tuple[float, float]] = {}
-    for transport in args.transport:
-        for topology in args.topology:
-            for n in args.robots:
-                for link in args.link:
-                    row = Row(link, topology, transport, n)
-                    figures = _row(row, args.seconds, cal)
-                    if figures is not None:
-                        rows[row] = figures
+    for sonar in args.sonar:
+        for transport in args.transport:
+            for topology in args.topology:
+                for n in args.robots:
+                    for link in args.link:
+                        row = Row(link, topology, transport, n, sonar)
+                        figures = _row(row, args.seconds, cal)
+                        if figures is not None:
+                            rows[row] = figures
     Calibration.measure()
     _ratios(rows)
 
@@ -244,14 +292,15 @@ class Row(NamedTuple):
     topology: str
     transport: str
     robots: int
+    sonar: str = "open"
 
 
 def _row(row: Row, seconds: float, cal: Calibration) -> tuple[float, float] | None:
     """Measure and print `row`; its p50 and p99 (s), None if it failed."""
-    name = f"{row.link:8s}  {row.topology:8s}  {row.transport:10s}  {row.robots:6d}"
+    name = f"{row.sonar:9s}  {row.link:8s}  {row.topology:8s}  {row.transport:10s}  {row.robots:6d}"
     try:
         lowlatency = row.transport == "lowlatency"
-        pairs = measure(row.robots, seconds, row.topology, lowlatency, row.link)
+        pairs = measure(row.robots, seconds, row.topology, lowlatency, row.link, row.sonar)
     except RowFailed as failed:  # (each robot's own error is on stderr)
         print(f"{name}  failed: {failed}", flush=True)
         return None
@@ -261,7 +310,8 @@ def _row(row: Row, seconds: float, cal: Calibration) -> tuple[float, float] | No
     print(
         f"{name}  {len(lat):7d}  {1e3 * q[49]:6.3f}  "
         f"{1e3 * q[89]:6.3f}  {1e3 * q[98]:6.3f}  {1e3 * lat[-1]:6.3f}  "
-        f"{1e3 * cal.ratio(q[98]):8.1f}  {1e3 * hop[49]:10.3f}  {1e3 * hop[98]:10.3f}  {load()}",
+        f"{1e3 * cal.ratio(q[98]):8.1f}  {1e3 * hop[49]:10.3f}  {1e3 * hop[98]:10.3f}  "
+        f"{1e3 * (q[98] - hop[98]):7.3f}  {load()}",
         flush=True,
     )
     return q[49], q[98]
@@ -278,10 +328,11 @@ def _ratios(rows: dict[Row, tuple[float, float]]) -> None:
     ]
     if not pairs:
         return
-    print("unixsock / tcp, same run:\ntopology  transport   robots  p50_ratio  p99_ratio")
+    print("unixsock / tcp, same run:")
+    print("sonar      topology  transport   robots  p50_ratio  p99_ratio")
     for row, (p50, p99), (tcp_p50, tcp_p99) in pairs:
         print(
-            f"{row.topology:8s}  {row.transport:10s}  {row.robots:6d}  "
+            f"{row.sonar:9s}  {row.topology:8s}  {row.transport:10s}  {row.robots:6d}  "
             f"{p50 / tcp_p50:9.3f}  {p99 / tcp_p99:9.3f}"
         )
 

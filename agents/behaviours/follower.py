@@ -95,12 +95,12 @@ class Track(Behaviour):
         odometry = moment.odometry
         slot = self.shape.formation.slot_of(self.robot_id, lead.robot_id)
         leader, twist, age_s = lead.pose, lead.twist, max(0.0, moment.t_s - lead.stamp_s)
-        leader_now = view.anchor_now
+        leader_now, target = view.anchor_now, view.slot  # (the slot laid out from it)
         if on_path is not None:
             # The robot that would have this slot there, driving straight on.
             at = on_path.to_world(Vec2(-slot.x_m, -slot.y_m))
             leader, age_s = Pose2D(at.x_m, at.y_m, on_path.theta_rad), 0.0
-            leader_now, twist = leader, Twist2D(lead.v_mps, 0.0)
+            leader_now, twist, target = leader, Twist2D(lead.v_mps, 0.0), None
         inp = FollowerInput(
             follower=odometry.pose,
             follower_twist=odometry.twist,
@@ -111,6 +111,7 @@ class Track(Behaviour):
             direction=-1 if moment.state == State.FORMATION_REVERSE else 1,
             dt_s=self.dt_s,
             leader_now=leader_now,
+            target=target,
         )
         return self.controller.command(inp)
 

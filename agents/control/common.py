@@ -19,7 +19,9 @@ from phalanx.core.geometry import Pose2D, Twist2D, Vec2
 class FollowerInput:
     """One control step's inputs for a follower (SI units, world frame): the leader's
     pose as it was `leader_age_s` ago, and (`leader_now`) that pose dead-reckoned to
-    now, when the caller has worked it out already (the agent does, once per step).
+    now, when the caller has worked it out already (the agent does, once per step);
+    likewise `target`, the slot's rigid-body target pose and feed-forward twist laid
+    out from `leader_now` (`rigid_body_target`).
     """
 
     follower: Pose2D
@@ -31,6 +33,7 @@ class FollowerInput:
     direction: int
     dt_s: float
     leader_now: Pose2D | None = None
+    target: tuple[Pose2D, Twist2D] | None = None
 
 
 class FollowerController(Protocol):

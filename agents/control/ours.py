@@ -46,12 +46,14 @@ class OursController:
     def command(self, inp: FollowerInput) -> Twist2D:
         """`[v, w] = M(theta, d)^-1 (p*' + K (p* - p))`."""
         if not self.compensate_delay:
-            leader = inp.leader
-        elif inp.leader_now is not None:
-            leader = inp.leader_now
+            target, ff = rigid_body_target(inp.leader, inp.leader_twist, inp.slot)
+        elif inp.target is not None:
+            target, ff = inp.target
         else:
-            leader = predict_leader(inp.leader, inp.leader_twist, inp.leader_age_s)
-        target, ff = rigid_body_target(leader, inp.leader_twist, inp.slot)
+            leader = inp.leader_now
+            if leader is None:
+                leader = predict_leader(inp.leader, inp.leader_twist, inp.leader_age_s)
+            target, ff = rigid_body_target(leader, inp.leader_twist, inp.slot)
         d = self._point_sign(ff.v_mps, inp.direction) * self.control_point_m
         # (plain floats: this runs for every follower every step)
         tf_x, tf_y = math.cos(inp.follower.theta_rad), math.sin(inp.follower.theta_rad)

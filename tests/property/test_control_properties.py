@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -20,7 +21,7 @@ from phalanx.core.geometry import (
     wrap_angle,
 )
 from phalanx.core.limits import KinematicLimits
-from phalanx.core.rigid_body import rigid_body_target
+from phalanx.core.rigid_body import predict_leader, rigid_body_target
 
 DT_S = 0.1
 PAPER_LIMITS = KinematicLimits.from_params(
@@ -258,3 +259,41 @@ def test_ours_is_finite_for_any_finite_input(
     cmd = OursController(gain_per_s=1.0, control_point_m=0.15).command(inp)
     assert math.isfinite(cmd.v_mps)
     assert math.isfinite(cmd.omega_radps)
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    st.floats(-5, 5),
+    st.floats(-5, 5),
+    st.floats(-math.pi, math.pi),
+    st.floats(-0.3, 0.3),
+    yaw_rates,
+    st.floats(0.0, 0.5),
+    lengths,
+    bearings,
+    directions,
+)
+def test_ours_given_the_slot_target_commands_what_it_works_out_itself(
+    x: float,
+    y: float,
+    th: float,
+    v: float,
+    w: float,
+    age: float,
+    length: float,
+    bearing: float,
+    direction: int,
+) -> None:
+    """The agent hands the controller the slot target its fleet view laid out from the
+    leader's pose now: the command is the one the controller's own arithmetic gives,
+    bit for bit.
+    """
+    leader, twist, slot = Pose2D(0.3, -0.2, 0.4), Twist2D(v, w), polar_to_slot(length, bearing)
+    leader_now = predict_leader(leader, twist, age)
+    plain = FollowerInput(
+        Pose2D(x, y, th), Twist2D(0.1, 0.0), leader, twist, age, slot, direction, DT_S, leader_now
+    )
+    given = replace(plain, target=rigid_body_target(leader_now, twist, slot))
+    ours, again = (OursController(gain_per_s=1.0, control_point_m=0.15) for _ in range(2))
+    for _ in range(3):  # (the control point's side carries over from step to step)
+        assert again.command(given) == ours.command(plain)

@@ -143,3 +143,28 @@ def test_a_batch_masks_each_robot_as_masking_it_alone_does(
     for i, (inputs, own) in enumerate(zip(step.inputs, step.own, strict=True)):
         alone = mask_readings(sonar, [sonar.read(ranges[i])], [inputs], own)
         _same(together[i], alone[0])
+
+
+@settings(max_examples=40, deadline=None)
+@given(data=st.data())
+def test_readings_without_an_echo_are_masked_as_the_arithmetic_masks_them(
+    passes: list[Pass], data: st.DataObject
+) -> None:
+    """Open space (every range at the ring's maximum or beyond): masking takes a short
+    way round its arithmetic, alone and in a batch, and gives what the arithmetic gives.
+    """
+    step = data.draw(st.sampled_from(passes))
+    sonar, shape = step.sonar, step.ranges_m.shape
+    top = sonar.max_range_m
+    quiet = st.floats(top - 1e-6, top + 5.0) | st.just(top)
+    ranges = data.draw(arrays(np.float64, shape, elements=quiet))
+    batch = sonar.read_all(ranges)
+    assert not batch.echo.any()
+    together = mask_readings(sonar, batch.readings, step.inputs, step.fleet)
+    worked_out = masking._masked(sonar, batch, step.inputs, step.fleet)
+    for i, (inputs, own) in enumerate(zip(step.inputs, step.own, strict=True)):
+        _same(together[i], worked_out[i])
+        reading = sonar.read(ranges[i])
+        alone = mask_readings(sonar, [reading], [inputs], own)[0]
+        _same(alone, masking._masked(sonar, masking._batch_of([reading]), [inputs], own)[0])
+        assert (alone.t_s, alone.points[0].dtype) == (inputs.t_s, worked_out[i].points[0].dtype)

@@ -3,16 +3,20 @@ rule, and the deadlock rule; every robot deciding alike from the same flags."""
 
 from __future__ import annotations
 
+from collections import Counter
 from typing import Any
 
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from peerflags import flags
 
-from phalanx.agents.leadership import Leadership, group_deadlock, newer
+from phalanx.agents.leadership import Leadership, LiveFlags, group_deadlock, newer
+from phalanx.agents.memory import StopsBefore
 from phalanx.core.config import LeadershipConfig
 from phalanx.core.formation import Formation, resolve_formation
 from phalanx.core.scenarios import formation_shape
-from phalanx.core.states import State
+from phalanx.core.states import OUT_OF_FORMATION, State
 from phalanx.wire.keys import leader_key
 from phalanx.wire.messages import RobotFlags
 
@@ -170,3 +174,49 @@ def test_the_papers_rule_counts_a_column_queued_behind_a_blocked_robot() -> None
 
 def test_leader_key() -> None:
     assert leader_key("lab") == "phalanx/lab/leader"
+
+
+robot_flags = st.builds(
+    lambda state, direction, epoch, leader: {
+        "fsm_state": state, "direction": direction, "epoch": epoch, "formation_leader_id": leader,
+    },
+    st.sampled_from([State.NAVIGATE, State.FORMATION_TRACK, State.EMERGENCY_STOP, State.HOLD,
+                     State.AVOID, State.JOIN, State.DEADLOCK_REVERSE]),
+    st.sampled_from([1, -1]),
+    st.integers(0, 2),
+    st.sampled_from(["r1", "r2", "r3", ""]),
+)  # fmt: skip
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    heard=st.dictionaries(st.sampled_from(WEDGE.robot_ids), robot_flags),
+    before=st.frozensets(st.sampled_from(WEDGE.robot_ids)),
+    cut_by=st.frozensets(st.sampled_from(WEDGE.robot_ids)),
+    reversing=st.booleans(),
+)
+def test_the_flags_summaries_and_the_stops_remembered_are_their_rules(
+    heard: dict[str, dict[str, Any]],
+    before: frozenset[str],
+    cut_by: frozenset[str],
+    reversing: bool,
+) -> None:
+    """What every step reads of the flags (worked out once, in one pass), and the stops
+    a leader passes over (kept every step: none while nobody is stopped).
+    """
+    live = LiveFlags({r: flags(r, **kw) for r, kw in heard.items()}, WEDGE)
+    values = list(live.values())
+    assert live.claims == Counter(
+        (f.epoch, f.formation_leader_id) for f in values if f.formation_leader_id in WEDGE.rank
+    )
+    stopped = {r for r, f in live.items() if f.fsm_state == State.EMERGENCY_STOP}
+    assert live.stopped == stopped
+    assert live.stopped_behind == {r for r in stopped if live[r].direction < 0}
+    out = OUT_OF_FORMATION | {State.HOLD}
+    assert live.busy == {r for r, f in live.items() if f.fsm_state in out}
+    stops = StopsBefore(before, cut_by)
+    stops.update(live, "r2", reversing=reversing)
+    cut = cut_by & live.stopped_behind
+    kept = before & stopped if reversing else stopped - (live.stopped_behind - cut) - {"r2"}
+    assert (stops.before, stops.cut_by) == (kept, cut)
+    assert stops.someone_stopped(live, "r2") == bool(stopped - {"r2"} - kept)

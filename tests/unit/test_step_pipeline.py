@@ -18,6 +18,7 @@ import pytest
 import phalanx.agents.agent as agent_module
 import phalanx.agents.control.ours as ours_module
 import phalanx.agents.inputs as inputs_module
+import phalanx.agents.shape as shape_module
 from phalanx.agents.agent import Agent, Observation
 from phalanx.core.config_files import CONFIG_ROOT, load_robot, load_scenario
 from phalanx.core.formation import scenario_formation
@@ -114,6 +115,26 @@ def test_a_navigating_wedge_predicts_each_tracked_robot_once_a_step(
     assert named.count("r1") >= 2 * (steps - 1)  # (none heard yet at the first)
     assert set(named) == {"r1"}
     assert len(predicted.calls) == len(named)
+
+
+def test_a_wedge_s_followers_lay_their_slots_out_once_a_step(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The paper's wedge, run by the batch runner: each follower's slot target is laid
+    out in its fleet view, and the controller aims at that one.
+    """
+    laid = Counted(shape_module.rigid_body_target, lambda *_: "laid")
+    monkeypatch.setattr(shape_module, "rigid_body_target", laid)
+
+    def again(*_: Any) -> Pose2D:
+        raise AssertionError("the controller laid the slot out again")
+
+    monkeypatch.setattr(ours_module, "rigid_body_target", again)
+    scenario = load_scenario(CONFIG_ROOT / "scenarios" / "paper_wedge.toml")
+    log = BatchRunner(scenario.model_copy(update={"duration_s": 20.0})).run()
+    steps = len(next(iter(log.traces.values())).x_m)
+    assert 2 * (steps - 1) <= len(laid.calls) <= 2 * steps  # r2 and r3 (none heard at first)
+    assert set(log.traces["r2"].states) >= {"FORMATION_TRACK"}
 
 
 def test_nothing_else_in_the_brain_dead_reckons_another_robot() -> None:
