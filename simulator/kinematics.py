@@ -95,13 +95,14 @@ def limits_and_arcs_scalar(
     """
     half_track, eps = 0.5 * robot.track_width_m, 1e-12
     up, down, rot = robot.accel_mps2 * dt_s, robot.decel_mps2 * dt_s, robot.rot_accel_radps2 * dt_s
+    v_max, w_max, wheel_max = robot.v_max_mps, robot.omega_max_radps, robot.wheel_v_max_mps
     vs, ws, xs, ys, ths = [], [], [], [], []
     for x, y, th, v, w, vc, wc in zip(*(a.tolist() for a in state), strict=True):
         scale = min(
             1.0,
-            robot.v_max_mps / max(abs(vc), eps),
-            robot.omega_max_radps / max(abs(wc), eps),
-            robot.wheel_v_max_mps / max(abs(vc) + half_track * abs(wc), eps),
+            v_max / max(abs(vc), eps),
+            w_max / max(abs(wc), eps),
+            wheel_max / max(abs(vc) + half_track * abs(wc), eps),
         )
         v_want, w_want = vc * scale, wc * scale
         for _ in range(substeps):

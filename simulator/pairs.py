@@ -12,6 +12,8 @@ FloatArray = npt.NDArray[np.float64]
 # Up to this many robots, distances are checked pair by pair (a dense matrix); beyond,
 # through a uniform grid.
 _PAIRWISE_MAX = 64
+# Up to this many points, `any_pair_within` checks them in plain floats.
+_FEW = 8
 
 
 def grid_pairs(
@@ -63,6 +65,14 @@ def any_pair_within(x: FloatArray, y: FloatArray, distance_m: float) -> bool:
         return False
     # a hair wide of the grid's exact hypot test: never misses a contact it would find
     limit = (distance_m * (1.0 + 1e-9)) ** 2
+    if len(x) <= _FEW:  # (the same arithmetic in plain floats: cheaper than numpy's calls)
+        xs, ys = x.tolist(), y.tolist()
+        for k, (xi, yi) in enumerate(zip(xs, ys, strict=True)):
+            for xj, yj in zip(xs[k + 1 :], ys[k + 1 :], strict=True):
+                dx, dy = xi - xj, yi - yj  # (numpy's ** 2 is dx * dx, not pow)
+                if dx * dx + dy * dy < limit:
+                    return True
+        return False
     if len(x) <= _PAIRWISE_MAX:
         d2 = (x[:, None] - x[None, :]) ** 2 + (y[:, None] - y[None, :]) ** 2
         np.fill_diagonal(d2, np.inf)

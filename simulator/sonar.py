@@ -129,6 +129,31 @@ def ray_segment_hits(
     return np.asarray(np.min(np.where(hit, t, np.inf), axis=1), dtype=np.float64)
 
 
+def nearest_segment_hits(
+    ox: FloatArray,
+    oy: FloatArray,
+    dx: FloatArray,
+    dy: FloatArray,
+    ax: FloatArray,
+    ay: FloatArray,
+    ex: FloatArray,
+    ey: FloatArray,
+) -> FloatArray:
+    """`ray_segment_hits` given each segment's extent (ex, ey) = b - a, in fewer numpy
+    calls and to the same bits: the same arithmetic, a parallel pair's t and s made NaN
+    (which meets no bound) rather than masked.
+    """
+    ex, ey = ex[None, :], ey[None, :]
+    wx, wy = ax[None, :] - ox[:, None], ay[None, :] - oy[:, None]
+    dx, dy = dx[:, None], dy[:, None]
+    denom = dx * ey - dy * ex
+    safe = np.where(np.abs(denom) < 1e-12, np.nan, denom)
+    t = (wx * ey - wy * ex) / safe
+    s = (wx * dy - wy * dx) / safe
+    hit = (t >= 0.0) & (s >= 0.0) & (s <= 1.0)
+    return np.asarray(np.min(np.where(hit, t, np.inf), axis=1), dtype=np.float64)
+
+
 def ring_rays(
     ring: SonarRing, x: FloatArray, y: FloatArray, th: FloatArray
 ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
@@ -158,7 +183,8 @@ def circle_hits_at(
     c = fx * fx + fy * fy - r**2
     disc = b * b - c
     root = np.sqrt(np.maximum(disc, 0.0))
-    t_near, t_far = -b - root, -b + root
+    back = -b
+    t_near, t_far = back - root, back + root
     t = np.where(t_near >= 0.0, t_near, np.where(t_far >= 0.0, 0.0, np.inf))
     return np.asarray(np.where(disc >= 0.0, t, np.inf), dtype=np.float64)
 

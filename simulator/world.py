@@ -193,10 +193,12 @@ class World:
             self._sonar_cache.clear()
             self._ranges = None
             return
+        # (only the robots near a polygon can touch one in this step's sub-steps)
+        walls = self.contacts.near_walls(self.x, self.y, self.robot.radius_m, self._travel_m(dt_s))
         start = self._poses() if self.sensors is not None else None
         for j in range(self.config.substeps):
             before = self._poses() if self.sensors is not None else None
-            self._substep(sub)
+            self._substep(sub, walls)
             if self.sensors is not None and before is not None:
                 self.sensors.substep(self.t_s + j * sub, sub, before, self._poses())
         if self.sensors is not None and self.sensors.odometry is not None and start is not None:
@@ -207,13 +209,16 @@ class World:
         self._sonar_cache.clear()
         self._ranges = None
 
-    def _contact_free(self, dt_s: float) -> bool:
-        """Whether no contact can begin or end within the next `dt_s` (the usual case):
-        no robot moves further than its speed allows (no faster than it goes or may go,
-        `_towards` never overshoots its target) from where it is now.
+    def _travel_m(self, dt_s: float) -> float:
+        """How far any robot can move within the next `dt_s`: no further than its speed
+        allows (no faster than it goes or may go, `_towards` never overshoots its target).
         """
-        fastest = max(float(np.abs(self.v).max(initial=0.0)), self.robot.v_max_mps)
-        travel_m = fastest * dt_s * (1.0 + 1e-6)
+        fastest = max(max(map(abs, self.v.tolist()), default=0.0), self.robot.v_max_mps)
+        return fastest * dt_s * (1.0 + 1e-6)
+
+    def _contact_free(self, dt_s: float) -> bool:
+        """Whether no contact can begin or end within the next `dt_s` (the usual case)."""
+        travel_m = self._travel_m(dt_s)
         return self.contacts.none_within(self.x, self.y, self.robot.radius_m, travel_m)
 
     def _glide(self, dt_s: float) -> None:
@@ -233,7 +238,10 @@ class World:
             )
             self.x, self.y, self.th = integrate_arcs(self.x, self.y, self.th, self.v, self.w, dt_s)
 
-    def _substep(self, dt_s: float) -> None:
+    def _substep(self, dt_s: float, walls: list[int] | None = None) -> None:
+        """One sub-step with its contact checks (the polygons' for robots `walls` only,
+        None: every robot).
+        """
         if len(self._ids) <= SCALAR_MAX:
             self.v, self.w, x, y, th = limits_and_arcs_scalar(
                 (self.x, self.y, self.th, self.v, self.w, self.v_cmd, self.w_cmd), self.robot, dt_s
@@ -244,7 +252,7 @@ class World:
             )
             x, y, th = integrate_arcs(self.x, self.y, self.th, self.v, self.w, dt_s)
         radius_m = self.robot.radius_m
-        touching = self.contacts.touching(x, y, radius_m)
+        touching = self.contacts.touching(x, y, radius_m, walls)
         if not touching:  # the usual case: every robot moves
             self.x, self.y, self.th = x, y, th
         else:

@@ -93,10 +93,17 @@ def test_no_contact_can_begin_within_the_travel_checked() -> None:
     assert not contacts.none_within(*far, ROBOT.radius_m, 0.5 * pair_gap_m)
     contacts.under_way.add(("a", "obstacle:0"))  # a contact to release: checked each sub-step
     assert not contacts.none_within(*far, ROBOT.radius_m, 0.0)
-    square = PolygonObstacle(vertices_m=((9.0, 9.0), (10.0, 9.0), (10.0, 10.0)))
-    walls = WorldConfig(polygons=(square,))
+    triangle = PolygonObstacle(vertices_m=((9.0, 9.0), (10.0, 9.0), (10.0, 10.0)))
+    walls = WorldConfig(polygons=(triangle,))
     polygons = Contacts(walls, np.zeros((0, 3)), polygon_edges(walls), ["a", "b"])
-    assert not polygons.none_within(*far, ROBOT.radius_m, 0.0)  # polygons: each sub-step
+    assert polygons.none_within(*far, ROBOT.radius_m, 0.0)
+    # the triangle's bounding box, not the triangle, is kept clear of
+    x, y = np.array([9.0, -10.0]), np.array([10.0 + ROBOT.radius_m + 0.2, 0.0])
+    assert polygons.none_within(x, y, ROBOT.radius_m, 0.19)
+    assert not polygons.none_within(x, y, ROBOT.radius_m, 0.2)
+    assert polygons.near_walls(x, y, ROBOT.radius_m, 0.2) == [0]
+    inside = np.array([9.9, -10.0]), np.array([9.1, 0.0])  # robot a within the triangle
+    assert not polygons.none_within(*inside, ROBOT.radius_m, 0.0)
 
 
 def test_a_batch_run_keeps_its_fleet_out_of_full_collections_and_gives_it_back() -> None:
