@@ -105,30 +105,6 @@ def ray_circle_hits(
     return np.asarray(np.min(t, axis=1), dtype=np.float64)
 
 
-def ray_segment_hits(
-    ox: FloatArray,
-    oy: FloatArray,
-    dx: FloatArray,
-    dy: FloatArray,
-    ax: FloatArray,
-    ay: FloatArray,
-    bx: FloatArray,
-    by: FloatArray,
-) -> FloatArray:
-    """Distance along each ray to the nearest segment (a -> b), inf if none."""
-    if ax.size == 0:
-        return np.full(ox.shape, np.inf)
-    ex, ey = (bx - ax)[None, :], (by - ay)[None, :]
-    wx, wy = ax[None, :] - ox[:, None], ay[None, :] - oy[:, None]
-    denom = dx[:, None] * ey - dy[:, None] * ex
-    parallel = np.abs(denom) < 1e-12
-    safe = np.where(parallel, 1.0, denom)
-    t = (wx * ey - wy * ex) / safe
-    s = (wx * dy[:, None] - wy * dx[:, None]) / safe
-    hit = (~parallel) & (t >= 0.0) & (s >= 0.0) & (s <= 1.0)
-    return np.asarray(np.min(np.where(hit, t, np.inf), axis=1), dtype=np.float64)
-
-
 def nearest_segment_hits(
     ox: FloatArray,
     oy: FloatArray,
@@ -139,9 +115,9 @@ def nearest_segment_hits(
     ex: FloatArray,
     ey: FloatArray,
 ) -> FloatArray:
-    """`ray_segment_hits` given each segment's extent (ex, ey) = b - a, in fewer numpy
-    calls and to the same bits: the same arithmetic, a parallel pair's t and s made NaN
-    (which meets no bound) rather than masked.
+    """Distance along each ray to the nearest segment (from a, extent (ex, ey) = b - a),
+    inf if none; a ray parallel to a segment meets it nowhere (its t and s are NaN,
+    which meet no bound).
     """
     ex, ey = ex[None, :], ey[None, :]
     wx, wy = ax[None, :] - ox[:, None], ay[None, :] - oy[:, None]

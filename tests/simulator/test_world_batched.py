@@ -11,6 +11,7 @@ import math
 import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from plain_rays import ray_segment_hits
 
 from phalanx.agents.agent import Observation
 from phalanx.core.config import CircleObstacle, NoiseConfig, PolygonObstacle, WorldConfig
@@ -24,7 +25,7 @@ from phalanx.simulator.kinematics import (
     integrate_arcs,
     limits_and_arcs_scalar,
 )
-from phalanx.simulator.sonar import ray_circle_hits, ray_segment_hits
+from phalanx.simulator.sonar import ray_circle_hits
 from phalanx.simulator.world import World
 
 ROBOT = load_robot("p3dx")

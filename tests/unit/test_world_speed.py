@@ -6,7 +6,8 @@ when no robot is near a polygon's bounding box, and the polygons checked only fo
 robots near one) against checking every polygon for every robot at every sub-step, and
 the plain-float checks of a few robots against numpy's. The plain cast is kept here, as
 it was, as the reference (its circle and segment arithmetic `circle_hits_at` and
-`ray_segment_hits`; the leaner segment test is held to the latter).
+`ray_segment_hits`, from lab/plain_rays.py; the leaner segment test is held to the
+latter).
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ import numpy as np
 import numpy.typing as npt
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from plain_rays import ray_segment_hits
 
 from phalanx.core.config import CircleObstacle, NoiseConfig, PolygonObstacle, WorldConfig
 from phalanx.core.config_files import load_robot
@@ -29,7 +31,6 @@ from phalanx.simulator.sonar import (
     circle_hits_at,
     nearest_segment_hits,
     per_unit,
-    ray_segment_hits,
     rays_towards,
     ring_rays,
 )
