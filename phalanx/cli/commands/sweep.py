@@ -16,8 +16,9 @@ if TYPE_CHECKING:
     from phalanx.analysis.sweep import Job
 
 # A run's wall time on one worker when the results file has none to go by: a field run
-# of 3 robots took about 38 s on a 2-core machine (300 runs in about 95 min on 2 workers).
-PER_RUN_S = 38.0
+# of 3 robots took 2.2 s on average on a 2-core machine (300 runs in about 6 min on 2
+# workers; 600 of 3 and 5 robots in 12.9 min).
+PER_RUN_S = 2.2
 
 
 def sweep(
