@@ -28,7 +28,7 @@ import numpy.typing as npt
 from phalanx.core.geometry import Twist2D, wrap_angle
 from phalanx.core.rigid_body import rigid_body_target
 from phalanx.core.runlog import ESTIMATE_CAVEAT, ESTIMATE_POSE, RobotTrace, RunLog
-from phalanx.core.shapes import ShapeBook, ShapeKey
+from phalanx.core.shapes import SCENARIO_SHAPE, ShapeBook, ShapeKey
 from phalanx.core.states import ROBOT_STATES
 
 FloatArray = npt.NDArray[np.float64]
@@ -380,7 +380,11 @@ def _scenario_shape_shares(log: RunLog) -> dict[str, float]:
     traces = log.traces.values()
     if not n or any(len(tr.shapes) != n or len(tr.fits) != n for tr in traces):
         return {"scenario_shape_share": 1.0, "fits_share": 1.0, "scenario_shape_when_fits": 1.0}
-    in_shape = [log.traces[rid].shapes[k] == (0, 0, 1.0) for k, rid in enumerate(leaders)]
+    # settled in the scenario's shape, whichever shape it came back from
+    in_shape = [
+        ShapeKey(*log.traces[rid].shapes[k]).settled_in(SCENARIO_SHAPE)
+        for k, rid in enumerate(leaders)
+    ]
     fits = [log.traces[rid].fits[k] for k, rid in enumerate(leaders)]
     fitting = sum(fits)
     kept = sum(i and f for i, f in zip(in_shape, fits, strict=True))

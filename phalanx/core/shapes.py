@@ -52,6 +52,10 @@ class ShapeKey:
         """In a shape, not between two."""
         return self.morph >= 1.0
 
+    def settled_in(self, shape: int) -> bool:
+        """In `shape`, not on the way to or from it (whichever shape it came from)."""
+        return self.settled and self.target == shape
+
     @property
     def current(self) -> int:
         """The shape it is in, or is moving to."""

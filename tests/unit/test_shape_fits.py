@@ -71,8 +71,14 @@ def test_a_run_records_per_step_whether_the_shape_fits_and_its_metrics_count_it(
     # known series in place of the run's: the metrics' arithmetic, step by step
     half = n // 2
     lead.fits = [k < half for k in range(n)]
-    lead.shapes = [(SCENARIO_SHAPE, SCENARIO_SHAPE, 1.0) if k % 4 else (0, COLUMN, 0.5)
-                   for k in range(n)]  # fmt: skip
+    # in the shape from the start, or back in it from the column; every fourth step
+    # on the way to the column
+    lead.shapes = [
+        (0, COLUMN, 0.5) if k % 4 == 0
+        else (SCENARIO_SHAPE, SCENARIO_SHAPE, 1.0) if k < n // 3
+        else (COLUMN, SCENARIO_SHAPE, 1.0)
+        for k in range(n)
+    ]  # fmt: skip
     metrics = navigation_metrics(log)
     assert metrics["fits_share"] == pytest.approx(half / n)
     kept = sum(1 for k in range(half) if k % 4)
