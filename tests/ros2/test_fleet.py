@@ -16,6 +16,8 @@ from __future__ import annotations
 import subprocess
 import sys
 import threading
+from collections.abc import Iterator
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -23,7 +25,7 @@ import pytest
 from fleetlab import CLI, child_running, deployment_file, running_fleet, terminate, wait_for
 from rosbags.typesys import Stores, get_typestore
 
-from phalanx.wire.transport import TransportConfig, free_tcp_port, open_session
+from phalanx.wire.transport import FleetSession, TransportConfig, free_tcp_port, open_session
 
 from .conftest import WEDGE
 
@@ -79,91 +81,108 @@ def test_an_independent_subscriber_sees_r1s_odometry_of_a_running_fleet(
     assert matched >= len(odoms) // 2
 
 
+ODOM_TYPE = "nav_msgs/msg/Odometry"
+
+
+@dataclass
+class RosSide:
+    """ROS 2's router on loopback (rmw_zenohd's place), with r1's odometry decoded by
+    rosbags as it comes.
+    """
+
+    port: int
+    session: FleetSession
+    store: Any = field(default_factory=lambda: get_typestore(Stores.ROS2_JAZZY))
+    got: list[Any] = field(default_factory=list)
+    lock: threading.Lock = field(default_factory=threading.Lock)
+
+    def on_odom(self, sample: Any) -> None:
+        """A sample of r1's odometry: decoded and kept."""
+        message = self.store.deserialize_cdr(sample.payload.to_bytes(), ODOM_TYPE)
+        with self.lock:
+            self.got.append(message)
+
+    def odoms(self) -> list[Any]:
+        """The odometry decoded so far."""
+        with self.lock:
+            return list(self.got)
+
+    def bridge_tokens(self) -> list[str]:
+        """The liveliness tokens of a phalanx bridge left in the ROS graph."""
+        tokens = self.session.zenoh.liveliness().get("@ros2_lv/0/**", timeout=2.0)
+        keys = [str(r.ok.key_expr) for r in tokens if r.ok is not None]
+        return [k for k in keys if "phalanx_bridge" in k]
+
+
+@pytest.fixture
+def ros_side() -> Iterator[RosSide]:
+    """A ROS 2 side listening for r1's odometry."""
+    port = free_tcp_port()
+    with open_session(TransportConfig(mode="router", listen=(f"tcp/127.0.0.1:{port}",))) as ros:
+        side = RosSide(port, ros)
+        odom_key = f"0/r1/odom/nav_msgs::msg::dds_::Odometry_/{side.store.hash_rihs01(ODOM_TYPE)}"
+        ros.zenoh.declare_subscriber(odom_key, side.on_odom)
+        yield side
+
+
 def test_phalanx_up_runs_the_bridge_with_the_fleet_and_stops_it_with_it(
-    tmp_path: Path, sdk_registry: None
+    tmp_path: Path, sdk_registry: None, ros_side: RosSide
 ) -> None:
     from zenoh_ros2_sdk.discovery import get_topic_names_and_types
 
-    store = get_typestore(Stores.ROS2_JAZZY)
-    odom_type = "nav_msgs/msg/Odometry"
-    odom_key = f"0/r1/odom/nav_msgs::msg::dds_::Odometry_/{store.hash_rihs01(odom_type)}"
-    port = free_tcp_port()
-    got: list[Any] = []
-    lock = threading.Lock()
+    port = ros_side.port
     ros_router = f'ros2.connect=["tcp/127.0.0.1:{port}"]'
     argv = [sys.executable, "-m", "phalanx", "up", str(WEDGE), "--fleet", "rosup", "--clock",
             "realtime", "--no-recording", "--timeout", "120", "--set", "duration_s=25",
             "--set", "ros2.enabled=true", "--set", ros_router]  # fmt: skip
-    # ROS 2's router (rmw_zenohd's place), and a ROS 2 side on it
-    with open_session(TransportConfig(mode="router", listen=(f"tcp/127.0.0.1:{port}",))) as ros:
-        ros.zenoh.declare_subscriber(odom_key, _odometry_listener(store, got, lock))
-        with (tmp_path / "up.log").open("wb") as log:
-            up = subprocess.Popen(argv, stdout=log, stderr=subprocess.STDOUT, cwd=tmp_path)
-        try:
-            assert wait_for(lambda: child_running(up.pid, "ros2") is not None, WAIT_S)
-            bridge = child_running(up.pid, "ros2")
-            assert wait_for(lambda: len(got) >= ODOMS, WAIT_S), (tmp_path / "up.log").read_text()
-            where = {"router_ip": "127.0.0.1", "router_port": port, "domain_id": 0}
-            listed: dict[str, list[str]] = {}
+    with (tmp_path / "up.log").open("wb") as log:
+        up = subprocess.Popen(argv, stdout=log, stderr=subprocess.STDOUT, cwd=tmp_path)
+    try:
+        assert wait_for(lambda: child_running(up.pid, "ros2") is not None, WAIT_S)
+        bridge = child_running(up.pid, "ros2")
+        got = ros_side.odoms
+        assert wait_for(lambda: len(got()) >= ODOMS, WAIT_S), (tmp_path / "up.log").read_text()
+        where = {"router_ip": "127.0.0.1", "router_port": port, "domain_id": 0}
+        listed: dict[str, list[str]] = {}
 
-            def graph_listed() -> bool:  # (a session just opened may not see all at once)
-                listed.update(get_topic_names_and_types(timeout=1.0, **where))
-                return {"/r1/odom", "/tf", "/cmd_vel"} <= set(listed)
+        def graph_listed() -> bool:  # (a session just opened may not see all at once)
+            listed.update(get_topic_names_and_types(timeout=1.0, **where))
+            return {"/r1/odom", "/tf", "/cmd_vel"} <= set(listed)
 
-            assert wait_for(graph_listed, WAIT_S, poll_s=0.5), listed
-            code = up.wait(120)
-        finally:
-            terminate([up], grace_s=10.0)
-        tokens = ros.zenoh.liveliness().get("@ros2_lv/0/**", timeout=2.0)
-        left = [str(r.ok.key_expr) for r in tokens if r.ok is not None]
+        assert wait_for(graph_listed, WAIT_S, poll_s=0.5), listed
+        code = up.wait(120)
+    finally:
+        terminate([up], grace_s=10.0)
     output = (tmp_path / "up.log").read_text()
     assert code == 0, output[-3000:]
-    assert listed["/r1/odom"] == [odom_type]
+    assert listed["/r1/odom"] == [ODOM_TYPE]
     assert listed["/tf"] == ["tf2_msgs/msg/TFMessage"]
     assert listed["/cmd_vel"] == ["geometry_msgs/msg/Twist"]  # (what it takes in)
-    with lock:
-        odoms = list(got)
+    odoms = ros_side.odoms()
     assert {(o.header.frame_id, o.child_frame_id) for o in odoms} == {("map", "r1/base_link")}
     assert odoms[-1].pose.pose.position.x > odoms[0].pose.pose.position.x  # r1 drove on
     assert bridge is not None
     assert not Path(f"/proc/{bridge}").exists()  # stopped with the fleet
-    assert not [k for k in left if "phalanx_bridge" in k]  # and gone from the ROS graph
+    assert not ros_side.bridge_tokens()  # and gone from the ROS graph
 
 
-def _odometry_listener(store: Any, got: list[Any], lock: threading.Lock) -> Any:
-    def on_odom(sample: Any) -> None:
-        message = store.deserialize_cdr(sample.payload.to_bytes(), "nav_msgs/msg/Odometry")
-        with lock:
-            got.append(message)
-
-    return on_odom
-
-
-def test_a_deployments_host_daemon_runs_the_bridge_with_the_world(tmp_path: Path) -> None:
-    store = get_typestore(Stores.ROS2_JAZZY)
-    odom_type = "nav_msgs/msg/Odometry"
-    odom_key = f"0/r1/odom/nav_msgs::msg::dds_::Odometry_/{store.hash_rihs01(odom_type)}"
-    port = free_tcp_port()
+def test_a_deployments_host_daemon_runs_the_bridge_with_the_world(
+    tmp_path: Path, ros_side: RosSide
+) -> None:
     path, _ = deployment_file(tmp_path, name="rosdep", duration_s=15.0, recording=False)
     with path.open("a") as extra:
-        extra.write(f'[ros2]\nenabled = true\nconnect = ["tcp/127.0.0.1:{port}"]\n')
+        extra.write(f'[ros2]\nenabled = true\nconnect = ["tcp/127.0.0.1:{ros_side.port}"]\n')
     argv = [*CLI, "launch", str(path), "--local", "--no-table", "--host-wait", "60"]
-    got: list[Any] = []
-    lock = threading.Lock()
-    with open_session(TransportConfig(mode="router", listen=(f"tcp/127.0.0.1:{port}",))) as ros:
-        ros.zenoh.declare_subscriber(odom_key, _odometry_listener(store, got, lock))
-        with (tmp_path / "launch.log").open("wb") as log:
-            launch = subprocess.Popen(argv, stdout=log, stderr=subprocess.STDOUT, cwd=tmp_path)
-        try:
-            assert wait_for(lambda: len(got) >= ODOMS, 90.0), (tmp_path / "launch.log").read_text()
-            code = launch.wait(150)
-        finally:
-            terminate([launch], grace_s=20.0)
-        tokens = ros.zenoh.liveliness().get("@ros2_lv/0/**", timeout=2.0)
-        left = [str(r.ok.key_expr) for r in tokens if r.ok is not None]
+    with (tmp_path / "launch.log").open("wb") as log:
+        launch = subprocess.Popen(argv, stdout=log, stderr=subprocess.STDOUT, cwd=tmp_path)
+    try:
+        got = ros_side.odoms
+        assert wait_for(lambda: len(got()) >= ODOMS, 90.0), (tmp_path / "launch.log").read_text()
+        code = launch.wait(150)
+    finally:
+        terminate([launch], grace_s=20.0)
     output = (tmp_path / "launch.log").read_text()
     assert code == 0, output[-3000:]
     assert "[laptop/ros2-bridge] ros2: node @ros2_lv/0/" in output  # the world's host ran it
-    with lock:
-        assert {o.child_frame_id for o in got} == {"r1/base_link"}
-    assert not [k for k in left if "phalanx_bridge" in k]  # stopped with the run
+    assert {o.child_frame_id for o in ros_side.odoms()} == {"r1/base_link"}
+    assert not ros_side.bridge_tokens()  # stopped with the run

@@ -24,6 +24,7 @@ from phalanx.core.config import Ros2Config, Scenario
 from phalanx.core.errors import ConfigError
 from phalanx.ros2.graph import attachment, gid_of
 from phalanx.ros2.names import (
+    PUBLISHER,
     SUBSCRIPTION,
     TRANSIENT_LOCAL,
     NodeId,
@@ -187,28 +188,23 @@ def test_an_independent_implementation_builds_the_same_keys_and_tokens(wedge: Sc
     ours = NodeId(0, zid, 3, "/", "phalanx_bridge")
     theirs = NodeEntity(domain_id=0, session_id=zid, node_id=3, node_name="phalanx_bridge")
     assert node_token(ours) == node_liveliness_keyexpr(theirs)
-    for entity_id, topic in enumerate(fleet_topics(cfg, [r.id for r in wedge.robots]), 1):
+    # what the bridge publishes, then what it takes in (ids of their own)
+    entities = [
+        *((PUBLISHER, EntityKind.PUBLISHER, i, t) for i, t in enumerate(
+            fleet_topics(cfg, [r.id for r in wedge.robots]), 1)),
+        *((SUBSCRIPTION, EntityKind.SUBSCRIPTION, i, t) for i, t in enumerate(
+            fleet_inputs(cfg), 100)),
+    ]  # fmt: skip
+    for kind, their_kind, entity_id, topic in entities:
         dds = ros2_to_dds_type(topic.ros_type)
         assert topic.key(0) == topic_keyexpr(0, topic.name, dds, topic.type_hash)
         endpoint = EndpointEntity(
-            node=theirs, entity_id=entity_id, kind=EntityKind.PUBLISHER, name=topic.name,
+            node=theirs, entity_id=entity_id, kind=their_kind, name=topic.name,
             dds_type_name=dds, type_hash=topic.type_hash, qos=qos_text(topic.qos),
         )  # fmt: skip
         token = publisher_token(
             ours, entity_id, topic=topic.name, ros_type=topic.ros_type,
-            type_hash=topic.type_hash, qos=topic.qos,
-        )  # fmt: skip
-        assert token == endpoint_liveliness_keyexpr(endpoint)
-    for entity_id, topic in enumerate(fleet_inputs(cfg), 100):  # what the bridge takes in
-        dds = ros2_to_dds_type(topic.ros_type)
-        assert topic.key(0) == topic_keyexpr(0, topic.name, dds, topic.type_hash)
-        endpoint = EndpointEntity(
-            node=theirs, entity_id=entity_id, kind=EntityKind.SUBSCRIPTION, name=topic.name,
-            dds_type_name=dds, type_hash=topic.type_hash, qos=qos_text(topic.qos),
-        )  # fmt: skip
-        token = publisher_token(
-            ours, entity_id, topic=topic.name, ros_type=topic.ros_type,
-            type_hash=topic.type_hash, qos=topic.qos, kind=SUBSCRIPTION,
+            type_hash=topic.type_hash, qos=topic.qos, kind=kind,
         )  # fmt: skip
         assert token == endpoint_liveliness_keyexpr(endpoint)
 

@@ -18,6 +18,8 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -87,25 +89,34 @@ class Commands:
             return list(self.got)
 
 
-def test_cmd_vel_and_goal_pose_go_to_the_robot_that_leads(
-    wedge: Scenario, p3dx: RobotParams, sdk_registry: None
-) -> None:
+@contextmanager
+def operated(wedge: Scenario, p3dx: RobotParams) -> Iterator[tuple[Any, RosOperator, Commands]]:
+    """The bridge on real sessions (`lab`), the robots' side hearing operator commands,
+    and a ROS 2 operator on the bridge's router.
+    """
     heard = Commands()
     with lab(wedge, p3dx) as it:
         it.robots.subscribe(robots_key(FLEET, "operator"), OperatorCommand, heard.on)
         operator = RosOperator(it.port)
         try:
-            it.send("state", state("r1", 1, formation_leader_id="r2"))  # r2 leads
-            assert it.rounds_until(lambda: it.bridge.stats.heard["state"] > 0)
-            time.sleep(0.5)  # (the SDK's publishers and the bridge's subscriptions meet)
-            operator.twist(0.2, -0.3)
-            operator.goal(4.0, -2.5)
-            assert it.rounds_until(lambda: bool(heard.all()))
-            assert it.rounds_until(lambda: any(c.goal for _, c in heard.all()))
-            operator.twist(5.0, 9.0)  # beyond the robot's rating
-            assert it.rounds_until(lambda: len([c for _, c in heard.all() if c.twist]) >= 2)
+            yield it, operator, heard
         finally:
             operator.close()
+
+
+def test_cmd_vel_and_goal_pose_go_to_the_robot_that_leads(
+    wedge: Scenario, p3dx: RobotParams, sdk_registry: None
+) -> None:
+    with operated(wedge, p3dx) as (it, operator, heard):
+        it.send("state", state("r1", 1, formation_leader_id="r2"))  # r2 leads
+        assert it.rounds_until(lambda: it.bridge.stats.heard["state"] > 0)
+        time.sleep(0.5)  # (the SDK's publishers and the bridge's subscriptions meet)
+        operator.twist(0.2, -0.3)
+        operator.goal(4.0, -2.5)
+        assert it.rounds_until(lambda: bool(heard.all()))
+        assert it.rounds_until(lambda: any(c.goal for _, c in heard.all()))
+        operator.twist(5.0, 9.0)  # beyond the robot's rating
+        assert it.rounds_until(lambda: len([c for _, c in heard.all() if c.twist]) >= 2)
     got = heard.all()
     assert {key for key, _ in got} == {robot_key(FLEET, "r2", "operator")}
     twists = [c for _, c in got if c.twist]
@@ -120,24 +131,18 @@ def test_cmd_vel_and_goal_pose_go_to_the_robot_that_leads(
 def test_what_the_bridge_refuses_of_ros_2_is_counted_and_never_sent(
     wedge: Scenario, p3dx: RobotParams, sdk_registry: None
 ) -> None:
-    heard = Commands()
-    with lab(wedge, p3dx) as it:
-        it.robots.subscribe(robots_key(FLEET, "operator"), OperatorCommand, heard.on)
-        operator = RosOperator(it.port)
+    with operated(wedge, p3dx) as (it, operator, heard):
         cmd_vel = next(s.key for s in it.bridge.subscriptions() if s.topic.kind == "cmd_vel")
-        try:
-            time.sleep(0.5)
-            operator.twist(0.1, 0.0)  # nobody has been heard leading yet
-            assert it.rounds_until(lambda: it.bridge.stats.refused["operator"] > 0)
-            it.send("state", state("r1", 1))
-            operator.goal(1.0, 1.0, frame="odom")  # a goal in another frame
-            operator.twist(math.nan, 0.0)
-            it.ros.put(cmd_vel, b"\x00\x01\x00\x00\xff")  # no Twist
-            assert it.rounds_until(lambda: it.bridge.stats.refused.total() >= 4)
-            time.sleep(0.3)
-            it.bridge.round()
-        finally:
-            operator.close()
+        time.sleep(0.5)
+        operator.twist(0.1, 0.0)  # nobody has been heard leading yet
+        assert it.rounds_until(lambda: it.bridge.stats.refused["operator"] > 0)
+        it.send("state", state("r1", 1))
+        operator.goal(1.0, 1.0, frame="odom")  # a goal in another frame
+        operator.twist(math.nan, 0.0)
+        it.ros.put(cmd_vel, b"\x00\x01\x00\x00\xff")  # no Twist
+        assert it.rounds_until(lambda: it.bridge.stats.refused.total() >= 4)
+        time.sleep(0.3)
+        it.bridge.round()
     assert heard.all() == []
     refused = it.bridge.stats.refused
     assert (refused["operator"], refused["goal_pose"], refused["cmd_vel"]) == (1, 1, 2)
