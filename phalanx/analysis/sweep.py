@@ -206,11 +206,15 @@ def run_sweep(
         try:
             client = Client(address or cluster)  # type: ignore[no-untyped-call]
             with client, results.open("a", encoding="utf-8") as out:
-                futures = client.map(run_job, pending, pure=False)
-                for future in as_completed(futures):  # type: ignore[no-untyped-call]
+                # (no list of the futures kept: a run's result, once in the file, is
+                # released, or the worker holding it keeps it to the end, and losing
+                # that worker would have every run it ever finished done again)
+                futures = as_completed(client.map(run_job, pending, pure=False))  # type: ignore[no-untyped-call]
+                for future in futures:
                     row = future.result()
                     out.write(json.dumps(row, allow_nan=True) + "\n")
                     out.flush()
+                    future.release()
                     have[row["key"]] = row
                     finished += 1
                     if progress is not None:

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import signal
 import subprocess
 import time
@@ -23,7 +24,12 @@ pytestmark = [pytest.mark.integration, pytest.mark.slow, pytest.mark.timeout(420
 
 SEEDS = 10  # x the three formations: 30 runs
 RUN_S = 30.0  # each run's simulated time: about a second of work on one core
-KILL_AFTER_ROWS = 5  # the first worker dies once this many runs are in the file
+KILL_AFTER_ROWS = 15  # the first worker dies once this many runs are in the file
+# Runs the dead worker had finished and not handed over yet (done again elsewhere): the
+# one or two it may have just finished while the sweep, on a loaded machine, had not
+# fetched them; a sweep that kept every result on its worker loses the half of the 15
+# it did.
+LOST_AT_MOST = 3
 SWEEP_TIMEOUT_S = 300.0
 
 
@@ -66,6 +72,17 @@ def _wait_for_rows(out: Path, rows: int, sweep: subprocess.Popen[bytes]) -> list
     return keys
 
 
+def _lost_results(scheduler_log: str) -> set[str]:
+    """The finished runs the scheduler says a removed worker took with it (to be done
+    again elsewhere): the task keys of its "lose already computed task(s)" warnings.
+    """
+    lost: set[str] = set()
+    for line in scheduler_log.splitlines():
+        if "lose already computed task(s)" in line:
+            lost.update(re.findall(r"'(run_job-[^']+)'", line))
+    return lost
+
+
 def test_a_sweep_outlives_a_killed_worker_loses_no_run_and_resumes(
     cluster: Cluster, tmp_path: Path
 ) -> None:
@@ -92,6 +109,7 @@ def test_a_sweep_outlives_a_killed_worker_loses_no_run_and_resumes(
     scheduler = cluster.daemons[0].text()
     assert "Remove worker addr" in scheduler, scheduler[-2000:]
     assert "name: w1" in scheduler
+    assert len(_lost_results(scheduler)) <= LOST_AT_MOST, scheduler[-3000:]
     progress = said.read_text(encoding="utf-8")
     assert f"(the cluster at {address} may have more)" in progress
     assert "left" in progress  # (the estimate of the time left, while it runs)
