@@ -97,12 +97,14 @@ def main() -> None:
             again_s = time.monotonic() - again_started
             added = len(keys(out)) - len(done)
             lines = progress_lines(said)
+            lost = cluster.lost_results()
         finally:
             cluster.close()
         left = cluster.leftovers()
     print(f"sweep of {total} runs on 2 workers, exit code {code}: {wall_s / 60:.1f} min "
           f"({wall_s / total:.2f} s a run), {cal.cal(wall_s / total)} a run")  # fmt: skip
-    print(f"worker killed at {killed_s / 60:.1f} min with {before_kill} runs in the file")
+    print(f"worker killed at {killed_s / 60:.1f} min with {before_kill} runs in the file; "
+          f"finished runs it took with it (done again): {len(lost)}")  # fmt: skip
     print(f"runs in the file: {len(done)} lines, {len(set(done))} different (want {total})")
     print(f"first estimate: {lines[0] if lines else '-'}")
     print(f"last progress: {lines[-1] if lines else '-'}")

@@ -9,6 +9,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -82,6 +83,17 @@ class Cluster:
         )  # fmt: skip
         _wait(lambda: "Registered to" in daemon.text(), daemon)
         return daemon
+
+    def lost_results(self) -> set[str]:
+        """The finished tasks the scheduler says removed workers took with it (to be done
+        again elsewhere): the keys in its "lose already computed task(s)" warnings.
+        """
+        lost: set[str] = set()
+        scheduler = next(d for d in self.daemons if d.name == "scheduler")
+        for line in scheduler.text().splitlines():
+            if "lose already computed task(s)" in line:
+                lost.update(re.findall(r"'([^']+)'", line.split("elsewhere:", 1)[-1]))
+        return lost
 
     def kill(self, daemon: Daemon) -> None:
         """SIGKILL to the worker and its nanny at once: a host lost, not a shutdown."""

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import json
 import os
-import re
 import signal
 import subprocess
 import time
@@ -72,17 +71,6 @@ def _wait_for_rows(out: Path, rows: int, sweep: subprocess.Popen[bytes]) -> list
     return keys
 
 
-def _lost_results(scheduler_log: str) -> set[str]:
-    """The finished runs the scheduler says a removed worker took with it (to be done
-    again elsewhere): the task keys of its "lose already computed task(s)" warnings.
-    """
-    lost: set[str] = set()
-    for line in scheduler_log.splitlines():
-        if "lose already computed task(s)" in line:
-            lost.update(re.findall(r"'(run_job-[^']+)'", line))
-    return lost
-
-
 def test_a_sweep_outlives_a_killed_worker_loses_no_run_and_resumes(
     cluster: Cluster, tmp_path: Path
 ) -> None:
@@ -109,7 +97,7 @@ def test_a_sweep_outlives_a_killed_worker_loses_no_run_and_resumes(
     scheduler = cluster.daemons[0].text()
     assert "Remove worker addr" in scheduler, scheduler[-2000:]
     assert "name: w1" in scheduler
-    assert len(_lost_results(scheduler)) <= LOST_AT_MOST, scheduler[-3000:]
+    assert len(cluster.lost_results()) <= LOST_AT_MOST, scheduler[-3000:]
     progress = said.read_text(encoding="utf-8")
     assert f"(the cluster at {address} may have more)" in progress
     assert "left" in progress  # (the estimate of the time left, while it runs)
