@@ -16,7 +16,6 @@ started again (it must run nothing), beside the calibration.
 from __future__ import annotations
 
 import argparse
-import json
 import subprocess
 import sys
 import tempfile
@@ -26,7 +25,7 @@ from pathlib import Path
 from calibration import Calibration
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "lab"))
-from dask_cluster import BIN, Cluster
+from dask_cluster import BIN, Cluster, result_keys
 
 SHAPES = ("wedge", "inline", "collateral")
 ROBOTS = (3, 5)
@@ -40,14 +39,6 @@ def sweep_command(address: str, seeds: int, out: Path) -> list[str]:
         str(BIN / "phalanx"), "sweep", "--family", "field", *shapes, *robots,
         "--seeds", str(seeds), "--address", address, "--out", str(out),
     ]  # fmt: skip
-
-
-def keys(out: Path) -> list[str]:
-    """The job key of every line of the results file (repeats kept)."""
-    if not out.exists():
-        return []
-    lines = out.read_text(encoding="utf-8").splitlines()
-    return [json.loads(line)["key"] for line in lines if line.strip()]
 
 
 def progress_lines(said: Path) -> list[str]:
@@ -80,22 +71,22 @@ def main() -> None:
                     sweep_command(address, args.seeds, out), stdout=subprocess.DEVNULL,
                     stderr=err,
                 )  # fmt: skip
-            while len(keys(out)) < args.kill_at * total and sweep.poll() is None:
+            while len(result_keys(out)) < args.kill_at * total and sweep.poll() is None:
                 time.sleep(0.5)
-            before_kill = len(keys(out))
+            before_kill = len(result_keys(out))
             killed_s = time.monotonic() - started
             cluster.kill(doomed)
             cluster.worker("w3")  # another host takes the lost one's place
             code = sweep.wait()
             wall_s = time.monotonic() - started
-            done = keys(out)
+            done = result_keys(out)
             again_started = time.monotonic()
             again = subprocess.run(
                 sweep_command(address, args.seeds, out), capture_output=True, text=True,
                 check=False,
             )  # fmt: skip
             again_s = time.monotonic() - again_started
-            added = len(keys(out)) - len(done)
+            added = len(result_keys(out)) - len(done)
             lines = progress_lines(said)
             lost = cluster.lost_results()
         finally:

@@ -23,6 +23,21 @@ START_TIMEOUT_S = 60.0  # a scheduler or a worker up and registered
 STOP_TIMEOUT_S = 10.0
 
 
+def result_keys(results: Path) -> list[str]:
+    """The job key of every line of a sweep's results file, in order, repeats kept (a
+    line the sweep is still writing is left out).
+    """
+    if not results.exists():
+        return []
+    keys = []
+    for line in results.read_text(encoding="utf-8").splitlines():
+        try:
+            keys.append(json.loads(line)["key"])
+        except json.JSONDecodeError:
+            continue
+    return keys
+
+
 class ClusterError(RuntimeError):
     """A scheduler or worker that exited or did not come up in time."""
 

@@ -8,7 +8,6 @@ nothing.
 
 from __future__ import annotations
 
-import json
 import os
 import signal
 import subprocess
@@ -17,7 +16,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from dask_cluster import BIN, STOP_TIMEOUT_S, Cluster
+from dask_cluster import BIN, STOP_TIMEOUT_S, Cluster, result_keys
 
 pytestmark = [pytest.mark.integration, pytest.mark.slow, pytest.mark.timeout(420)]
 
@@ -54,17 +53,10 @@ def _sweep_command(address: str, out: Path) -> list[str]:
     ]  # fmt: skip
 
 
-def _keys(out: Path) -> list[str]:
-    """The job key of every line of a results file, in order (repeats kept)."""
-    if not out.exists():
-        return []
-    return [json.loads(line)["key"] for line in out.read_text(encoding="utf-8").splitlines()]
-
-
 def _wait_for_rows(out: Path, rows: int, sweep: subprocess.Popen[bytes]) -> list[str]:
     """The keys in `out` once it holds `rows` finished runs (the sweep still going)."""
     deadline = time.monotonic() + SWEEP_TIMEOUT_S
-    while len(keys := _keys(out)) < rows:
+    while len(keys := result_keys(out)) < rows:
         assert sweep.poll() is None, "the sweep ended before any worker was killed"
         assert time.monotonic() < deadline, f"{len(keys)} runs in {SWEEP_TIMEOUT_S} s"
         time.sleep(0.05)
@@ -90,7 +82,7 @@ def test_a_sweep_outlives_a_killed_worker_loses_no_run_and_resumes(
         if sweep.poll() is None:
             sweep.kill()
             sweep.wait(STOP_TIMEOUT_S)
-    keys = _keys(out)
+    keys = result_keys(out)
     assert len(keys) == len(set(keys)) == 3 * SEEDS, keys
     assert len(before_kill) < 3 * SEEDS  # (killed mid-way)
     assert set(before_kill) <= set(keys)
