@@ -8,6 +8,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import numpy as np
+
 from phalanx.agents.behaviours.base import Behaviour, Moment, turn_on_spot
 from phalanx.agents.memory import BlockedTimers, Progress, Route
 from phalanx.agents.navigation import (
@@ -49,6 +51,9 @@ REALIGN_MAX_RAD = math.radians(45.0)
 # An obstacle nearer ahead than this share of the lookahead lets the leader bend its
 # course as tight as the shape allows.
 TIGHT_AHEAD_SHARE = 0.5
+# The leader's sonar squeezes the shape only where no candidate heading within this many
+# steps of the route's (7.5 deg each) is free for the whole shape.
+SQUEEZE_WINDOW = 2
 # The navigator steers by the echoes of the last this long (s).
 RECENT_ECHOES_S = 1.0
 # While a robot of the group is off its slot, no slot may need more than this share of
@@ -180,7 +185,7 @@ class Steered(Behaviour):
         clearances = self.shape.clearances(recent, moment.view.live, whole_shape=whole_shape)
         room_to_turn = self.shape.sweep_clear(points)
         if self.keeper is not None:
-            self.keeper.squeeze(_squeezed(clearances, desired, dist_m, self.nav), self.dt_s)
+            self.keeper.squeeze(squeezed(clearances, desired, dist_m, self.nav), self.dt_s)
         twist, chosen = steer(
             desired + centring_rad(clearances),
             clearances,
@@ -212,11 +217,18 @@ class Steered(Behaviour):
         return self.nav.min_turn_radius_m
 
 
-def _squeezed(clear: Clearances, desired_rad: float, dist_m: float, nav: NavigationConfig) -> bool:
-    """The way towards `desired_rad` is free for the leader alone but not for the shape."""
+def squeezed(clear: Clearances, desired_rad: float, dist_m: float, nav: NavigationConfig) -> bool:
+    """The way towards `desired_rad` is free for the leader alone, and no way within
+    `SQUEEZE_WINDOW` headings of it is free for the shape: the shape would have to
+    swerve further off its route than that to stay whole (within it, the steering takes
+    the way free for the shape).
+    """
     i = heading_index(desired_rad)
     need = min(nav.lookahead_m, dist_m)
-    return bool(clear.wide[i] < need <= clear.narrow[i])
+    if clear.narrow[i] < need:
+        return False
+    window = np.arange(i - SQUEEZE_WINDOW, i + SQUEEZE_WINDOW + 1) % clear.wide.size
+    return bool((clear.wide[window] < need).all())
 
 
 class GoToGoal(Steered):

@@ -8,9 +8,15 @@ from typing import cast
 
 import numpy as np
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 
 from phalanx.agents.behaviours.base import Moment
+from phalanx.agents.behaviours.leader import SQUEEZE_WINDOW, squeezed
+from phalanx.agents.navigation import HEADINGS_RAD, Clearances, heading_index
+from phalanx.agents.navigation.clearance import AHEAD_INDEX
 from phalanx.agents.navigation.grid import OCCUPIED, OccupancyMap
+from phalanx.agents.perception import NO_OBSTACLE_M
 from phalanx.agents.reshape import SQUEEZE_S, Arrived, Reshape, ShapeKeeper
 from phalanx.agents.shape import Shape
 from phalanx.core.config import NavigationConfig
@@ -117,3 +123,40 @@ def test_a_wider_shape_fits_only_with_room_for_it_here_and_on_ahead(ahead_m: flo
     grid.evidence[row, col] = OCCUPIED
     assert not k.fits(grid, pose, SCENARIO_SHAPE)
     assert k.fits(grid, pose, COLUMN)  # the column it is in passes there
+
+
+def clearances(wide_m: dict[int, float], *, narrow_m: float = NO_OBSTACLE_M) -> Clearances:
+    """Every heading free for the shape and the leader, but where `wide_m` says."""
+    wide = np.full(HEADINGS_RAD.size, NO_OBSTACLE_M)
+    for offset, free_m in wide_m.items():
+        wide[(AHEAD_INDEX + offset) % HEADINGS_RAD.size] = free_m
+    return Clearances(wide=wide, narrow=np.full(HEADINGS_RAD.size, narrow_m))
+
+
+def test_the_sonar_squeezes_the_shape_only_where_no_heading_near_the_route_is_free_for_it() -> None:
+    nav = NavigationConfig()
+    blocked = dict.fromkeys(range(-SQUEEZE_WINDOW, SQUEEZE_WINDOW + 1), 1.0)
+    # straight on blocked for the shape, a heading 7.5 deg off free: the steering takes it
+    assert not squeezed(clearances({0: 1.0}), 0.0, 10.0, nav)
+    assert not squeezed(clearances({**blocked, SQUEEZE_WINDOW: NO_OBSTACLE_M}), 0.0, 10.0, nav)
+    assert squeezed(clearances(blocked), 0.0, 10.0, nav)
+    # the leader alone blocked too: no squeeze (its own obstacle behaviour takes over)
+    assert not squeezed(clearances(blocked, narrow_m=1.0), 0.0, 10.0, nav)
+    # the goal nearer than the obstacle: nothing to squeeze through
+    assert not squeezed(clearances(blocked), 0.0, 0.9, nav)
+
+
+@given(
+    wide=st.lists(st.floats(0.0, 6.0), min_size=HEADINGS_RAD.size, max_size=HEADINGS_RAD.size),
+    desired_rad=st.floats(-math.pi, math.pi),
+    dist_m=st.floats(0.1, 30.0),
+)
+def test_a_squeeze_leaves_no_heading_near_the_route_free_for_the_shape(
+    wide: list[float], desired_rad: float, dist_m: float
+) -> None:
+    nav = NavigationConfig()
+    clear = Clearances(wide=np.array(wide), narrow=np.full(HEADINGS_RAD.size, NO_OBSTACLE_M))
+    need_m = min(nav.lookahead_m, dist_m)
+    i = heading_index(desired_rad)
+    near = [wide[(i + k) % len(wide)] for k in range(-SQUEEZE_WINDOW, SQUEEZE_WINDOW + 1)]
+    assert squeezed(clear, desired_rad, dist_m, nav) == all(w < need_m for w in near)
