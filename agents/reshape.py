@@ -23,7 +23,7 @@ from typing import Protocol
 
 from phalanx.agents.behaviours.base import Behaviour, Moment
 from phalanx.agents.leadership import FlagsView
-from phalanx.agents.navigation import DETOUR_M, DETOUR_SHARE, ROUTE_AHEAD_M, OccupancyMap
+from phalanx.agents.navigation import ROUTE_AHEAD_M, OccupancyMap
 from phalanx.agents.shape import Shape
 from phalanx.core.geometry import ZERO_TWIST, Pose2D, Twist2D, Vec2
 from phalanx.core.shapes import SCENARIO_SHAPE, SHAPE_NAMES, ShapeBook, ShapeKey
@@ -38,6 +38,10 @@ SETTLE_S = 2.0
 RESHAPE_CRUISE_MPS = 0.1
 # A footprint keeps this much more than the shape's half-span off obstacles (m).
 FOOTPRINT_MARGIN_M = 0.15
+# A shape's route is as good as the best when it is at most this much longer than the
+# shortest of any shape's.
+DETOUR_SHARE = 1.25
+DETOUR_M = 2.0
 # How often the leader weighs the shapes (s), how many times running a change must be
 # wanted, and how long after a reshape before the next.
 DECIDE_S = 1.0

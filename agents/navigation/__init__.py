@@ -36,7 +36,7 @@ from phalanx.agents.navigation.deadlock import Breadcrumbs, Course, StallWatch, 
 from phalanx.agents.navigation.fleet_map import FleetMap
 from phalanx.agents.navigation.grid import OccupancyMap
 from phalanx.agents.navigation.plan import Plan, ScriptedProfile, WanderHeading, plan_of
-from phalanx.agents.navigation.route import DETOUR_M, DETOUR_SHARE, ROUTE_AHEAD_M, RoutePlanner
+from phalanx.agents.navigation.route import ROUTE_AHEAD_M, RoutePlanner
 from phalanx.agents.navigation.settings import NavSettings
 from phalanx.agents.navigation.steering import (
     REORIENT_RAD,
@@ -50,8 +50,6 @@ from phalanx.agents.navigation.steering import (
 )
 
 __all__ = [
-    "DETOUR_M",
-    "DETOUR_SHARE",
     "HEADINGS_RAD",
     "REORIENT_RAD",
     "ROUTE_AHEAD_M",

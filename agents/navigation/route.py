@@ -21,10 +21,6 @@ from phalanx.core.peers import Scan
 # Route re-planning period (s) and how far along the route to head for (m).
 REPLAN_S = 1.0
 ROUTE_AHEAD_M = 2.0
-# The route for the shape's footprint is taken when it is at most this much longer than
-# the route for a robot alone (else the reactive layer squeezes by, or the shape folds).
-DETOUR_SHARE = 1.25
-DETOUR_M = 2.0
 
 
 class RoutePlanner:
@@ -38,7 +34,6 @@ class RoutePlanner:
         self.fleet: FleetMap | None = None
         self._own: OccupancyMap | None = None
         self.carrot: Vec2 | None = None  # where the route leads next (world frame)
-        self.footprint_m = 0.0  # the route keeps this far off obstacles (the shape's)
         self.scan: Scan | None = None  # this robot's last reading, for the fleet
         self._planned_s = -math.inf
 
@@ -78,10 +73,9 @@ class RoutePlanner:
 
     def towards(self, pose: Pose2D, goal: Vec2, t_s: float) -> Vec2:
         """Where to head for next: along the cheapest route round everything the map
-        shows so far (re-planned every `REPLAN_S`), closed where the shape's footprint
-        (`footprint_m`) does not fit if that way is not much longer, and keeping the
-        shape's half-width off obstacles where there is room (followers go round what
-        the shape does not clear); straight for the goal without a map.
+        shows so far (re-planned every `REPLAN_S`), keeping the shape's half-width off
+        obstacles where there is room (followers go round what the shape does not clear);
+        straight for the goal without a map.
         """
         grid = self.map
         if grid is None:
@@ -89,10 +83,6 @@ class RoutePlanner:
         if t_s - self._planned_s >= REPLAN_S or self.carrot is None:
             self._planned_s = t_s
             planned = self._plan(grid, pose, goal)
-            if planned is not None and self.footprint_m > 0.0:
-                fits = self._plan(grid, pose, goal, footprint_m=self.footprint_m)
-                if fits is not None and fits[1] <= planned[1] * DETOUR_SHARE + DETOUR_M:
-                    planned = fits
             self.carrot = None if planned is None else planned[0]
         return self.carrot or goal
 
