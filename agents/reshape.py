@@ -23,7 +23,7 @@ from typing import Protocol
 
 from phalanx.agents.behaviours.base import Behaviour, Moment
 from phalanx.agents.leadership import FlagsView
-from phalanx.agents.navigation import ROUTE_AHEAD_M, OccupancyMap
+from phalanx.agents.navigation import OccupancyMap
 from phalanx.agents.shape import Shape
 from phalanx.core.geometry import ZERO_TWIST, Pose2D, Twist2D, Vec2
 from phalanx.core.shapes import SCENARIO_SHAPE, SHAPE_NAMES, ShapeBook, ShapeKey
@@ -148,12 +148,9 @@ class ShapeKeeper:
         shapes = [s for s in range(len(SHAPE_NAMES)) if s == 0 or self.book.differs(s)]
         lengths: dict[int, float] = {}
         for shape in shapes:
-            planned = grid.plan(
-                start, goal, keep_off_m=0.0, ahead_m=ROUTE_AHEAD_M,
-                footprint_m=self.footprint_m(shape),
-            )  # fmt: skip
-            if planned is not None:
-                lengths[shape] = planned[1]
+            length_m = grid.route_length_m(start, goal, footprint_m=self.footprint_m(shape))
+            if length_m is not None:
+                lengths[shape] = length_m
         if not lengths:
             return None
         shortest = min(lengths.values())

@@ -29,6 +29,8 @@ from phalanx.core.mapfile import FREE, UNKNOWN, GridMap
 from phalanx.core.mapfile import OCCUPIED as OCCUPIED_CELL
 
 FloatArray = npt.NDArray[np.float64]
+Window = tuple[slice, slice]  # rows and columns of the grid a plan works over
+Cell = tuple[int, int]  # (row, column) in a window
 # A sonar reading to add: where it was taken, its ranges (m), its echoes (None: every one).
 Reading = tuple[Pose2D, Sequence[float] | FloatArray, BoolArray | None]
 CELL_M = 0.5
@@ -231,6 +233,36 @@ class OccupancyMap:
         the robot is where it is). Where to head for, and the route's length (m, each
         cell weighted by its cost); None if there is no route.
         """
+        spread = self._spread(start, goal, keep_off_m=keep_off_m, footprint_m=footprint_m)
+        if spread is None:
+            return None
+        dist, blocked, window, (r0, c0), (rg, cg) = spread
+        length_m = float(dist[r0, c0]) * self.cell_m
+        offset = (window[0].start, window[1].start)
+        path = [(r0, c0)]
+        while path[-1] != (rg, cg) and len(path) < MAX_PATH_CELLS:
+            path.append(_downhill(dist, *path[-1]))
+        points = [self.centre(r + offset[0], c + offset[1]) for r, c in path[1:]] + [goal]
+        minimum = min(len(points) - 1, max(0, round(ahead_m / self.cell_m) - 1))
+        return self._furthest_in_sight(start, points[minimum:], blocked, offset), length_m
+
+    def route_length_m(self, start: Vec2, goal: Vec2, *, footprint_m: float) -> float | None:
+        """The length of `plan`'s route for `footprint_m` (no cell near an obstacle
+        costing more), without working out where to head for; None if there is none.
+        """
+        spread = self._spread(start, goal, keep_off_m=0.0, footprint_m=footprint_m)
+        if spread is None:
+            return None
+        dist, _, _, (r0, c0), _ = spread
+        return float(dist[r0, c0]) * self.cell_m
+
+    def _spread(
+        self, start: Vec2, goal: Vec2, *, keep_off_m: float, footprint_m: float
+    ) -> tuple[FloatArray, npt.NDArray[np.bool_], Window, Cell, Cell] | None:
+        """`plan`'s wavefront from the goal over the window holding `start` and `goal`:
+        the cost to go from each cell, the cells closed, the window, the start's and the
+        goal's cells; None if the start is not reached.
+        """
         window = self._window(start, goal)
         occupied = self.occupied()[window]
         blocked = _grow(occupied, _cells_within(footprint_m, self.cell_m))
@@ -251,14 +283,7 @@ class OccupancyMap:
         dist = _wavefront(blocked, cost, rg, cg, start=(r0, c0))
         if dist[r0, c0] >= UNREACHABLE:
             return None
-        length_m = float(dist[r0, c0]) * self.cell_m
-        offset = (window[0].start, window[1].start)
-        path = [(r0, c0)]
-        while path[-1] != (rg, cg) and len(path) < MAX_PATH_CELLS:
-            path.append(_downhill(dist, *path[-1]))
-        points = [self.centre(r + offset[0], c + offset[1]) for r, c in path[1:]] + [goal]
-        minimum = min(len(points) - 1, max(0, round(ahead_m / self.cell_m) - 1))
-        return self._furthest_in_sight(start, points[minimum:], blocked, offset), length_m
+        return dist, blocked, window, (r0, c0), (rg, cg)
 
     def clear_within(self, point: Vec2, radius_m: float) -> bool:
         """Whether no cell within `radius_m` of `point` is believed occupied."""
@@ -315,7 +340,7 @@ class OccupancyMap:
         sight: npt.NDArray[np.bool_] = np.logical_and.reduceat(clear, starts)
         return sight
 
-    def _window(self, a: Vec2, b: Vec2) -> tuple[slice, slice]:
+    def _window(self, a: Vec2, b: Vec2) -> Window:
         xs, ys = (a.x_m, b.x_m), (a.y_m, b.y_m)
         row, col, _ = self.index(
             np.array([min(xs) - PLAN_MARGIN_M, max(xs) + PLAN_MARGIN_M]),
@@ -326,7 +351,7 @@ class OccupancyMap:
         cols = slice(min(max(int(col[0]), 0), n), min(max(int(col[1]) + 1, 0), n))
         return rows, cols
 
-    def _cell(self, p: Vec2, window: tuple[slice, slice]) -> tuple[int, int]:
+    def _cell(self, p: Vec2, window: Window) -> Cell:
         row, col, _ = self.index(np.array([p.x_m]), np.array([p.y_m]))
         return int(row[0]) - window[0].start, int(col[0]) - window[1].start
 

@@ -256,6 +256,17 @@ def test_a_plan_is_the_plain_plans(
     assert m.plan(start, goal, **kwargs) == ref_plan(m, start, goal, **kwargs)
 
 
+@settings(max_examples=200, deadline=None)
+@given(maps(), coordinates, coordinates, coordinates, coordinates, st.sampled_from([0.0, 0.9, 1.6]))
+def test_a_routes_length_is_the_plain_plans(
+    m: OccupancyMap, x0: float, y0: float, x1: float, y1: float, footprint_m: float
+) -> None:
+    start, goal = Vec2(x0, y0), Vec2(x1, y1)
+    planned = ref_plan(m, start, goal, keep_off_m=0.0, ahead_m=2.0, footprint_m=footprint_m)
+    want = None if planned is None else planned[1]
+    assert m.route_length_m(start, goal, footprint_m=footprint_m) == want
+
+
 @settings(max_examples=100, deadline=None)
 @given(st.integers(0, 2**32 - 1), st.booleans())
 def test_updates_leave_the_map_the_plain_updates_leave(seed: int, odd_evidence: bool) -> None:
