@@ -38,8 +38,8 @@ SETTLE_S = 2.0
 RESHAPE_CRUISE_MPS = 0.1
 # A footprint keeps this much more than the shape's half-span off obstacles (m).
 FOOTPRINT_MARGIN_M = 0.15
-# A shape's route is as good as the best when it is at most this much longer than the
-# shortest of any shape's.
+# A shape's route is as good as the best when it is no longer than DETOUR_SHARE times
+# the shortest of any shape's, plus DETOUR_M (m).
 DETOUR_SHARE = 1.25
 DETOUR_M = 2.0
 # How often the leader weighs the shapes (s), how many times running a change must be
