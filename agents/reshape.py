@@ -87,9 +87,10 @@ class ShapeKeeper:
         return self.enabled and (self.wanted != self.key.target or not self.key.settled)
 
     def squeeze(self, squeezed: bool, dt_s: float) -> None:
-        """The leader's sonar this step: the way ahead free for itself but not for the
-        whole shape. Held `SQUEEZE_S`, the group folds at once (the map may not show yet
-        that there is no way round).
+        """The leader's sonar this step: the way along the route free for itself, but no
+        way near it free for the whole shape (`phalanx.agents.behaviours.leader.squeezed`).
+        Held `SQUEEZE_S`, the group folds at once (the map may not show yet that there is
+        no way round).
         """
         # (between two shapes a follower still on its way is no squeeze: not counted)
         self.squeezed_s = self.squeezed_s + dt_s if squeezed and self.key.settled else 0.0
