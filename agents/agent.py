@@ -90,7 +90,7 @@ class StepOutput:
     accel_limited: int = 0
     scan: Scan | None = None  # this step's sonar reading, for the fleet's shared map
     # (a navigating leader) whether its map shows the scenario's shape fitting the way
-    # to its goal (`ShapeKeeper.scenario_fits`); True otherwise
+    # (`ShapeKeeper.scenario_fits`); True otherwise
     shape_fits: bool = True
 
     @property

@@ -178,7 +178,7 @@ class Parts:
         waypoints = self.route.waypoints
         if self.keeper.enabled and self.progress.waypoint < len(waypoints):
             goal = self.course.escape or Vec2(*waypoints[self.progress.waypoint])
-            self.keeper.decide(self.planner.map, pose, goal, t_s)
+            self.keeper.decide(self.planner.map, pose, goal, t_s, self.planner.points)
 
     def retries_left(self, pose: Pose2D, *, deadlocked: bool) -> bool:
         """Whether a deadlock may be met with another reverse, turn and retry: while

@@ -18,8 +18,11 @@ every robot computes the same slots.
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from typing import Protocol
+
+import numpy as np
 
 from phalanx.agents.behaviours.base import Behaviour, Moment
 from phalanx.agents.leadership import FlagsView
@@ -51,6 +54,12 @@ DWELL_S = 5.0
 SQUEEZE_S = 1.0
 # A wider shape is taken only where it fits with the leader here and this far on (m).
 UNFOLD_AHEAD_M = (0.0, 1.0, 2.0)
+# The scenario's shape fits the way where its slots are clear with the leader where it
+# is and this far along its route (m): room to stay whole, or to change shape before.
+FITS_ALONG_M = (1.0, 2.0)
+FITS_SHIFTS_M = (0.0, -0.25, 0.25, -0.5, 0.5)
+# A route's heading at one of its points: from the point this many before to as many after.
+ROUTE_HEADING_SPAN = 2
 
 
 @dataclass
@@ -69,8 +78,9 @@ class ShapeKeeper:
     _decided_s: float = -math.inf
     _settled_s: float = -math.inf
     squeezed_s: float = 0.0  # how long the sonar has shown the way too narrow for the shape
-    # Whether the scenario's shape fits the way to the goal, as the map showed it when the
-    # leader last weighed the shapes: its footprint's route is about as good as the best.
+    # Whether the scenario's shape fits the way, as the map showed it when the leader last
+    # weighed the shapes: its footprint's route to the goal is about as good as the best,
+    # and its slots are clear where the group is and along the route (`fits_along`).
     scenario_fits: bool = True
 
     def copy_from(self, leader: FlagsView) -> None:
@@ -113,19 +123,43 @@ class ShapeKeeper:
         map's obstacles with the leader at `pose` and along the next `UNFOLD_AHEAD_M`
         straight on (room to change between them while driving on).
         """
-        clearance = self.radius_m + FOOTPRINT_MARGIN_M
         slots = [*self.book.shapes[shape].values(), *self.book.shapes[self.key.target].values()]
-        return all(
-            grid.clear_within(pose.to_world(Vec2(p.x_m + ahead_m, p.y_m)), clearance)
-            for ahead_m in UNFOLD_AHEAD_M
-            for p in slots
-        )
+        places = [pose.to_world(Vec2(p.x_m + a, p.y_m)) for a in UNFOLD_AHEAD_M for p in slots]
+        return bool(grid.clear_of(places, self.radius_m + FOOTPRINT_MARGIN_M).all())
 
-    def decide(self, grid: OccupancyMap | None, pose: Pose2D, goal: Vec2, t_s: float) -> None:
+    def fits_along(self, grid: OccupancyMap, pose: Pose2D, route: Sequence[Vec2]) -> bool:
+        """Whether the way is as wide as the scenario's shape: with the leader at `pose`,
+        and at each of `FITS_ALONG_M` along `route` (its points from the leader's on)
+        facing along it there, every slot's place across the heading (its offset to the
+        side, not back) is clear of the map's obstacles, the whole row shifted by one of
+        `FITS_SHIFTS_M` if need be (the steering keeps the shape off obstacles). The
+        group passes where its leader does, so a column fits where its leader's way is
+        as wide as a robot.
+        """
+        across = sorted({p.y_m for p in self.book.shapes[SCENARIO_SHAPE].values()})
+        poses = list(_poses_along(pose, route, FITS_ALONG_M))
+        places = [
+            at.to_world(Vec2(0.0, y_m + shift_m))
+            for at in poses
+            for shift_m in FITS_SHIFTS_M
+            for y_m in across
+        ]
+        clear = grid.clear_of(places, self.radius_m + FOOTPRINT_MARGIN_M)
+        whole = np.all(clear.reshape(len(poses), len(FITS_SHIFTS_M), len(across)), axis=2)
+        return bool(np.any(whole, axis=1).all())
+
+    def decide(
+        self,
+        grid: OccupancyMap | None,
+        pose: Pose2D,
+        goal: Vec2,
+        t_s: float,
+        route: Sequence[Vec2] = (),
+    ) -> None:
         """Weigh the shapes (every `DECIDE_S`): the widest whose route is about as good as
         the best; a change is wanted once it has come out `CONFIRM` times running, not
         within `DWELL_S` of the last reshape, and a wider shape only if it fits here and
-        on ahead (`fits`).
+        on ahead (`fits`). `route` is the leader's (`scenario_fits` looks along it).
         """
         if not self.enabled or grid is None or t_s - self._decided_s < DECIDE_S:
             return
@@ -133,7 +167,7 @@ class ShapeKeeper:
             return  # (a slide under way is turned back only by the sonar's fold)
         self._decided_s = t_s
         best = self._best(grid, pose.position, goal)
-        self.scenario_fits = best == SCENARIO_SHAPE
+        self.scenario_fits = best == SCENARIO_SHAPE and self.fits_along(grid, pose, route)
         if best is None or t_s - self._settled_s < DWELL_S:
             self._count = 0
             return
@@ -163,6 +197,27 @@ class ShapeKeeper:
         """A reshape is over (the dwell time runs from here)."""
         self._settled_s = t_s
         self._count = 0
+
+
+def _poses_along(
+    pose: Pose2D, route: Sequence[Vec2], distances_m: Sequence[float]
+) -> Iterator[Pose2D]:
+    """`pose`, then the route's first point at least each of `distances_m` along it from
+    `pose`, facing along the route there (as far as the route goes).
+    """
+    yield pose
+    points = (pose.position, *route)
+    along_m, k = 0.0, 0
+    for distance_m in distances_m:
+        while along_m < distance_m and k + 1 < len(points):
+            k += 1
+            along_m += (points[k] - points[k - 1]).norm()
+        if along_m < distance_m:
+            return
+        before = points[max(0, k - ROUTE_HEADING_SPAN)]
+        after = points[min(len(points) - 1, k + ROUTE_HEADING_SPAN)]
+        heading = math.atan2(after.y_m - before.y_m, after.x_m - before.x_m)
+        yield Pose2D(points[k].x_m, points[k].y_m, heading)
 
 
 class Drive(Protocol):

@@ -18,7 +18,7 @@ from __future__ import annotations
 import functools
 import math
 from collections.abc import Iterable, Sequence
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 import numpy.typing as npt
@@ -33,6 +33,16 @@ Window = tuple[slice, slice]  # rows and columns of the grid a plan works over
 Cell = tuple[int, int]  # (row, column) in a window
 # A sonar reading to add: where it was taken, its ranges (m), its echoes (None: every one).
 Reading = tuple[Pose2D, Sequence[float] | FloatArray, BoolArray | None]
+
+
+class Planned(NamedTuple):
+    """A route planned over the map."""
+
+    head_for: Vec2  # the furthest point along it in plain sight (world frame)
+    length_m: float  # each cell weighted by its cost
+    points: tuple[Vec2, ...]  # the cells' centres along it from the start's, then the goal
+
+
 CELL_M = 0.5
 HALF_SIZE_M = 40.0
 HIT = 3  # evidence added by an echo, capped at MAX_EVIDENCE; a free sighting takes 1
@@ -217,7 +227,7 @@ class OccupancyMap:
         cells, at least `ahead_m` along it; None if there is no route.
         """
         planned = self.plan(start, goal, keep_off_m=keep_off_m, ahead_m=ahead_m)
-        return None if planned is None else planned[0]
+        return None if planned is None else planned.head_for
 
     def plan(
         self,
@@ -227,11 +237,11 @@ class OccupancyMap:
         keep_off_m: float,
         ahead_m: float,
         footprint_m: float = 0.0,
-    ) -> tuple[Vec2, float] | None:
+    ) -> Planned | None:
         """`route` for a footprint: cells nearer than `footprint_m` to an obstacle are
         closed (a shape that wide cannot pass there; the cells round `start` stay open,
-        the robot is where it is). Where to head for, and the route's length (m, each
-        cell weighted by its cost); None if there is no route.
+        the robot is where it is). Where to head for, the route's length and its points;
+        None if there is no route.
         """
         spread = self._spread(start, goal, keep_off_m=keep_off_m, footprint_m=footprint_m)
         if spread is None:
@@ -244,7 +254,8 @@ class OccupancyMap:
             path.append(_downhill(dist, *path[-1]))
         points = [self.centre(r + offset[0], c + offset[1]) for r, c in path[1:]] + [goal]
         minimum = min(len(points) - 1, max(0, round(ahead_m / self.cell_m) - 1))
-        return self._furthest_in_sight(start, points[minimum:], blocked, offset), length_m
+        head_for = self._furthest_in_sight(start, points[minimum:], blocked, offset)
+        return Planned(head_for, length_m, tuple(points))
 
     def route_length_m(self, start: Vec2, goal: Vec2, *, footprint_m: float) -> float | None:
         """The length of `plan`'s route for `footprint_m` (no cell near an obstacle
@@ -264,7 +275,7 @@ class OccupancyMap:
         goal's cells; None if the start is not reached.
         """
         window = self._window(start, goal)
-        occupied = self.occupied()[window]
+        occupied: npt.NDArray[np.bool_] = self.evidence[window] >= OCCUPIED
         blocked = _grow(occupied, _cells_within(footprint_m, self.cell_m))
         near = _grow(occupied, math.ceil(keep_off_m / self.cell_m - 0.5))
         cost = np.where(near, NEAR_COST, 1.0)
@@ -287,18 +298,26 @@ class OccupancyMap:
 
     def clear_within(self, point: Vec2, radius_m: float) -> bool:
         """Whether no cell within `radius_m` of `point` is believed occupied."""
+        return bool(self.clear_of([point], radius_m)[0])
+
+    def clear_of(self, points: Sequence[Vec2], radius_m: float) -> BoolArray:
+        """`clear_within` for each of `points`, worked out together."""
+        px = np.array([p.x_m for p in points])
+        py = np.array([p.y_m for p in points])
+        if px.size == 0:
+            return np.ones(0, dtype=bool)
         reach = math.ceil(radius_m / self.cell_m) + 1
-        row, col, _ = self.index(np.array([point.x_m]), np.array([point.y_m]))
-        r0, c0 = int(row[0]), int(col[0])
-        rows = slice(max(0, r0 - reach), max(0, r0 + reach + 1))
-        cols = slice(max(0, c0 - reach), max(0, c0 + reach + 1))
-        hit_r, hit_c = np.nonzero(self.occupied()[rows, cols])
+        row, col, _ = self.index(px, py)
+        rows = slice(max(0, int(row.min()) - reach), max(0, int(row.max()) + reach + 1))
+        cols = slice(max(0, int(col.min()) - reach), max(0, int(col.max()) + reach + 1))
+        hit_r, hit_c = np.nonzero(self.evidence[rows, cols] >= OCCUPIED)
         if hit_r.size == 0:
-            return True
+            return np.ones(px.size, dtype=bool)
         x = self.x0_m + (hit_c + cols.start + 0.5) * self.cell_m
         y = self.y0_m + (hit_r + rows.start + 0.5) * self.cell_m
-        near = np.hypot(x - point.x_m, y - point.y_m) - self.cell_m / 2
-        return bool((near >= radius_m).all())
+        near = np.hypot(x[None, :] - px[:, None], y[None, :] - py[:, None]) - self.cell_m / 2
+        clear: BoolArray = (near >= radius_m).all(axis=1)
+        return clear
 
     def _furthest_in_sight(
         self,

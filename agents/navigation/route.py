@@ -13,7 +13,7 @@ import math
 from collections.abc import Iterable
 
 from phalanx.agents.navigation.fleet_map import FleetMap, scan_of
-from phalanx.agents.navigation.grid import OccupancyMap
+from phalanx.agents.navigation.grid import OccupancyMap, Planned
 from phalanx.agents.perception import BoolArray, FloatArray, SonarGeometry
 from phalanx.core.geometry import Pose2D, Vec2
 from phalanx.core.peers import Scan
@@ -34,6 +34,7 @@ class RoutePlanner:
         self.fleet: FleetMap | None = None
         self._own: OccupancyMap | None = None
         self.carrot: Vec2 | None = None  # where the route leads next (world frame)
+        self.points: tuple[Vec2, ...] = ()  # the route last planned (world frame)
         self.scan: Scan | None = None  # this robot's last reading, for the fleet
         self._planned_s = -math.inf
 
@@ -83,7 +84,8 @@ class RoutePlanner:
         if t_s - self._planned_s >= REPLAN_S or self.carrot is None:
             self._planned_s = t_s
             planned = self._plan(grid, pose, goal)
-            self.carrot = None if planned is None else planned[0]
+            self.carrot = None if planned is None else planned.head_for
+            self.points = () if planned is None else planned.points
         return self.carrot or goal
 
     def way_exists(self, pose: Pose2D, goal: Vec2, *, footprint_m: float) -> bool:
@@ -97,7 +99,7 @@ class RoutePlanner:
 
     def _plan(
         self, grid: OccupancyMap, pose: Pose2D, goal: Vec2, *, footprint_m: float = 0.0
-    ) -> tuple[Vec2, float] | None:
+    ) -> Planned | None:
         return grid.plan(
             pose.position, goal, keep_off_m=self.keep_off_m, ahead_m=ROUTE_AHEAD_M,
             footprint_m=footprint_m,

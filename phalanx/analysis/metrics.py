@@ -372,7 +372,7 @@ def navigation_metrics(log: RunLog) -> dict[str, Any]:
 def _scenario_shape_shares(log: RunLog) -> dict[str, float]:
     """The share of steps the group (its leader's view) was in the scenario's shape
     (`scenario_shape_share`), the share its leader's map showed that shape fitting the
-    way to the goal (`fits_share`), and the share of those it was in it
+    way (`fits_share`: `ShapeKeeper.scenario_fits`), and the share of those it was in it
     (`scenario_shape_when_fits`; 1 when it never fitted).
     """
     leaders = leader_series(log)

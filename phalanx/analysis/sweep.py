@@ -388,7 +388,9 @@ def section(command: str, groups: dict[tuple[str, str, int, str], dict[str, Any]
             "group slid between two shapes; *time in the scenario's shape*: the "
             "share of steps the group was in the shape the scenario asks for (not shrunk, "
             "folded or between two); *time it fits*: the share of steps the leader's map "
-            "showed that shape fitting the way to the goal (its footprint's route about as "
+            "showed the way as wide as that shape (every slot's place across the heading "
+            "clear, the row shifted up to 0.5 m to a side, where the group is and 1 m and "
+            "2 m along the leader's route; and its footprint's route to the goal about as "
             "good as the best), and *in the shape while it fits*: the share of those steps "
             "the group was in it.",
             "",

@@ -72,7 +72,7 @@ def ref_plan(
     keep_off_m: float,
     ahead_m: float,
     footprint_m: float,
-) -> tuple[Vec2, float] | None:
+) -> tuple[Vec2, float, tuple[Vec2, ...]] | None:
     window = m._window(start, goal)
     occupied = m.occupied()[window]
     blocked = grid._grow(occupied, grid._cells_within(footprint_m, m.cell_m))
@@ -102,8 +102,8 @@ def ref_plan(
     minimum = min(len(points) - 1, max(0, round(ahead_m / m.cell_m) - 1))
     for point in reversed(points[minimum:]):
         if ref_in_sight(m, start, point, blocked, offset):
-            return point, length_m
-    return points[minimum], length_m
+            return point, length_m, tuple(points)
+    return points[minimum], length_m, tuple(points)
 
 
 def ref_add(m: OccupancyMap, x: Floats, y: Floats, amount: int) -> None:

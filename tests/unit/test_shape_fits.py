@@ -1,17 +1,23 @@
 """Whether the scenario's shape fits the way, as the leader's map shows it, measured per
 step and reported beside the time in the shape: the leader's shape keeper says so each
 time it weighs the shapes (the scenario shape's footprint has a route about as good as
-the best), the run records it per step (`RobotTrace.fits`), and the navigation metrics
-give the share of steps it fits and the share of those the group was in the shape.
+the best, and its slots are clear where the group is and along the leader's route), the
+run records it per step (`RobotTrace.fits`), and the navigation metrics give the share
+of steps it fits and the share of those the group was in the shape.
 """
 
 from __future__ import annotations
 
+import itertools
+import math
+
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from phalanx.agents.navigation.grid import OCCUPIED, OccupancyMap
-from phalanx.agents.reshape import DECIDE_S, ShapeKeeper
+from phalanx.agents.reshape import DECIDE_S, FITS_ALONG_M, ShapeKeeper, _poses_along
 from phalanx.analysis.metrics import navigation_metrics
 from phalanx.core.config_files import CONFIG_ROOT, load_robot, load_scenario
 from phalanx.core.formation import resolve_formation
@@ -52,6 +58,104 @@ def test_the_keeper_says_whether_the_scenario_shape_fits_the_way(
     keeper.key = ShapeKey(COLUMN, COLUMN, 1.0)
     keeper.decide(grid, Pose2D(0.0, 0.0, 0.0), Vec2(8.0, 0.0), t_s=3 * DECIDE_S)
     assert keeper.scenario_fits is fits
+
+
+def _blocked_at(*points: tuple[float, float]) -> OccupancyMap:
+    """An empty map but for the cells holding `points`."""
+    grid = OccupancyMap(Vec2(0.0, 0.0))
+    xs, ys = np.array(points).T
+    row, col, _ = grid.index(xs, ys)
+    grid.evidence[row, col] = OCCUPIED
+    return grid
+
+
+def _straight(heading_rad: float, length_m: float = 6.0) -> tuple[Vec2, ...]:
+    """A route's points every half metre from the origin along `heading_rad`."""
+    return tuple(
+        Vec2(d * math.cos(heading_rad), d * math.sin(heading_rad))
+        for d in np.arange(0.5, length_m + 0.25, 0.5)
+    )
+
+
+def _gap(along_m: float, heading_rad: float) -> OccupancyMap:
+    """Two short walls 2.5 m apart across the way `along_m` from the origin along
+    `heading_rad`: 2 m free between their cells, less than the line abreast needs (its
+    slots 1 m to either side, each a body and a margin, 0.41 m, clear).
+    """
+    c, s = math.cos(heading_rad), math.sin(heading_rad)
+    return _blocked_at(
+        *(
+            (a * c - side * s, a * s + side * c)
+            for a in (along_m - 0.25, along_m + 0.25)
+            for side in (-1.25, 1.25)
+        )
+    )
+
+
+def test_the_shape_fits_the_way_only_where_the_way_along_the_route_is_wide_enough() -> None:
+    """The line abreast: a gap too narrow for it 2 m on blocks it along a straight route,
+    not along a route turning left before it; one 2 m up the turned route blocks that one
+    alone. With no route, only where the group is counts; one wall alone it steers off.
+    """
+    keeper = ShapeKeeper(ShapeBook(LINE), ROBOT.radius_m)
+    here = Pose2D(0.0, 0.0, 0.0)
+    ahead = _gap(2.0, 0.0)
+    assert not keeper.fits_along(ahead, here, _straight(0.0))
+    assert keeper.fits_along(ahead, here, _straight(math.pi / 2))
+    assert keeper.fits_along(ahead, here, ())
+    up = _gap(2.0, math.pi / 2)
+    assert keeper.fits_along(up, here, _straight(0.0))
+    assert not keeper.fits_along(up, here, _straight(math.pi / 2))
+    one_wall = _blocked_at((1.75, 1.25), (2.25, 1.25))
+    assert keeper.fits_along(one_wall, here, _straight(0.0))  # (the row shifted right)
+    # the weighing says so too: a way as good as any, but not room along it
+    keeper.decide(ahead, here, Vec2(12.0, 0.0), t_s=DECIDE_S, route=_straight(0.0))
+    assert not keeper.scenario_fits
+    keeper.decide(ahead, here, Vec2(12.0, 0.0), t_s=3 * DECIDE_S, route=_straight(0.0)[:1])
+    assert keeper.scenario_fits  # (a route ending before 1 m: where it is alone)
+
+
+def _clear_within(grid: OccupancyMap, point: Vec2, radius_m: float) -> bool:
+    """The plain check: no occupied cell's centre nearer than `radius_m` plus half a cell."""
+    rows, cols = np.nonzero(grid.occupied())
+    x = grid.x0_m + (cols + 0.5) * grid.cell_m
+    y = grid.y0_m + (rows + 0.5) * grid.cell_m
+    return bool((np.hypot(x - point.x_m, y - point.y_m) - grid.cell_m / 2 >= radius_m).all())
+
+
+@settings(max_examples=50, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.floats(0.0, 1.5))
+def test_the_map_says_at_once_what_it_says_point_by_point(seed: int, radius_m: float) -> None:
+    rng = np.random.default_rng(seed)
+    grid = OccupancyMap(Vec2(0.0, 0.0))
+    grid.evidence[rng.random(grid.evidence.shape) < 0.02] = OCCUPIED
+    points = [Vec2(*xy) for xy in rng.uniform(-42.0, 42.0, (int(rng.integers(0, 30)), 2))]
+    plain = [_clear_within(grid, p, radius_m) for p in points]
+    assert grid.clear_of(points, radius_m).tolist() == plain
+    assert [grid.clear_within(p, radius_m) for p in points] == plain
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    st.lists(st.tuples(st.floats(-5.0, 5.0), st.floats(-5.0, 5.0)), min_size=0, max_size=12),
+    st.floats(-math.pi, math.pi),
+)
+def test_the_poses_along_a_route_are_its_first_points_that_far_on(
+    xy: list[tuple[float, float]], theta_rad: float
+) -> None:
+    pose = Pose2D(0.5, -0.5, theta_rad)
+    route = tuple(Vec2(x, y) for x, y in xy)
+    poses = list(_poses_along(pose, route, FITS_ALONG_M))
+    assert poses[0] == pose
+    points = (pose.position, *route)
+    steps = [(b - a).norm() for a, b in itertools.pairwise(points)]
+    along = np.concatenate(([0.0], np.cumsum(steps)))
+    reached = [d for d in FITS_ALONG_M if along[-1] >= d]
+    assert len(poses) == 1 + len(reached)
+    for at, d in zip(poses[1:], reached, strict=True):
+        k = int(np.argmax(along >= d))  # the first point that far on
+        assert (at.x_m, at.y_m) == (points[k].x_m, points[k].y_m)
+        assert math.isfinite(at.theta_rad)
 
 
 def _narrow_run() -> RunLog:
