@@ -54,8 +54,9 @@ DWELL_S = 5.0
 SQUEEZE_S = 1.0
 # A wider shape is taken only where it fits with the leader here and this far on (m).
 UNFOLD_AHEAD_M = (0.0, 1.0, 2.0)
-# The scenario's shape fits the way where its slots are clear with the leader where it
-# is and this far along its route (m): room to stay whole, or to change shape before.
+# The scenario's shape fits the way where the way is as wide as its slots across, with
+# the leader where it is and this far along its route (m): room to stay whole, or to
+# change shape before; the row of slots shifted to a side by one of these if need be (m).
 FITS_ALONG_M = (1.0, 2.0)
 FITS_SHIFTS_M = (0.0, -0.25, 0.25, -0.5, 0.5)
 # A route's heading at one of its points: from the point this many before to as many after.
@@ -80,7 +81,8 @@ class ShapeKeeper:
     squeezed_s: float = 0.0  # how long the sonar has shown the way too narrow for the shape
     # Whether the scenario's shape fits the way, as the map showed it when the leader last
     # weighed the shapes: its footprint's route to the goal is about as good as the best,
-    # and its slots are clear where the group is and along the route (`fits_along`).
+    # and the way is as wide as the shape where the group is and along the route
+    # (`fits_along`).
     scenario_fits: bool = True
 
     def copy_from(self, leader: FlagsView) -> None:
