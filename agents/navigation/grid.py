@@ -129,8 +129,7 @@ class OccupancyMap:
         """Each reading's rays seen free, then its echoes, reading after reading (the
         cells of all of them found in one pass).
         """
-        rays = [_sonar_rays(pose, sonar) for pose, _, _ in readings]
-        ox, oy, heading = (_rows([ray[i] for ray in rays]) for i in range(3))
+        ox, oy, heading = _sonar_rays([pose for pose, _, _ in readings], sonar)
         r = _rows([reading[1] for reading in readings])
         echo = _rows([reading[2] for reading in readings])
         free_x, free_y, free_counts = self._free_points(
@@ -375,12 +374,18 @@ class OccupancyMap:
         return int(row[0]) - window[0].start, int(col[0]) - window[1].start
 
 
-def _sonar_rays(pose: Pose2D, sonar: SonarGeometry) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """Where each transducer is at `pose` (world frame, m) and which way it looks (rad)."""
-    c, s = math.cos(pose.theta_rad), math.sin(pose.theta_rad)
-    ox = pose.x_m + c * sonar.unit_x_m - s * sonar.unit_y_m
-    oy = pose.y_m + s * sonar.unit_x_m + c * sonar.unit_y_m
-    return ox, oy, pose.theta_rad + sonar.unit_heading_rad
+def _sonar_rays(
+    poses: Sequence[Pose2D], sonar: SonarGeometry
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Where each transducer is at each of `poses` (a row each; world frame, m) and which
+    way it looks (rad).
+    """
+    x, y, theta = np.array([[[p.x_m], [p.y_m], [p.theta_rad]] for p in poses]).transpose(1, 0, 2)
+    c = np.array([[math.cos(p.theta_rad)] for p in poses])
+    s = np.array([[math.sin(p.theta_rad)] for p in poses])
+    ox = x + c * sonar.unit_x_m - s * sonar.unit_y_m
+    oy = y + s * sonar.unit_x_m + c * sonar.unit_y_m
+    return ox, oy, theta + sonar.unit_heading_rad
 
 
 def _arc_points(
@@ -401,8 +406,8 @@ def _arc_points(
 
 
 def _rows(arrays: Sequence[npt.NDArray[Any]]) -> npt.NDArray[Any]:
-    """The arrays as the rows of one (a view of the only one)."""
-    return arrays[0][None] if len(arrays) == 1 else np.stack(arrays)
+    """The arrays (of one length) as the rows of one (a view of the only one)."""
+    return arrays[0][None] if len(arrays) == 1 else np.array(arrays)
 
 
 @functools.lru_cache(maxsize=16)
