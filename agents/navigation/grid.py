@@ -33,16 +33,6 @@ Window = tuple[slice, slice]  # rows and columns of the grid a plan works over
 Cell = tuple[int, int]  # (row, column) in a window
 # A sonar reading to add: where it was taken, its ranges (m), its echoes (None: every one).
 Reading = tuple[Pose2D, Sequence[float] | FloatArray, BoolArray | None]
-
-
-class Planned(NamedTuple):
-    """A route planned over the map."""
-
-    head_for: Vec2  # the furthest point along it in plain sight (world frame)
-    length_m: float  # each cell weighted by its cost
-    points: tuple[Vec2, ...]  # the cells' centres along it from the start's, then the goal
-
-
 CELL_M = 0.5
 HALF_SIZE_M = 40.0
 HIT = 3  # evidence added by an echo, capped at MAX_EVIDENCE; a free sighting takes 1
@@ -58,6 +48,14 @@ UNREACHABLE = 1e9
 _STRAIGHT, _DIAGONAL = math.hypot(0, 1), math.hypot(1, 1)  # a move's length (cells)
 _ARC_OFFSETS = np.array([[-1.0], [0.0], [1.0]])  # edge, centre, edge of a beam
 _MOVES = tuple((dy, dx, math.hypot(dy, dx)) for dy in (-1, 0, 1) for dx in (-1, 0, 1) if dy or dx)
+
+
+class Planned(NamedTuple):
+    """A route planned over the map."""
+
+    head_for: Vec2  # the furthest point along it in plain sight (world frame)
+    length_m: float  # each cell weighted by its cost
+    points: tuple[Vec2, ...]  # the cells' centres along it from the start's, then the goal
 
 
 class OccupancyMap:
