@@ -211,9 +211,9 @@ class OccupancyMap:
         cells[self.occupied()] = OCCUPIED_CELL
         return GridMap(cells, self.cell_m, (self.x0_m, self.y0_m, 0.0))
 
-    def occupied(self) -> npt.NDArray[np.bool_]:
-        """Cells believed to hold an obstacle."""
-        occupied: npt.NDArray[np.bool_] = self.evidence >= OCCUPIED
+    def occupied(self, window: Window = (slice(None), slice(None))) -> npt.NDArray[np.bool_]:
+        """Cells believed to hold an obstacle (of `window`; the whole grid by default)."""
+        occupied: npt.NDArray[np.bool_] = self.evidence[window] >= OCCUPIED
         return occupied
 
     def route(self, start: Vec2, goal: Vec2, *, keep_off_m: float, ahead_m: float) -> Vec2 | None:
@@ -272,7 +272,7 @@ class OccupancyMap:
         goal's cells; None if the start is not reached.
         """
         window = self._window(start, goal)
-        occupied: npt.NDArray[np.bool_] = self.evidence[window] >= OCCUPIED
+        occupied = self.occupied(window)
         blocked = _grow(occupied, _cells_within(footprint_m, self.cell_m))
         near = _grow(occupied, math.ceil(keep_off_m / self.cell_m - 0.5))
         cost = np.where(near, NEAR_COST, 1.0)
@@ -307,7 +307,7 @@ class OccupancyMap:
         row, col, _ = self.index(px, py)
         rows = slice(max(0, int(row.min()) - reach), max(0, int(row.max()) + reach + 1))
         cols = slice(max(0, int(col.min()) - reach), max(0, int(col.max()) + reach + 1))
-        hit_r, hit_c = np.nonzero(self.evidence[rows, cols] >= OCCUPIED)
+        hit_r, hit_c = np.nonzero(self.occupied((rows, cols)))
         if hit_r.size == 0:
             return np.ones(px.size, dtype=bool)
         x = self.x0_m + (hit_c + cols.start + 0.5) * self.cell_m

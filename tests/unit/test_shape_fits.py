@@ -1,9 +1,9 @@
 """Whether the scenario's shape fits the way, as the leader's map shows it, measured per
 step and reported beside the time in the shape: the leader's shape keeper says so each
 time it weighs the shapes (the scenario shape's footprint has a route about as good as
-the best, and its slots are clear where the group is and along the leader's route), the
-run records it per step (`RobotTrace.fits`), and the navigation metrics give the share
-of steps it fits and the share of those the group was in the shape.
+the best, and the way is as wide as the shape where the group is and along the leader's
+route), the run records it per step (`RobotTrace.fits`), and the navigation metrics give
+the share of steps it fits and the share of those the group was in the shape.
 """
 
 from __future__ import annotations
