@@ -183,22 +183,28 @@ class ShapeKeeper:
 
     def _best(self, grid: OccupancyMap, start: Vec2, goal: Vec2) -> int | None:
         shapes = [s for s in range(len(SHAPE_NAMES)) if s == 0 or self.book.differs(s)]
-        lengths: dict[int, float] = {}
-        for shape in shapes:
+        widest = grid.route_length_m(start, goal, footprint_m=self.footprint_m(shapes[0]))
+        if widest is not None and widest <= _within_detour(grid.fewest_m(start, goal)):
+            return shapes[0]  # as good as the best, whichever that is: none is shorter
+        lengths: dict[int, float] = {} if widest is None else {shapes[0]: widest}
+        for shape in shapes[1:]:
             length_m = grid.route_length_m(start, goal, footprint_m=self.footprint_m(shape))
             if length_m is not None:
                 lengths[shape] = length_m
         if not lengths:
             return None
-        shortest = min(lengths.values())
-        return next(
-            s for s in shapes if lengths.get(s, math.inf) <= shortest * DETOUR_SHARE + DETOUR_M
-        )
+        longest = _within_detour(min(lengths.values()))
+        return next(s for s in shapes if lengths.get(s, math.inf) <= longest)
 
     def settled_at(self, t_s: float) -> None:
         """A reshape is over (the dwell time runs from here)."""
         self._settled_s = t_s
         self._count = 0
+
+
+def _within_detour(shortest_m: float) -> float:
+    """The longest route as good as the best when the best is `shortest_m` long (m)."""
+    return shortest_m * DETOUR_SHARE + DETOUR_M
 
 
 def _poses_along(

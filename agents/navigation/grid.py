@@ -264,6 +264,16 @@ class OccupancyMap:
         dist, _, _, (r0, c0), _ = spread
         return float(dist[r0, c0]) * self.cell_m
 
+    def fewest_m(self, start: Vec2, goal: Vec2) -> float:
+        """A length no route from `start` to `goal` (`plan`'s, `route_length_m`'s) comes
+        under (m): the fewest moves between their cells, each move costing at least its
+        length; a hair less, so that the floats of a route's sum never come under it.
+        """
+        row, col, _ = self.index(np.array([start.x_m, goal.x_m]), np.array([start.y_m, goal.y_m]))
+        rows, cols = abs(int(row[0]) - int(row[1])), abs(int(col[0]) - int(col[1]))
+        moves = (max(rows, cols) - min(rows, cols)) * _STRAIGHT + min(rows, cols) * _DIAGONAL
+        return moves * self.cell_m * (1.0 - 1e-9)
+
     def _spread(
         self, start: Vec2, goal: Vec2, *, keep_off_m: float, footprint_m: float
     ) -> tuple[FloatArray, npt.NDArray[np.bool_], Window, Cell, Cell] | None:

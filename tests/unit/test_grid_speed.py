@@ -267,6 +267,37 @@ def test_a_routes_length_is_the_plain_plans(
     assert m.route_length_m(start, goal, footprint_m=footprint_m) == want
 
 
+@settings(max_examples=200, deadline=None)
+@given(
+    maps(),
+    coordinates,
+    coordinates,
+    coordinates,
+    coordinates,
+    st.sampled_from([0.0, 1.0]),
+    st.sampled_from([0.0, 0.9, 1.6]),
+)
+def test_no_route_comes_under_the_fewest_moves(
+    m: OccupancyMap,
+    x0: float,
+    y0: float,
+    x1: float,
+    y1: float,
+    keep_off_m: float,
+    footprint_m: float,
+) -> None:
+    start, goal = Vec2(x0, y0), Vec2(x1, y1)
+    fewest_m = m.fewest_m(start, goal)
+    planned = m.plan(start, goal, keep_off_m=keep_off_m, ahead_m=1.0, footprint_m=footprint_m)
+    length_m = m.route_length_m(start, goal, footprint_m=footprint_m)
+    assert planned is None or planned.length_m >= fewest_m
+    assert length_m is None or length_m >= fewest_m
+    # on an empty map a route is that short, to the hair
+    m.evidence[:] = 0
+    open_m = m.route_length_m(start, goal, footprint_m=footprint_m)
+    assert open_m is None or open_m == pytest.approx(fewest_m, rel=1e-8, abs=1e-12)
+
+
 @settings(max_examples=100, deadline=None)
 @given(st.integers(0, 2**32 - 1), st.booleans())
 def test_updates_leave_the_map_the_plain_updates_leave(seed: int, odd_evidence: bool) -> None:

@@ -17,14 +17,21 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from phalanx.agents.navigation.grid import OCCUPIED, OccupancyMap
-from phalanx.agents.reshape import DECIDE_S, FITS_ALONG_M, ShapeKeeper, _poses_along
+from phalanx.agents.reshape import (
+    DECIDE_S,
+    DETOUR_M,
+    DETOUR_SHARE,
+    FITS_ALONG_M,
+    ShapeKeeper,
+    _poses_along,
+)
 from phalanx.analysis.metrics import navigation_metrics
 from phalanx.core.config_files import CONFIG_ROOT, load_robot, load_scenario
 from phalanx.core.formation import resolve_formation
 from phalanx.core.geometry import Pose2D, Vec2
 from phalanx.core.runlog import RunLog
 from phalanx.core.scenarios import formation_shape
-from phalanx.core.shapes import COLUMN, SCENARIO_SHAPE, ShapeBook, ShapeKey
+from phalanx.core.shapes import COLUMN, SCENARIO_SHAPE, SHAPE_NAMES, ShapeBook, ShapeKey
 from phalanx.runtime.batch import BatchRunner
 
 ROBOT = load_robot("p3dx")
@@ -133,6 +140,42 @@ def test_the_map_says_at_once_what_it_says_point_by_point(seed: int, radius_m: f
     plain = [_clear_within(grid, p, radius_m) for p in points]
     assert grid.clear_of(points, radius_m).tolist() == plain
     assert [grid.clear_within(p, radius_m) for p in points] == plain
+
+
+def _best_weighing_every_shape(
+    keeper: ShapeKeeper, grid: OccupancyMap, start: Vec2, goal: Vec2
+) -> int | None:
+    """The widest shape whose route is as good as the best, every shape's route planned."""
+    shapes = [s for s in range(len(SHAPE_NAMES)) if s == 0 or keeper.book.differs(s)]
+    lengths = {
+        s: grid.route_length_m(start, goal, footprint_m=keeper.footprint_m(s)) for s in shapes
+    }
+    known = [m for m in lengths.values() if m is not None]
+    if not known:
+        return None
+    longest = min(known) * DETOUR_SHARE + DETOUR_M
+    return next(s for s in shapes if (math.inf if lengths[s] is None else lengths[s]) <= longest)
+
+
+@settings(max_examples=100, deadline=None)
+@given(
+    st.integers(0, 2**32 - 1),
+    st.floats(0.0, 0.3),
+    st.sampled_from(["wedge", "collateral", "inline"]),
+    st.tuples(st.floats(-10.0, 10.0), st.floats(-10.0, 10.0)),
+)
+def test_the_shapes_weighed_as_they_would_be_with_every_route_planned(
+    seed: int, density: float, shape: str, goal_xy: tuple[float, float]
+) -> None:
+    """The weighing stops at the scenario's shape when its route is as good as any could
+    be (no route is shorter than the fewest moves): the same shape as planning them all.
+    """
+    rng = np.random.default_rng(seed)
+    grid = OccupancyMap(Vec2(0.0, 0.0), half_size_m=12.0)
+    grid.evidence[rng.random(grid.evidence.shape) < density] = OCCUPIED
+    keeper = ShapeKeeper(ShapeBook(resolve_formation(formation_shape(shape, 5))), ROBOT.radius_m)
+    start, goal = Vec2(0.0, 0.0), Vec2(*goal_xy)
+    assert keeper._best(grid, start, goal) == _best_weighing_every_shape(keeper, grid, start, goal)
 
 
 @settings(max_examples=200, deadline=None)
