@@ -182,11 +182,16 @@ class ShapeKeeper:
             self.wanted = best
 
     def _best(self, grid: OccupancyMap, start: Vec2, goal: Vec2) -> int | None:
+        """The widest shape whose route to `goal` is about as good as the shortest of any
+        shape's (`_within_detour`); None if no shape has one. The scenario's shape is
+        planned first: a route within the detour of the fewest moves to the goal
+        (`OccupancyMap.fewest_m`) is within it of every route, and settles it.
+        """
         shapes = [s for s in range(len(SHAPE_NAMES)) if s == 0 or self.book.differs(s)]
-        widest = grid.route_length_m(start, goal, footprint_m=self.footprint_m(shapes[0]))
-        if widest is not None and widest <= _within_detour(grid.fewest_m(start, goal)):
-            return shapes[0]  # as good as the best, whichever that is: none is shorter
-        lengths: dict[int, float] = {} if widest is None else {shapes[0]: widest}
+        scenario_m = grid.route_length_m(start, goal, footprint_m=self.footprint_m(shapes[0]))
+        if scenario_m is not None and scenario_m <= _within_detour(grid.fewest_m(start, goal)):
+            return shapes[0]
+        lengths: dict[int, float] = {} if scenario_m is None else {shapes[0]: scenario_m}
         for shape in shapes[1:]:
             length_m = grid.route_length_m(start, goal, footprint_m=self.footprint_m(shape))
             if length_m is not None:
