@@ -29,7 +29,7 @@ from phalanx.agents.leadership import FlagsView
 from phalanx.agents.navigation import OccupancyMap
 from phalanx.agents.shape import Shape
 from phalanx.core.geometry import ZERO_TWIST, Pose2D, Twist2D, Vec2
-from phalanx.core.shapes import SCENARIO_SHAPE, SHAPE_NAMES, ShapeBook, ShapeKey
+from phalanx.core.shapes import SCENARIO_SHAPE, ShapeBook, ShapeKey
 
 # Slots slide at this speed (m/s) in the formation frame during a reshape, and it
 # takes at least this long; the followers then have this long to settle in the new shape.
@@ -113,7 +113,7 @@ class ShapeKeeper:
         """Fold into the narrowest shape now, if that is another one than the shape in
         effect (and wanted); whether a fold is coming.
         """
-        narrowest = max(s for s in range(len(SHAPE_NAMES)) if s == 0 or self.book.differs(s))
+        narrowest = self.book.distinct[-1]
         if not self.enabled or self.key.target == narrowest:
             return False
         self.wanted = narrowest
@@ -187,7 +187,7 @@ class ShapeKeeper:
         planned first: a route within the detour of the fewest moves to the goal
         (`OccupancyMap.fewest_m`) is within it of every route, and settles it.
         """
-        shapes = [s for s in range(len(SHAPE_NAMES)) if s == 0 or self.book.differs(s)]
+        shapes = self.book.distinct
         scenario_m = grid.route_length_m(start, goal, footprint_m=self.footprint_m(shapes[0]))
         if scenario_m is not None and scenario_m <= _within_detour(grid.fewest_m(start, goal)):
             return shapes[0]

@@ -97,6 +97,13 @@ class ShapeBook:
         ys = [p.y_m for p in self.shapes[shape].values()]
         return (max(ys) - min(ys)) / 2 + radius_m
 
+    @cached_property
+    def distinct(self) -> tuple[int, ...]:
+        """The scenario's shape and each other with other slots than it, in the book's
+        order (scenario, shrunk, column): the shapes a leader chooses among.
+        """
+        return tuple(s for s in range(len(self.shapes)) if s == SCENARIO_SHAPE or self.differs(s))
+
     def differs(self, shape: int) -> bool:
         """Whether `shape` has other slots than the scenario's."""
         return any((self.shapes[shape][r] - p).norm() > 1e-9 for r, p in self.nominal.items())
