@@ -19,6 +19,8 @@ import numpy.typing as npt
 from phalanx.agents.perception import NO_OBSTACLE_M, FloatArray
 from phalanx.core.geometry import Vec2
 
+IntArray = npt.NDArray[np.intp]
+
 # Candidate headings of the reactive navigator, body frame: every 7.5 deg all round.
 HEADINGS_RAD: FloatArray = np.radians(np.arange(-180.0, 180.0, 7.5))
 
@@ -44,107 +46,150 @@ def corridor_clearance(
     """
     x, y = points
     out = np.full(headings_rad.shape, NO_OBSTACLE_M)
-    if x.size == 0 or headings_rad.size == 0:
+    if x.size == 0 or headings_rad.size == 0 or not origins:
         return out
-    c, s = np.cos(headings_rad)[:, None], np.sin(headings_rad)[:, None]
     w2 = half_width_m * half_width_m
+    if not turning:
+        return _sliding(x, y, headings_rad, origins, w2)
+    view = _VIEWS.of(x, y, headings_rad)
     slots = [o for o in origins if o.x_m != 0.0 or o.y_m != 0.0]
-    if len(slots) < len(origins):  # the robot's own disc
-        out = np.minimum(out, _OWN_PASS.nearest(x, y, headings_rad, c, s, w2))
-    # the other slots' discs: a pass each, or few rows (sliding sideways) in one pass;
-    # the slot rotates with the formation (origin o is given for heading 0)
-    group = max(1, _FEW_ROWS // c.shape[0])
-    for first in range(0, len(slots), group):
-        some = slots[first : first + group]
-        ox = [c * o.x_m - s * o.y_m if turning else np.full_like(c, o.x_m) for o in some]
-        oy = [s * o.x_m + c * o.y_m if turning else np.full_like(s, o.y_m) for o in some]
-        rows = (np.concatenate(ox), np.concatenate(oy))
-        tiled = (np.tile(c, (len(some), 1)), np.tile(s, (len(some), 1)))
-        nearest = _nearest_touch(x, y, rows, *tiled, w2).reshape(len(some), -1)
-        out = np.minimum(out, nearest.min(axis=0))
+    if len(slots) < len(origins):
+        out = np.minimum(out, view.own(w2))
+    if slots:
+        out = np.minimum(out, view.turned(slots, w2))
     return out
 
 
-# Slots whose passes have no more rows (slot x heading) than this share one pass.
-_FEW_ROWS = 16
+class _View:
+    """Points (body frame) along and across a set of headings, for every disc turned to
+    face them.
 
-
-def _nearest_touch(
-    x: FloatArray,
-    y: FloatArray,
-    centre: tuple[FloatArray, FloatArray] | None,
-    c: FloatArray,
-    s: FloatArray,
-    w2: float,
-) -> FloatArray:
-    """Per heading (row of `c`, `s`), the least `f - sqrt(w2 - l^2)` (floored at 0) over
-    the points inside the corridor and ahead of the disc's `centre` (per heading; None:
-    the origin); inf where none is. The chord is worked out only for those pairs (a few).
+    The robot's own disc's pass reads the points' components as they are. A slot's
+    disc, turned to face the heading, has its own coordinates as its components, so the
+    points' components less the slot's pick the pairs that can count, with a margin far
+    wider than their rounding (`hair_m`); only those pairs are then worked out as the
+    components of `p - o`, the slot's own pass, to the bit.
     """
-    shape = (c.shape[0], x.size)
-    f, lat, term, dx, dy = _SCRATCH.floats(5, shape)
-    if centre is None:
-        dx, dy = x[None, :], y[None, :]
-    else:
-        np.subtract(x[None, :], centre[0], out=dx)
-        np.subtract(y[None, :], centre[1], out=dy)
-    np.multiply(dx, c, out=f)
-    np.add(f, np.multiply(dy, s, out=term), out=f)
-    np.multiply(dy, c, out=lat)  # lat = -dx * s + dy * c (the same bits: a - b is a + (-b))
-    np.subtract(lat, np.multiply(dx, s, out=term), out=lat)
-    lat2 = np.multiply(lat, lat, out=lat)
-    ahead = np.less(lat2, w2, out=_SCRATCH.flags(shape))
-    ahead &= np.greater(f, 0.0, out=_SCRATCH.flags(shape, second=True))
-    pairs = np.flatnonzero(ahead)
+
+    def __init__(self, x: FloatArray, y: FloatArray, headings_rad: FloatArray) -> None:
+        self.x, self.y = x.copy(), y.copy()  # (the caller may write over its own)
+        self.c, self.s = np.cos(headings_rad), np.sin(headings_rad)
+        c, s = self.c[:, None], self.s[:, None]
+        self.along = x * c + y * s
+        self.across = y * c - x * s
+        self.hair_m: float | None = None  # (`_hair_m`: when a slot first asks)
+        self._own: dict[float, FloatArray] = {}
+
+    def _hair_m(self) -> float:
+        """A margin far wider than the rounding of the points' components (a few units
+        in the last place of their size); infinite (every pair a candidate) for points
+        that are not all finite.
+        """
+        if self.hair_m is None:
+            size_m = float(np.abs(self.x).max()) + float(np.abs(self.y).max())
+            self.hair_m = 1e-9 * (1.0 + size_m) if math.isfinite(size_m) else math.inf
+        return self.hair_m
+
+    def own(self, w2: float) -> FloatArray:
+        """The pass of the disc at the origin (the robot's own), kept per width."""
+        got = self._own.get(w2)
+        if got is None:
+            got = self._own[w2] = _plain_pass(self.along, self.across, w2)
+        return got
+
+    def turned(self, slots: Sequence[Vec2], w2: float) -> FloatArray:
+        """Per heading, the first touch of any disc at `slots`, turned to face it: one
+        pass, a row for each (slot, heading).
+        """
+        k, (n, m) = len(slots), self.along.shape
+        ox = np.array([o.x_m for o in slots])
+        oy = np.array([o.y_m for o in slots])
+        hair_m = self._hair_m() * (1.0 + float(np.abs(ox).max()) + float(np.abs(oy).max()))
+        reach_m = math.sqrt(w2) + hair_m
+        shape = (k, n * m)
+        picked = _SCRATCH.flags(shape).reshape(k, n, m)
+        test = _SCRATCH.flags(shape, second=True).reshape(k, n, m)
+        np.greater(self.across[None], (oy - reach_m)[:, None, None], out=picked)
+        picked &= np.less(self.across[None], (oy + reach_m)[:, None, None], out=test)
+        picked &= np.greater(self.along[None], (ox - hair_m)[:, None, None], out=test)
+        row, col = np.divmod(np.flatnonzero(picked), m)  # row: slot * n + heading
+        c, s = np.tile(self.c, k), np.tile(self.s, k)
+        sx, sy = np.repeat(ox, n), np.repeat(oy, n)
+        # each slot's place turned with each heading
+        dx = self.x[col] - (c * sx - s * sy)[row]
+        dy = self.y[col] - (s * sx + c * sy)[row]
+        c, s = c[row], s[row]
+        nearest = _least_touch(row, dx * c + dy * s, dy * c - dx * s, w2, k * n)
+        out: FloatArray = nearest.reshape(k, n).min(axis=0)
+        return out
+
+
+def _sliding(
+    x: FloatArray, y: FloatArray, headings_rad: FloatArray, origins: Sequence[Vec2], w2: float
+) -> FloatArray:
+    """Per heading, the first touch of any disc at `origins` sliding along it unturned:
+    one pass, a row for each (disc, heading).
+    """
+    n, k = headings_rad.size, len(origins)
+    c = np.tile(np.cos(headings_rad), k)[:, None]
+    s = np.tile(np.sin(headings_rad), k)[:, None]
+    dx = x[None, :] - np.repeat([o.x_m for o in origins], n)[:, None]
+    dy = y[None, :] - np.repeat([o.y_m for o in origins], n)[:, None]
+    nearest = _plain_pass(dx * c + dy * s, dy * c - dx * s, w2).reshape(k, n)
+    out: FloatArray = nearest.min(axis=0)
+    return out
+
+
+def _plain_pass(along: FloatArray, across: FloatArray, w2: float) -> FloatArray:
+    """Per row, the first touch of the disc at the origin of the points' components
+    `along` and `across` the row's heading.
+    """
+    shape = along.shape
+    lat2 = np.multiply(across, across, out=_SCRATCH.floats(shape))
+    inside = np.less(lat2, w2, out=_SCRATCH.flags(shape))
+    inside &= np.greater(along, 0.0, out=_SCRATCH.flags(shape, second=True))
+    pairs = np.flatnonzero(inside)
     nearest = np.full(shape[0], np.inf)
     if pairs.size == 0:
         return nearest
-    half_chord = np.sqrt(np.maximum(w2 - lat2.reshape(-1)[pairs], 0.0))
-    hit = np.maximum(f.reshape(-1)[pairs] - half_chord, 0.0)
-    row = pairs // shape[1]
+    return _least_touch(
+        pairs // shape[1], along.reshape(-1)[pairs], across.reshape(-1)[pairs], w2, shape[0]
+    )
+
+
+def _least_touch(row: IntArray, f: FloatArray, lat: FloatArray, w2: float, rows: int) -> FloatArray:
+    """Per row (of `rows`), the least `f - sqrt(w2 - lat^2)` (floored at 0) over the
+    pairs (their rows in order, components `f` along and `lat` across) inside the
+    corridor and ahead of the disc's centre; inf where none is.
+    """
+    nearest = np.full(rows, np.inf)
+    if row.size == 0:
+        return nearest
+    lat2 = lat * lat
+    hit = np.maximum(f - np.sqrt(np.maximum(w2 - lat2, 0.0)), 0.0)
+    hit[~((lat2 < w2) & (f > 0.0))] = np.inf  # outside the corridor, or behind the disc
     starts = np.flatnonzero(np.concatenate(([True], row[1:] != row[:-1])))
     nearest[row[starts]] = np.minimum.reduceat(hit, starts)
     return nearest
 
 
-class _LastOwnPass:
-    """The pass of the disc at the body's centre (origin 0) from the last call, kept for
-    the next: a navigating leader asks for it with the same points for the robot alone,
-    as the first slot of the whole shape and sliding sideways (two of the same
-    headings). Reused only for points, width and headings equal to the bit.
+class _Views(threading.local):
+    """The last `_View`, one per thread: a navigating leader asks about the same points
+    and headings for the robot alone and for the whole shape. Reused only for points
+    and headings equal to the bit.
     """
 
     def __init__(self) -> None:
-        self._last: tuple[FloatArray, FloatArray, float, dict[int, int], FloatArray] | None = None
+        self._key: tuple[bytes, bytes, bytes] | None = None
+        self._view: _View | None = None
 
-    def nearest(
-        self,
-        x: FloatArray,
-        y: FloatArray,
-        headings_rad: FloatArray,
-        c: FloatArray,
-        s: FloatArray,
-        w2: float,
-    ) -> FloatArray:
-        """`_nearest_touch` of the disc at the origin, from the last call if it had the
-        points, the width and every heading.
-        """
-        if headings_rad.dtype != np.float64:
-            return _nearest_touch(x, y, None, c, s, w2)
-        last = self._last  # (one read: another thread may replace it meanwhile)
-        bits = np.ascontiguousarray(headings_rad).view(np.int64).tolist()
-        if last is not None and last[2] == w2 and _same(last[0], x) and _same(last[1], y):
-            rows = [last[3].get(b, -1) for b in bits]
-            if min(rows, default=0) >= 0:
-                return last[4][rows]
-        nearest = _nearest_touch(x, y, None, c, s, w2)
-        nearest.flags.writeable = False
-        self._last = (x.copy(), y.copy(), w2, {b: i for i, b in enumerate(bits)}, nearest)
-        return nearest
-
-
-def _same(a: FloatArray, b: FloatArray) -> bool:
-    return a.shape == b.shape and a.dtype == b.dtype and a.tobytes() == b.tobytes()
+    def of(self, x: FloatArray, y: FloatArray, headings_rad: FloatArray) -> _View:
+        """The view of these points along these headings."""
+        headings = np.asarray(headings_rad, np.float64)
+        key = (x.tobytes(), y.tobytes(), headings.tobytes())
+        if self._view is None or key != self._key:
+            self._view, self._key = _View(x, y, headings), key
+        return self._view
 
 
 class _Scratch(threading.local):
@@ -156,12 +201,12 @@ class _Scratch(threading.local):
         self._floats: FloatArray = np.empty(0)
         self._flags: npt.NDArray[np.bool_] = np.empty(0, dtype=bool)
 
-    def floats(self, count: int, shape: tuple[int, int]) -> list[FloatArray]:
-        """`count` float arrays of `shape` (their contents left over)."""
+    def floats(self, shape: tuple[int, int]) -> FloatArray:
+        """A float array of `shape` (its contents left over)."""
         size = shape[0] * shape[1]
-        if self._floats.size < count * size:
-            self._floats = np.empty(2 * count * size)
-        return [self._floats[i * size : (i + 1) * size].reshape(shape) for i in range(count)]
+        if self._floats.size < size:
+            self._floats = np.empty(2 * size)
+        return self._floats[:size].reshape(shape)
 
     def flags(self, shape: tuple[int, int], *, second: bool = False) -> npt.NDArray[np.bool_]:
         """A boolean array of `shape` (its contents left over); `second`, another one."""
@@ -171,7 +216,7 @@ class _Scratch(threading.local):
         return self._flags[size if second else 0 :][:size].reshape(shape)
 
 
-_OWN_PASS = _LastOwnPass()
+_VIEWS = _Views()
 _SCRATCH = _Scratch()
 
 
