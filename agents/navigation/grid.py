@@ -136,19 +136,19 @@ class OccupancyMap:
         near = echo & (r < MAP_RANGE_M)  # far echoes are too vague to remember
         arc_x, arc_y = _arc_points(sonar, (ox, oy, heading), r, near)
         cells = self._cells(np.concatenate((free_x, arc_x)), np.concatenate((free_y, arc_y)))
+        # (as a rule every cell is on the grid, and there is none to drop)
+        on_grid = _as_they_are if cells.size and cells.min() >= 0 else _on_grid
         free_cells, arc_cells = cells[: free_x.size], cells[free_x.size :]
         free_at = arc_at = 0
         for free_count, echoes in zip(free_counts.tolist(), near.sum(axis=1).tolist(), strict=True):
-            marked = free_cells[free_at : free_at + free_count]
-            self._mark(marked[marked >= 0], -1)
+            self._mark(on_grid(free_cells[free_at : free_at + free_count]), -1)
             free_at += free_count
             # each echo marks its beam's right edge, centre and left edge at its range,
             # one after the other (a cell two of them fall in gains twice)
             for _ in _ARC_OFFSETS:
-                marked = arc_cells[arc_at : arc_at + echoes]
-                self._mark(marked[marked >= 0], HIT)
+                self._mark(on_grid(arc_cells[arc_at : arc_at + echoes]), HIT)
                 arc_at += echoes
-        self.seen.reshape(-1)[cells[cells >= 0]] = True
+        self.seen.reshape(-1)[on_grid(cells)] = True
 
     def _free_points(
         self, ox: FloatArray, oy: FloatArray, heading: FloatArray, reach: FloatArray
@@ -411,6 +411,16 @@ def _arc_points(
     x = (ox + r[:, None, :] * np.cos(angle))[arcs]
     y = (oy + r[:, None, :] * np.sin(angle))[arcs]
     return x, y
+
+
+def _on_grid(cells: npt.NDArray[np.intp]) -> npt.NDArray[np.intp]:
+    """The flat cell indices (`OccupancyMap._cells`) on the grid."""
+    return cells[cells >= 0]
+
+
+def _as_they_are(cells: npt.NDArray[np.intp]) -> npt.NDArray[np.intp]:
+    """Flat cell indices known to be all on the grid."""
+    return cells
 
 
 def _rows(arrays: Sequence[npt.NDArray[Any]]) -> npt.NDArray[Any]:
