@@ -8,6 +8,7 @@ Pure numpy, no I/O.
 
 from __future__ import annotations
 
+import functools
 import math
 import threading
 from collections.abc import Sequence
@@ -68,7 +69,7 @@ class _View:
     disc, turned to face the heading, has its own coordinates as its components, so the
     points' components less the slot's pick the pairs that can count, with a margin far
     wider than their rounding (`hair_m`); only those pairs are then worked out as the
-    components of `p - o`, the slot's own pass, to the bit.
+    components of `p - o`, as the slot's own pass would, to the bit.
     """
 
     def __init__(self, x: FloatArray, y: FloatArray, headings_rad: FloatArray) -> None:
@@ -77,18 +78,16 @@ class _View:
         c, s = self.c[:, None], self.s[:, None]
         self.along = x * c + y * s
         self.across = y * c - x * s
-        self.hair_m: float | None = None  # (`_hair_m`: when a slot first asks)
         self._own: dict[float, FloatArray] = {}
 
-    def _hair_m(self) -> float:
+    @functools.cached_property
+    def hair_m(self) -> float:
         """A margin far wider than the rounding of the points' components (a few units
         in the last place of their size); infinite (every pair a candidate) for points
         that are not all finite.
         """
-        if self.hair_m is None:
-            size_m = float(np.abs(self.x).max()) + float(np.abs(self.y).max())
-            self.hair_m = 1e-9 * (1.0 + size_m) if math.isfinite(size_m) else math.inf
-        return self.hair_m
+        size_m = float(np.abs(self.x).max()) + float(np.abs(self.y).max())
+        return 1e-9 * (1.0 + size_m) if math.isfinite(size_m) else math.inf
 
     def own(self, w2: float) -> FloatArray:
         """The pass of the disc at the origin (the robot's own), kept per width."""
@@ -104,14 +103,14 @@ class _View:
         k, (n, m) = len(slots), self.along.shape
         ox = np.array([o.x_m for o in slots])
         oy = np.array([o.y_m for o in slots])
-        hair_m = self._hair_m() * (1.0 + float(np.abs(ox).max()) + float(np.abs(oy).max()))
+        hair_m = self.hair_m * (1.0 + float(np.abs(ox).max()) + float(np.abs(oy).max()))
         reach_m = math.sqrt(w2) + hair_m
         shape = (k, n * m)
         picked = _SCRATCH.flags(shape).reshape(k, n, m)
-        test = _SCRATCH.flags(shape, second=True).reshape(k, n, m)
+        also = _SCRATCH.flags(shape, second=True).reshape(k, n, m)
         np.greater(self.across[None], (oy - reach_m)[:, None, None], out=picked)
-        picked &= np.less(self.across[None], (oy + reach_m)[:, None, None], out=test)
-        picked &= np.greater(self.along[None], (ox - hair_m)[:, None, None], out=test)
+        picked &= np.less(self.across[None], (oy + reach_m)[:, None, None], out=also)
+        picked &= np.greater(self.along[None], (ox - hair_m)[:, None, None], out=also)
         row, col = np.divmod(np.flatnonzero(picked), m)  # row: slot * n + heading
         c, s = np.tile(self.c, k), np.tile(self.s, k)
         sx, sy = np.repeat(ox, n), np.repeat(oy, n)
