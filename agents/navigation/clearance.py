@@ -45,7 +45,7 @@ def corridor_clearance(
     a point behind the disc's centre never counts, so one the disc already overlaps there
     (an echo at the body's edge) leaves every way away from it open.
     """
-    x, y = points
+    x, y = (np.asarray(a, dtype=np.float64) for a in points)
     out = np.full(headings_rad.shape, NO_OBSTACLE_M)
     if x.size == 0 or headings_rad.size == 0 or not origins:
         return out
