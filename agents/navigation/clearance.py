@@ -75,9 +75,7 @@ class _View:
     def __init__(self, x: FloatArray, y: FloatArray, headings_rad: FloatArray) -> None:
         self.x, self.y = x.copy(), y.copy()  # (the caller may write over its own)
         self.c, self.s = np.cos(headings_rad), np.sin(headings_rad)
-        c, s = self.c[:, None], self.s[:, None]
-        self.along = x * c + y * s
-        self.across = y * c - x * s
+        self.along, self.across = _components(x, y, self.c[:, None], self.s[:, None])
         self._own: dict[float, FloatArray] = {}
 
     @functools.cached_property
@@ -118,7 +116,7 @@ class _View:
         dx = self.x[col] - (c * sx - s * sy)[row]
         dy = self.y[col] - (s * sx + c * sy)[row]
         c, s = c[row], s[row]
-        nearest = _least_touch(row, dx * c + dy * s, dy * c - dx * s, w2, k * n)
+        nearest = _least_touch(row, *_components(dx, dy, c, s), w2, k * n)
         out: FloatArray = nearest.reshape(k, n).min(axis=0)
         return out
 
@@ -134,9 +132,18 @@ def _sliding(
     s = np.tile(np.sin(headings_rad), k)[:, None]
     dx = x[None, :] - np.repeat([o.x_m for o in origins], n)[:, None]
     dy = y[None, :] - np.repeat([o.y_m for o in origins], n)[:, None]
-    nearest = _plain_pass(dx * c + dy * s, dy * c - dx * s, w2).reshape(k, n)
+    nearest = _plain_pass(*_components(dx, dy, c, s), w2).reshape(k, n)
     out: FloatArray = nearest.min(axis=0)
     return out
+
+
+def _components(
+    dx: FloatArray, dy: FloatArray, c: FloatArray | float, s: FloatArray | float
+) -> tuple[FloatArray, FloatArray]:
+    """The components of offsets (`dx`, `dy`) along and across the heading of cosine `c`
+    and sine `s`: the plain pass's arithmetic, one place for all its uses.
+    """
+    return dx * c + dy * s, dy * c - dx * s
 
 
 def _plain_pass(along: FloatArray, across: FloatArray, w2: float) -> FloatArray:
@@ -227,8 +234,8 @@ def clearance_along(
     if x.size == 0:
         return NO_OBSTACLE_M
     c, s = math.cos(heading_rad), math.sin(heading_rad)
-    f = x * c + y * s
-    lat2 = np.square(y * c - x * s)
+    f, lat = _components(x, y, c, s)
+    lat2 = np.square(lat)
     w2 = half_width_m * half_width_m
     half_chord = np.sqrt(np.maximum(w2 - lat2, 0.0))
     ahead = (lat2 < w2) & (f > 0.0)
