@@ -375,24 +375,35 @@ def _scenario_shape_shares(log: RunLog) -> dict[str, float]:
     way (`fits_share`: `ShapeKeeper.scenario_fits`), and the share of those it was in it
     (`scenario_shape_when_fits`; 1 when it never fitted).
     """
+    series = scenario_shape_series(log)
+    if series is None:
+        return {"scenario_shape_share": 1.0, "fits_share": 1.0, "scenario_shape_when_fits": 1.0}
+    in_shape, fits = series
+    n, fitting = len(fits), int(np.count_nonzero(fits))
+    kept = int(np.count_nonzero(in_shape & fits))
+    return {
+        "scenario_shape_share": int(np.count_nonzero(in_shape)) / n,
+        "fits_share": fitting / n,
+        "scenario_shape_when_fits": kept / fitting if fitting else 1.0,
+    }
+
+
+def scenario_shape_series(log: RunLog) -> tuple[BoolArray, BoolArray] | None:
+    """Per step, as the robot leading then saw it: whether the group was settled in the
+    scenario's shape (whichever shape it came back from), and whether the leader's map
+    showed that shape fitting the way; None for a run without a step, or whose traces
+    do not record both.
+    """
     leaders = leader_series(log)
     n = len(leaders)
-    traces = log.traces.values()
-    if not n or any(len(tr.shapes) != n or len(tr.fits) != n for tr in traces):
-        return {"scenario_shape_share": 1.0, "fits_share": 1.0, "scenario_shape_when_fits": 1.0}
-    # settled in the scenario's shape, whichever shape it came back from
+    if not n or any(len(tr.shapes) != n or len(tr.fits) != n for tr in log.traces.values()):
+        return None
     in_shape = [
         ShapeKey(*log.traces[rid].shapes[k]).settled_in(SCENARIO_SHAPE)
         for k, rid in enumerate(leaders)
     ]
     fits = [log.traces[rid].fits[k] for k, rid in enumerate(leaders)]
-    fitting = sum(fits)
-    kept = sum(i and f for i, f in zip(in_shape, fits, strict=True))
-    return {
-        "scenario_shape_share": sum(in_shape) / n,
-        "fits_share": fitting / n,
-        "scenario_shape_when_fits": kept / fitting if fitting else 1.0,
-    }
+    return np.array(in_shape, dtype=bool), np.array(fits, dtype=bool)
 
 
 def _calm_errors(log: RunLog, followers: list[str], calm: BoolArray) -> dict[str, Any]:

@@ -1,0 +1,94 @@
+"""How long the way stays wide enough for the scenario's shape in the seeded fields, and
+the most of that time any rule of when to reshape could keep the group in its shape.
+
+Runs `Job("field", shape, robots, seed)` as `phalanx sweep` does, for every seed of the
+range, and prints: the stretches the leader's map showed the scenario's shape fitting
+(how many, their length's quartiles), the share of the fitting time the group was in
+the shape, and the bound `phalanx.analysis.shape_time.kept_at_most` gives that share
+for a group back in the shape `U` s after a narrowing that rides through those shorter
+than `G` s (on the way these runs took).
+
+    .venv/bin/python bench/bench_shape_time.py [--shape wedge collateral] [--robots 3]
+        [--seeds 10 30] [--workers 2]
+"""
+
+from __future__ import annotations
+
+import argparse
+from concurrent.futures import ProcessPoolExecutor
+
+import numpy as np
+
+from phalanx.analysis.metrics import scenario_shape_series
+from phalanx.analysis.shape_time import kept_at_most, returns_s, stretches
+from phalanx.analysis.sweep import Job, run_until_done
+from phalanx.runtime.batch import BatchRunner
+
+BACK_S = (0.0, 2.0, 3.0, 5.0, 8.0)
+RIDE_S = (0.0, 2.0, 4.0, 8.0)
+
+Series = tuple[np.ndarray, np.ndarray, float]
+
+
+def series(job: Job) -> Series:
+    """One run's in-shape and fitting series (the leader's view) and its step (s)."""
+    log = run_until_done(BatchRunner(job.scenario()))
+    got = scenario_shape_series(log)
+    if got is None:
+        raise SystemExit(f"{job.key}: the run recorded no shape or fitting series")
+    return got[0], got[1], log.scenario.dt_s
+
+
+def report(label: str, runs: list[Series]) -> None:
+    """The stretches, the share kept and the bounds, pooled over the runs."""
+    dt_s = runs[0][2]
+    lengths_s = np.array([(b - a) * dt_s for _, fits, _ in runs for a, b in stretches(fits)])
+    fitting = sum(int(fits.sum()) for _, fits, _ in runs)
+    kept = sum(int((shape & fits).sum()) for shape, fits, _ in runs)
+    if not fitting:
+        print(f"{label}: the shape never fitted")
+        return
+    q1, q2, q3 = np.percentile(lengths_s, (25, 50, 75))
+    print(
+        f"{label}: {lengths_s.size} stretches, {fitting * dt_s:.0f} s fitting; "
+        f"length quartiles {q1:.1f} / {q2:.1f} / {q3:.1f} s, mean {lengths_s.mean():.1f} s; "
+        f"in the shape {kept / fitting:.0%} of it"
+    )
+    back_s, never = [], 0
+    for shape, fits, dt in runs:
+        got, missed = returns_s(shape, fits, dt)
+        back_s += got
+        never += missed
+    if back_s:
+        print(
+            f"  out of the shape when the way widened: back in it after {np.median(back_s):.1f} s"
+            f" (median of {len(back_s)}), never in {never} more stretches"
+        )
+    print("  at most, back in the shape U s after a narrowing, riding through those under G s")
+    print("  " + " " * 8 + "".join(f"  U = {u:>3.0f} s" for u in BACK_S))
+    for ride_s in RIDE_S:
+        bounds = [
+            sum(kept_at_most(f, dt, back_s=u, ride_s=ride_s) for _, f, dt in runs) / fitting
+            for u in BACK_S
+        ]
+        print(f"  G = {ride_s:>3.0f} s" + "".join(f"  {b:>9.0%}" for b in bounds))
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--shape", nargs="+", default=["wedge", "collateral"])
+    parser.add_argument("--robots", nargs="+", type=int, default=[3])
+    parser.add_argument("--seeds", nargs=2, type=int, default=[10, 30], metavar=("FIRST", "END"))
+    parser.add_argument("--workers", type=int, default=2)
+    args = parser.parse_args()
+    with ProcessPoolExecutor(args.workers) as pool:
+        for shape in args.shape:
+            for robots in args.robots:
+                jobs = [Job("field", shape, robots, s) for s in range(*args.seeds)]
+                runs = list(pool.map(series, jobs))
+                first, end = args.seeds
+                report(f"{shape} of {robots}, seeds {first}-{end - 1}", runs)
+
+
+if __name__ == "__main__":
+    main()
