@@ -24,6 +24,7 @@ from phalanx.agents.masking import (
 )
 from phalanx.agents.memory import Progress, Route
 from phalanx.agents.navigation import (
+    Breadcrumbs,
     NavSettings,
     RoutePlanner,
     StallWatch,
@@ -48,6 +49,11 @@ BEHIND_RAD = math.radians(100.0)
 # sonar arcs come and go on the map, and a route turned back by one of them for a single
 # re-plan (the mouth of a passage closed by an arc, then open again) is none.
 DEAD_END_CONFIRM_S = 2.0
+# ... and leads back the way it came: the point it heads for within this of the path the
+# robot drove (m), but for the last of it (m, the ground it stands on). One turning back
+# round the end of a wall it drove along leads elsewhere: the group drives on round it.
+CAME_BY_M = 1.0
+CAME_BY_SKIP_M = 2.0
 # A robot whose route turns off by more than this cannot lead on from where it is.
 REORIENT_ROUTE_RAD = math.radians(60.0)
 # A command never drives the body nearer than this to an echo (`ContactGuard`).
@@ -101,6 +107,7 @@ class Senses:
         progress: Progress,
         route: Route,
         fold: Callable[[], bool] = lambda: False,
+        crumbs: Breadcrumbs | None = None,
     ) -> None:
         self.robot_id = robot_id
         self.nav = settings.nav
@@ -117,6 +124,7 @@ class Senses:
         # Asked before a dead end is declared: fold the group into a narrower shape
         # if it has one (True: a fold is coming, the way may open for it).
         self.fold = fold
+        self.crumbs = crumbs  # the path the robot drove (a leader's), if it keeps one
         # (the scenario's shape: only the slots within hearing, not every robot's)
         self.remask((shape.slots_within(self._audible_m()),))
 
@@ -276,8 +284,18 @@ class Senses:
         carrot = self.planner.carrot
         if state not in _NAVIGATING or carrot is None:
             return False
-        behind = abs(bearing_rad(pose, carrot)) > BEHIND_RAD
+        behind = abs(bearing_rad(pose, carrot)) > BEHIND_RAD and self._came_by(carrot)
         return behind and not self.shape.sweep_clear(points, rigid=True) and not self.fold()
+
+    def _came_by(self, point: Vec2) -> bool:
+        """Whether `point` lies on the way this robot came (`CAME_BY_M` of its path, but
+        for the last `CAME_BY_SKIP_M`); with less of its path known than that (a new
+        leader), or none kept, any point behind it does.
+        """
+        if self.crumbs is None:
+            return True
+        came = self.crumbs.came_by(point, within_m=CAME_BY_M, skip_m=CAME_BY_SKIP_M)
+        return came is None or came
 
     def _imminent(self, raw: Points, nearest: float, odometry: Odometry, last: Twist2D) -> bool:
         """An obstacle (any, robots included) inside the braking distance + margin."""

@@ -149,7 +149,7 @@ def _reverse(result: dict[str, Any]) -> str:
     """How long the measured reverse lasted, or why there was none."""
     if result["backward_s"] > 0:
         return f"{result['backward_s']:.3g} s"
-    return "none (goes round, never in)" if not result["deadlock_reverses"] else "none measured"
+    return "none (no dead end called)" if not result["deadlock_reverses"] else "none measured"
 
 
 # The figures of the section: (file under docs/figures, the group it draws, its caption).
@@ -211,8 +211,9 @@ FIELDS_TEXT = (
 DEADEND_TEXT = (
     "`configs/scenarios/nav_deadend_*.toml`: a U 1.2 m wider than the shape, 8 m deep "
     "(its end out of sonar range from the mouth), the goal behind it. The group drives "
-    "in; once the leader's map shows its route leading back the way it came and no room "
-    "to turn the shape round, the group is in deadlock: it turns the shape back to the "
+    "in; once the leader's map shows its route leading back the way it came (the point "
+    "it heads for behind it and within 1 m of the path it drove) and no room to turn "
+    "the shape round, the group is in deadlock: it turns the shape back to the "
     "way it came in (the heading of the leader's last 2 m of path: a leader caught "
     "turning would otherwise back out diagonally), stands still 12 s "
     "(`deadlock.pause_s`: the followers settle onto their slots, position then "
@@ -243,12 +244,20 @@ DEADEND_NOTES = """\
   running (`DEAD_END_CONFIRM_S`, `phalanx.agents.sensing`). A chain's leader turns as
   fast as its second robot's slot allows (the robots behind it trail), so it turns towards
   the way round while that is offered and keeps to it.
-- **"no": out of time on the way round, not inside the U.** The wedge and the line of five
-  back out and run out of the scenario's 360 s on the way round the U (the wedge of five's
-  leader is at (3.9, 3.1) at 340 s, past the U's mouth on its way round the top wall).
-  Given 600 s (the same runs with `duration_s` raised; the first 360 s are the same
-  steps), the wedge of five reaches its goal at 429 s and the line of five at 405 s, with
-  the same reverses and errors and no contact."""
+- **A column turned round inside the U is no dead end.** The wedge of five folds into
+  a column, which turns round inside the U (its followers keep to the path) and drives
+  out along the U's wall; at the mouth its route turns back round the wall's end, behind
+  the leader but not the way it came, and the group drives on round: at the goal after
+  256 s, no reverse. (A dead end is a route leading back along the path driven: the
+  point the leader heads for within 1 m of it, but for its last 2 m.)
+- **"no": the line abreast of five, out of time on the way round.** Its column also turns
+  round inside the U, but its route then leads back into the U, through the end wall's
+  cells the sonar has not marked yet: a dead end, and the column backs 3.8 m into the U
+  until its last robot is near the end wall (the reverse measured above), turns and goes
+  round. It runs out of the scenario's 360 s on the way: given 600 s (the same run with
+  `duration_s` raised; the first 360 s are the same steps) it is at the goal after 374 s,
+  six slides between shapes of 28.5 s each on its way (the slots slide at 0.17 m/s and
+  its furthest robot has 4.5 m to go)."""
 
 
 def main() -> None:

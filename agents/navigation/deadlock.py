@@ -64,6 +64,21 @@ class Breadcrumbs:
             return None
         return math.atan2(last.y_m - start.y_m, last.x_m - start.x_m)
 
+    def came_by(self, point: Vec2, *, within_m: float, skip_m: float) -> bool | None:
+        """Whether `point` lies within `within_m` of the path, leaving out its last
+        `skip_m` (the ground the robot stands on); None when the path is no longer.
+        """
+        points = self._points
+        along_m, longer = 0.0, False
+        for k in range(len(points) - 1, 0, -1):
+            along_m += (points[k] - points[k - 1]).norm()
+            if along_m < skip_m:
+                continue
+            longer = True
+            if (points[k - 1] - point).norm() <= within_m:
+                return True
+        return False if longer else None
+
     def back_along(self, pose: Pose2D, speed_mps: float, lookback_m: float) -> Twist2D | None:
         """Pure pursuit backwards to the recorded point `lookback_m` behind, eating the
         path as the robot passes it; None once it is used up.

@@ -143,6 +143,19 @@ def test_the_chain_gets_past_the_dead_end_backing_out_at_most_once() -> None:
 
 
 @pytest.mark.slow
+def test_a_column_turned_round_in_the_dead_end_drives_out_round_the_wall() -> None:
+    # The wedge of five folds into a column, which turns round inside the U and drives
+    # out along its wall. At the mouth its route turns back round the wall's end: behind
+    # the leader, but not the way it came. That was called a dead end, and the group
+    # backed into the U again twice (at the goal after 430 s, past the scenario's 360 s).
+    log = run_batch(load_scenario(SCENARIOS / "nav_deadend_wedge5.toml"))
+    leader = [e.target for e in log.transitions["r1"]]
+    assert State.DEADLOCK_REVERSE not in leader
+    assert leader[-1] == State.ARRIVED
+    assert not log.collisions
+
+
+@pytest.mark.slow
 def test_a_group_caught_turning_turns_back_before_it_backs_out() -> None:
     # The wedge of five (kept in its shape) is turning on the spot at the end
     # of the U when the deadlock is declared: backing out along that heading would run

@@ -81,7 +81,7 @@ def test_the_section_has_no_field_table_and_names_its_figures(bench: ModuleType)
 
 
 def test_a_group_that_never_reversed_shows_dashes_and_why(bench: ModuleType) -> None:
-    row = _result("| inline | 3 | 0 | none (goes round, never in) | - | - | - | yes (103 s) | 0 |")
+    row = _result("| inline | 3 | 0 | none (no dead end called) | - | - | - | yes (103 s) | 0 |")
     (line,) = [x for x in bench.deadend_table([row]) if x.startswith("| inline")]
-    assert "| none (goes round, never in) | - | - | - | yes (103 s) |" in line
+    assert "| none (no dead end called) | - | - | - | yes (103 s) |" in line
     assert "nan" not in line
