@@ -251,10 +251,12 @@ DEADEND_NOTES = """\
   256 s, no reverse. (A dead end is a route leading back along the path driven: the
   point the leader heads for within 1 m of it, but for its last 2 m.)
 - **"no": the line abreast of five, out of time on the way round.** Its column also turns
-  round inside the U, but its route then leads back into the U, through the end wall's
-  cells the sonar has not marked yet: a dead end, and the column backs 3.8 m into the U
-  until its last robot is near the end wall (the reverse measured above), turns and goes
-  round. It runs out of the scenario's 360 s on the way: given 600 s (the same run with
+  round inside the U, but at the mouth its route leads back into the U and out through
+  its bottom wall, which the leader's map has all but lost (the 0.3 m wall fills part of
+  the 0.5 m cells it lies in, and the sonar's free readings along it wear their evidence
+  down faster than its echoes build it up): a dead end, and the column backs 3.8 m into
+  the U until its last robot is near the end wall (the reverse measured above), turns
+  and goes round. It runs out of the scenario's 360 s on the way: given 600 s (the same run with
   `duration_s` raised; the first 360 s are the same steps) it is at the goal after 374 s,
   six slides between shapes of 28.5 s each on its way (the slots slide at 0.17 m/s and
   its furthest robot has 4.5 m to go)."""
