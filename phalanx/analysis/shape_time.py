@@ -13,9 +13,8 @@ to reshape, on the way that run took.
 from __future__ import annotations
 
 import numpy as np
-import numpy.typing as npt
 
-BoolArray = npt.NDArray[np.bool_]
+from phalanx.analysis.metrics import BoolArray
 
 
 def stretches(fits: BoolArray) -> list[tuple[int, int]]:
