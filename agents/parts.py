@@ -94,7 +94,7 @@ class Parts:
         self.senses = Senses(
             robot_id, self.settings, sonar=SonarGeometry.from_params(robot), shape=self.shape,
             limits=limits, planner=self.planner, progress=self.progress, route=self.route,
-            fold=self.keeper.fold, crumbs=self.course.crumbs,
+            crumbs=self.course.crumbs, fold=self.keeper.fold,
         )  # fmt: skip
         self.reverse = DeadlockReverse(
             self.settings, shape=self.shape, course=self.course, progress=self.progress

@@ -106,8 +106,8 @@ class Senses:
         planner: RoutePlanner,
         progress: Progress,
         route: Route,
+        crumbs: Breadcrumbs,
         fold: Callable[[], bool] = lambda: False,
-        crumbs: Breadcrumbs | None = None,
     ) -> None:
         self.robot_id = robot_id
         self.nav = settings.nav
@@ -124,7 +124,7 @@ class Senses:
         # Asked before a dead end is declared: fold the group into a narrower shape
         # if it has one (True: a fold is coming, the way may open for it).
         self.fold = fold
-        self.crumbs = crumbs  # the path the robot drove (a leader's), if it keeps one
+        self.crumbs = crumbs  # the path the robot drove (what it backs along)
         # (the scenario's shape: only the slots within hearing, not every robot's)
         self.remask((shape.slots_within(self._audible_m()),))
 
@@ -284,16 +284,14 @@ class Senses:
         carrot = self.planner.carrot
         if state not in _NAVIGATING or carrot is None:
             return False
-        behind = abs(bearing_rad(pose, carrot)) > BEHIND_RAD and self._came_by(carrot)
-        return behind and not self.shape.sweep_clear(points, rigid=True) and not self.fold()
+        leads_back = abs(bearing_rad(pose, carrot)) > BEHIND_RAD and self._came_by(carrot)
+        return leads_back and not self.shape.sweep_clear(points, rigid=True) and not self.fold()
 
     def _came_by(self, point: Vec2) -> bool:
         """Whether `point` lies on the way this robot came (`CAME_BY_M` of its path, but
         for the last `CAME_BY_SKIP_M`); with less of its path known than that (a new
-        leader), or none kept, any point behind it does.
+        leader), any point behind it does.
         """
-        if self.crumbs is None:
-            return True
         came = self.crumbs.came_by(point, within_m=CAME_BY_M, skip_m=CAME_BY_SKIP_M)
         return came is None or came
 
