@@ -232,7 +232,7 @@ class SonarGeometry:
         `full`: the readings as the robots gave them (each reading's `ranges_m`).
         """
         r = np.asarray(ranges_m, dtype=np.float64)
-        echo = r < self.max_range_m - _AT_MAX_RANGE_M
+        echo = self.ranged(r)
         ray_r = self._unclipped(r[:, self.unit_of_ray])
         seen = echo[:, self.unit_of_ray] & (~self.gap_fill | (ray_r < GAP_FILL_RANGE_M))
         spread = np.arctan2(ARC_SPREAD_M, np.maximum(ray_r, 1e-6))
@@ -250,6 +250,13 @@ class SonarGeometry:
         )
         return batch
 
+    def ranged(self, ranges_m: FloatArray) -> BoolArray:
+        """Per range: whether something was there, short of the sonar's maximum range
+        (an obstacle, or one of the formation's robots that `echoes` leaves out).
+        """
+        short: BoolArray = ranges_m < self.max_range_m - _AT_MAX_RANGE_M
+        return short
+
     def echoes(self, ranges: FloatArray, known: Sequence[tuple[Vec2, float]] = ()) -> BoolArray:
         """Per transducer: an echo (short of max range) that is not one of the `known`
         discs (see `points`). A reading with fewer ranges than the ring has transducers
@@ -258,7 +265,7 @@ class SonarGeometry:
         if ranges.size < self.unit_x_m.size:
             return np.zeros(self.unit_x_m.size, dtype=bool)
         r = ranges[: self.unit_x_m.size]
-        echo: BoolArray = r < self.max_range_m - _AT_MAX_RANGE_M
+        echo = self.ranged(r)
         if not known or not echo.any():
             return echo
         reach_m = float(self.reach_m(r, echo))

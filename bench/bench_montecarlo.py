@@ -244,22 +244,16 @@ DEADEND_NOTES = """\
   running (`DEAD_END_CONFIRM_S`, `phalanx.agents.sensing`). A chain's leader turns as
   fast as its second robot's slot allows (the robots behind it trail), so it turns towards
   the way round while that is offered and keeps to it.
-- **A column turned round inside the U is no dead end.** The wedge of five folds into
-  a column, which turns round inside the U (its followers keep to the path) and drives
-  out along the U's wall; at the mouth its route turns back round the wall's end, behind
-  the leader but not the way it came, and the group drives on round: at the goal after
-  256 s, no reverse. (A dead end is a route leading back along the path driven: the
-  point the leader heads for within 1 m of it, but for its last 2 m.)
-- **"no": the line abreast of five, out of time on the way round.** Its column also turns
-  round inside the U, but at the mouth its route leads back into the U and out through
-  its bottom wall, which the leader's map has all but lost (the 0.3 m wall fills part of
-  the 0.5 m cells it lies in, and the sonar's free readings along it wear their evidence
-  down faster than its echoes build it up): a dead end, and the column backs 3.8 m into
-  the U until its last robot is near the end wall (the reverse measured above), turns
-  and goes round. It runs out of the scenario's 360 s on the way: given 600 s (the same run with
-  `duration_s` raised; the first 360 s are the same steps) it is at the goal after 374 s,
-  six slides between shapes of 28.5 s each on its way (the slots slide at 0.17 m/s and
-  its furthest robot has 4.5 m to go)."""
+- **A column turned round inside the U is no dead end.** The wedge and the line abreast
+  of five fold into a column, which turns round inside the U (its followers keep to the
+  path) and drives out along the U's wall; at the mouth its route turns back round the
+  wall's end, behind the leader but not the way it came, and the group drives on round:
+  at the goal after 251 s (wedge) and 289 s (line abreast), no reverse. (A dead end is a
+  route leading back along the path driven: the point the leader heads for within 1 m of
+  it, but for its last 2 m.) The U's 0.3 m walls stay on the leader's map while the
+  robots drive along them: a sonar beam that meets one of the formation's robots sees
+  nothing behind it, and a guess at a beam's edge weighs a third of an echo on its axis
+  ([NAVIGATION.md](NAVIGATION.md), "What a scan adds to the map")."""
 
 
 def main() -> None:

@@ -1,11 +1,15 @@
 """A robot's memory of where obstacles are, from its own sonar ring, and a navigation
 function over it: which way to go to reach a goal round everything seen so far.
 
-The grid is coarse (0.5 m cells) and centred on where the robot started. Each echo
-marks the cells of its beam's centre and edges at its range as hit; the cells its centre
-ray crossed before that are seen free (hits decay when seen free again, so a robot that
-drove away stops blocking the map). What was never seen is assumed free: the route is
-optimistic and is re-planned as the map fills in.
+The grid is coarse (0.5 m cells) and centred on where the robot started. An echo came
+from somewhere on its beam's arc at its range, most likely near the beam's axis: it adds
+`HIT` to the cell on the axis and `EDGE_HIT` to the cells at the beam's edges. The cells
+its axis crossed before that are seen free, each taking one away: a robot that drove
+away stops blocking the map, and an edge's guess wears off at the first clear view. A
+beam that met one of the formation's robots (masked out: no echo) is seen free only up
+to that robot, what lies behind it unseen; a beam that met nothing is seen free for
+`FREE_REACH_M`. What was never seen is assumed free: the route is optimistic and is
+re-planned as the map fills in.
 
 The route is a wavefront (Dijkstra on the 8-connected grid, in numpy) from the goal over
 the free cells, with obstacles grown by a clearance: the formation's half-width first,
@@ -35,7 +39,8 @@ Cell = tuple[int, int]  # (row, column) in a window
 Reading = tuple[Pose2D, Sequence[float] | FloatArray, BoolArray | None]
 CELL_M = 0.5
 HALF_SIZE_M = 40.0
-HIT = 3  # evidence added by an echo, capped at MAX_EVIDENCE; a free sighting takes 1
+HIT = 3  # evidence added by an echo on its beam's axis, capped at MAX_EVIDENCE
+EDGE_HIT = 1  # added at its beam's edges; a free sighting takes 1
 MAX_EVIDENCE = 6
 OCCUPIED = 2
 FREE_REACH_M = 3.0  # a max-range reading clears its ray this far (specular misses exist)
@@ -47,6 +52,7 @@ NEAR_COST = 4.0  # a cell near an obstacle costs this many free ones
 UNREACHABLE = 1e9
 _STRAIGHT, _DIAGONAL = math.hypot(0, 1), math.hypot(1, 1)  # a move's length (cells)
 _ARC_OFFSETS = np.array([[-1.0], [0.0], [1.0]])  # edge, centre, edge of a beam
+_ARC_EVIDENCE = (EDGE_HIT, HIT, EDGE_HIT)  # what an echo adds at each of them
 _MOVES = tuple((dy, dx, math.hypot(dy, dx)) for dy in (-1, 0, 1) for dx in (-1, 0, 1) if dy or dx)
 
 
@@ -130,8 +136,10 @@ class OccupancyMap:
         ox, oy, heading = _sonar_rays([pose for pose, _, _ in readings], sonar)
         r = _rows([reading[1] for reading in readings])
         echo = _rows([reading[2] for reading in readings])
+        # a beam that met something is free up to it, whether it met an obstacle or one
+        # of the formation's robots (masked out: no echo here, but no clear view past it)
         free_x, free_y, free_counts = self._free_points(
-            ox, oy, heading, np.where(echo, r - self.cell_m, FREE_REACH_M)
+            ox, oy, heading, np.where(sonar.ranged(r), r - self.cell_m, FREE_REACH_M)
         )
         near = echo & (r < MAP_RANGE_M)  # far echoes are too vague to remember
         arc_x, arc_y = _arc_points(sonar, (ox, oy, heading), r, near)
@@ -144,9 +152,9 @@ class OccupancyMap:
             self._mark(on_grid(free_cells[free_at : free_at + free_count]), -1)
             free_at += free_count
             # each echo marks its beam's right edge, centre and left edge at its range,
-            # one after the other (a cell two of them fall in gains twice)
-            for _ in _ARC_OFFSETS:
-                self._mark(on_grid(arc_cells[arc_at : arc_at + echoes]), HIT)
+            # one after the other (a cell two of them fall in gains both)
+            for amount in _ARC_EVIDENCE:
+                self._mark(on_grid(arc_cells[arc_at : arc_at + echoes]), amount)
                 arc_at += echoes
         self.seen.reshape(-1)[on_grid(cells)] = True
 

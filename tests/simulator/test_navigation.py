@@ -143,12 +143,16 @@ def test_the_chain_gets_past_the_dead_end_backing_out_at_most_once() -> None:
 
 
 @pytest.mark.slow
-def test_a_column_turned_round_in_the_dead_end_drives_out_round_the_wall() -> None:
-    # The wedge of five folds into a column, which turns round inside the U and drives
-    # out along its wall. At the mouth its route turns back round the wall's end: behind
-    # the leader, but not the way it came. That was called a dead end, and the group
-    # backed into the U again twice (at the goal after 430 s, past the scenario's 360 s).
-    log = run_batch(load_scenario(SCENARIOS / "nav_deadend_wedge5.toml"))
+@pytest.mark.parametrize("shape", ["wedge", "collateral"])
+def test_a_column_turned_round_in_the_dead_end_drives_out_round_the_wall(shape: str) -> None:
+    # The wedge and the line abreast of five fold into a column, which turns round inside
+    # the U and drives out along its wall. At the mouth the wedge's route turns back round
+    # the wall's end: behind the leader, but not the way it came. That was called a dead
+    # end, and the group backed into the U again twice (at the goal after 430 s, past the
+    # scenario's 360 s). The line abreast's followers, driving along the U's wall, looked
+    # at it past each other, and the beams that met a robot wore the wall off the map:
+    # its route led out through it, a dead end was called, and it ran out of the 360 s.
+    log = run_batch(load_scenario(SCENARIOS / f"nav_deadend_{shape}5.toml"))
     leader = [e.target for e in log.transitions["r1"]]
     assert State.DEADLOCK_REVERSE not in leader
     assert leader[-1] == State.ARRIVED

@@ -127,7 +127,7 @@ def ref_update(m: OccupancyMap, pose: Pose2D, ranges: Floats, echo: Bools) -> No
     ox = pose.x_m + c * SONAR.unit_x_m - s * SONAR.unit_y_m
     oy = pose.y_m + s * SONAR.unit_x_m + c * SONAR.unit_y_m
     heading = pose.theta_rad + SONAR.unit_heading_rad
-    reach = np.where(echo, r - m.cell_m, grid.FREE_REACH_M)
+    reach = np.where(SONAR.ranged(r), r - m.cell_m, grid.FREE_REACH_M)
     steps = np.arange(0.0, float(reach.max(initial=0.0)), m.cell_m / 2)
     if steps.size:
         along = steps[None, :]
@@ -137,10 +137,10 @@ def ref_update(m: OccupancyMap, pose: Pose2D, ranges: Floats, echo: Bools) -> No
         ref_add(m, x, y, -1)
     near = echo & (r < grid.MAP_RANGE_M)
     half = np.minimum(SONAR.half_beam_rad, np.arctan2(ARC_SPREAD_M, np.maximum(r, 1e-6)))
-    for offset in (-1.0, 0.0, 1.0):
+    for offset, amount in ((-1.0, grid.EDGE_HIT), (0.0, grid.HIT), (1.0, grid.EDGE_HIT)):
         angle = heading + offset * half
         hx, hy = ox + r * np.cos(angle), oy + r * np.sin(angle)
-        ref_add(m, hx[near], hy[near], grid.HIT)
+        ref_add(m, hx[near], hy[near], amount)
 
 
 # --- random grids ------------------------------------------------------------------------

@@ -114,6 +114,46 @@ def test_map_remembers_a_wall_and_routes_round_it() -> None:
     assert abs(carrot.y_m) > 1.5 or carrot.x_m < 1.0  # round the end of the wall, not through
 
 
+def test_a_robot_of_the_formation_in_front_of_a_wall_does_not_clear_it() -> None:
+    grid = OccupancyMap(Vec2(0.0, 0.0))
+    pose = Pose2D(0.0, 0.0, 0.0)
+    for _ in range(3):
+        grid.update(pose, SONAR, _wall_reading(pose, 1.5))
+    wall = grid.occupied().copy()
+    assert wall.any()
+    # A robot of the formation 0.8 m ahead: the beams that meet it read 0.8 m, and it is
+    # masked out (no echo). What lies past it was not seen, however often it is read.
+    ranges = np.array(_wall_reading(pose, 0.8))
+    for _ in range(20):
+        grid.update(pose, SONAR, ranges, np.zeros(ranges.shape, dtype=bool))
+    assert (grid.occupied() & wall).sum() == wall.sum()
+    # A beam that meets nothing sees its way clear: the same wall wears away.
+    for _ in range(20):
+        grid.update(pose, SONAR, np.full(ranges.shape, MAX))
+    assert not (grid.occupied() & wall).any()
+
+
+def test_an_echo_counts_most_on_its_beams_axis() -> None:
+    # It came from somewhere on the beam's arc at its range, most likely near the axis.
+    grid = OccupancyMap(Vec2(0.0, 0.0))
+    unit = 3  # the front transducer looking 10 deg to the left
+    ranges = np.full(SONAR.unit_x_m.size, MAX)
+    ranges[unit] = 2.0
+    grid.update(Pose2D(0.0, 0.0, 0.0), SONAR, ranges)
+    heading = float(SONAR.unit_heading_rad[unit])
+    half = SONAR.half_beam_rad
+
+    def evidence_at(angle: float) -> int:
+        x = SONAR.unit_x_m[unit] + 2.0 * math.cos(angle)
+        y = SONAR.unit_y_m[unit] + 2.0 * math.sin(angle)
+        row, col, _ = grid.index(np.array([x]), np.array([y]))
+        return int(grid.evidence[row[0], col[0]])
+
+    axis, left_edge = evidence_at(heading), evidence_at(heading + half)
+    assert axis > left_edge > 0
+    assert grid.occupied().sum() == 1  # one echo: only its axis's cell counts as occupied
+
+
 def test_unknown_space_is_free_and_an_enclosed_goal_has_no_route() -> None:
     grid = OccupancyMap(Vec2(0.0, 0.0))
     assert grid.route(Vec2(0, 0), Vec2(5, 0), keep_off_m=0.5, ahead_m=1.0) == Vec2(5, 0)
