@@ -51,8 +51,10 @@ SIGHT_BATCH = 16  # route points looked at together for the furthest in sight
 NEAR_COST = 4.0  # a cell near an obstacle costs this many free ones
 UNREACHABLE = 1e9
 _STRAIGHT, _DIAGONAL = math.hypot(0, 1), math.hypot(1, 1)  # a move's length (cells)
-_ARC_OFFSETS = np.array([[-1.0], [0.0], [1.0]])  # edge, centre, edge of a beam
-_ARC_EVIDENCE = (EDGE_HIT, HIT, EDGE_HIT)  # what an echo adds at each of them
+# Where an echo marks its beam at its range (edge, axis, edge: a fraction of the half
+# beam's angle off the axis) and the evidence it adds there.
+_ARC = ((-1.0, EDGE_HIT), (0.0, HIT), (1.0, EDGE_HIT))
+_ARC_OFFSETS = np.array([[offset] for offset, _ in _ARC])
 _MOVES = tuple((dy, dx, math.hypot(dy, dx)) for dy in (-1, 0, 1) for dx in (-1, 0, 1) if dy or dx)
 
 
@@ -153,7 +155,7 @@ class OccupancyMap:
             free_at += free_count
             # each echo marks its beam's right edge, centre and left edge at its range,
             # one after the other (a cell two of them fall in gains both)
-            for amount in _ARC_EVIDENCE:
+            for _, amount in _ARC:
                 self._mark(on_grid(arc_cells[arc_at : arc_at + echoes]), amount)
                 arc_at += echoes
         self.seen.reshape(-1)[on_grid(cells)] = True
