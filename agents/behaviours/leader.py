@@ -24,6 +24,7 @@ from phalanx.agents.navigation import (
     WanderHeading,
     bearing_rad,
     centring_rad,
+    free_heading_near,
     heading_index,
     open_side,
     reverse_twist,
@@ -48,6 +49,9 @@ CAME_IN_OVER_M = 2.0
 REALIGNED_RAD = math.radians(1.0)
 REALIGN_MAX_S = 20.0
 REALIGN_MAX_RAD = math.radians(45.0)
+# A deadlock's turn towards the route ends on a heading free for this many times the
+# range an obstacle blocks at (`deadlock.obstacle_range_m`).
+TURN_ROOM = 2.0
 # An obstacle nearer ahead than this share of the lookahead lets the leader bend its
 # course as tight as the shape allows.
 TIGHT_AHEAD_SHARE = 0.5
@@ -384,7 +388,12 @@ class DeadlockTurn(Behaviour):
             self.planner.forget_carrot()
             waypoints = self.route.waypoints
             goal = Vec2(*waypoints[min(self.progress.waypoint, len(waypoints) - 1)])
-            towards = bearing_rad(pose, self.planner.towards(pose, goal, moment.t_s))
+            towards = free_heading_near(
+                moment.sensing.points,
+                bearing_rad(pose, self.planner.towards(pose, goal, moment.t_s)),
+                half_width_m=self.shape.half_width_m,
+                room_m=TURN_ROOM * self.deadlock.obstacle_range_m,
+            )
             self.side, angle = (1 if towards >= 0.0 else -1), abs(towards)
         self.target_rad = min(math.pi, angle)
         self.turned_rad = 0.0

@@ -32,7 +32,13 @@ from phalanx.agents.navigation.clearance import (
     open_side,
 )
 from phalanx.agents.navigation.column_path import Trail
-from phalanx.agents.navigation.deadlock import Breadcrumbs, Course, StallWatch, reverse_twist
+from phalanx.agents.navigation.deadlock import (
+    Breadcrumbs,
+    Course,
+    StallWatch,
+    free_heading_near,
+    reverse_twist,
+)
 from phalanx.agents.navigation.fleet_map import FleetMap
 from phalanx.agents.navigation.grid import OccupancyMap
 from phalanx.agents.navigation.plan import Plan, ScriptedProfile, WanderHeading, plan_of
@@ -71,6 +77,7 @@ __all__ = [
     "centring_rad",
     "clearance_along",
     "corridor_clearance",
+    "free_heading_near",
     "heading_index",
     "open_side",
     "plan_of",

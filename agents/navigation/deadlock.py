@@ -1,8 +1,9 @@
 """Getting a navigating group out of a dead end (the paper's section 3.2, and ours): the
 sign that a leader is stuck though nothing stands right ahead (`StallWatch`), the way
 back out, straight back or along the arc just driven (`reverse_twist`) or along the path
-it came (`Breadcrumbs.back_along`), and the leader's way so far (`Course`: that path,
-and a point to make for first once it has turned).
+it came (`Breadcrumbs.back_along`), the heading to turn to after (`free_heading_near`),
+and the leader's way so far (`Course`: that path, and a point to make for first once it
+has turned).
 """
 
 from __future__ import annotations
@@ -11,6 +12,10 @@ import math
 from collections import deque
 from dataclasses import dataclass
 
+import numpy as np
+
+from phalanx.agents.navigation.clearance import HEADINGS_RAD, clearance_along, corridor_clearance
+from phalanx.agents.perception import FloatArray
 from phalanx.core.config import DeadlockConfig
 from phalanx.core.geometry import Pose2D, Twist2D, Vec2
 
@@ -131,3 +136,21 @@ class StallWatch:
     def reset(self) -> None:
         """Start watching afresh (a new behaviour, or not navigating)."""
         self._anchor = None
+
+
+def free_heading_near(
+    points: tuple[FloatArray, FloatArray], heading_rad: float, *, half_width_m: float, room_m: float
+) -> float:
+    """The heading (body frame) to turn to for `heading_rad`: itself if the robot's own
+    corridor along it is free for `room_m`, else the candidate heading nearest it that
+    is (a turn back onto a way the robot stands blocked on would only meet the same
+    deadlock again); `heading_rad` if none is.
+    """
+    if clearance_along(points, heading_rad, half_width_m=half_width_m) >= room_m:
+        return heading_rad
+    clear = corridor_clearance(points, HEADINGS_RAD, half_width_m=half_width_m)
+    free = HEADINGS_RAD[clear >= room_m]
+    if free.size == 0:
+        return heading_rad
+    off = np.abs(np.mod(free - heading_rad + math.pi, 2.0 * math.pi) - math.pi)
+    return float(free[int(np.argmin(off))])

@@ -208,13 +208,14 @@ class DeadlockConfig(Model):
     followers settle onto their slots, position then heading: the dead-end scenarios
     give them 12 s; 0 as the paper), backs the group off
     `safe_distance_m` in formation (or until an obstacle behind stops it), then turns:
-    towards its route if its map has one, else by `turn_away_deg` (times the deadlocks
-    so far at this waypoint) towards the more open side and drives `escape_distance_m`
-    that way. It reverses at most `max_retries` times at one waypoint; after that, a
-    leader with a map goes on retrying while the map still shows a way to the waypoint
-    one robot wide (the group can fold into a column), and the next deadlock once it
-    shows none stops every robot in STUCK (without a map: the next deadlock). A scripted
-    leader (the paper's runs) resumes its script without turning.
+    towards its route if its map has one (to the heading nearest it along which its
+    own corridor is free for twice `obstacle_range_m`), else by `turn_away_deg` (times
+    the deadlocks so far at this waypoint) towards the more open side and drives
+    `escape_distance_m` that way. It reverses at most `max_retries` times at one
+    waypoint; after that, a leader with a map goes on retrying while the map still shows
+    a way to the waypoint one robot wide (the group can fold into a column), and the
+    next deadlock once it shows none stops every robot in STUCK (without a map: the next
+    deadlock). A scripted leader (the paper's runs) resumes its script without turning.
 
     `path` backs along the path the leader actually drove (recorded from its odometry):
     the rigid formation then sweeps back through the very ground it came over, known to

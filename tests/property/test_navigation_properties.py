@@ -9,7 +9,15 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from phalanx.agents.leadership import Leadership, LiveFlags, newer
-from phalanx.agents.navigation import HEADINGS_RAD, Clearances, corridor_clearance, steer
+from phalanx.agents.navigation import (
+    HEADINGS_RAD,
+    Clearances,
+    clearance_along,
+    corridor_clearance,
+    free_heading_near,
+    heading_index,
+    steer,
+)
 from phalanx.agents.navigation.steering import NEAR_NEED_M, choose_heading
 from phalanx.agents.perception import SonarGeometry
 from phalanx.agents.shape import TAIL_SHARE, TURN_CENTRE_MARGIN_M, Shape
@@ -130,6 +138,28 @@ def test_the_chosen_heading_lies_within_the_window(
     need = np.minimum(2.0, NEAR_NEED_M + (2.0 - NEAR_NEED_M) * offs / window)
     if ((clear >= need) & (offs <= window)).any():  # a way exists: the choice is one of them
         assert clear[index] >= need[index] - 1e-9
+
+
+@settings(max_examples=80, deadline=None)
+@given(points, st.floats(-math.pi, math.pi), st.floats(0.1, 3.0))
+def test_a_deadlocks_turn_ends_on_the_free_heading_nearest_the_route(
+    xy: list[tuple[float, float]], route: float, room: float
+) -> None:
+    p = (np.array([a for a, _ in xy]), np.array([b for _, b in xy]))
+    chosen = free_heading_near(p, route, half_width_m=0.3, room_m=room)
+    if clearance_along(p, route, half_width_m=0.3) >= room:
+        assert chosen == route  # the route's own heading is free: nothing changes
+        return
+    clear = corridor_clearance(p, HEADINGS_RAD, half_width_m=0.3)
+    offs = np.abs((HEADINGS_RAD - route + math.pi) % (2 * math.pi) - math.pi)
+    if not (clear >= room).any():
+        assert chosen == route  # nowhere free: the route it is
+        return
+    at = heading_index(chosen)
+    assert HEADINGS_RAD[at] == chosen  # one of the candidate headings
+    off = abs((chosen - route + math.pi) % (2 * math.pi) - math.pi)
+    assert clear[at] >= room
+    assert off <= offs[clear >= room].min() + 1e-12  # no free heading lies nearer the route
 
 
 @settings(max_examples=80, deadline=None)

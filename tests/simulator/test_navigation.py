@@ -269,6 +269,20 @@ def test_a_follower_boxed_in_on_its_detour_turns_away_from_its_slot_to_get_out()
     assert not log.collisions
 
 
+@pytest.mark.slow
+def test_a_group_that_cannot_back_off_turns_to_a_free_way_not_back_to_the_blocked_one() -> None:
+    # Field 5063: the line abreast of five, folded into a column, threads between posts.
+    # Its leader stands 0.45-0.5 m short of a post's echo along its route's heading (an
+    # obstacle blocks at 0.5 m), the column's tail against a post behind it. The reverse
+    # went nowhere, the turn towards the route ended on that same heading, and the
+    # deadlock came back 0.2 s later: 16 reverses in 110 s, and it never got there.
+    log = run_batch(navigation_scenario("field", "collateral", 5, seed=5063))
+    leader = [e.target for e in log.transitions["r1"]]
+    assert leader.count(State.DEADLOCK_REVERSE) <= 3
+    assert leader[-1] == State.ARRIVED
+    assert not log.collisions
+
+
 def test_breadcrumbs_know_the_way_they_came_in() -> None:
     crumbs = Breadcrumbs(length_m=5.0)
     heading = math.radians(30.0)
