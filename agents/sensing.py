@@ -244,12 +244,15 @@ class Senses:
 
     def _stalled(self, pose: Pose2D, t_s: float, state: str) -> bool:
         """A navigating leader that turns and creeps without getting anywhere is blocked
-        as surely as one facing a wall: say so, and the group's rules take over.
+        as surely as one facing a wall: say so, and the group's rules take over; but a
+        group that can fold into a narrower shape folds first (the leader, turning on
+        the spot from one way the whole shape might take to another, finds one the
+        narrower shape can).
         """
         if state not in _NAVIGATING or self.plan == "scripted":
             self.stall.reset()
             return False
-        return self.stall.stalled(pose, t_s)
+        return self.stall.stalled(pose, t_s) and not self.fold()
 
     def _route_ahead(self, pose: Pose2D, view: FleetView, t_s: float) -> bool:
         """Whether the way to the goal goes on ahead of this robot (so it could lead):

@@ -243,7 +243,8 @@ class NavigationConfig(Model):
 
     Ranges are gaps between the robot's disc and an obstacle along a straight corridor
     `radius + body_margin_m` wide, measured in the direction of motion. A leader that
-    gets no further than 0.3 m in `stall_s` counts as blocked; a follower leaves its
+    gets no further than 0.3 m in `stall_s` folds the group into its narrowest shape,
+    or, folded already (or with reshaping off), counts as blocked; a follower leaves its
     slot (AVOID) for what is nearer than `avoid_range_m` (its heading swings as its
     slot's motion bends: the leader's `deadlock.obstacle_range_m` would be too far).
     `reactive = false` switches avoidance and the emergency stop off (deadlocks and

@@ -283,6 +283,21 @@ def test_a_group_that_cannot_back_off_turns_to_a_free_way_not_back_to_the_blocke
     assert not log.collisions
 
 
+@pytest.mark.slow
+def test_a_stalled_group_folds_before_it_calls_a_deadlock() -> None:
+    # Field 5028: 3.5 m in, the line abreast of three faces two posts 1.6 m apart. No
+    # way is free for the whole line, so its leader turns on the spot from one heading
+    # to another (-58 deg, +26 deg, -58 deg ...) and gets nowhere. That stall was a
+    # deadlock: it backed off 2 m, came back and stalled again, six times, and ran out
+    # of the 240 s. A stalled group now folds first, and the column goes through.
+    log = run_batch(navigation_scenario("field", "collateral", 3, seed=5028))
+    leader = [e.target for e in log.transitions["r1"]]
+    assert State.DEADLOCK_REVERSE not in leader
+    assert State.RESHAPE in leader
+    assert leader[-1] == State.ARRIVED
+    assert not log.collisions
+
+
 def test_breadcrumbs_know_the_way_they_came_in() -> None:
     crumbs = Breadcrumbs(length_m=5.0)
     heading = math.radians(30.0)
