@@ -99,25 +99,29 @@ class _View:
         pass, a row for each (slot, heading).
         """
         k, (n, m) = len(slots), self.along.shape
-        ox = np.array([o.x_m for o in slots])
-        oy = np.array([o.y_m for o in slots])
-        hair_m = self.hair_m * (1.0 + float(np.abs(ox).max()) + float(np.abs(oy).max()))
+        xs, ys = [o.x_m for o in slots], [o.y_m for o in slots]
+        hair_m = self.hair_m * (1.0 + max(map(abs, xs)) + max(map(abs, ys)))
         reach_m = math.sqrt(w2) + hair_m
+        ox, oy = np.array(xs), np.array(ys)
         shape = (k, n * m)
         picked = _SCRATCH.flags(shape).reshape(k, n, m)
         also = _SCRATCH.flags(shape, second=True).reshape(k, n, m)
         np.greater(self.across[None], (oy - reach_m)[:, None, None], out=picked)
         picked &= np.less(self.across[None], (oy + reach_m)[:, None, None], out=also)
         picked &= np.greater(self.along[None], (ox - hair_m)[:, None, None], out=also)
-        row, col = np.divmod(np.flatnonzero(picked), m)  # row: slot * n + heading
-        c, s = np.tile(self.c, k), np.tile(self.s, k)
-        sx, sy = np.repeat(ox, n), np.repeat(oy, n)
-        # each slot's place turned with each heading
-        dx = self.x[col] - (c * sx - s * sy)[row]
-        dy = self.y[col] - (s * sx + c * sy)[row]
-        c, s = c[row], s[row]
-        nearest = _least_touch(row, *_components(dx, dy, c, s), w2, k * n)
-        out: FloatArray = nearest.reshape(k, n).min(axis=0)
+        row, col = _rows_and_columns(np.flatnonzero(picked), m)  # row: slot * n + heading
+        _, heading = _rows_and_columns(row, n)
+        # each slot's place turned with each heading, a row per (slot, heading)
+        c, s, sx, sy = self.c, self.s, ox[:, None], oy[:, None]
+        placed_x = (c * sx - s * sy).reshape(-1)
+        placed_y = (s * sx + c * sy).reshape(-1)
+        f, lat = _components(
+            self.x[col] - placed_x[row], self.y[col] - placed_y[row], c[heading], s[heading]
+        )
+        lat2 = lat * lat
+        # (a candidate outside the corridor, or behind the disc, never touches)
+        hit = np.where((lat2 < w2) & (f > 0.0), _touch(f, lat2, w2), np.inf)
+        out: FloatArray = _row_least(row, hit, k * n).reshape(k, n).min(axis=0)
         return out
 
 
@@ -128,12 +132,12 @@ def _sliding(
     one pass, a row for each (disc, heading).
     """
     n, k = headings_rad.size, len(origins)
-    c = np.tile(np.cos(headings_rad), k)[:, None]
-    s = np.tile(np.sin(headings_rad), k)[:, None]
-    dx = x[None, :] - np.repeat([o.x_m for o in origins], n)[:, None]
-    dy = y[None, :] - np.repeat([o.y_m for o in origins], n)[:, None]
-    nearest = _plain_pass(*_components(dx, dy, c, s), w2).reshape(k, n)
-    out: FloatArray = nearest.min(axis=0)
+    ox = np.array([o.x_m for o in origins])[:, None, None]
+    oy = np.array([o.y_m for o in origins])[:, None, None]
+    c, s = np.cos(headings_rad)[:, None], np.sin(headings_rad)[:, None]
+    along, across = _components(x - ox, y - oy, c, s)  # (disc, heading, point)
+    nearest = _plain_pass(along.reshape(k * n, -1), across.reshape(k * n, -1), w2)
+    out: FloatArray = nearest.reshape(k, n).min(axis=0)
     return out
 
 
@@ -155,27 +159,33 @@ def _plain_pass(along: FloatArray, across: FloatArray, w2: float) -> FloatArray:
     inside = np.less(lat2, w2, out=_SCRATCH.flags(shape))
     inside &= np.greater(along, 0.0, out=_SCRATCH.flags(shape, second=True))
     pairs = np.flatnonzero(inside)
-    nearest = np.full(shape[0], np.inf)
     if pairs.size == 0:
-        return nearest
-    return _least_touch(
-        pairs // shape[1], along.reshape(-1)[pairs], across.reshape(-1)[pairs], w2, shape[0]
-    )
+        return np.full(shape[0], np.inf)
+    hit = _touch(along.reshape(-1)[pairs], lat2.reshape(-1)[pairs], w2)
+    return _row_least(pairs // shape[1], hit, shape[0])
 
 
-def _least_touch(row: IntArray, f: FloatArray, lat: FloatArray, w2: float, rows: int) -> FloatArray:
-    """Per row (of `rows`), the least `f - sqrt(w2 - lat^2)` (floored at 0) over the
-    pairs (their rows in order, components `f` along and `lat` across) inside the
-    corridor and ahead of the disc's centre; inf where none is.
+def _rows_and_columns(flat: IntArray, columns: int) -> tuple[IntArray, IntArray]:
+    """The rows and columns of flat indices into an array of `columns` columns
+    (`np.divmod`, in cheaper integer arithmetic).
     """
+    row = flat // columns
+    return row, flat - row * columns
+
+
+def _touch(f: FloatArray, lat2: FloatArray, w2: float) -> FloatArray:
+    """`f - sqrt(w2 - lat2)`, floored at 0: where a disc of squared radius `w2` moving
+    along a heading first touches a point inside its corridor and ahead of its centre,
+    of components `f` along and `lat2` (squared) across the heading.
+    """
+    touch: FloatArray = np.maximum(f - np.sqrt(np.maximum(w2 - lat2, 0.0)), 0.0)
+    return touch
+
+
+def _row_least(row: IntArray, hit: FloatArray, rows: int) -> FloatArray:
+    """Per row (of `rows`), the least of the `hit`s in it; inf where none is."""
     nearest = np.full(rows, np.inf)
-    if row.size == 0:
-        return nearest
-    lat2 = lat * lat
-    hit = np.maximum(f - np.sqrt(np.maximum(w2 - lat2, 0.0)), 0.0)
-    hit[~((lat2 < w2) & (f > 0.0))] = np.inf  # outside the corridor, or behind the disc
-    starts = np.flatnonzero(np.concatenate(([True], row[1:] != row[:-1])))
-    nearest[row[starts]] = np.minimum.reduceat(hit, starts)
+    np.minimum.at(nearest, row, hit)
     return nearest
 
 
