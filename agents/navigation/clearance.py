@@ -245,13 +245,13 @@ def clearance_along(
         return NO_OBSTACLE_M
     c, s = math.cos(heading_rad), math.sin(heading_rad)
     f, lat = _components(x, y, c, s)
-    lat2 = np.square(lat)
+    lat2 = lat * lat
     w2 = half_width_m * half_width_m
-    half_chord = np.sqrt(np.maximum(w2 - lat2, 0.0))
-    ahead = (lat2 < w2) & (f > 0.0)
-    if not ahead.any():
+    ahead = ((lat2 < w2) & (f > 0.0)).nonzero()[0]  # inside the corridor, ahead
+    if ahead.size == 0:
         return NO_OBSTACLE_M
-    return max(0.0, float(np.min(f[ahead] - half_chord[ahead])))
+    gaps = f[ahead] - np.sqrt(w2 - lat2[ahead])
+    return max(0.0, float(np.minimum.reduce(gaps)))
 
 
 def open_side(points: tuple[FloatArray, FloatArray], *, half_width_m: float) -> int:
