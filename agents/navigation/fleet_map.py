@@ -44,6 +44,8 @@ class FleetMap:
     def add(self, scans: Iterable[Scan]) -> None:
         """Add the scans not added yet (oldest first, then in the formation's order)."""
         fresh = [s for s in scans if s.stamp_s > self.added.get(s.robot_id, -np.inf) and s.ranges_m]
+        if not fresh:  # (every robot but the first to add a step's scans)
+            return
         fresh.sort(key=lambda s: (s.stamp_s, self.rank.get(s.robot_id, len(self.rank))))
         self.map.update_many(self.sonar, self._readings(fresh))
 

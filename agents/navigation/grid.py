@@ -153,6 +153,8 @@ class OccupancyMap:
         for free_count, echoes in zip(free_counts.tolist(), near.sum(axis=1).tolist(), strict=True):
             self._mark(on_grid(free_cells[free_at : free_at + free_count]), -1)
             free_at += free_count
+            if not echoes:
+                continue
             # each echo marks its beam's right edge, centre and left edge at its range,
             # one after the other (a cell two of them fall in gains both)
             for _, amount in _ARC:
@@ -398,9 +400,10 @@ def _sonar_rays(
     """Where each transducer is at each of `poses` (a row each; world frame, m) and which
     way it looks (rad).
     """
-    x, y, theta = np.array([[[p.x_m], [p.y_m], [p.theta_rad]] for p in poses]).transpose(1, 0, 2)
-    c = np.array([[math.cos(p.theta_rad)] for p in poses])
-    s = np.array([[math.sin(p.theta_rad)] for p in poses])
+    rows = [
+        (p.x_m, p.y_m, p.theta_rad, math.cos(p.theta_rad), math.sin(p.theta_rad)) for p in poses
+    ]
+    x, y, theta, c, s = np.array(rows)[:, :, None].transpose(1, 0, 2)
     ox = x + c * sonar.unit_x_m - s * sonar.unit_y_m
     oy = y + s * sonar.unit_x_m + c * sonar.unit_y_m
     return ox, oy, theta + sonar.unit_heading_rad
