@@ -21,6 +21,7 @@ from functools import cached_property
 import numpy as np
 import numpy.typing as npt
 
+from phalanx.core.frozen import quick_init
 from phalanx.core.geometry import Vec2
 from phalanx.core.robot_params import RobotParams
 
@@ -38,6 +39,7 @@ ARC_SPREAD_M = 0.3
 EDGE_MARGIN_M = 1e-3
 
 
+@quick_init
 @dataclass(frozen=True, slots=True)
 class SonarEchoes:
     """One sonar reading as geometry in the robot's body frame, before any echo is
@@ -57,6 +59,7 @@ class SonarEchoes:
     batch: SonarBatch | None = None  # the readings read with it, in one pass
 
 
+@quick_init
 @dataclass(frozen=True, slots=True)
 class SonarBatch:
     """Readings of several robots read in one pass: the arrays of `SonarEchoes`, a row
@@ -87,6 +90,7 @@ def _flat_rows(
     return x[keep], y[keep], list(zip([0, *ends[:-1]], ends, strict=True))
 
 
+@quick_init
 @dataclass(frozen=True, slots=True)
 class MaskedEchoes:
     """A reading with the formation's own robots masked out, for robot `robot_id` at

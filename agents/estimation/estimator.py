@@ -28,6 +28,7 @@ from dataclasses import dataclass, field
 from phalanx.agents.estimation.ekf import Belief, ProcessNoise, predict, update_pose, wrap
 from phalanx.agents.estimation.relative import as_pose_fix, update_range_bearing
 from phalanx.core.fixes import Cov6, PoseFix, RelativeFix
+from phalanx.core.frozen import quick_init
 from phalanx.core.geometry import Pose2D, integrate_unicycle
 from phalanx.core.localisation import LocalisationConfig
 from phalanx.core.peers import PeerState
@@ -45,6 +46,7 @@ LEADER_DRIFT_STD_MPS = 0.02
 LEADER_DRIFT_STD_RADPS = 0.02
 
 
+@quick_init
 @dataclass(frozen=True, slots=True)
 class Estimate:
     """A robot's pose estimate at `stamp_s` and its covariance (upper triangle)."""

@@ -18,6 +18,7 @@ import numpy as np
 import numpy.typing as npt
 
 from phalanx.agents.perception import NO_OBSTACLE_M, FloatArray
+from phalanx.core.frozen import quick_init
 from phalanx.core.geometry import Vec2
 
 IntArray = npt.NDArray[np.intp]
@@ -273,6 +274,7 @@ def heading_index(heading_rad: float) -> int:
 AHEAD_INDEX = heading_index(0.0)
 
 
+@quick_init
 @dataclass(frozen=True, slots=True)
 class Clearances:
     """Free distance (m) along every candidate heading, the formation's and own; and the
