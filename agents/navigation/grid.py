@@ -485,14 +485,21 @@ def _shift_cost(a: FloatArray, dy: int, dx: int) -> FloatArray:
 
 
 def _grow(occupied: npt.NDArray[np.bool_], cells: int) -> npt.NDArray[np.bool_]:
-    """Obstacles grown by `cells` (a disc)."""
-    grown = occupied.copy()
-    for dy in range(-cells, cells + 1):
-        for dx in range(-cells, cells + 1):
-            if (dy or dx) and dy * dy + dx * dx <= cells * cells:
-                shifted = np.zeros_like(occupied)
-                _moved(shifted, occupied, dy, dx)
-                grown |= shifted
+    """Obstacles grown by `cells` (a disc): each row of the disc, `dy` off its centre,
+    reaches `isqrt(cells^2 - dy^2)` cells either side; the obstacles grown that far
+    along their rows, moved by `dy`.
+    """
+    along = [occupied]  # along[k]: grown k cells either side along the rows
+    for dx in range(1, cells + 1):
+        wider = along[-1].copy()
+        wider[:, dx:] |= occupied[:, :-dx]
+        wider[:, :-dx] |= occupied[:, dx:]
+        along.append(wider)
+    grown = along[cells].copy()
+    for dy in range(1, cells + 1):
+        row = along[math.isqrt(cells * cells - dy * dy)]
+        grown[dy:] |= row[:-dy]
+        grown[:-dy] |= row[dy:]
     return grown
 
 

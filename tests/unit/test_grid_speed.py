@@ -1,8 +1,9 @@
 """The occupancy grid's fast paths give what the plain algorithms they replace gave, bit
 for bit: the route's wavefront (a bucketed Dijkstra, against relaxing every cell until
 nothing changes), the furthest route point in sight (checked in batches, against one
-segment at a time), a whole `plan`, and the map update (against `np.unique` and
-clipping per call). The plain algorithms are kept here, as they were, as the reference.
+segment at a time), a whole `plan`, the obstacles grown by a disc (row by row, against
+every offset in turn), and the map update (against `np.unique` and clipping per call).
+The plain algorithms are kept here, as they were, as the reference.
 """
 
 from __future__ import annotations
@@ -64,6 +65,21 @@ def ref_in_sight(
     return bool(inside.all()) and not bool(blocked[row, col].any())
 
 
+def ref_grow(occupied: Bools, cells: int) -> Bools:
+    """Every offset of the disc in turn, the obstacles moved by it."""
+    grown = occupied.copy()
+    h, w = occupied.shape
+    for dy in range(-cells, cells + 1):
+        for dx in range(-cells, cells + 1):
+            if (dy or dx) and dy * dy + dx * dx <= cells * cells:
+                shifted = np.zeros_like(occupied)
+                shifted[max(dy, 0) : h + min(dy, 0), max(dx, 0) : w + min(dx, 0)] = occupied[
+                    max(-dy, 0) : h + min(-dy, 0), max(-dx, 0) : w + min(-dx, 0)
+                ]
+                grown |= shifted
+    return grown
+
+
 def ref_plan(
     m: OccupancyMap,
     start: Vec2,
@@ -75,8 +91,8 @@ def ref_plan(
 ) -> tuple[Vec2, float, tuple[Vec2, ...]] | None:
     window = m._window(start, goal)
     occupied = m.occupied()[window]
-    blocked = grid._grow(occupied, grid._cells_within(footprint_m, m.cell_m))
-    near = grid._grow(occupied, math.ceil(keep_off_m / m.cell_m - 0.5))
+    blocked = ref_grow(occupied, grid._cells_within(footprint_m, m.cell_m))
+    near = ref_grow(occupied, math.ceil(keep_off_m / m.cell_m - 0.5))
     cost = np.where(near, grid.NEAR_COST, 1.0)
     (r0, c0), (rg, cg) = m._cell(start, window), m._cell(goal, window)
     if not grid._on(blocked, rg, cg) or not grid._on(blocked, r0, c0):
@@ -164,6 +180,16 @@ def _path(dist: Floats, start: tuple[int, int], goal: tuple[int, int]) -> list[t
     while path[-1] != goal and len(path) < grid.MAX_PATH_CELLS:
         path.append(grid._downhill(dist, *path[-1]))
     return path
+
+
+@settings(max_examples=200, deadline=None)
+@given(grids(), st.integers(0, 30))
+def test_obstacles_grown_row_by_row_are_those_grown_offset_by_offset(
+    window: tuple[Bools, Floats, tuple[int, int], tuple[int, int]], cells: int
+) -> None:
+    occupied = window[0]
+    cells = min(cells, *occupied.shape)  # (the reference's slices need a grid that wide)
+    assert np.array_equal(grid._grow(occupied, cells), ref_grow(occupied, cells))
 
 
 @settings(max_examples=300, deadline=None)
