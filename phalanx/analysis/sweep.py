@@ -195,14 +195,9 @@ def run_sweep(
         progress(finished, total)
     results.parent.mkdir(parents=True, exist_ok=True)
     if pending:
-        from dask.distributed import Client, LocalCluster, as_completed
+        from dask.distributed import Client, as_completed
 
-        cluster = None
-        if address is None:
-            cluster = LocalCluster(  # type: ignore[no-untyped-call]
-                n_workers=workers, threads_per_worker=1, processes=True,
-                dashboard_address=None,
-            )  # fmt: skip
+        cluster = None if address is not None else _local_cluster(workers)
         try:
             client = Client(address or cluster)  # type: ignore[no-untyped-call]
             with client, results.open("a", encoding="utf-8") as out:
@@ -223,6 +218,24 @@ def run_sweep(
             if cluster is not None:
                 cluster.close()
     return [have[j.key] for j in todo]
+
+
+def _local_cluster(workers: int) -> Any:
+    """A `LocalCluster` of `workers` processes, one thread each, that keep glibc's own
+    threshold for handing freed memory back to the system. Dask's nanny starts its
+    workers with `MALLOC_TRIM_THRESHOLD_=65536`: a run's numpy temporaries then fault
+    their pages in afresh step after step (25 times the page faults of the same runs in
+    one process, and a tenth more time; docs/PERFORMANCE.md).
+    """
+    import dask
+    from dask.distributed import LocalCluster
+
+    environ = dict(dask.config.get("distributed.nanny.pre-spawn-environ"))
+    environ.pop("MALLOC_TRIM_THRESHOLD_", None)
+    with dask.config.set({"distributed.nanny.pre-spawn-environ": environ}):
+        return LocalCluster(  # type: ignore[no-untyped-call]
+            n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None
+        )
 
 
 # --- the table --------------------------------------------------------------------------

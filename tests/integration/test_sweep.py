@@ -59,3 +59,23 @@ def test_a_torn_last_line_is_run_again(tmp_path: Path) -> None:
     out = tmp_path / "runs.jsonl"
     out.write_text('{"key": "a", "x": 1}\n{"key": "b", "x"', encoding="utf-8")
     assert list(done_rows(out)) == ["a"]
+
+
+def test_the_local_workers_keep_glibcs_own_trim_threshold() -> None:
+    # Dask's nanny gives its workers MALLOC_TRIM_THRESHOLD_=65536 (freed memory back to
+    # the system at once): a sweep's runs then fault their pages in afresh every step.
+    # The sweep's own cluster drops that one setting and keeps the nanny's others.
+    probe = (
+        "import json, os\n"
+        "from dask.distributed import Client\n"
+        "from phalanx.analysis.sweep import _local_cluster\n"
+        "with _local_cluster(1) as cluster, Client(cluster) as client:\n"
+        "    seen = client.run(lambda: {k: os.environ.get(k) for k in "
+        "('MALLOC_TRIM_THRESHOLD_', 'OMP_NUM_THREADS')})\n"
+        "print(json.dumps(list(seen.values())))\n"
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", probe], capture_output=True, text=True, timeout=120, check=True
+    )
+    (worker,) = json.loads(done.stdout.strip().splitlines()[-1])
+    assert worker == {"MALLOC_TRIM_THRESHOLD_": None, "OMP_NUM_THREADS": "1"}
