@@ -197,7 +197,7 @@ def run_sweep(
     if pending:
         from dask.distributed import Client, as_completed
 
-        cluster = None if address is not None else _local_cluster(workers)
+        cluster = None if address is not None else local_cluster(workers)
         try:
             client = Client(address or cluster)  # type: ignore[no-untyped-call]
             with client, results.open("a", encoding="utf-8") as out:
@@ -220,7 +220,7 @@ def run_sweep(
     return [have[j.key] for j in todo]
 
 
-def _local_cluster(workers: int) -> Any:
+def local_cluster(workers: int) -> Any:
     """A `LocalCluster` of `workers` processes, one thread each, that keep glibc's own
     threshold for handing freed memory back to the system. Dask's nanny starts its
     workers with `MALLOC_TRIM_THRESHOLD_=65536`: a run's numpy temporaries then fault

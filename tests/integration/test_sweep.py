@@ -68,8 +68,8 @@ def test_the_local_workers_keep_glibcs_own_trim_threshold() -> None:
     probe = (
         "import json, os\n"
         "from dask.distributed import Client\n"
-        "from phalanx.analysis.sweep import _local_cluster\n"
-        "with _local_cluster(1) as cluster, Client(cluster) as client:\n"
+        "from phalanx.analysis.sweep import local_cluster\n"
+        "with local_cluster(1) as cluster, Client(cluster) as client:\n"
         "    seen = client.run(lambda: {k: os.environ.get(k) for k in "
         "('MALLOC_TRIM_THRESHOLD_', 'OMP_NUM_THREADS')})\n"
         "print(json.dumps(list(seen.values())))\n"
