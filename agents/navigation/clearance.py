@@ -263,12 +263,19 @@ def open_side(points: tuple[FloatArray, FloatArray], *, half_width_m: float) -> 
     return 1 if left >= right else -1
 
 
+def heading_offsets_rad(heading_rad: float) -> FloatArray:
+    """How far each candidate heading (`HEADINGS_RAD`) lies from `heading_rad` (body
+    frame, any number of turns), either way round (0 to pi).
+    """
+    off: FloatArray = np.abs(np.mod(HEADINGS_RAD - heading_rad + math.pi, 2 * math.pi) - math.pi)
+    return off
+
+
 def heading_index(heading_rad: float) -> int:
     """Index of the candidate heading (`HEADINGS_RAD`) nearest `heading_rad` (body
     frame, any number of turns).
     """
-    off = np.abs(np.mod(HEADINGS_RAD - heading_rad + math.pi, 2 * math.pi) - math.pi)
-    return int(np.argmin(off))
+    return int(np.argmin(heading_offsets_rad(heading_rad)))
 
 
 AHEAD_INDEX = heading_index(0.0)

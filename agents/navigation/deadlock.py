@@ -14,7 +14,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from phalanx.agents.navigation.clearance import HEADINGS_RAD, clearance_along, corridor_clearance
+from phalanx.agents.navigation.clearance import (
+    HEADINGS_RAD,
+    clearance_along,
+    corridor_clearance,
+    heading_offsets_rad,
+)
 from phalanx.agents.perception import FloatArray
 from phalanx.core.config import DeadlockConfig
 from phalanx.core.geometry import Pose2D, Twist2D, Vec2
@@ -148,9 +153,8 @@ def free_heading_near(
     """
     if clearance_along(points, heading_rad, half_width_m=half_width_m) >= room_m:
         return heading_rad
-    clear = corridor_clearance(points, HEADINGS_RAD, half_width_m=half_width_m)
-    free = HEADINGS_RAD[clear >= room_m]
-    if free.size == 0:
+    free = corridor_clearance(points, HEADINGS_RAD, half_width_m=half_width_m) >= room_m
+    if not free.any():
         return heading_rad
-    off = np.abs(np.mod(free - heading_rad + math.pi, 2.0 * math.pi) - math.pi)
-    return float(free[int(np.argmin(off))])
+    off = np.where(free, heading_offsets_rad(heading_rad), np.inf)
+    return float(HEADINGS_RAD[int(np.argmin(off))])
