@@ -4,7 +4,9 @@ the most of that time any rule of when to reshape could keep the group in its sh
 Runs `Job("field", shape, robots, seed)` as `phalanx sweep` does, for every seed of the
 range, and prints: the stretches the leader's map showed the scenario's shape fitting
 (how many, their length's quartiles), the share of the fitting time the group was in
-the shape, and the bound `phalanx.analysis.shape_time.kept_at_most` gives that share
+the shape (and of that, with no robot off its slot going round an obstacle or settling
+after it: `phalanx.analysis.metrics.episode_mask`), and the bound
+`phalanx.analysis.shape_time.kept_at_most` gives that share
 for a group back in the shape `U` s after a narrowing that rides through those shorter
 than `G` s (on the way these runs took).
 
@@ -19,7 +21,7 @@ from concurrent.futures import ProcessPoolExecutor
 
 import numpy as np
 
-from phalanx.analysis.metrics import scenario_shape_series
+from phalanx.analysis.metrics import episode_mask, scenario_shape_series
 from phalanx.analysis.shape_time import kept_at_most, returns_s, stretches
 from phalanx.analysis.sweep import Job, run_until_done
 from phalanx.runtime.batch import BatchRunner
@@ -30,21 +32,26 @@ RIDE_S = (0.0, 2.0, 4.0, 8.0)
 Series = tuple[np.ndarray, np.ndarray, float]
 
 
-def series(job: Job) -> Series:
-    """One run's in-shape and fitting series (the leader's view) and its step (s)."""
+def series(job: Job) -> tuple[Series, np.ndarray]:
+    """One run's in-shape and fitting series (the leader's view) and its step (s); and
+    per step, whether no robot was in an avoidance episode.
+    """
     log = run_until_done(BatchRunner(job.scenario()))
     got = scenario_shape_series(log)
     if got is None:
         raise SystemExit(f"{job.key}: the run recorded no shape or fitting series")
-    return got[0], got[1], log.scenario.dt_s
+    return (got[0], got[1], log.scenario.dt_s), ~episode_mask(log, reshaping=False)
 
 
-def report(label: str, runs: list[Series]) -> None:
-    """The stretches, the share kept and the bounds, pooled over the runs."""
+def report(label: str, runs: list[Series], calm: list[np.ndarray]) -> None:
+    """The stretches, the share kept (and kept calm) and the bounds, pooled over the runs."""
     dt_s = runs[0][2]
     lengths_s = np.array([(b - a) * dt_s for _, fits, _ in runs for a, b in stretches(fits)])
     fitting = sum(int(fits.sum()) for _, fits, _ in runs)
     kept = sum(int((shape & fits).sum()) for shape, fits, _ in runs)
+    whole = sum(
+        int((shape & fits & c).sum()) for (shape, fits, _), c in zip(runs, calm, strict=True)
+    )
     if not fitting:
         print(f"{label}: the shape never fitted")
         return
@@ -52,7 +59,7 @@ def report(label: str, runs: list[Series]) -> None:
     print(
         f"{label}: {lengths_s.size} stretches, {fitting * dt_s:.0f} s fitting; "
         f"length quartiles {q1:.1f} / {q2:.1f} / {q3:.1f} s, mean {lengths_s.mean():.1f} s; "
-        f"in the shape {kept / fitting:.0%} of it"
+        f"in the shape {kept / fitting:.0%} of it, every robot on its slot {whole / fitting:.0%}"
     )
     back_s, never = [], 0
     for shape, fits, dt in runs:
@@ -85,9 +92,9 @@ def main() -> None:
         for shape in args.shape:
             for robots in args.robots:
                 jobs = [Job("field", shape, robots, s) for s in range(*args.seeds)]
-                runs = list(pool.map(series, jobs))
+                runs, calm = zip(*pool.map(series, jobs), strict=True)
                 first, end = args.seeds
-                report(f"{shape} of {robots}, seeds {first}-{end - 1}", runs)
+                report(f"{shape} of {robots}, seeds {first}-{end - 1}", list(runs), list(calm))
 
 
 if __name__ == "__main__":
