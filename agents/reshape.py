@@ -20,6 +20,7 @@ from __future__ import annotations
 import math
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
+from functools import cached_property
 from typing import Protocol
 
 import numpy as np
@@ -50,8 +51,12 @@ DETOUR_M = 2.0
 DECIDE_S = 1.0
 CONFIRM = 2
 DWELL_S = 5.0
-# The sonar showing the way too narrow for the shape this long folds the group.
+# The sonar showing the way too narrow for the shape this long folds the group, if its
+# fold is long: one whose leader drives on at least this far while the slots slide (m).
+# A group that folds in less rides on in its shape, round what the steering can go
+# round, and folds where its leader stalls or is blocked.
 SQUEEZE_S = 1.0
+SQUEEZE_FROM_M = 1.0
 # A wider shape is taken only where it fits with the leader here and this far on (m).
 UNFOLD_AHEAD_M = (0.0, 1.0, 2.0)
 # The scenario's shape fits the way where the way is as wide as its slots across, with
@@ -85,6 +90,13 @@ class ShapeKeeper:
     # (`fits_along`).
     scenario_fits: bool = True
 
+    @cached_property
+    def fold_drive_m(self) -> float:
+        """How far the leader drives on while the scenario's shape folds into the
+        narrowest (m): `RESHAPE_CRUISE_MPS` for as long as the longest slide takes.
+        """
+        return RESHAPE_CRUISE_MPS * slide_s(self.book, SCENARIO_SHAPE, self.book.distinct[-1])
+
     def copy_from(self, leader: FlagsView) -> None:
         """Take the leader's shape as it published it."""
         self.key = ShapeKey(leader.shape_source, leader.shape_target, leader.morph)
@@ -101,12 +113,13 @@ class ShapeKeeper:
     def squeeze(self, squeezed: bool, dt_s: float) -> None:
         """The leader's sonar this step: the way along the route free for itself, but no
         way near it free for the whole shape (`phalanx.agents.behaviours.leader.squeezed`).
-        Held `SQUEEZE_S`, the group folds at once (the map may not show yet that there is
-        no way round).
+        While it lasts no wider shape is taken. Held `SQUEEZE_S`, a group whose fold is
+        long (`fold_drive_m` at least `SQUEEZE_FROM_M`) folds at once, to be folded by
+        the time it gets there (the map may not show yet that there is no way round).
         """
         # (between two shapes a follower still on its way is no squeeze: not counted)
         self.squeezed_s = self.squeezed_s + dt_s if squeezed and self.key.settled else 0.0
-        if self.squeezed_s >= SQUEEZE_S:
+        if self.squeezed_s >= SQUEEZE_S and self.fold_drive_m >= SQUEEZE_FROM_M:
             self.fold()
 
     def fold(self) -> bool:
@@ -207,6 +220,14 @@ class ShapeKeeper:
         self._count = 0
 
 
+def slide_s(book: ShapeBook, source: int, target: int) -> float:
+    """How long a reshape from `source` to `target` slides the slots (s): the longest
+    slide at `RESHAPE_MPS`, and at least `RESHAPE_MIN_S`.
+    """
+    a, b = book.shapes[source], book.shapes[target]
+    return max(RESHAPE_MIN_S, max((a[r] - b[r]).norm() for r in a) / RESHAPE_MPS)
+
+
 def _within_detour(shortest_m: float) -> float:
     """The longest route as good as the best when the best is `shortest_m` long (m)."""
     return shortest_m * DETOUR_SHARE + DETOUR_M
@@ -270,10 +291,7 @@ class Reshape(Behaviour):
         keeper = self.keeper
         if keeper.key.settled:
             keeper.key = ShapeKey(keeper.key.target, keeper.wanted, 0.0)
-        book = keeper.book
-        a, b = book.shapes[keeper.key.source], book.shapes[keeper.key.target]
-        longest = max((a[r] - b[r]).norm() for r in a)
-        self.duration_s = max(RESHAPE_MIN_S, longest / RESHAPE_MPS)
+        self.duration_s = slide_s(keeper.book, keeper.key.source, keeper.key.target)
         self.done_s = None
         self._since_done = 0.0
 

@@ -184,9 +184,13 @@ class Senses:
             self.planner.see(pose, self.sonar, reading.ranges_m, mask.echo, t_s)
         bumper = any(status.bumpers)
         dead_end = self._dead_end(pose, masked, stance.state, t_s)
-        # (short-circuit kept: the stall watch only runs with room ahead)
+        # (short-circuit kept: the stall watch runs only with room ahead, or a fold coming)
         near_m = self.near_m if view.is_leader else self._follower_near_m(stance.state)
-        blocked_ahead = ahead_m < near_m or self._stalled(pose, t_s, stance.state) or dead_end
+        blocked_ahead = (
+            (ahead_m < near_m and not self._folds_instead(view.is_leader, stance.state))
+            or self._stalled(pose, t_s, stance.state)
+            or dead_end
+        )
         return Sensing(
             points=masked,
             raw=raw,
@@ -241,6 +245,14 @@ class Senses:
         if state != State.EMERGENCY_STOP:
             return self.follower_near_m
         return max(self.follower_near_m, release_gap_m(self.shape))
+
+    def _folds_instead(self, is_leader: bool, state: str) -> bool:
+        """A navigating leader whose own way ahead is blocked folds the group into its
+        narrowest shape first, if it is not folded yet (True: a fold is coming), as a
+        stalled one does: the narrower shape may find a way the wider could not. It is
+        blocked only once folded.
+        """
+        return is_leader and state in _NAVIGATING and self.fold()
 
     def _stalled(self, pose: Pose2D, t_s: float, state: str) -> bool:
         """A navigating leader that turns and creeps without getting anywhere is blocked

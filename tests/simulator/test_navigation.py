@@ -298,6 +298,24 @@ def test_a_stalled_group_folds_before_it_calls_a_deadlock() -> None:
     assert not log.collisions
 
 
+@pytest.mark.slow
+def test_a_wedge_of_three_rides_on_and_a_blocked_leader_folds_before_it_reverses() -> None:
+    # Field 96: the wedge of three rides on in its shape (its fold is short, so the
+    # sonar's squeeze does not fold it) until its leader's own way is blocked. Blocked,
+    # the leader handed the lead to a follower, which was blocked in turn: eight
+    # deadlock reverses by the three robots, three changes of leader, never at the goal.
+    # A blocked leader now folds the group first, and the column goes through.
+    log = run_batch(navigation_scenario("field", "wedge", 3, seed=96))
+    nav = navigation_metrics(log)
+    assert nav["deadlock_reverses"] == 0
+    assert nav["leadership_changes"] == 0
+    leader = [e.target for e in log.transitions["r1"]]
+    assert State.RESHAPE in leader
+    assert leader[-1] == State.ARRIVED
+    assert not log.collisions
+    assert nav["scenario_shape_share"] > 0.5  # in the wedge most of the way
+
+
 def test_breadcrumbs_know_the_way_they_came_in() -> None:
     crumbs = Breadcrumbs(length_m=5.0)
     heading = math.radians(30.0)

@@ -67,7 +67,11 @@ def test_a_follower_is_blocked_only_nearer_than_the_leader() -> None:
     assert avoid_m < leader_m
     between = 0.45  # an echo in the gap between the two thresholds
     assert avoid_m < _gap_ahead_m(between) < leader_m
-    assert _blocked("r1", between)
+    navigation = SCENARIO.navigation.model_copy(update={"reshape": False})
+    unfolding = SCENARIO.model_copy(update={"navigation": navigation})
+    assert _blocked("r1", between, unfolding)
+    # (a leader that can fold its group into a narrower shape folds it first)
+    assert not _blocked("r1", between)
     assert not _blocked("r2", between)
     near = 0.2
     assert _gap_ahead_m(near) < avoid_m

@@ -17,7 +17,7 @@ from phalanx.agents.navigation import HEADINGS_RAD, Clearances, heading_index
 from phalanx.agents.navigation.clearance import AHEAD_INDEX
 from phalanx.agents.navigation.grid import OCCUPIED, OccupancyMap
 from phalanx.agents.perception import NO_OBSTACLE_M
-from phalanx.agents.reshape import SQUEEZE_S, Arrived, Reshape, ShapeKeeper
+from phalanx.agents.reshape import SQUEEZE_FROM_M, SQUEEZE_S, Arrived, Reshape, ShapeKeeper
 from phalanx.agents.shape import Shape
 from phalanx.core.config import NavigationConfig
 from phalanx.core.config_files import load_robot
@@ -31,8 +31,8 @@ ROBOT = load_robot("p3dx")
 FORMATION = resolve_formation(formation_shape("collateral", 3))
 
 
-def keeper() -> ShapeKeeper:
-    return ShapeKeeper(ShapeBook(FORMATION), ROBOT.radius_m)
+def keeper(shape: str = "collateral", robots: int = 3) -> ShapeKeeper:
+    return ShapeKeeper(ShapeBook(resolve_formation(formation_shape(shape, robots))), ROBOT.radius_m)
 
 
 def moment(t_s: float) -> Moment:
@@ -94,7 +94,7 @@ def test_a_leader_that_arrives_mid_unfold_stands_still_while_the_slide_ends() ->
 
 
 def test_the_shapes_are_not_weighed_again_and_a_squeeze_is_not_counted_mid_slide() -> None:
-    k = keeper()
+    k = keeper("collateral", 5)  # (a group that folds on the squeeze)
     grid = OccupancyMap(Vec2(0.0, 0.0))
     k.key, k.wanted = ShapeKey(SCENARIO_SHAPE, COLUMN, 0.5), COLUMN
     for step in range(50):
@@ -107,6 +107,24 @@ def test_the_shapes_are_not_weighed_again_and_a_squeeze_is_not_counted_mid_slide
     for _ in range(round(SQUEEZE_S / 0.1) + 1):
         k.squeeze(True, 0.1)
     assert k.wanted == COLUMN  # settled, the same squeeze folds the group
+
+
+@pytest.mark.parametrize(
+    ("shape", "robots", "drive_m"),
+    [("wedge", 3, 0.87), ("collateral", 3, 1.32), ("wedge", 5, 1.73), ("collateral", 5, 2.63)],
+)
+def test_only_a_group_whose_fold_is_long_folds_ahead_on_the_squeeze(
+    shape: str, robots: int, drive_m: float
+) -> None:
+    k = keeper(shape, robots)
+    assert k.fold_drive_m == pytest.approx(drive_m, abs=0.01)
+    for _ in range(round(SQUEEZE_S / 0.1) + 1):
+        k.squeeze(True, 0.1)
+    assert k.squeezed_s >= SQUEEZE_S  # counted either way: no wider shape is taken meanwhile
+    folds = k.wanted == k.book.distinct[-1]
+    assert folds == (drive_m >= SQUEEZE_FROM_M)
+    k.squeeze(False, 0.1)
+    assert k.squeezed_s == 0.0
 
 
 @pytest.mark.parametrize("ahead_m", [0.0, 1.0, 2.0])
