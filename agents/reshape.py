@@ -30,13 +30,16 @@ from phalanx.agents.leadership import FlagsView
 from phalanx.agents.navigation import OccupancyMap
 from phalanx.agents.shape import Shape
 from phalanx.core.geometry import ZERO_TWIST, Pose2D, Twist2D, Vec2
-from phalanx.core.shapes import SCENARIO_SHAPE, ShapeBook, ShapeKey
+from phalanx.core.shapes import RAMP_SHARE, SCENARIO_SHAPE, ShapeBook, ShapeKey
 
-# Slots slide at this speed (m/s) in the formation frame during a reshape, and it
-# takes at least this long; the followers then have this long to settle in the new shape.
-# Meanwhile the leader drives on no faster than `RESHAPE_CRUISE_MPS` (slide and drive
-# together stay within the followers' share of a P3DX's 0.3 m/s).
-RESHAPE_MPS = 0.17
+# Slots slide at up to this speed (m/s) in the formation frame during a reshape, at this
+# speed on average (the speed rises and falls over the ends of the slide, `slide_share`),
+# and it takes at least this long; the followers then have this long to settle in the new
+# shape. Meanwhile the leader drives on no faster than `RESHAPE_CRUISE_MPS` (slide and
+# drive together within about a P3DX's 0.3 m/s: a follower that falls behind its slot at
+# the fastest of a slide catches up as it slows).
+RESHAPE_PEAK_MPS = 0.255
+RESHAPE_MPS = RESHAPE_PEAK_MPS * (1 - RAMP_SHARE)
 RESHAPE_MIN_S = 3.0
 SETTLE_S = 2.0
 RESHAPE_CRUISE_MPS = 0.1
@@ -57,8 +60,11 @@ DWELL_S = 5.0
 # round, and folds where its leader stalls or is blocked.
 SQUEEZE_S = 1.0
 SQUEEZE_FROM_M = 1.0
-# A wider shape is taken only where it fits with the leader here and this far on (m).
+# A wider shape is taken only where it fits with the leader here and this far on (m);
+# the scenario's shape also where the map shows the way as wide as it as far as the
+# leader drives while the slots slide back, and this much further (m).
 UNFOLD_AHEAD_M = (0.0, 1.0, 2.0)
+UNFOLD_BEYOND_M = 1.0
 # The scenario's shape fits the way where the way is as wide as its slots across, with
 # the leader where it is and this far along its route (m): room to stay whole, or to
 # change shape before; the row of slots shifted to a side by one of these if need be (m).
@@ -142,17 +148,23 @@ class ShapeKeeper:
         places = [pose.to_world(Vec2(p.x_m + a, p.y_m)) for a in UNFOLD_AHEAD_M for p in slots]
         return bool(grid.clear_of(places, self.radius_m + FOOTPRINT_MARGIN_M).all())
 
-    def fits_along(self, grid: OccupancyMap, pose: Pose2D, route: Sequence[Vec2]) -> bool:
+    def fits_along(
+        self,
+        grid: OccupancyMap,
+        pose: Pose2D,
+        route: Sequence[Vec2],
+        along_m: Sequence[float] = FITS_ALONG_M,
+    ) -> bool:
         """Whether the way is as wide as the scenario's shape: with the leader at `pose`,
-        and at each of `FITS_ALONG_M` along `route` (its points from the leader's on)
-        facing along it there, every slot's place across the heading (its offset to the
-        side, not back) is clear of the map's obstacles, the whole row shifted by one of
+        and at each of `along_m` along `route` (its points from the leader's on) facing
+        along it there, every slot's place across the heading (its offset to the side,
+        not back) is clear of the map's obstacles, the whole row shifted by one of
         `FITS_SHIFTS_M` if need be (the steering keeps the shape off obstacles). The
         group passes where its leader does, so a column fits where its leader's way is
         as wide as a robot.
         """
         across = sorted({p.y_m for p in self.book.shapes[SCENARIO_SHAPE].values()})
-        poses = list(_poses_along(pose, route, FITS_ALONG_M))
+        poses = list(_poses_along(pose, route, along_m))
         places = [
             at.to_world(Vec2(0.0, y_m + shift_m))
             for at in poses
@@ -162,6 +174,32 @@ class ShapeKeeper:
         clear = grid.clear_of(places, self.radius_m + FOOTPRINT_MARGIN_M)
         whole = np.all(clear.reshape(len(poses), len(FITS_SHIFTS_M), len(across)), axis=2)
         return bool(np.any(whole, axis=1).all())
+
+    @cached_property
+    def unfold_along_m(self) -> tuple[float, ...]:
+        """Where along the route the way must be seen as wide as the scenario's shape
+        for the group to unfold into it (m): every metre as far as the leader drives
+        on while the slots slide back (`fold_drive_m`), and `UNFOLD_BEYOND_M` more.
+        """
+        last = math.ceil(self.fold_drive_m + UNFOLD_BEYOND_M)
+        return tuple(float(d) for d in range(1, last + 1))
+
+    def unfolds_along(self, grid: OccupancyMap, pose: Pose2D, route: Sequence[Vec2]) -> bool:
+        """Whether the map shows room to unfold into the scenario's shape along the
+        route: the way as wide as the shape (`fits_along`) at each of `unfold_along_m`,
+        the route that long and the leader's place at each of them seen on the map (not
+        merely never sensed).
+        """
+        along_m = self.unfold_along_m
+        poses = list(_poses_along(pose, route, along_m))
+        if len(poses) <= len(along_m):
+            return False
+        xs = np.array([at.x_m for at in poses])
+        ys = np.array([at.y_m for at in poses])
+        row, col, inside = grid.index(xs, ys)
+        if not inside.all() or not grid.seen[row, col].all():
+            return False
+        return self.fits_along(grid, pose, route, along_m)
 
     def decide(
         self,
@@ -187,12 +225,23 @@ class ShapeKeeper:
             self._count = 0
             return
         wider = self.footprint_m(best) > self.footprint_m(self.key.target)
-        if wider and (self.squeezed_s > 0.0 or not self.fits(grid, pose, best)):
+        if wider and (self.squeezed_s > 0.0 or not self._room_for(grid, pose, best, route)):
             best = self.key.target
         self._count = self._count + 1 if best == self._candidate else 1
         self._candidate = best
         if self._count >= CONFIRM:
             self.wanted = best
+
+    def _room_for(
+        self, grid: OccupancyMap, pose: Pose2D, shape: int, route: Sequence[Vec2]
+    ) -> bool:
+        """Whether the group may widen into `shape` here: the map shows the way wide
+        enough for the scenario's shape as far as the unfold takes (`unfolds_along`),
+        or every slot clear straight on (`fits`).
+        """
+        if shape == SCENARIO_SHAPE and self.unfolds_along(grid, pose, route):
+            return True
+        return self.fits(grid, pose, shape)
 
     def _best(self, grid: OccupancyMap, start: Vec2, goal: Vec2) -> int | None:
         """The widest shape whose route to `goal` is about as good as the shortest of any

@@ -34,6 +34,8 @@ SHAPE_NAMES = ("scenario", "shrunk", "column")
 MIN_SEPARATION_M = 0.8
 # The shrunk shape narrows the separations across the heading to this share at most.
 SHRINK_SHARE = 0.6
+# A slide's speed rises over this share of its time, and falls over as much at its end.
+RAMP_SHARE = 0.2
 _MAX_ASSIGNED = 7  # robots beyond this keep the order of their along-track position
 
 
@@ -65,10 +67,19 @@ class ShapeKey:
 NOMINAL_KEY = ShapeKey()
 
 
-def smoothstep(s: float) -> float:
-    """0 at 0, 1 at 1, with zero slope at both ends (the slots start and stop gently)."""
+def slide_share(s: float) -> float:
+    """How far along its straight line a slot is (0..1) `s` of a slide's time in: its
+    speed rising steadily over the first `RAMP_SHARE` of the time, steady, and falling
+    over the last (the slots start and stop gently, and at their fastest go 1 /
+    (1 - `RAMP_SHARE`) times their mean speed).
+    """
     s = min(1.0, max(0.0, s))
-    return s * s * (3.0 - 2.0 * s)
+    f = RAMP_SHARE
+    if s < f:
+        return s * s / (2 * f * (1 - f))
+    if s > 1 - f:
+        return 1.0 - (1 - s) * (1 - s) / (2 * f * (1 - f))
+    return (s - f / 2) / (1 - f)
 
 
 class ShapeBook:
@@ -113,7 +124,7 @@ class ShapeBook:
         new one's, the same fraction of the way for every robot.
         """
         a, b = self.shapes[key.source], self.shapes[key.target]
-        s = smoothstep(key.morph)
+        s = slide_share(key.morph)
         return {
             r: Vec2(a[r].x_m + s * (b[r].x_m - a[r].x_m), a[r].y_m + s * (b[r].y_m - a[r].y_m))
             for r in self.nominal

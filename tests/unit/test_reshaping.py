@@ -111,7 +111,7 @@ def test_the_shapes_are_not_weighed_again_and_a_squeeze_is_not_counted_mid_slide
 
 @pytest.mark.parametrize(
     ("shape", "robots", "drive_m"),
-    [("wedge", 3, 0.87), ("collateral", 3, 1.32), ("wedge", 5, 1.73), ("collateral", 5, 2.63)],
+    [("wedge", 3, 0.72), ("collateral", 3, 1.10), ("wedge", 5, 1.45), ("collateral", 5, 2.19)],
 )
 def test_only_a_group_whose_fold_is_long_folds_ahead_on_the_squeeze(
     shape: str, robots: int, drive_m: float

@@ -231,3 +231,36 @@ def test_a_run_records_per_step_whether_the_shape_fits_and_its_metrics_count_it(
     kept = sum(1 for k in range(half) if k % 4)
     assert metrics["scenario_shape_when_fits"] == pytest.approx(kept / half)
     assert metrics["scenario_shape_share"] == pytest.approx(sum(1 for k in range(n) if k % 4) / n)
+
+
+def test_a_folded_group_unfolds_where_the_map_shows_room_as_far_as_the_unfold_drives() -> None:
+    """The line abreast of three, folded into the column: its leader drives on 1.32 m
+    while the slots slide back, so the way must be seen as wide as the line 1, 2 and 3 m
+    along the route. There it unfolds, also with an obstacle where a slot would be
+    straight on (the row shifts off it); not where the way was never sensed, nor where a
+    gap narrows it within those 3 m, nor on a route that ends before them.
+    """
+    keeper = ShapeKeeper(ShapeBook(LINE), ROBOT.radius_m)
+    assert keeper.unfold_along_m == (1.0, 2.0, 3.0)
+    here, route = Pose2D(0.0, 0.0, 0.0), _straight(0.0)
+    unseen = _blocked_at((2.0, 1.0))
+    seen = _blocked_at((2.0, 1.0))
+    seen.seen[:] = True
+    assert not keeper.fits(seen, here, SCENARIO_SHAPE)  # a slot's place 2 m on is taken
+    assert keeper.unfolds_along(seen, here, route)
+    assert not keeper.unfolds_along(unseen, here, route)
+    assert not keeper.unfolds_along(seen, here, route[:4])  # (2 m of route)
+    for along_m, room in ((3.0, False), (5.0, True)):
+        narrowed = _gap(along_m, 0.0)
+        narrowed.seen[:] = True
+        assert keeper.unfolds_along(narrowed, here, route) is room
+
+    def unfolded(grid: OccupancyMap) -> bool:
+        keeper.key = ShapeKey(COLUMN, COLUMN, 1.0)
+        keeper.wanted = COLUMN
+        for k in (1, 2):
+            keeper.decide(grid, here, Vec2(12.0, 0.0), t_s=(2 + 2 * k) * DECIDE_S, route=route)
+        return keeper.wanted == SCENARIO_SHAPE
+
+    assert unfolded(seen)
+    assert not unfolded(unseen)

@@ -7,11 +7,21 @@ import itertools
 
 import numpy as np
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 
 from phalanx.core.formation import resolve_formation
 from phalanx.core.peers import PeerState
 from phalanx.core.scenarios import SHAPES, formation_shape
-from phalanx.core.shapes import COLUMN, SCENARIO_SHAPE, SHRUNK, ShapeBook, ShapeKey
+from phalanx.core.shapes import (
+    COLUMN,
+    RAMP_SHARE,
+    SCENARIO_SHAPE,
+    SHRUNK,
+    ShapeBook,
+    ShapeKey,
+    slide_share,
+)
 from phalanx.wire.codec import decode, encode
 from phalanx.wire.messages import RobotFlags, RobotState
 
@@ -71,3 +81,22 @@ def test_an_unknown_shape_or_a_morph_out_of_range_is_refused() -> None:
     good = RobotState.of(PeerState("r1", 3, 1.0, 0.0, 0.0, 0.0, 0.1, 0.0, "NAVIGATE"))
     assert decode(RobotState, encode(good.model_copy(update={"shape_target": 7}))) is None
     assert decode(RobotState, encode(good.model_copy(update={"morph": 1.5}))) is None
+
+
+@given(st.floats(-0.5, 1.5), st.floats(1e-6, 0.5))
+def test_a_slide_starts_and_stops_gently_and_is_never_faster_than_its_peak(
+    s: float, ds: float
+) -> None:
+    """`slide_share`: 0 before the slide, 1 after it, half-way at half time, never going
+    back, and never covering more of the way in a time than its peak pace, 1 / (1 -
+    `RAMP_SHARE`) times the mean (that is what `RESHAPE_PEAK_MPS` bounds).
+    """
+    assert slide_share(min(s, 0.0)) == 0.0
+    assert slide_share(max(s, 1.0)) == 1.0
+    assert slide_share(0.5) == pytest.approx(0.5)
+    gained = slide_share(s + ds) - slide_share(s)
+    assert -1e-12 <= gained <= ds / (1 - RAMP_SHARE) + 1e-12
+    # gently: behind the mean pace through the first ramp, and the end the start reversed
+    start = min(max(s, 0.0), RAMP_SHARE)
+    assert slide_share(start) <= start
+    assert slide_share(1.0 - start) == pytest.approx(1.0 - slide_share(start))
