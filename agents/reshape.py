@@ -148,23 +148,22 @@ class ShapeKeeper:
         places = [pose.to_world(Vec2(p.x_m + a, p.y_m)) for a in UNFOLD_AHEAD_M for p in slots]
         return bool(grid.clear_of(places, self.radius_m + FOOTPRINT_MARGIN_M).all())
 
-    def fits_along(
-        self,
-        grid: OccupancyMap,
-        pose: Pose2D,
-        route: Sequence[Vec2],
-        along_m: Sequence[float] = FITS_ALONG_M,
-    ) -> bool:
-        """Whether the way is as wide as the scenario's shape: with the leader at `pose`,
-        and at each of `along_m` along `route` (its points from the leader's on) facing
-        along it there, every slot's place across the heading (its offset to the side,
-        not back) is clear of the map's obstacles, the whole row shifted by one of
+    def fits_along(self, grid: OccupancyMap, pose: Pose2D, route: Sequence[Vec2]) -> bool:
+        """Whether the way is as wide as the scenario's shape (`_wide_at`) with the
+        leader at `pose`, and at each of `FITS_ALONG_M` along `route` (its points from
+        the leader's on) facing along it there.
+        """
+        return self._wide_at(grid, list(_poses_along(pose, route, FITS_ALONG_M)))
+
+    def _wide_at(self, grid: OccupancyMap, poses: Sequence[Pose2D]) -> bool:
+        """Whether the way is as wide as the scenario's shape with the leader at each of
+        `poses`: every slot's place across the heading (its offset to the side, not
+        back) is clear of the map's obstacles, the whole row shifted by one of
         `FITS_SHIFTS_M` if need be (the steering keeps the shape off obstacles). The
         group passes where its leader does, so a column fits where its leader's way is
         as wide as a robot.
         """
         across = sorted({p.y_m for p in self.book.shapes[SCENARIO_SHAPE].values()})
-        poses = list(_poses_along(pose, route, along_m))
         places = [
             at.to_world(Vec2(0.0, y_m + shift_m))
             for at in poses
@@ -186,8 +185,9 @@ class ShapeKeeper:
 
     def unfolds_along(self, grid: OccupancyMap, pose: Pose2D, route: Sequence[Vec2]) -> bool:
         """Whether the map shows room to unfold into the scenario's shape along the
-        route: the way as wide as the shape (`fits_along`) at each of `unfold_along_m`,
-        the route that long and the leader's place at each of them seen on the map (not
+        route: the way as wide as the shape (`_wide_at`, as `fits_along` measures it)
+        with the leader at `pose` and at each of `unfold_along_m` along `route`, the
+        route that long and the leader's place at each of them seen on the map (not
         merely never sensed).
         """
         along_m = self.unfold_along_m
@@ -199,7 +199,7 @@ class ShapeKeeper:
         row, col, inside = grid.index(xs, ys)
         if not inside.all() or not grid.seen[row, col].all():
             return False
-        return self.fits_along(grid, pose, route, along_m)
+        return self._wide_at(grid, poses)
 
     def decide(
         self,

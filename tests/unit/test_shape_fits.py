@@ -234,7 +234,7 @@ def test_a_run_records_per_step_whether_the_shape_fits_and_its_metrics_count_it(
 
 
 def test_a_folded_group_unfolds_where_the_map_shows_room_as_far_as_the_unfold_drives() -> None:
-    """The line abreast of three, folded into the column: its leader drives on 1.32 m
+    """The line abreast of three, folded into the column: its leader drives on 1.10 m
     while the slots slide back, so the way must be seen as wide as the line 1, 2 and 3 m
     along the route. There it unfolds, also with an obstacle where a slot would be
     straight on (the row shifts off it); not where the way was never sensed, nor where a
