@@ -378,8 +378,7 @@ class Agent:
             if operator is not None and operator.goal is not None:
                 parts.take_goal(operator.goal)
             parts.advance_waypoints(odometry.pose)
-            if self.fsm.state == State.NAVIGATE:
-                parts.weigh_shapes(odometry.pose, t_s)
+            parts.weigh_shapes(odometry.pose, t_s, navigating=self.fsm.state == State.NAVIGATE)
         parts.blocked.update(sensing.blocked, self.dt_s)
         reversing = self.fsm.state == State.DEADLOCK_REVERSE
         parts.stops.update(view.live, self.robot_id, reversing=reversing)

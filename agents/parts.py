@@ -173,12 +173,15 @@ class Parts:
             self.senses.remask(tuple(_offsets(here[s], self.shape.robot_id) for s in sorted(ends)))
         self.planner.keep_off_m = self.shape.half_span_m
 
-    def weigh_shapes(self, pose: Pose2D, t_s: float) -> None:
-        """The navigating leader weighs the shapes for the way to its next waypoint."""
+    def weigh_shapes(self, pose: Pose2D, t_s: float, *, navigating: bool) -> None:
+        """The leader weighs the shapes for the way to its next waypoint while it
+        navigates, and otherwise only gauges whether the scenario's shape fits the way.
+        """
         waypoints = self.route.waypoints
         if self.keeper.enabled and self.progress.waypoint < len(waypoints):
             goal = self.course.escape or Vec2(*waypoints[self.progress.waypoint])
-            self.keeper.decide(self.planner.map, pose, goal, t_s, self.planner.points)
+            weigh = self.keeper.decide if navigating else self.keeper.gauge
+            weigh(self.planner.map, pose, goal, t_s, self.planner.points)
 
     def retries_left(self, pose: Pose2D, *, deadlocked: bool) -> bool:
         """Whether a deadlock may be met with another reverse, turn and retry: while

@@ -88,12 +88,13 @@ class ShapeKeeper:
     _candidate: int = SCENARIO_SHAPE
     _count: int = 0
     _decided_s: float = -math.inf
+    _gauged_s: float = -math.inf
     _settled_s: float = -math.inf
     squeezed_s: float = 0.0  # how long the sonar has shown the way too narrow for the shape
     # Whether the scenario's shape fits the way, as the map showed it when the leader last
-    # weighed the shapes: its footprint's route to the goal is about as good as the best,
-    # and the way is as wide as the shape where the group is and along the route
-    # (`fits_along`).
+    # weighed the shapes or gauged the way (`gauge`): its footprint's route to the goal is
+    # about as good as the best, and the way is as wide as the shape where the group is
+    # and along the route (`fits_along`).
     scenario_fits: bool = True
 
     @cached_property
@@ -213,12 +214,15 @@ class ShapeKeeper:
         the best; a change is wanted once it has come out `CONFIRM` times running, not
         within `DWELL_S` of the last reshape, and a wider shape only if it fits here and
         on ahead (`fits`). `route` is the leader's (`scenario_fits` looks along it).
+        While the slots slide it only gauges the way (`gauge`).
         """
         if not self.enabled or grid is None or t_s - self._decided_s < DECIDE_S:
             return
         if not self.key.settled:
-            return  # (a slide under way is turned back only by the sonar's fold)
-        self._decided_s = t_s
+            # (a slide under way is turned back only by the sonar's fold)
+            self.gauge(grid, pose, goal, t_s, route)
+            return
+        self._decided_s = self._gauged_s = t_s
         best = self._best(grid, pose.position, goal)
         self.scenario_fits = best == SCENARIO_SHAPE and self.fits_along(grid, pose, route)
         if best is None or t_s - self._settled_s < DWELL_S:
@@ -231,6 +235,27 @@ class ShapeKeeper:
         self._candidate = best
         if self._count >= CONFIRM:
             self.wanted = best
+
+    def gauge(
+        self,
+        grid: OccupancyMap | None,
+        pose: Pose2D,
+        goal: Vec2,
+        t_s: float,
+        route: Sequence[Vec2] = (),
+    ) -> None:
+        """Whether the scenario's shape fits the way (`scenario_fits`, as `decide` has
+        it), every `DECIDE_S`, where the leader weighs no shape: while the slots slide,
+        or while it does anything but navigate (the time the shape fits is measured all
+        the way, not held from the last weighing). It changes nothing the group does.
+        """
+        if not self.enabled or grid is None or t_s - self._gauged_s < DECIDE_S:
+            return
+        self._gauged_s = t_s
+        self.scenario_fits = (
+            self.fits_along(grid, pose, route)
+            and self._best(grid, pose.position, goal) == SCENARIO_SHAPE
+        )  # (the width first: it is the cheaper, and mostly settles it while folded)
 
     def _room_for(
         self, grid: OccupancyMap, pose: Pose2D, shape: int, route: Sequence[Vec2]

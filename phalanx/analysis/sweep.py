@@ -404,8 +404,8 @@ def section(command: str, groups: dict[tuple[str, str, int, str], dict[str, Any]
             "showed the way as wide as that shape (every slot's place across the heading "
             "clear, the row shifted up to 0.5 m to a side, where the group is and 1 m and "
             "2 m along the leader's route; and its footprint's route to the goal about as "
-            "good as the best), and *in the shape while it fits*: the share of those steps "
-            "the group was in it.",
+            "good as the best; looked at every second, also while the slots slide), and "
+            "*in the shape while it fits*: the share of those steps the group was in it.",
             "",
             *table(groups),
             "",

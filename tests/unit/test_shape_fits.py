@@ -1,8 +1,9 @@
 """Whether the scenario's shape fits the way, as the leader's map shows it, measured per
 step and reported beside the time in the shape: the leader's shape keeper says so each
-time it weighs the shapes (the scenario shape's footprint has a route about as good as
-the best, and the way is as wide as the shape where the group is and along the leader's
-route), the run records it per step (`RobotTrace.fits`), and the navigation metrics give
+time it weighs the shapes, and gauges it while the slots slide or it does anything but
+navigate (the scenario shape's footprint has a route about as good as the best, and the
+way is as wide as the shape where the group is and along the leader's route), the run
+records it per step (`RobotTrace.fits`), and the navigation metrics give
 the share of steps it fits and the share of those the group was in the shape.
 """
 
@@ -32,6 +33,7 @@ from phalanx.core.geometry import Pose2D, Vec2
 from phalanx.core.runlog import RunLog
 from phalanx.core.scenarios import formation_shape
 from phalanx.core.shapes import COLUMN, SCENARIO_SHAPE, SHAPE_NAMES, ShapeBook, ShapeKey
+from phalanx.core.states import State
 from phalanx.runtime.batch import BatchRunner
 
 ROBOT = load_robot("p3dx")
@@ -65,6 +67,29 @@ def test_the_keeper_says_whether_the_scenario_shape_fits_the_way(
     keeper.key = ShapeKey(COLUMN, COLUMN, 1.0)
     keeper.decide(grid, Pose2D(0.0, 0.0, 0.0), Vec2(8.0, 0.0), t_s=3 * DECIDE_S)
     assert keeper.scenario_fits is fits
+
+
+def test_the_keeper_gauges_the_way_mid_slide_and_off_navigation_deciding_nothing() -> None:
+    """Mid-slide `decide`, and `gauge` (the leader doing anything but navigating), say
+    whether the shape fits, every `DECIDE_S`, and want no other shape.
+    """
+    keeper = ShapeKeeper(ShapeBook(LINE), ROBOT.radius_m)
+    here, goal = Pose2D(0.0, 0.0, 0.0), Vec2(8.0, 0.0)
+    keeper.key, keeper.wanted = ShapeKey(SCENARIO_SHAPE, COLUMN, 0.5), COLUMN
+    keeper.decide(_walled(0.8), here, goal, t_s=DECIDE_S)
+    assert not keeper.scenario_fits
+    keeper.decide(_walled(3.0), here, goal, t_s=1.5 * DECIDE_S)
+    assert not keeper.scenario_fits  # (not weighed again within DECIDE_S)
+    keeper.decide(_walled(3.0), here, goal, t_s=2 * DECIDE_S)
+    assert keeper.scenario_fits
+    keeper.key = ShapeKey(COLUMN, COLUMN, 1.0)
+    for step in range(3, 8):
+        keeper.gauge(_walled(3.0 if step % 2 else 0.8), here, goal, t_s=step * DECIDE_S)
+        assert keeper.scenario_fits is bool(step % 2)
+    assert keeper.wanted == COLUMN  # a wider shape fits, yet none is wanted
+    keeper.enabled = False
+    keeper.gauge(_walled(0.8), here, goal, t_s=9 * DECIDE_S)
+    assert keeper.scenario_fits  # (a keeper that never reshapes measures nothing)
 
 
 def _blocked_at(*points: tuple[float, float]) -> OccupancyMap:
@@ -215,6 +240,10 @@ def test_a_run_records_per_step_whether_the_shape_fits_and_its_metrics_count_it(
     assert not all(lead.fits)  # the corridor: not all the way
     followers = [log.traces[r].fits for r in ("r2", "r3")]
     assert all(all(f) for f in followers)  # (only the leader weighs the shapes)
+    # measured on while the slots slide too, not held from before the slide
+    assert any(
+        lead.fits[k] != lead.fits[k - 1] and lead.states[k] == State.RESHAPE for k in range(1, n)
+    )
     # known series in place of the run's: the metrics' arithmetic, step by step
     half = n // 2
     lead.fits = [k < half for k in range(n)]
