@@ -5,7 +5,9 @@ Runs `Job("field", shape, robots, seed)` as `phalanx sweep` does, for every seed
 range, and prints: the stretches the leader's map showed the scenario's shape fitting
 (how many, their length's quartiles), the share of the fitting time the group was in
 the shape (and of that, with no robot off its slot going round an obstacle or settling
-after it: `phalanx.analysis.metrics.episode_mask`), and the bound
+after it: `phalanx.analysis.metrics.episode_mask`; and with every step of a slide back
+into the shape counted as fitting, where the map the leader gauges the way on shows the
+sliding robots as obstacles), and the bound
 `phalanx.analysis.shape_time.kept_at_most` gives that share
 for a group back in the shape `U` s after a narrowing that rides through those shorter
 than `G` s (on the way these runs took).
@@ -21,9 +23,11 @@ from concurrent.futures import ProcessPoolExecutor
 
 import numpy as np
 
-from phalanx.analysis.metrics import episode_mask, scenario_shape_series
+from phalanx.analysis.metrics import episode_mask, leader_series, scenario_shape_series
 from phalanx.analysis.shape_time import kept_at_most, returns_s, stretches
 from phalanx.analysis.sweep import Job, run_until_done
+from phalanx.core.runlog import RunLog
+from phalanx.core.shapes import SCENARIO_SHAPE, ShapeKey
 from phalanx.runtime.batch import BatchRunner
 
 BACK_S = (0.0, 2.0, 3.0, 5.0, 8.0)
@@ -32,19 +36,33 @@ RIDE_S = (0.0, 2.0, 4.0, 8.0)
 Series = tuple[np.ndarray, np.ndarray, float]
 
 
-def series(job: Job) -> tuple[Series, np.ndarray]:
-    """One run's in-shape and fitting series (the leader's view) and its step (s); and
-    per step, whether no robot was in an avoidance episode.
+def series(job: Job) -> tuple[Series, np.ndarray, np.ndarray]:
+    """One run's in-shape and fitting series (the leader's view) and its step (s); per
+    step, whether no robot was in an avoidance episode, and whether the group was sliding
+    back into the scenario's shape.
     """
     log = run_until_done(BatchRunner(job.scenario()))
     got = scenario_shape_series(log)
     if got is None:
         raise SystemExit(f"{job.key}: the run recorded no shape or fitting series")
-    return (got[0], got[1], log.scenario.dt_s), ~episode_mask(log, reshaping=False)
+    calm = ~episode_mask(log, reshaping=False)
+    return (got[0], got[1], log.scenario.dt_s), calm, _unfolding(log)
 
 
-def report(label: str, runs: list[Series], calm: list[np.ndarray]) -> None:
-    """The stretches, the share kept (and kept calm) and the bounds, pooled over the runs."""
+def _unfolding(log: RunLog) -> np.ndarray:
+    """Per step, whether the group (as its leader then saw it) slid back into the
+    scenario's shape.
+    """
+    keys = (ShapeKey(*log.traces[r].shapes[k]) for k, r in enumerate(leader_series(log)))
+    return np.array([k.target == SCENARIO_SHAPE and not k.settled for k in keys], dtype=bool)
+
+
+def report(
+    label: str, runs: list[Series], calm: list[np.ndarray], unfolding: list[np.ndarray]
+) -> None:
+    """The stretches, the share kept (kept calm; with every unfolding step counted as
+    fitting) and the bounds, pooled over the runs.
+    """
     dt_s = runs[0][2]
     lengths_s = np.array([(b - a) * dt_s for _, fits, _ in runs for a, b in stretches(fits)])
     fitting = sum(int(fits.sum()) for _, fits, _ in runs)
@@ -55,11 +73,15 @@ def report(label: str, runs: list[Series], calm: list[np.ndarray]) -> None:
     if not fitting:
         print(f"{label}: the shape never fitted")
         return
+    widened = [fits | u for (_, fits, _), u in zip(runs, unfolding, strict=True)]
+    kept_wide = sum(int((shape & w).sum()) for (shape, _, _), w in zip(runs, widened, strict=True))
+    share_wide = kept_wide / sum(int(w.sum()) for w in widened)
     q1, q2, q3 = np.percentile(lengths_s, (25, 50, 75))
     print(
         f"{label}: {lengths_s.size} stretches, {fitting * dt_s:.0f} s fitting; "
         f"length quartiles {q1:.1f} / {q2:.1f} / {q3:.1f} s, mean {lengths_s.mean():.1f} s; "
-        f"in the shape {kept / fitting:.0%} of it, every robot on its slot {whole / fitting:.0%}"
+        f"in the shape {kept / fitting:.0%} of it, every robot on its slot {whole / fitting:.0%};"
+        f" in the shape {share_wide:.0%} with every step of an unfold counted as fitting"
     )
     back_s, never = [], 0
     for shape, fits, dt in runs:
@@ -92,9 +114,10 @@ def main() -> None:
         for shape in args.shape:
             for robots in args.robots:
                 jobs = [Job("field", shape, robots, s) for s in range(*args.seeds)]
-                runs, calm = zip(*pool.map(series, jobs), strict=True)
+                runs, calm, unfolding = zip(*pool.map(series, jobs), strict=True)
                 first, end = args.seeds
-                report(f"{shape} of {robots}, seeds {first}-{end - 1}", list(runs), list(calm))
+                label = f"{shape} of {robots}, seeds {first}-{end - 1}"
+                report(label, list(runs), list(calm), list(unfolding))
 
 
 if __name__ == "__main__":
