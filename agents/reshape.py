@@ -18,7 +18,7 @@ every robot computes the same slots.
 from __future__ import annotations
 
 import math
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from functools import cached_property
 from typing import Protocol
@@ -224,7 +224,7 @@ class ShapeKeeper:
             return
         self._decided_s = self._gauged_s = t_s
         best = self._best(grid, pose.position, goal)
-        self.scenario_fits = best == SCENARIO_SHAPE and self.fits_along(grid, pose, route)
+        self.scenario_fits = self._fits_now(grid, pose, route, lambda: best)
         if best is None or t_s - self._settled_s < DWELL_S:
             self._count = 0
             return
@@ -252,10 +252,23 @@ class ShapeKeeper:
         if not self.enabled or grid is None or t_s - self._gauged_s < DECIDE_S:
             return
         self._gauged_s = t_s
-        self.scenario_fits = (
-            self.fits_along(grid, pose, route)
-            and self._best(grid, pose.position, goal) == SCENARIO_SHAPE
-        )  # (the width first: it is the cheaper, and mostly settles it while folded)
+        self.scenario_fits = self._fits_now(
+            grid, pose, route, lambda: self._best(grid, pose.position, goal)
+        )
+
+    def _fits_now(
+        self,
+        grid: OccupancyMap,
+        pose: Pose2D,
+        route: Sequence[Vec2],
+        best: Callable[[], int | None],
+    ) -> bool:
+        """What `scenario_fits` says: the way as wide as the scenario's shape along the
+        route (`fits_along`), and that shape the best (`best`, the shape `_best` weighs
+        best or has weighed; asked only once the width is there, the cheaper check, which
+        mostly settles it while folded).
+        """
+        return self.fits_along(grid, pose, route) and best() == SCENARIO_SHAPE
 
     def _room_for(
         self, grid: OccupancyMap, pose: Pose2D, shape: int, route: Sequence[Vec2]

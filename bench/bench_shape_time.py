@@ -23,11 +23,11 @@ from concurrent.futures import ProcessPoolExecutor
 
 import numpy as np
 
-from phalanx.analysis.metrics import episode_mask, leader_series, scenario_shape_series
+from phalanx.analysis.metrics import episode_mask, leader_shape_keys, scenario_shape_series
 from phalanx.analysis.shape_time import kept_at_most, returns_s, stretches
 from phalanx.analysis.sweep import Job, run_until_done
 from phalanx.core.runlog import RunLog
-from phalanx.core.shapes import SCENARIO_SHAPE, ShapeKey
+from phalanx.core.shapes import SCENARIO_SHAPE
 from phalanx.runtime.batch import BatchRunner
 
 BACK_S = (0.0, 2.0, 3.0, 5.0, 8.0)
@@ -53,7 +53,7 @@ def _unfolding(log: RunLog) -> np.ndarray:
     """Per step, whether the group (as its leader then saw it) slid back into the
     scenario's shape.
     """
-    keys = (ShapeKey(*log.traces[r].shapes[k]) for k, r in enumerate(leader_series(log)))
+    keys = leader_shape_keys(log)
     return np.array([k.target == SCENARIO_SHAPE and not k.settled for k in keys], dtype=bool)
 
 

@@ -398,12 +398,17 @@ def scenario_shape_series(log: RunLog) -> tuple[BoolArray, BoolArray] | None:
     n = len(leaders)
     if not n or any(len(tr.shapes) != n or len(tr.fits) != n for tr in log.traces.values()):
         return None
-    in_shape = [
-        ShapeKey(*log.traces[rid].shapes[k]).settled_in(SCENARIO_SHAPE)
-        for k, rid in enumerate(leaders)
-    ]
+    in_shape = [key.settled_in(SCENARIO_SHAPE) for key in leader_shape_keys(log, leaders)]
     fits = [log.traces[rid].fits[k] for k, rid in enumerate(leaders)]
     return np.array(in_shape, dtype=bool), np.array(fits, dtype=bool)
+
+
+def leader_shape_keys(log: RunLog, leaders: list[str] | None = None) -> list[ShapeKey]:
+    """Per step, the shape in effect as the robot leading then saw it (`leaders`, as
+    `leader_series` gives them, if already worked out).
+    """
+    leaders = leader_series(log) if leaders is None else leaders
+    return [ShapeKey(*log.traces[rid].shapes[k]) for k, rid in enumerate(leaders)]
 
 
 def _calm_errors(log: RunLog, followers: list[str], calm: BoolArray) -> dict[str, Any]:
