@@ -14,7 +14,9 @@ from phalanx.core.geometry import Vec2
 
 
 def _driven(length_m: float) -> Breadcrumbs:
-    crumbs = Breadcrumbs(20.0)
+    # every point kept: in floats 0.05 k - 0.05 (k - 1) can come out a hair under 0.05,
+    # which the default spacing would drop, leaving a 10 cm gap in the path
+    crumbs = Breadcrumbs(20.0, spacing_m=0.049)
     for k in range(round(length_m / 0.05) + 1):
         crumbs.drop(Vec2(0.05 * k, 0.0))
     return crumbs
