@@ -61,6 +61,10 @@ PHASES: tuple[tuple[str, tuple[str, ...]], ...] = (
         ),
     ),
     (
+        "map: the fleet's own robots left out",
+        ("phalanx.agents.navigation.fleet_map:FleetMap._obstacle_echoes",),
+    ),
+    (
         "route planning",
         (
             "phalanx.agents.navigation.route:RoutePlanner.towards",

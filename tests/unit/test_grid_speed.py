@@ -16,7 +16,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from phalanx.agents.navigation import FleetMap, grid
+from phalanx.agents.navigation import FleetMap, fleet_map, grid
 from phalanx.agents.navigation.grid import OccupancyMap
 from phalanx.agents.perception import ARC_SPREAD_M, SonarGeometry
 from phalanx.core.config_files import load_robot
@@ -354,29 +354,62 @@ def test_adding_points_is_the_plain_add(seed: int, amount: int) -> None:
 ROBOTS = ("r1", "r2", "r3")
 
 
-def ref_fleet_add(m: OccupancyMap, added: dict[str, float], scans: list[Scan]) -> int:
+def ref_robot_echo(scan: Scan, unit: int, robot: Vec2) -> bool:
+    """Whether the echo of the scan's transducer `unit` is `robot` (world frame): the
+    point of its arc nearest the robot, one transducer at a time in floats."""
+    at = scan.pose.to_body(robot)
+    ux, uy = float(SONAR.unit_x_m[unit]), float(SONAR.unit_y_m[unit])
+    heading = float(SONAR.unit_heading_rad[unit])
+    off = math.remainder(math.atan2(at.y_m - uy, at.x_m - ux) - heading, 2.0 * math.pi)
+    off = min(max(off, -float(SONAR.reach_right_rad[unit])), float(SONAR.reach_left_rad[unit]))
+    r = scan.ranges_m[unit]
+    nearest = Vec2(ux + r * math.cos(heading + off), uy + r * math.sin(heading + off))
+    return (nearest - at).norm() < SONAR.radius_m + fleet_map.FLEET_MASK_M
+
+
+def ref_fleet_add(
+    m: OccupancyMap, added: dict[str, float], at: dict[str, Scan], scans: list[Scan]
+) -> tuple[int, int]:
     """The scans not added yet, one plain update each (oldest first, then the robots'
-    order); how many were added."""
+    order), each echo that another robot's latest scan (`at`, kept up to date here)
+    puts on its arc left out; how many scans were added, and how many echoes left out."""
     rank = {r: i for i, r in enumerate(ROBOTS)}
     fresh = [s for s in scans if s.stamp_s > added.get(s.robot_id, -np.inf) and s.ranges_m]
     fresh.sort(key=lambda s: (s.stamp_s, rank.get(s.robot_id, len(rank))))
-    count = 0
+    for scan in fresh:
+        if scan.robot_id not in at or scan.stamp_s >= at[scan.robot_id].stamp_s:
+            at[scan.robot_id] = scan
+    count = dropped = 0
     for scan in fresh:
         if scan.stamp_s <= added.get(scan.robot_id, -np.inf):
             continue
-        ref_update(m, scan.pose, np.asarray(scan.ranges_m), np.asarray(scan.echo, dtype=bool))
+        echo = list(scan.echo)
+        if len(scan.ranges_m) == SONAR.unit_x_m.size:
+            others = [
+                Vec2(o.x_m, o.y_m)
+                for o in at.values()
+                if o.robot_id != scan.robot_id
+                and abs(o.stamp_s - scan.stamp_s) <= fleet_map.FLEET_FRESH_S
+            ]
+            for unit, heard in enumerate(echo):
+                if heard and any(ref_robot_echo(scan, unit, o) for o in others):
+                    echo[unit] = False
+                    dropped += 1
+        ref_update(m, scan.pose, np.asarray(scan.ranges_m), np.asarray(echo, dtype=bool))
         added[scan.robot_id] = scan.stamp_s
         count += 1
-    return count
+    return count, dropped
 
 
-def _scan(rng: np.random.Generator, robot: str, stamp_s: float, units: int = 16) -> Scan:
+def _scan(
+    rng: np.random.Generator, robot: str, stamp_s: float, units: int = 16, spread_m: float = 10.0
+) -> Scan:
     ranges = np.where(rng.random(units) < 0.3, 5.0, rng.uniform(0.1, 5.0, units))
     return Scan(
         robot,
         stamp_s,
-        float(rng.uniform(-10.0, 10.0)),
-        float(rng.uniform(-10.0, 10.0)),
+        float(rng.uniform(-spread_m, spread_m)),
+        float(rng.uniform(-spread_m, spread_m)),
         float(rng.uniform(-3.0, 3.0)),
         tuple(ranges.tolist()),
         tuple((rng.random(units) < 0.7).tolist()),
@@ -386,12 +419,13 @@ def _scan(rng: np.random.Generator, robot: str, stamp_s: float, units: int = 16)
 @settings(max_examples=100, deadline=None)
 @given(st.integers(0, 2**32 - 1))
 def test_the_fleets_batches_leave_the_map_one_plain_update_a_scan_leaves(seed: int) -> None:
-    """Batches of scans of three robots, stamps repeating (stale scans, two of one robot
-    in a batch), some rings short."""
+    """Batches of scans of three robots a few metres apart (echoes of one another among
+    them), stamps repeating (stale scans, two of one robot in a batch), some rings short."""
     rng = np.random.default_rng(seed)
     fleet = FleetMap(Vec2(0.0, 0.0), sonar=SONAR, order=ROBOTS)
-    plain, count = OccupancyMap(Vec2(0.0, 0.0)), 0
+    plain, count, dropped = OccupancyMap(Vec2(0.0, 0.0)), 0, 0
     added: dict[str, float] = {}
+    at: dict[str, Scan] = {}
     for _ in range(8):
         scans = [
             _scan(
@@ -399,15 +433,18 @@ def test_the_fleets_batches_leave_the_map_one_plain_update_a_scan_leaves(seed: i
                 str(rng.choice(ROBOTS)),
                 float(rng.integers(0, 6)),
                 8 if rng.random() < 0.1 else 16,
+                spread_m=2.0,
             )
             for _ in range(int(rng.integers(0, 6)))
         ]
         fleet.add(scans)
-        count += ref_fleet_add(plain, added, scans)
+        scans_added, echoes_left_out = ref_fleet_add(plain, added, at, scans)
+        count, dropped = count + scans_added, dropped + echoes_left_out
         assert np.array_equal(fleet.map.evidence, plain.evidence)
         assert np.array_equal(fleet.map.seen, plain.seen)
         assert fleet.added == added
         assert fleet.scans_added == count
+        assert fleet.robot_echoes == dropped
 
 
 def test_a_scan_the_map_cannot_take_leaves_the_earlier_ones_added() -> None:

@@ -10,11 +10,13 @@ from PIL import Image
 
 from phalanx.agents.navigation import FleetMap, OccupancyMap
 from phalanx.agents.perception import SonarGeometry
+from phalanx.core.config import CircleObstacle, NoiseConfig, WorldConfig
 from phalanx.core.config_files import load_robot
 from phalanx.core.errors import ConfigError
-from phalanx.core.geometry import Vec2
+from phalanx.core.geometry import Pose2D, Vec2
 from phalanx.core.mapfile import FREE, OCCUPIED, UNKNOWN, load_map, save_map
 from phalanx.core.peers import Scan
+from phalanx.simulator.world import World
 
 
 def _header(path: Path, **fields: object) -> Path:
@@ -109,3 +111,37 @@ def test_scans_from_many_robots_make_one_map_whatever_order_they_arrive_in() -> 
     late.add(scans[2:])
     late.add(scans[:2])  # older than what each robot already gave: dropped
     assert late.scans_added == 2
+
+
+def test_echoes_of_the_fleets_own_robots_are_not_obstacles_on_its_map() -> None:
+    """Three robots in a simulated world with one post, sharing what their rings hear
+    with nothing masked: where a robot stands the map stays clear, while the post is on
+    it. Where the others' scans are too old to say where they are, they are obstacles."""
+    robot = load_robot("p3dx")
+    sonar = SonarGeometry.from_params(robot)
+    post = CircleObstacle(x_m=0.0, y_m=-1.6, radius_m=0.3)
+    world = World(robot=robot, world=WorldConfig(circles=(post,)), noise=NoiseConfig())
+    places = {"r1": Pose2D(0.0, 0.0, 0.0), "r2": Pose2D(1.6, 0.3, 0.0), "r3": Pose2D(0.2, 1.5, 1.0)}
+    for robot_id, pose in places.items():
+        world.add_robot(robot_id, pose)
+    _, rows = world.statuses()
+
+    def scans(stamps: dict[str, float]) -> list[Scan]:
+        return [
+            Scan(r, stamps[r], p.x_m, p.y_m, p.theta_rad, tuple(row.tolist()),
+                 tuple(sonar.ranged(row).tolist()))
+            for (r, p), row in zip(places.items(), rows, strict=True)
+        ]  # fmt: skip
+
+    robots = [places["r2"].position, places["r3"].position]
+    post_at = [Vec2(post.x_m, post.y_m)]
+    fleet = FleetMap(Vec2(0.0, 0.0), sonar=sonar, order=tuple(places))
+    fleet.add(scans({"r1": 1.0, "r2": 1.0, "r3": 1.0}))
+    assert fleet.robot_echoes >= 2
+    assert fleet.map.clear_of(robots, 0.3).all()
+    assert not fleet.map.clear_of(post_at, 0.3).any()
+    # r1 scanned a second after the others: where they were then says nothing of now
+    stale = FleetMap(Vec2(0.0, 0.0), sonar=sonar, order=tuple(places))
+    stale.add(scans({"r1": 2.0, "r2": 1.0, "r3": 1.0}))
+    assert not stale.map.clear_of(robots, 0.3).any()
+    assert not stale.map.clear_of(post_at, 0.3).any()
