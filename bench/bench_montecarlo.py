@@ -248,12 +248,9 @@ DEADEND_NOTES = """\
   into a column, which turns round inside the U (its followers keep to the path) and
   drives out along the U's wall; at the mouth its route turns back round the wall's end,
   behind the leader but not the way it came, and the group drives on round: at the goal
-  after 272 s (wedge) and 279 s (line abreast). The wedge of five's leader calls a dead
-  end once inside the U (at 73 s): its reverse stops after 1 cm, the U's wall behind it,
-  so there is no backward phase to measure, and the group turns round there and drives
-  out as the line abreast does without one. (A dead end is a route leading back along
-  the path driven: the point the leader heads for within 1 m of it, but for its last
-  2 m.) The U's 0.3 m walls stay on the leader's map while the
+  after 236 s (wedge) and 279 s (line abreast), neither calling a dead end (one is a
+  route leading back along the path driven: the point the leader heads for within 1 m
+  of it, but for its last 2 m). The U's 0.3 m walls stay on the leader's map while the
   robots drive along them: a sonar beam that meets one of the formation's robots sees
   nothing behind it, and a guess at a beam's edge weighs a third of an echo on its axis
   ([NAVIGATION.md](NAVIGATION.md), "What a scan adds to the map")."""
