@@ -29,9 +29,9 @@ from phalanx.core.geometry import Pose2D, Vec2
 from phalanx.core.mapfile import GridMap
 from phalanx.core.peers import Scan
 
-# An echo this close to where another robot of the fleet scanned from is that robot (its
-# own estimate of its pose, as the tracked robot's state is: `masking.TRACKED_MASK_M`,
-# and a margin for the time between the two scans).
+# An echo whose arc passes this close to another robot's body, where that robot's latest
+# scan puts it, is that robot: the place is the robot's own estimate, as the tracked
+# robot's state is (`masking.TRACKED_MASK_M`), and may be a step old.
 FLEET_MASK_M = 0.15
 # Where a robot scanned from counts for echoes at most this long before or after (s): a
 # robot moves less than 0.2 m in it.
@@ -100,14 +100,14 @@ class FleetMap:
         r = np.array([s.ranges_m for s in heard])
         dx, dy = robots[:, 1] - poses[:, 1:2], robots[:, 2] - poses[:, 2:3]  # (scan, robot)
         sonar, radius_m = self.sonar, self.sonar.radius_m + FLEET_MASK_M
-        # An echo can be a robot only at about the robot's distance: its transducer is
-        # within `mount_m` of where the scan was taken, so the arc passes within the
-        # radius only of a centre within its range, that and the radius, of that place
-        # (the bound a hair wider, so that rounding leaves no arc that meets it out).
+        # An echo at range r can be a robot only if the robot's centre is within r, give
+        # or take the radius and `mount_m` (its transducer's furthest from where the scan
+        # was taken), of that place: the (scan, robot) pairs with no such echo are left
+        # out before any arc is worked out (the bound a hair wider, so that rounding
+        # leaves out no arc that meets).
         apart = np.abs(r[:, None, :] - np.hypot(dx, dy)[..., None])
-        maybe = (apart < 1.001 * (sonar.mount_m + radius_m)) & np.array([echoes[i] for i in rows])[
-            :, None, :
-        ]
+        heard_echo = np.array([echoes[i] for i in rows])[:, None, :]
+        maybe = (apart < 1.001 * (sonar.mount_m + radius_m)) & heard_echo
         near = maybe.any(axis=2) & (np.abs(robots[:, 0] - poses[:, :1]) <= FLEET_FRESH_S)
         near[np.arange(len(heard)), [index[s.robot_id] for s in heard]] = False
         scan, robot = np.nonzero(near)
