@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 from collections import deque
+from dataclasses import dataclass
 
 import numpy as np
 import pytest
@@ -350,8 +351,38 @@ def test_breadcrumbs_know_the_way_they_came_in() -> None:
 
 
 @pytest.mark.slow
-def test_a_line_folds_on_the_move_to_pass_a_gap_narrower_than_itself() -> None:
-    log = run_batch(load_scenario(SCENARIOS / "nav_narrow_collateral3.toml"))
+@dataclass(frozen=True)
+class GapRun:
+    """The line abreast of three through its gap: the log, per step how many robots
+    stood in a cell the fleet's map showed occupied, the echoes the map found to be the
+    fleet's robots, and how many robots there are.
+    """
+
+    log: RunLog
+    stood_on: list[int]
+    robot_echoes: int
+    robots: int
+
+
+@pytest.fixture(scope="module")
+def gap_run() -> GapRun:
+    """One run for the tests of the line's fold and of its map."""
+    runner = BatchRunner(load_scenario(SCENARIOS / "nav_narrow_collateral3.toml"))
+    fleet = next(iter(runner.agents.values())).parts.planner.fleet
+    assert fleet is not None
+    stood_on: list[int] = []
+
+    def count(b: BatchRunner) -> bool:
+        row, col, _ = fleet.map.index(np.asarray(b.world.x), np.asarray(b.world.y))
+        stood_on.append(int(fleet.map.occupied()[row, col].sum()))
+        return False
+
+    log = runner.run(until=count)
+    return GapRun(log, stood_on, fleet.robot_echoes, len(runner.agents))
+
+
+def test_a_line_folds_on_the_move_to_pass_a_gap_narrower_than_itself(gap_run: GapRun) -> None:
+    log = gap_run.log
     nav = navigation_metrics(log)
     assert nav["goal_reached"]
     assert not log.collisions
@@ -368,22 +399,11 @@ def test_a_line_folds_on_the_move_to_pass_a_gap_narrower_than_itself() -> None:
     assert leader.shapes[-1][1:] == (0, 1.0)  # back in the scenario's shape at the end
 
 
-def test_the_fleets_map_does_not_hold_its_own_robots_as_obstacles() -> None:
+def test_the_fleets_map_does_not_hold_its_own_robots_as_obstacles(gap_run: GapRun) -> None:
     """The line folds and unfolds through the gap (its robots off their slots, where no
     slot mask expects them): the fleet's map seldom shows an obstacle in the cell a
     robot stands in (without leaving out the echoes of the fleet's robots: 613 of the
     7 200 robot-steps, 246 of them while the slots slide)."""
-    runner = BatchRunner(load_scenario(SCENARIOS / "nav_narrow_collateral3.toml"))
-    fleet = next(iter(runner.agents.values())).parts.planner.fleet
-    assert fleet is not None
-    stood_on: list[int] = []
-
-    def count(b: BatchRunner) -> bool:
-        row, col, _ = fleet.map.index(np.asarray(b.world.x), np.asarray(b.world.y))
-        stood_on.append(int(fleet.map.occupied()[row, col].sum()))
-        return False
-
-    log = runner.run(until=count)
-    assert navigation_metrics(log)["goal_reached"]
-    assert fleet.robot_echoes > 0
-    assert sum(stood_on) < 0.01 * len(stood_on) * len(runner.agents)
+    assert navigation_metrics(gap_run.log)["goal_reached"]
+    assert gap_run.robot_echoes > 0
+    assert sum(gap_run.stood_on) < 0.01 * len(gap_run.stood_on) * gap_run.robots
