@@ -184,6 +184,14 @@ class Agent:
         return self.leadership.leader_id
 
     @property
+    def robot_echoes_left_out(self) -> int:
+        """The sonar echoes this robot's copy of the fleet's map has left out as another
+        robot of the fleet, not an obstacle (0 without a map).
+        """
+        fleet = self.parts.planner.fleet
+        return 0 if fleet is None else fleet.robot_echoes
+
+    @property
     def _active(self) -> Behaviour:
         return self.parts.behaviours[self.fsm.state]
 

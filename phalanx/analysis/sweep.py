@@ -220,19 +220,35 @@ def run_sweep(
     return [have[j.key] for j in todo]
 
 
-def local_cluster(workers: int) -> Any:
+# Dask's housekeeping, made rarer for a sweep's own cluster. Each of these wakes a
+# worker's event loop in the middle of a run, and every wake-up takes the interpreter
+# lock from the run's thread: the check that the event loop is not blocked (every 20 ms
+# by default), the statistical profiler's stack sample (every 10 ms), the system and
+# memory monitors (every 0.5 s and 0.1 s). The scheduler and the nannies, in the
+# process that runs `phalanx sweep`, tick as often, on the same two cores as the runs.
+QUIET_DASK: dict[str, Any] = {
+    "distributed.admin.tick.interval": "1s",
+    "distributed.worker.profile.enabled": False,
+    "distributed.admin.system-monitor.interval": "5s",
+    "distributed.worker.memory.monitor-interval": "1s",
+}
+
+
+def local_cluster(workers: int, housekeeping: dict[str, Any] = QUIET_DASK) -> Any:
     """A `LocalCluster` of `workers` processes, one thread each, that keep glibc's own
-    threshold for handing freed memory back to the system. Dask's nanny starts its
-    workers with `MALLOC_TRIM_THRESHOLD_=65536`: a run's numpy temporaries then fault
-    their pages in afresh step after step (25 times the page faults of the same runs in
-    one process, and a tenth more time; docs/PERFORMANCE.md).
+    threshold for handing freed memory back to the system, with Dask's `housekeeping`
+    settings (made rarer: `QUIET_DASK`; `{}`: Dask's own). Dask's nanny starts its workers with
+    `MALLOC_TRIM_THRESHOLD_=65536`: a run's numpy temporaries then fault their pages in
+    afresh step after step (25 times the page faults of the same runs in one process,
+    and a tenth more time); the housekeeping cost the runs 5-12 % more
+    (docs/PERFORMANCE.md).
     """
     import dask
     from dask.distributed import LocalCluster
 
     environ = dict(dask.config.get("distributed.nanny.pre-spawn-environ"))
     environ.pop("MALLOC_TRIM_THRESHOLD_", None)
-    with dask.config.set({"distributed.nanny.pre-spawn-environ": environ}):
+    with dask.config.set({"distributed.nanny.pre-spawn-environ": environ, **housekeeping}):
         return LocalCluster(  # type: ignore[no-untyped-call]
             n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None
         )

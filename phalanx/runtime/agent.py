@@ -175,6 +175,7 @@ class AgentRuntime:
             "leader_claims_refused": self.agent.leadership.refused,
             "late_peer_steps": self.inbox.late_steps,
             "scans_heard": self.scans.heard,
+            "robot_echoes_left_out": self.agent.robot_echoes_left_out,
             **self.operator.counters(),
             "flags_skipped": self.flags_out.skipped,
             "unsent": self.unsent,

@@ -294,15 +294,18 @@ def test_every_robots_sonar_scans_reach_every_other_robots_map(
     nav = CONFIG_ROOT / "scenarios" / "nav_corridor_wedge3.toml"
     _spawn_fleet("maps", endpoint, "realtime", 15.0, processes, tmp_path / "out", nav)
     heard: dict[str, int] = {}
+    left_out: dict[str, object] = {}  # echoes each map took for another robot of the fleet
     with open_session(TransportConfig(mode="client", connect=(endpoint,))) as session:
 
         def everyone_heard_the_others() -> bool:
             for status in session.query_status("phalanx/maps/status/*", 1.0):
                 if "scans_heard" in status:
                     heard[str(status["robot_id"])] = int(status["scans_heard"])
+                    left_out[str(status["robot_id"])] = status.get("robot_echoes_left_out")
             return len(heard) == 3 and min(heard.values()) >= 20
 
         assert _wait(everyone_heard_the_others, 40.0), heard
+    assert all(isinstance(n, int) and n >= 0 for n in left_out.values()), left_out
     processes[0].wait(60)
     assert processes[0].returncode == 0
 

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from phalanx.analysis.sweep import done_rows, jobs, run_job, summaries, table
+from phalanx.analysis.sweep import QUIET_DASK, done_rows, jobs, run_job, summaries, table
 
 pytestmark = [pytest.mark.integration, pytest.mark.slow, pytest.mark.timeout(240)]
 
@@ -61,21 +61,24 @@ def test_a_torn_last_line_is_run_again(tmp_path: Path) -> None:
     assert list(done_rows(out)) == ["a"]
 
 
-def test_the_local_workers_keep_glibcs_own_trim_threshold() -> None:
+def test_the_local_workers_keep_glibcs_trim_threshold_and_rarer_housekeeping() -> None:
     # Dask's nanny gives its workers MALLOC_TRIM_THRESHOLD_=65536 (freed memory back to
     # the system at once): a sweep's runs then fault their pages in afresh every step.
-    # The sweep's own cluster drops that one setting and keeps the nanny's others.
+    # The sweep's own cluster drops that one setting and keeps the nanny's others, and
+    # its workers run Dask's housekeeping as rarely as QUIET_DASK says.
     probe = (
-        "import json, os\n"
+        "import json, os, dask\n"
         "from dask.distributed import Client\n"
-        "from phalanx.analysis.sweep import local_cluster\n"
+        "from phalanx.analysis.sweep import QUIET_DASK, local_cluster\n"
         "with local_cluster(1) as cluster, Client(cluster) as client:\n"
-        "    seen = client.run(lambda: {k: os.environ.get(k) for k in "
-        "('MALLOC_TRIM_THRESHOLD_', 'OMP_NUM_THREADS')})\n"
+        "    seen = client.run(lambda: ({k: os.environ.get(k) for k in "
+        "('MALLOC_TRIM_THRESHOLD_', 'OMP_NUM_THREADS')}, "
+        "{k: dask.config.get(k) for k in QUIET_DASK}))\n"
         "print(json.dumps(list(seen.values())))\n"
     )
     done = subprocess.run(
         [sys.executable, "-c", probe], capture_output=True, text=True, timeout=120, check=True
     )
-    (worker,) = json.loads(done.stdout.strip().splitlines()[-1])
-    assert worker == {"MALLOC_TRIM_THRESHOLD_": None, "OMP_NUM_THREADS": "1"}
+    ((environ, housekeeping),) = json.loads(done.stdout.strip().splitlines()[-1])
+    assert environ == {"MALLOC_TRIM_THRESHOLD_": None, "OMP_NUM_THREADS": "1"}
+    assert housekeeping == QUIET_DASK
