@@ -1,4 +1,4 @@
-"""What a sweep's Dask workers cost its runs: the same runs (`nav` fields of the wedge of
+"""What a sweep's Dask workers cost its runs: the same runs (the `field` family's wedge of
 three, the sweep's `run_job`) on two worker processes three ways, round after round, the
 order turned every round so a change in the machine's speed falls on all three:
 
@@ -20,7 +20,7 @@ import argparse
 import resource
 import statistics
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from concurrent.futures import ProcessPoolExecutor
 from typing import Any
 
@@ -31,7 +31,7 @@ from phalanx.analysis.sweep import QUIET_DASK, Job, local_cluster, run_job
 Rows = list[dict[str, Any]]
 
 
-def on_cluster(housekeeping: dict[str, Any]) -> Callable[[list[Job], int], Rows]:
+def on_cluster(housekeeping: Mapping[str, Any]) -> Callable[[list[Job], int], Rows]:
     """The runs on a local cluster with these housekeeping settings."""
 
     def run(todo: list[Job], workers: int) -> Rows:

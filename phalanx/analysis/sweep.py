@@ -21,7 +21,7 @@ from __future__ import annotations
 import json
 import math
 import time
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -226,7 +226,7 @@ def run_sweep(
 # by default), the statistical profiler's stack sample (every 10 ms), the system and
 # memory monitors (every 0.5 s and 0.1 s). The scheduler and the nannies, in the
 # process that runs `phalanx sweep`, tick as often, on the same two cores as the runs.
-QUIET_DASK: dict[str, Any] = {
+QUIET_DASK: Mapping[str, Any] = {
     "distributed.admin.tick.interval": "1s",
     "distributed.worker.profile.enabled": False,
     "distributed.admin.system-monitor.interval": "5s",
@@ -234,14 +234,14 @@ QUIET_DASK: dict[str, Any] = {
 }
 
 
-def local_cluster(workers: int, housekeeping: dict[str, Any] = QUIET_DASK) -> Any:
+def local_cluster(workers: int, housekeeping: Mapping[str, Any] = QUIET_DASK) -> Any:
     """A `LocalCluster` of `workers` processes, one thread each, that keep glibc's own
     threshold for handing freed memory back to the system, with Dask's `housekeeping`
-    settings (made rarer: `QUIET_DASK`; `{}`: Dask's own). Dask's nanny starts its workers with
-    `MALLOC_TRIM_THRESHOLD_=65536`: a run's numpy temporaries then fault their pages in
-    afresh step after step (25 times the page faults of the same runs in one process,
-    and a tenth more time); the housekeeping cost the runs 5-12 % more
-    (docs/PERFORMANCE.md).
+    settings (`QUIET_DASK`: made rarer; `{}`: Dask's own). Dask's nanny starts its
+    workers with `MALLOC_TRIM_THRESHOLD_=65536`: a run's numpy temporaries then fault
+    their pages in afresh step after step (25 times the page faults of the same runs in
+    one process, and a tenth more time); Dask's own housekeeping costs the runs about
+    6 % more time (docs/PERFORMANCE.md).
     """
     import dask
     from dask.distributed import LocalCluster
