@@ -19,6 +19,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 BIN = Path(sys.executable).parent
+SWEEPS_DOC = Path(__file__).resolve().parents[1] / "docs" / "SWEEPS.md"
 START_TIMEOUT_S = 60.0  # a scheduler or a worker up and registered
 STOP_TIMEOUT_S = 10.0
 
@@ -36,6 +37,14 @@ def result_keys(results: Path) -> list[str]:
         except json.JSONDecodeError:
             continue
     return keys
+
+
+def worker_config_file() -> str:
+    """The Dask configuration file docs/SWEEPS.md gives workers started by hand (its
+    one YAML block, as a file holds it).
+    """
+    (block,) = re.findall(r"```yaml\n(.*?)```", SWEEPS_DOC.read_text(encoding="utf-8"), re.S)
+    return re.sub(r"(?m)^ {2}", "", block)  # (the block is indented under its bullet)
 
 
 class ClusterError(RuntimeError):
@@ -63,12 +72,12 @@ class Cluster:
         self.daemons: list[Daemon] = []
         self.address = ""
 
-    def _start(self, name: str, args: list[str]) -> Daemon:
+    def _start(self, name: str, args: list[str], env: dict[str, str] | None = None) -> Daemon:
         log = self.folder / f"{name}.log"
         with log.open("wb") as sink:
             process = subprocess.Popen(
                 [str(BIN / "dask"), *args], stdout=sink, stderr=subprocess.STDOUT,
-                cwd=self.folder, start_new_session=True,
+                cwd=self.folder, start_new_session=True, env=env,
             )  # fmt: skip
         daemon = Daemon(name, process, log)
         self.daemons.append(daemon)
@@ -86,8 +95,11 @@ class Cluster:
         self.address = json.loads(info.read_text(encoding="utf-8"))["address"]
         return self.address
 
-    def worker(self, name: str) -> Daemon:
-        """Start a worker of one process and one thread, registered with the scheduler."""
+    def worker(self, name: str, config: Path | None = None) -> Daemon:
+        """Start a worker of one process and one thread, registered with the scheduler;
+        `config`: a folder of Dask configuration files it reads (`DASK_CONFIG`).
+        """
+        env = None if config is None else {**os.environ, "DASK_CONFIG": str(config)}
         daemon = self._start(
             name,
             [
@@ -95,6 +107,7 @@ class Cluster:
                 "--nworkers", "1", "--nthreads", "1", "--no-dashboard",
                 "--local-directory", str(self.folder / name),
             ],
+            env,
         )  # fmt: skip
         _wait(lambda: "Registered to" in daemon.text(), daemon)
         return daemon

@@ -8,15 +8,19 @@ nothing.
 
 from __future__ import annotations
 
+import json
 import os
 import signal
 import subprocess
+import sys
 import time
 from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from dask_cluster import BIN, STOP_TIMEOUT_S, Cluster, result_keys
+from dask_cluster import BIN, STOP_TIMEOUT_S, Cluster, result_keys, worker_config_file
+
+from phalanx.analysis.sweep import QUIET_DASK
 
 pytestmark = [pytest.mark.integration, pytest.mark.slow, pytest.mark.timeout(420)]
 
@@ -102,3 +106,34 @@ def test_a_sweep_outlives_a_killed_worker_loses_no_run_and_resumes(
     )  # fmt: skip
     assert again.stderr.startswith("0 runs to do"), again.stderr
     assert out.read_text(encoding="utf-8") == text
+
+
+def test_a_worker_started_with_the_docs_configuration_file_runs_as_the_sweeps_own(
+    cluster: Cluster, tmp_path: Path
+) -> None:
+    """docs/SWEEPS.md's configuration file, read by `dask worker` through DASK_CONFIG,
+    gives the worker process what `phalanx sweep` gives its own: glibc's threshold for
+    handing memory back above the nanny's 65536, and Dask's housekeeping as QUIET_DASK has
+    it.
+    """
+    folder = tmp_path / "worker-config"
+    folder.mkdir()
+    (folder / "phalanx.yaml").write_text(worker_config_file(), encoding="utf-8")
+    address = cluster.scheduler()
+    cluster.worker("w1", config=folder)
+    probe = (
+        "import json, os, sys, dask\n"
+        "from dask.distributed import Client\n"
+        "from phalanx.analysis.sweep import QUIET_DASK\n"
+        "with Client(sys.argv[1], timeout=30) as client:\n"
+        "    seen = client.run(lambda: (os.environ.get('MALLOC_TRIM_THRESHOLD_'), "
+        "{k: dask.config.get(k) for k in QUIET_DASK}))\n"
+        "print(json.dumps(list(seen.values())))\n"
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", probe, address], capture_output=True, text=True, timeout=120,
+        check=True, env={k: v for k, v in os.environ.items() if k != "DASK_CONFIG"},
+    )  # fmt: skip
+    ((threshold, housekeeping),) = json.loads(done.stdout.strip().splitlines()[-1])
+    assert int(threshold) > 65536
+    assert housekeeping == QUIET_DASK

@@ -1,19 +1,17 @@
 """docs/SWEEPS.md's configuration file for workers started by hand gives them the same
 settings as `phalanx sweep`'s own local workers (`QUIET_DASK`, and glibc's threshold
-for handing memory back kept rather than the nanny's).
+for handing memory back kept rather than the nanny's). A real `dask worker` reading the
+file is checked in tests/integration/test_sweep_cluster.py.
 """
 
 from __future__ import annotations
 
-import re
-from pathlib import Path
 from typing import Any
 
 import yaml
+from dask_cluster import worker_config_file
 
 from phalanx.analysis.sweep import QUIET_DASK
-
-SWEEPS = Path(__file__).resolve().parents[2] / "docs" / "SWEEPS.md"
 
 
 def _flat(tree: dict[str, Any], prefix: str = "") -> dict[str, Any]:
@@ -28,8 +26,7 @@ def _flat(tree: dict[str, Any], prefix: str = "") -> dict[str, Any]:
 
 
 def test_the_worker_file_in_the_docs_has_the_sweeps_settings() -> None:
-    (block,) = re.findall(r"```yaml\n(.*?)```", SWEEPS.read_text(encoding="utf-8"), re.S)
-    settings = _flat(yaml.safe_load(re.sub(r"(?m)^ {2}", "", block)))
+    settings = _flat(yaml.safe_load(worker_config_file()))
     environ = settings.pop("distributed.nanny.pre-spawn-environ")
     assert settings == QUIET_DASK
     assert environ["MALLOC_TRIM_THRESHOLD_"] > 65536  # (the nanny's: every free handed back)
