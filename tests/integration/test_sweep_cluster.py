@@ -3,7 +3,8 @@ workers started with Dask's own `dask scheduler` and `dask worker` on loopback, 
 would be on other hosts. One worker is killed with SIGKILL while the sweep runs (a host
 lost): the scheduler gives its runs to the other, the sweep finishes, every run finished
 before the kill is in the results file exactly once, and a sweep started again runs
-nothing.
+nothing. A worker started with docs/SWEEPS.md's configuration file runs with the settings
+`phalanx sweep` gives its own local workers.
 """
 
 from __future__ import annotations
