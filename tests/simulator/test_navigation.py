@@ -350,7 +350,6 @@ def test_breadcrumbs_know_the_way_they_came_in() -> None:
     assert crumbs.heading_in_rad(1.0) == pytest.approx(heading)
 
 
-@pytest.mark.slow
 @dataclass(frozen=True)
 class GapRun:
     """The line abreast of three through its gap: the log, per step how many robots
@@ -381,6 +380,7 @@ def gap_run() -> GapRun:
     return GapRun(log, stood_on, fleet.robot_echoes, len(runner.agents))
 
 
+@pytest.mark.slow
 def test_a_line_folds_on_the_move_to_pass_a_gap_narrower_than_itself(gap_run: GapRun) -> None:
     log = gap_run.log
     nav = navigation_metrics(log)
@@ -399,6 +399,7 @@ def test_a_line_folds_on_the_move_to_pass_a_gap_narrower_than_itself(gap_run: Ga
     assert leader.shapes[-1][1:] == (0, 1.0)  # back in the scenario's shape at the end
 
 
+@pytest.mark.slow
 def test_the_fleets_map_does_not_hold_its_own_robots_as_obstacles(gap_run: GapRun) -> None:
     """The line folds and unfolds through the gap (its robots off their slots, where no
     slot mask expects them): the fleet's map seldom shows an obstacle in the cell a
