@@ -19,6 +19,7 @@ from __future__ import annotations
 import json
 import os
 import re
+import shutil
 import signal
 import stat
 import subprocess
@@ -279,10 +280,15 @@ def test_a_runtime_directory_others_may_open_or_a_long_path_is_passed_over(
     with private_fabric() as endpoint:
         assert _socket_path(endpoint).parent.parent == Path("/tmp")
     assert list(shared.iterdir()) == []
-    own = tmp_path / "own"
-    own.mkdir(mode=0o700)
+    # (a runtime directory as short as the system's: the test's own folder may be too
+    # long for a socket in it, as it is under pytest-xdist's workers)
+    own = Path(tempfile.mkdtemp(prefix="xdg-", dir="/tmp"))  # (mode 0700)
     monkeypatch.setenv("XDG_RUNTIME_DIR", str(own))
-    with private_fabric() as endpoint:
-        assert _socket_path(endpoint).parent.parent == own
+    try:
+        with private_fabric() as endpoint:
+            assert _socket_path(endpoint).parent.parent == own
+        assert list(own.iterdir()) == []
+    finally:
+        shutil.rmtree(own)
     with pytest.raises(TransportError, match="at most 103 bytes"):
         unix_socket_endpoint(deep / "zenoh.sock")

@@ -21,7 +21,7 @@ pytestmark = [pytest.mark.drivers, pytest.mark.integration]
 
 
 def report(text: str) -> None:
-    """Figures for docs/INTEROP.md (shown with `pytest -s`)."""
+    """Figures for docs/INTEROP.md (shown with `pytest -n 0 -s`: a worker keeps them)."""
     sys.stdout.write(f"{text}\n")
 
 

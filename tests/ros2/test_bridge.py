@@ -34,6 +34,7 @@ from phalanx.core.robot_params import RobotParams
 from phalanx.ros2.bridge import RING_PER_ROBOT, Bridge
 from phalanx.ros2.messages import RobotMessages, RosMessages
 from phalanx.ros2.typestore import CdrTemplate, message_class
+from phalanx.wire.codec import encode
 from phalanx.wire.keys import robot_key
 from phalanx.wire.messages import Message, RobotState, ScanMessage, SenseFrame
 from phalanx.wire.transport import (
@@ -259,16 +260,27 @@ def test_what_the_robots_send_is_checked_on_the_bridges_thread_and_the_newest_ke
         assert it.rounds_until(r1_heard)
         stats, heard = it.hub.stats, it.bridge.stats.heard
         key = robot_key(FLEET, "r1", "state")
-        it.robots.zenoh.put(key, b"{ not a state")
-        it.robots.publish(key, state("r2", 2))  # r2's state on r1's key
-        time.sleep(0.3)
+        # r1's key as the bridge's own session hears it: once a payload is here, it is in
+        # the bridge's ring too, so a round is taken only once all are, however late
+        arrived = Heard()
+        listening = it.hub.zenoh.declare_subscriber(key, arrived.put)
+
+        def all_in(sent: list[bytes]) -> bool:
+            return {payload for payload, _, _ in list(arrived.samples)}.issuperset(sent)
+
+        garbage, wrong = b"{ not a state", state("r2", 2)  # r2's state on r1's key
+        it.robots.zenoh.put(key, garbage)
+        it.robots.publish(key, wrong)
+        assert wait_for(lambda: all_in([garbage, encode(wrong)]), WAIT_S)
         assert stats.malformed.total() + stats.rejected.total() == 0  # not decoded yet
         it.bridge.round()
         assert (stats.malformed["RobotState"], stats.rejected["RobotState"]) == (1, 1)
         before = heard["state"]
-        for seq in range(2, newest + 1):  # three rings' worth before the next round
-            it.send("state", state("r1", seq, x_m=0.01 * seq))
-        time.sleep(0.5)
+        states = [state("r1", seq, x_m=0.01 * seq) for seq in range(2, newest + 1)]
+        for message in states:  # three rings' worth before the next round
+            it.send("state", message)
+        assert wait_for(lambda: all_in([encode(m) for m in states]), WAIT_S)
+        listening.undeclare()
         it.bridge.round()
 
         def last_x() -> float:

@@ -159,6 +159,7 @@ def test_run_prints_its_table_plain_in_a_pipe(tmp_path: Path) -> None:
         env={"COLUMNS": None},
     )  # fmt: skip
     assert result.exit_code == 0, result.output
-    lines = result.output.splitlines()
-    _fits(lines, 80)
+    *lines, results = result.output.splitlines()
+    _fits(lines, 80)  # (the last line names the results folder, as long as its path)
+    assert results == f"results: {tmp_path / 'out'}"
     assert not any(set(line) & set("│┃━─") for line in lines)  # no box drawing either
