@@ -280,8 +280,8 @@ def test_a_runtime_directory_others_may_open_or_a_long_path_is_passed_over(
     with private_fabric() as endpoint:
         assert _socket_path(endpoint).parent.parent == Path("/tmp")
     assert list(shared.iterdir()) == []
-    # (a runtime directory as short as the system's: the test's own folder may be too
-    # long for a socket in it, as it is under pytest-xdist's workers)
+    # (a runtime directory with a short path, as /run/user/<uid> is: the test's own
+    # folder can be too deep for a socket in it, as it is in a pytest-xdist worker)
     own = Path(tempfile.mkdtemp(prefix="xdg-", dir="/tmp"))  # (mode 0700)
     monkeypatch.setenv("XDG_RUNTIME_DIR", str(own))
     try:
