@@ -276,7 +276,11 @@ class AgentRuntime:
 
     def _publish(self, out: StepOutput) -> None:
         fleet, rid = self.options.fleet, self.robot_id
-        self._send(robot_key(fleet, rid, "state"), lambda: RobotState.of(out.state))
+        # In lockstep the state is the robot's answer to the world's frame, which the world
+        # waits for and relays to the others: it must arrive, as the command does (DROP
+        # gives up on a message the link's queue has had no room for within a millisecond).
+        state_key = robot_key(fleet, rid, "state")
+        self._send(state_key, lambda: RobotState.of(out.state), block=self.lockstep)
         flags = out.flags
         if not self.lockstep and self.flags_out.due(flags):  # (lockstep: the states do)
             self._send(robot_key(fleet, rid, "flags"), lambda: RobotFlags.of(flags))
