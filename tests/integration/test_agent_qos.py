@@ -30,7 +30,7 @@ WEDGE = CONFIG_ROOT / "scenarios" / "paper_wedge.toml"
     ("clock", "congestion"),
     [("lockstep", zenoh.CongestionControl.BLOCK), ("realtime", zenoh.CongestionControl.DROP)],
 )
-def test_a_lockstep_agent_publishes_its_state_with_block(
+def test_an_agents_state_goes_with_block_in_lockstep_and_drop_in_real_time(
     clock: ClockMode, congestion: zenoh.CongestionControl
 ) -> None:
     scenario = apply_overrides(load_scenario(WEDGE), ["duration_s=60"])
