@@ -9,22 +9,15 @@ declarations are undeclared behind its session's back, which is what the router 
 
 from __future__ import annotations
 
-import itertools
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from contextlib import contextmanager
 
 import pytest
+from agentlab import framed_agent
 
-from phalanx.core.config_files import CONFIG_ROOT, apply_overrides, load_robot, load_scenario
 from phalanx.core.errors import TransportError
-from phalanx.runtime.agent import AgentRuntime, RuntimeOptions
-from phalanx.runtime.robot_io import WorldLink
-from phalanx.runtime.world_frames import sense_frame
-from phalanx.simulator.world import World
-from phalanx.wire.bounds import FleetBounds
-from phalanx.wire.keys import robot_key
 from phalanx.wire.messages import AgentEvent
 from phalanx.wire.relink import Relinker
 from phalanx.wire.transport import (
@@ -40,7 +33,6 @@ EVENT = "phalanx/t/robots/r1/event"
 TO_ROBOT = "phalanx/t/robots/r2/event"
 ALIVE = "phalanx/t/alive/r1"
 WAIT_S = 5.0
-WEDGE = CONFIG_ROOT / "scenarios" / "paper_wedge.toml"
 
 
 def _event(reason: str, robot: str = "r1") -> AgentEvent:
@@ -215,43 +207,13 @@ def test_a_watch_that_wakes_late_waits_for_what_arrived_meanwhile(
 def test_an_agent_left_deaf_re_opens_its_session_and_steps_on_the_worlds_frames() -> None:
     """The whole way back in one agent: the router forgets it (made as above), the world's
     frames stop reaching it, 5 s later it re-opens its session and steps on them again."""
-    scenario = apply_overrides(load_scenario(WEDGE), ["duration_s=60"])
-    robot = load_robot(scenario.robot)
-    world = World.for_scenario(scenario, robot)
-    endpoint = loopback_endpoint(free_tcp_port())
-    client = TransportConfig(mode="client", connect=(endpoint,), lowlatency=True)
-    options = RuntimeOptions(fleet="deaf", transport=client, clock="realtime")
-    ids = tuple(r.id for r in scenario.robots)
-    link = WorldLink(
-        "deaf", "r2", frame_timeout_s=30.0, robot_ids=ids, bounds=FleetBounds.of(scenario, robot)
-    )
-    runtime = AgentRuntime("r2", scenario, robot, options, clock=link, io=link)
-    stop = threading.Event()
-    router = TransportConfig(mode="router", listen=(endpoint,), lowlatency=True)
-    with open_session(router) as fabric:
-        agent = threading.Thread(target=runtime.run, args=(stop,))
-        agent.start()
-        try:
-            frames = itertools.count()
-
-            def frames_until(done: Callable[[], bool], timeout_s: float) -> bool:
-                deadline = time.monotonic() + timeout_s
-                while time.monotonic() < deadline and not done():
-                    k = next(frames)
-                    frame = sense_frame(world, "r2", k, scenario.dt_s)
-                    fabric.publish(robot_key("deaf", "r2", "sense"), frame)
-                    time.sleep(scenario.dt_s)
-                return done()
-
-            assert frames_until(lambda: runtime.steps >= 5, 20.0)
-            session = runtime._session
-            assert session is not None
-            _deafen(session)
-            deaf_at = runtime.steps
-            assert frames_until(lambda: session.relinks == 1, 10.0)
-            assert runtime.steps <= deaf_at + 2  # nothing heard meanwhile (a step, a frame in)
-            assert frames_until(lambda: runtime.steps >= deaf_at + 5, 10.0)
-        finally:
-            stop.set()
-            agent.join(15.0)
-    assert not agent.is_alive()
+    with framed_agent("deaf", "realtime", lowlatency=True) as it:
+        runtime = it.runtime
+        assert it.frames_until(lambda: runtime.steps >= 5, 20.0)
+        session = runtime._session
+        assert session is not None
+        _deafen(session)
+        deaf_at = runtime.steps
+        assert it.frames_until(lambda: session.relinks == 1, 10.0)
+        assert runtime.steps <= deaf_at + 2  # nothing heard meanwhile (a step, a frame in)
+        assert it.frames_until(lambda: runtime.steps >= deaf_at + 5, 10.0)
