@@ -145,7 +145,7 @@ class Outbox:
         self._worker: threading.Thread | None = None
         for stream in self._streams:
             if stream.kind != "grpc":  # a viewer connects from the worker: never blocks here
-                self._open(stream)
+                self._start(stream)
         if self._streams:
             self._worker = threading.Thread(target=self._drain, name="telemetry", daemon=True)
             self._worker.start()
@@ -162,6 +162,19 @@ class Outbox:
         if sink.kind == "memory":
             streams.append(_Stream("memory", None))
         return streams
+
+    def _start(self, stream: _Stream) -> None:
+        """Open a file (or memory) sink. One that cannot be opened (a full disk, a folder
+        that cannot be made) is left out, said once, and its entries counted in `dropped`:
+        a robot keeps driving without its recording rather than stop on it.
+        """
+        try:
+            self._open(stream)
+        except (OSError, RuntimeError) as exc:  # RuntimeError: the SDK's failed first write
+            log.error(
+                "telemetry: could not open the %s sink %s: %s", stream.kind, stream.target, exc
+            )
+            stream.rec = None
 
     def _open(self, stream: _Stream) -> None:
         rec = rerun_sdk().RecordingStream(

@@ -106,6 +106,22 @@ def test_absent_viewer_costs_nothing_but_counted_drops(tmp_path: Path) -> None:
     assert summarize(tmp_path / "a.rrd").rows["/robots/r1/pose"] == 50  # ... none the file
 
 
+@pytest.mark.skipif(not Path("/dev/full").exists(), reason="no /dev/full on this system")
+def test_a_file_sink_on_a_full_disk_is_left_out_and_its_entries_counted(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """The SDK writes a file's header when it opens it: on a full disk (/dev/full answers
+    every write with ENOSPC) that fails, and a robot must keep driving without it."""
+    with Telemetry(
+        recording_id="full", sink=TelemetrySink(kind="file", path=Path("/dev/full"))
+    ) as tel:
+        log_steps(tel, 0, 25)
+        assert tel.flush(10.0)
+    assert tel.dropped == 25
+    assert "could not open the file sink /dev/full: " in caplog.text
+    assert "No space left on device" in caplog.text
+
+
 def test_viewer_that_goes_and_comes_back(tmp_path: Path) -> None:
     port = free_tcp_port()
     url = f"rerun+http://127.0.0.1:{port}/proxy"
