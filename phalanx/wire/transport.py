@@ -183,7 +183,7 @@ class FleetSession(Closing):
         self.relinks = 0  # how many times `relink` replaced the Zenoh session
         # What was declared, with how to declare it again (None: held as given, `hold`).
         self._keep: list[tuple[Declare | None, Any]] = []
-        self._publishers: dict[str, Any] = {}
+        self._publishers: dict[tuple[str, bool], Any] = {}  # (key, BLOCK): one each way
         self._lock = threading.RLock()  # the Zenoh session and its entities, swapped whole
         self._max_bytes = LOWLATENCY_MAX_BYTES if cfg.lowlatency else None
         self._closed = False
@@ -199,7 +199,7 @@ class FleetSession(Closing):
         """Put `message` on `key` (express; BLOCK congestion for must-arrive messages)."""
         payload = self._fits(encode(message), key)
         with self._lock:
-            publisher = self._publishers.get(key)
+            publisher = self._publishers.get((key, reliable_block))
             if publisher is None:
                 publisher = self._declare_publisher(key, reliable_block)
             publisher.put(payload)
@@ -228,7 +228,7 @@ class FleetSession(Closing):
             congestion_control=congestion,
             priority=zenoh.Priority.REAL_TIME,
         )
-        self._publishers[key] = publisher
+        self._publishers[key, block] = publisher
         return publisher
 
     def subscribe(
