@@ -67,10 +67,12 @@ def test_up_on_arcos_with_motion_capture_fixes(tmp_path: Path) -> None:
                   "--set", "duration_s=60")  # fmt: skip
     assert metrics["deadlock_reverses"] == 1
     assert metrics["collisions"] == []
+    runtime = metrics["runtime"]  # how well this machine kept the wall clock, if it failed
+    timing = {key: runtime[key] for key in ("commands_late", "overruns", "missed_deadlines")}
     for rid in ("r2", "r3"):
         backward = metrics["followers"][rid]["backward"]
         assert backward["duration_s"] > 5.0, (rid, metrics["followers"][rid])
         for key, bound in BOUNDS.items():
-            assert backward[key]["max"] < bound, (rid, key, backward[key])
+            assert backward[key]["max"] < bound, (rid, key, backward[key], timing)
     for rid, est in metrics["estimation"]["robots"].items():
         assert est["position_m"]["max"] < 0.02, rid  # fixes arrived and were fused
