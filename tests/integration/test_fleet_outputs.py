@@ -6,6 +6,7 @@ deployment."""
 
 from __future__ import annotations
 
+import os
 import re
 import subprocess
 from pathlib import Path
@@ -63,3 +64,31 @@ def test_launch_quiet_says_no_progress(tmp_path: Path) -> None:
     assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-2000:]
     assert "launch: " not in done.stderr
     assert "results on host laptop: " in done.stdout
+
+
+# In every `phalanx host` started with it on PYTHONPATH: 8 s asleep before it runs, as a
+# daemon starts on a slow or busy machine (a launcher that waited 5 s gave up on it).
+_SLOW_DAEMON = """
+import time
+from pathlib import Path
+
+if b"\\0host\\0" in Path("/proc/self/cmdline").read_bytes():
+    time.sleep(8.0)
+"""
+
+
+def test_launch_local_waits_for_its_daemons_as_long_as_host_wait(tmp_path: Path) -> None:
+    path, _ = deployment_file(tmp_path, name="slow", duration_s=2.0, recording=False)
+    site = tmp_path / "site"
+    site.mkdir()
+    (site / "sitecustomize.py").write_text(_SLOW_DAEMON)
+    env = {
+        **os.environ,
+        "PYTHONPATH": os.pathsep.join(filter(None, [str(site), os.environ.get("PYTHONPATH")])),
+    }
+    done = subprocess.run(
+        [*CLI, "launch", str(path), "--local", "--no-table", "--no-logs", "--host-wait", "60"],
+        capture_output=True, text=True, timeout=150, cwd=tmp_path, env=env, check=False,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-2000:]
+    assert "results on host laptop: " in done.stdout.splitlines()[-1], done.stdout[-2000:]

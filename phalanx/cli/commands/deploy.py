@@ -64,7 +64,7 @@ def launch(
         ),
     ] = None,
     host_wait: Annotated[
-        float, typer.Option(help="Seconds to wait for every host's daemon.")
+        float, typer.Option(min=0.0, help="Seconds to wait for every host's daemon.")
     ] = 30.0,
     timeout: Annotated[
         float | None, typer.Option(help="Stop the fleet after this many seconds.")
@@ -121,6 +121,8 @@ def launch(
     daemons = _start_local_daemons(loaded) if local else []
     try:
         transport = _transport(loaded, via, connect, identity)
+        if daemons:  # just started: the fabric is up once one of them is (--host-wait)
+            transport = transport.model_copy(update={"open_timeout_s": host_wait})
         code = _run(loaded, options, transport, (table, logs, quiet), stop)
     except DeploymentError as exc:
         typer.echo(f"error: {exc}", err=True)
