@@ -64,7 +64,11 @@ def launch(
         ),
     ] = None,
     host_wait: Annotated[
-        float, typer.Option(min=0.0, help="Seconds to wait for every host's daemon.")
+        float,
+        typer.Option(
+            min=0.0,
+            help="Seconds to wait for every host's daemon (with --local, also to connect).",
+        ),
     ] = 30.0,
     timeout: Annotated[
         float | None, typer.Option(help="Stop the fleet after this many seconds.")
