@@ -168,6 +168,15 @@ class Fleet:
             out[name] = text.count("Traceback (most recent call last)")
         return out
 
+    def tails(self, lines: int = 15) -> str:
+        """The last lines of every process's output, for a failure's message."""
+        told = ""
+        for name in self.procs:
+            path = self.log_path(name)
+            text = path.read_text(errors="replace") if path.exists() else ""
+            told += f"\n--- {name}\n" + "\n".join(text.splitlines()[-lines:])
+        return told
+
     def crashed(self, *, allowed: tuple[int, ...] = (0,)) -> list[str]:
         """Processes that printed a traceback or ended with an unexpected code."""
         codes, traces = self.exit_codes(), self.tracebacks()

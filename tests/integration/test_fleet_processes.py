@@ -5,44 +5,28 @@ from __future__ import annotations
 import json
 import signal
 import subprocess
-import sys
-import threading
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
+from fleetlab import CLI, ROBOTS, WEDGE, Seen, running_fleet, terminate, wait_for
 
 from phalanx.analysis.metrics import run_metrics
 from phalanx.core.config_files import CONFIG_ROOT, apply_overrides, load_scenario
 from phalanx.core.scenarios import signal_builder
 from phalanx.runtime.batch import run_batch
-from phalanx.wire.keys import leader_key, robot_key, robots_key
-from phalanx.wire.messages import LeaderAnnouncement, RobotState
-from phalanx.wire.transport import TransportConfig, free_tcp_port, loopback_endpoint, open_session
+from phalanx.wire.keys import robot_key
+from phalanx.wire.transport import free_tcp_port, loopback_endpoint
 
 pytestmark = pytest.mark.integration
-WEDGE = CONFIG_ROOT / "scenarios" / "paper_wedge.toml"
-CLI = [sys.executable, "-m", "phalanx"]
-
-
-def _stop(procs: list[subprocess.Popen[bytes]]) -> None:
-    for proc in procs:
-        if proc.poll() is None:
-            proc.send_signal(signal.SIGTERM)
-    for proc in procs:
-        try:
-            proc.wait(10)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait(5)
 
 
 @pytest.fixture
 def processes() -> Iterator[list[subprocess.Popen[bytes]]]:
     procs: list[subprocess.Popen[bytes]] = []
     yield procs
-    _stop(procs)
+    terminate(procs, grace_s=10.0)
 
 
 def test_up_reproduces_the_in_process_run(
@@ -111,106 +95,43 @@ def test_up_reproduces_a_leadership_handover(tmp_path: Path) -> None:
         assert got == pytest.approx(want, rel=1e-6, abs=1e-9), rid
 
 
-def _spawn_fleet(
-    fleet: str,
-    endpoint: str,
-    clock: str,
-    duration_s: float,
-    procs: list[subprocess.Popen[bytes]],
-    out: Path,
-    scenario: Path = WEDGE,
-) -> None:
-    """The world and r1-r3 as processes, each logging to `<out>/../logs/<name>.log`."""
-    common = ["--fleet", fleet, "--clock", clock, "--set", f"duration_s={duration_s}"]
-    world = ["world", str(scenario), *common, "--listen", endpoint, "--out", str(out),
-             "--no-recording"]  # fmt: skip
-    procs.append(_logged([*CLI, *world], _logs(out) / "world.log"))
-    for rid in ("r1", "r2", "r3"):
-        agent = ["agent", str(scenario), "--robot", rid, *common, "--mode", "client",
-                 "--connect", endpoint]  # fmt: skip
-        procs.append(_logged([*CLI, *agent], _logs(out) / f"{rid}.log"))
-
-
-def _logs(out: Path) -> Path:
-    """Where the processes of a fleet writing its results to `out` keep their logs."""
-    logs = out.parent / "logs"
-    logs.mkdir(parents=True, exist_ok=True)
-    return logs
-
-
-def _logged(argv: list[str], log: Path) -> subprocess.Popen[bytes]:
-    """`argv` started with its stderr (the log) appended to `log`."""
-    with log.open("ab") as sink:
-        return subprocess.Popen(argv, stdout=subprocess.DEVNULL, stderr=sink)
-
-
-def _tails(out: Path, lines: int = 15) -> str:
-    """The last lines of every process's log, for a failure's message."""
-    return "".join(
-        f"\n--- {log.name}\n" + "\n".join(log.read_text(errors="replace").splitlines()[-lines:])
-        for log in sorted(_logs(out).glob("*.log"))
-    )
-
-
-def _wait(predicate: object, timeout_s: float) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if predicate():  # type: ignore[operator]
-            return True
-        time.sleep(0.01)
-    return False
-
-
 def test_killed_leader_stops_the_followers_then_leadership_passes_and_it_rejoins(
-    tmp_path: Path, processes: list[subprocess.Popen[bytes]]
+    tmp_path: Path,
 ) -> None:
     """The leader's process is killed: the followers stop within 500 ms, a new leader takes
     over under a higher epoch (announced on phalanx/<fleet>/leader), and the restarted
     robot rejoins as a follower, never taking the lead back."""
-    endpoint, out = loopback_endpoint(free_tcp_port()), tmp_path / "out"
-    _spawn_fleet("kill", endpoint, "realtime", 60.0, processes, out)
-    seen: dict[str, tuple[float, RobotState]] = {}
-    announced: list[LeaderAnnouncement] = []
-    lock = threading.Lock()
+    with running_fleet(tmp_path, fleet="kill") as fleet:
+        watch = fleet.watch
 
-    def record(_key: str, state: RobotState) -> None:
-        with lock:
-            seen[state.robot_id] = (time.monotonic(), state)
+        def latest(rid: str) -> Seen:
+            seen = watch.latest(rid)
+            assert seen is not None, rid
+            return seen
 
-    def latest(rid: str) -> tuple[float, RobotState]:
-        with lock:
-            return seen[rid]
+        def told() -> str:
+            """What the robots said last, what was announced, and the processes' output."""
+            states = {rid: watch.latest(rid) for rid in ROBOTS}
+            return f"{states}, announced {watch.announcements}{fleet.tails()}"
 
-    with open_session(TransportConfig(mode="client", connect=(endpoint,))) as session:
-        session.subscribe(robots_key("kill", "state"), RobotState, record)
-        session.subscribe(leader_key("kill"), LeaderAnnouncement, lambda _k, a: announced.append(a))
-        tracking = _wait(
-            lambda: all(
-                rid in seen
-                and seen[rid][1].fsm_state == "FORMATION_TRACK"
-                and seen[rid][1].stamp_s > 3
-                for rid in ("r2", "r3")
-            ),
-            40.0,
-        )
-        assert tracking, f"followers never tracked: {seen}{_tails(out)}"
-        leader = processes[1]
-        leader.send_signal(signal.SIGKILL)
+        assert fleet.wait_tracking(40.0, after_s=3.0), f"followers never tracked: {told()}"
+        fleet.signal("r1", signal.SIGKILL)
         killed_at = time.monotonic()
-        leader.wait(5)
+        fleet.wait_exit("r1", 5.0)
 
         def stopped() -> bool:
             return all(
-                latest(r)[1].fsm_state == "HOLD" and latest(r)[0] > killed_at for r in ("r2", "r3")
+                latest(r).state.fsm_state == "HOLD" and latest(r).at > killed_at
+                for r in ("r2", "r3")
             )
 
-        assert _wait(stopped, 2.0), f"followers did not stop: {seen}{_tails(out)}"
-        noticed_s = max(latest(r)[0] for r in ("r2", "r3")) - killed_at
+        assert wait_for(stopped, 2.0), f"followers did not stop: {told()}"
+        noticed_s = max(latest(r).at for r in ("r2", "r3")) - killed_at
         assert noticed_s < 0.5, f"followers stopped {noticed_s:.3f} s after the kill"
 
         # The rule elects the best live robot (r2: clear, most forward, first) under epoch 1.
         def new_leader() -> bool:
-            r2, r3 = latest("r2")[1], latest("r3")[1]
+            r2, r3 = latest("r2").state, latest("r3").state
             return (
                 r2.fsm_state == "NAVIGATE"
                 and r2.leader_id == ""
@@ -221,22 +142,22 @@ def test_killed_leader_stops_the_followers_then_leadership_passes_and_it_rejoins
                 and r3.fsm_state == "FORMATION_TRACK"
             )
 
-        assert _wait(new_leader, 10.0), f"no new leader: {seen}{_tails(out)}"
+        assert wait_for(new_leader, 10.0), f"no new leader: {told()}"
+        announced = watch.announcements
         assert [(a.leader_id, a.epoch, a.previous_id) for a in announced] == [("r2", 1, "r1")]
 
         # The old leader's process is started again: it joins as a follower of the
         # fleet's leader. Until it drives off, its robot stands where it stopped, at the
         # front of the wedge: a leader it blocks for 2 s hands over to a clear robot
         # (announced, under the next epoch), which a busy machine's slow start gives time.
-        processes.append(_logged(list(leader.args), _logs(out) / "r1-again.log"))
+        fleet.start("r1")
         restarted_at = time.monotonic()
 
         def rejoined() -> bool:
-            with lock:
-                if "r1" not in seen or seen["r1"][0] <= restarted_at:
-                    return False
-                r1 = seen["r1"][1]
-            r2, r3 = latest("r2")[1], latest("r3")[1]
+            seen = watch.latest("r1")
+            if seen is None or seen.at <= restarted_at:
+                return False
+            r1, r2, r3 = seen.state, latest("r2").state, latest("r3").state
             head = r3.formation_leader_id
             return (
                 r1.fsm_state == "FORMATION_TRACK"
@@ -246,23 +167,18 @@ def test_killed_leader_stops_the_followers_then_leadership_passes_and_it_rejoins
                 and r1.leader_id != ""
             )
 
-        assert _wait(rejoined, 30.0), (
-            f"r1 did not rejoin as a follower: {seen}, announced {announced}{_tails(out)}"
-        )
+        assert wait_for(rejoined, 30.0), f"r1 did not rejoin as a follower: {told()}"
         # rejoining flipped nothing back: every later handover went to another robot,
         # announced by it under the next epoch
         assert all(a.leader_id != "r1" for a in announced), announced
         assert [a.epoch for a in announced] == list(range(1, len(announced) + 1)), announced
 
 
-def test_malformed_payloads_on_every_key_are_counted_and_ignored(
-    tmp_path: Path, processes: list[subprocess.Popen[bytes]]
-) -> None:
-    endpoint = loopback_endpoint(free_tcp_port())
-    out = tmp_path / "out"
-    _spawn_fleet("junk", endpoint, "realtime", 20.0, processes, out)
-    with open_session(TransportConfig(mode="client", connect=(endpoint,))) as session:
-        assert _wait(lambda: len(session.query_status("phalanx/junk/status/*", 1.0)) >= 4, 40.0)
+def test_malformed_payloads_on_every_key_are_counted_and_ignored(tmp_path: Path) -> None:
+    with running_fleet(tmp_path, fleet="junk", duration_s=20.0) as fleet:
+        session = fleet.session
+        assert session is not None
+        assert wait_for(lambda: len(fleet.status(timeout_s=1.0)) >= 4, 40.0)
         garbage = [
             b"",
             b"\x00",
@@ -276,10 +192,10 @@ def test_malformed_payloads_on_every_key_are_counted_and_ignored(
                 for payload in garbage:
                     session.publish_raw(robot_key("junk", rid, topic), payload)
         time.sleep(1.0)
-        statuses = session.query_status("phalanx/junk/status/*", 2.0)
-    processes[0].wait(60)  # the world finishes its 20 s and writes results
-    assert processes[0].returncode == 0
-    assert (out / "metrics.json").exists()
+        statuses = fleet.status()
+        # the world finishes its 20 s and writes results
+        assert fleet.wait_exit("world", 60.0) == 0, fleet.tails()
+    assert (fleet.out / "metrics.json").exists()
     agents = [s for s in statuses if "robot_id" in s]
     assert len(agents) == 3
     for status in agents:
@@ -290,27 +206,22 @@ def test_malformed_payloads_on_every_key_are_counted_and_ignored(
         )
 
 
-def test_every_robots_sonar_scans_reach_every_other_robots_map(
-    tmp_path: Path, processes: list[subprocess.Popen[bytes]]
-) -> None:
-    endpoint = loopback_endpoint(free_tcp_port())
+def test_every_robots_sonar_scans_reach_every_other_robots_map(tmp_path: Path) -> None:
     nav = CONFIG_ROOT / "scenarios" / "nav_corridor_wedge3.toml"
-    _spawn_fleet("maps", endpoint, "realtime", 15.0, processes, tmp_path / "out", nav)
     heard: dict[str, int] = {}
     left_out: dict[str, object] = {}  # echoes each map took for another robot of the fleet
-    with open_session(TransportConfig(mode="client", connect=(endpoint,))) as session:
+    with running_fleet(tmp_path, fleet="maps", duration_s=15.0, scenario=nav) as fleet:
 
         def everyone_heard_the_others() -> bool:
-            for status in session.query_status("phalanx/maps/status/*", 1.0):
+            for status in fleet.status(timeout_s=1.0):
                 if "scans_heard" in status:
                     heard[str(status["robot_id"])] = int(status["scans_heard"])
                     left_out[str(status["robot_id"])] = status.get("robot_echoes_left_out")
             return len(heard) == 3 and min(heard.values()) >= 20
 
-        assert _wait(everyone_heard_the_others, 40.0), heard
+        assert wait_for(everyone_heard_the_others, 40.0), heard
+        assert fleet.wait_exit("world", 60.0) == 0, fleet.tails()
     assert all(isinstance(n, int) and n >= 0 for n in left_out.values()), left_out
-    processes[0].wait(60)
-    assert processes[0].returncode == 0
 
 
 def test_an_agent_whose_world_is_gone_exits_with_its_own_code(
