@@ -44,7 +44,7 @@ PROFILE_VELOCITY = 3
 NMT_OPERATIONAL = 5
 IMPLAUSIBLE_FACTOR = 2.0
 MAX_FAULTS = 16  # reasons kept; more (an EMCY flood) are counted in `faults_dropped`
-SDO_ATTEMPTS = 3
+SDO_RETRY_S = 0.05  # pause before the enabling sequence runs again after a garbled answer
 # An SDO transfer met by a garbled answer: no answer, or one too short to read (canopen's
 # SDO client unpacks the response's command byte without checking that there is one, and
 # raises `struct.error` on an empty frame with the server's COB-ID).
@@ -276,18 +276,21 @@ class CanopenDriver(Closing):
 
     def _enable(self, wheel: _Wheel) -> None:
         # An SDO answer nobody asked for (a corrupt or forged frame, left on the bus) is
-        # taken for the next transfer's: the sequence runs again once the bus is clean.
-        for attempt in range(SDO_ATTEMPTS):
+        # taken for the next transfer's: the sequence runs again until the bus is clean,
+        # for up to `connect_timeout_s` (a burst a slow bus thread still works through
+        # outlasts any fixed number of attempts).
+        deadline = time.monotonic() + self.settings.connect_timeout_s
+        while True:
             try:
                 self._enable_once(wheel)
                 return
             except DriverUnavailable as exc:
                 if not isinstance(exc.__cause__, GARBLED_SDO):
                     raise
-                if attempt == SDO_ATTEMPTS - 1:
+                if time.monotonic() + SDO_RETRY_S > deadline:
                     raise
                 log.warning("%s drive: %s; again", wheel.name, exc)
-                time.sleep(0.05)
+                time.sleep(SDO_RETRY_S)
 
     def _enable_once(self, wheel: _Wheel) -> None:
         s, node = self.settings, wheel.node

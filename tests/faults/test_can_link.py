@@ -71,6 +71,22 @@ def _garbage(channel: str, n: int, seed: int) -> None:
         bus.shutdown()
 
 
+def _jam_sdo(channel: str, duration_s: float, jams: list[int]) -> None:
+    """For `duration_s`, answer every SDO request to either drive at once with a
+    response of a command byte no transfer expects (0xAC), racing the drive's own."""
+    bus = can.Bus(interface="virtual", channel=channel)
+    try:
+        end = time.monotonic() + duration_s
+        while time.monotonic() < end:
+            msg = bus.recv(timeout=0.01)
+            if msg is not None and msg.arbitration_id in (0x601, 0x602):
+                answer = bytes([0xAC, *msg.data[1:4], 0, 0, 0, 0])
+                bus.send(can.Message(arbitration_id=msg.arbitration_id - 0x80, data=answer))
+                jams.append(msg.arbitration_id)
+    finally:
+        bus.shutdown()
+
+
 def _stopped(drives: SimulatedDiffDrive) -> bool:
     return all(d.target == 0 for d in drives.drives)
 
@@ -99,6 +115,32 @@ def test_garbage_on_the_bus_stops_the_robot_safely_and_connect_brings_it_back(
     assert not driver.read_status().faults
     driver.set_velocity(Twist2D(0.1, 0.0))
     assert _eventually(lambda: drives.left.target != 0, 1.0)
+
+
+def test_connect_outlasts_garbled_sdo_answers_for_up_to_its_timeout(
+    request: pytest.FixtureRequest, caplog: pytest.LogCaptureFixture
+) -> None:
+    """Garbled SDO answers arriving for a second (a burst a slow bus thread is still
+    working through) cost retries of the enabling sequence, not the connect: it gives up
+    only after `connect_timeout_s`."""
+    channel = f"fault-{request.node.name}"
+    with SimulatedDiffDrive(channel) as drives:
+        driver = CanopenDriver(CanopenSettings(interface="virtual", channel=channel), robot=ROBOT)
+        jams: list[int] = []
+        jammer = threading.Thread(target=_jam_sdo, args=(channel, 1.0, jams))
+        try:
+            jammer.start()
+            time.sleep(0.05)  # the jammer listens before the first request
+            with caplog.at_level("WARNING", logger="phalanx.canopen"):
+                driver.connect()
+            retries = [r for r in caplog.records if r.getMessage().endswith("; again")]
+            assert len(retries) >= 3, (len(jams), [r.getMessage() for r in retries])
+            driver.set_velocity(Twist2D(0.1, 0.0))
+            assert _eventually(lambda: drives.left.target != 0, 1.0)
+        finally:
+            jammer.join(timeout=5.0)
+            driver.close()
+    assert not jammer.is_alive()
 
 
 def test_a_drive_that_reboots_mid_run_stops_both_wheels(
