@@ -8,7 +8,9 @@ filter then goes back to the belief before the earliest node that changed and re
 from there: each node's arc in pieces, cut at its measurements' stamps, each measurement
 applied where it was taken (buffer and replay). A measurement older than the history
 (`history_s`) is dropped and counted; one stamped a little ahead of the last odometry
-(clocks of two computers) is applied at the last odometry's time.
+(clocks of two computers) is applied at the last odometry's time. A pose fix counts as
+uncertain by the robot's motion over the time its stamp may be off the odometry's
+(`stamp_std_s` of its source, and how far ahead it was).
 
 Sources: absolute pose fixes (`PoseFix`: motion capture, an overhead camera) and
 relative measurements of the robot this one tracks (`RelativeFix`: a camera on a
@@ -36,6 +38,12 @@ from phalanx.core.robot import Odometry
 
 # A measurement stamped this far ahead of the last odometry is applied at its time.
 AHEAD_TOLERANCE_S = 0.25
+# Odometry increments shorter than this give no rate for a fix's timing noise.
+MIN_RATE_SPAN_S = 1e-3
+# Stamps this close are one instant: a measurement at an odometry reading's time goes into
+# the increment that ends there, whether step k's time is k * dt (one process) or a sum
+# of dt (another), which differ in the last bit.
+SAME_INSTANT_S = 1e-9
 # A robot that had an absolute fix this recently lives in the world frame: relative
 # measurements (which tie it to another robot's estimate) wait until the fixes stop.
 ABSOLUTE_FRESH_S = 0.5
@@ -127,6 +135,8 @@ class PoseEstimator:
             # (a hair under the period: stamps k / rate are not exact in floating point)
             self._min_fix_gap_s = 0.999 / config.mocap.fuse_hz
         self._frame_of: PeerState | None = None  # whose frame the estimate lives in
+        stamp_std_s = config.mocap.stamp_std_s if config.mocap is not None else 0.0
+        self._stamp_var_s2 = stamp_std_s * stamp_std_s
 
     def step(
         self,
@@ -206,7 +216,7 @@ class PoseEstimator:
             count["late_dropped"] += 1
             return None
         index = len(nodes) - 1
-        while index > 0 and nodes[index - 1].t_s >= item.stamp_s:  # (usually the last two)
+        while index > 0 and nodes[index - 1].t_s >= item.stamp_s - SAME_INSTANT_S:
             index -= 1
         taken = nodes[index].taken
         position = len(taken)
@@ -232,7 +242,7 @@ class PoseEstimator:
             del node.after[k:]
             for item in node.taken[k:]:
                 frac = _fraction(item, start, span)
-                belief = self._apply(self._piece(belief, node, frac - done, span), item)
+                belief = self._apply(self._piece(belief, node, frac - done, span), item, node, span)
                 done = frac
                 node.after.append(belief)
             node.belief = self._piece(belief, node, 1.0 - done, span)
@@ -250,11 +260,10 @@ class PoseEstimator:
 
     # --- measurements ------------------------------------------------------------------
 
-    def _apply(self, belief: Belief, item: _Taken) -> Belief:
+    def _apply(self, belief: Belief, item: _Taken, node: _Node, span_s: float) -> Belief:
         if item.fix is not None:
             fix = item.fix
-            var_m, var_rad = fix.std_m**2, fix.std_rad**2
-            r = (var_m, 0.0, 0.0, var_m, 0.0, var_rad)
+            r = self._fix_noise(fix, belief.th, node, span_s)
             out = update_pose(belief, (fix.x_m, fix.y_m, fix.theta_rad), r, self.config.gate)
             if out is not None:
                 self._frame_of = None  # back in the world frame
@@ -262,6 +271,29 @@ class PoseEstimator:
         if item.relative is None or item.lead is None:  # (never: `_select` pairs them)
             return belief
         return self._count(self._relative(belief, item.relative, item.lead), belief, "relative")
+
+    def _fix_noise(self, fix: PoseFix, heading: float, node: _Node, span_s: float) -> Cov6:
+        """The fix's covariance, and the robot's motion over the time its stamp may be off
+        the odometry's timeline (`stamp_std_s`, and how far past the latest odometry it
+        lies when it is applied there): a fix taken during a fast turn at a stamp a few
+        milliseconds off says the heading is a degree elsewhere.
+        """
+        var_m, var_rad = fix.std_m**2, fix.std_rad**2
+        ahead_s = max(0.0, fix.stamp_s - node.t_s)
+        var_s = self._stamp_var_s2 + ahead_s * ahead_s
+        if var_s == 0.0 or span_s < MIN_RATE_SPAN_S:
+            return (var_m, 0.0, 0.0, var_m, 0.0, var_rad)
+        sd_s = math.sqrt(var_s)
+        along, turn = node.ds_m / span_s * sd_s, node.dth_rad / span_s * sd_s
+        jx, jy = along * math.cos(heading), along * math.sin(heading)
+        return (
+            var_m + jx * jx,
+            jx * jy,
+            jx * turn,
+            var_m + jy * jy,
+            jy * turn,
+            var_rad + turn * turn,
+        )
 
     def _count(self, out: Belief | None, before: Belief, kind: str) -> Belief:
         self.stats.counts[f"{kind}_fused" if out is not None else f"{kind}_gated"] += 1

@@ -54,6 +54,10 @@ class MocapSource(_Model):
     names to robot ids (a robot without an entry is tracked under its own id); `robots`
     limits the source to some robots (empty: every robot). The estimator fuses at most
     `fuse_hz` of them a second (each at its own time; the rest are counted, not used).
+    `stamp_std_s`: how far a fix's stamp may be off the timeline of the robot's odometry
+    (the system's latency is known only so well; a driver stamps a reading when it
+    reaches the computer, which a loaded computer does late): the estimator counts a fix
+    uncertain by as far as the robot moves in that time.
     """
 
     rate_hz: Annotated[float, Field(gt=0.0, le=1000.0)] = 100.0
@@ -62,6 +66,7 @@ class MocapSource(_Model):
     std_deg: Annotated[float, Field(gt=0.0, le=45.0)] = 0.1
     dropout: Fraction = 0.01
     fuse_hz: Annotated[float, Field(gt=0.0, le=1000.0)] = 50.0
+    stamp_std_s: Annotated[float, Field(ge=0.0, le=1.0)] = 0.02
     robots: tuple[RobotId, ...] = ()
     bodies: dict[str, RobotId] = Field(default_factory=dict)
 

@@ -36,15 +36,25 @@ class WorldBody(Body):
     firmware integrates its encoders continuously: a SIP reports where the body is when
     the SIP is sent, not where the world's last tick put it (up to a tick earlier, by an
     amount fixed by the phase between the emulator's SIP cycle and the world's clock,
-    which the agents would otherwise see as a steady lag of their own robot).
+    which the agents would otherwise see as a steady lag of their own robot). Given the
+    run's epoch (`epoch_s`, Unix time of step 0), it is carried from the frame's own
+    instant, not from when the frame arrived: a frame delayed on a loaded machine would
+    otherwise put the body behind where the world's motion-capture fixes have it.
     """
 
     def __init__(
-        self, robot: RobotParams, origin: Pose2D, clock: Callable[[], float] = time.monotonic
+        self,
+        robot: RobotParams,
+        origin: Pose2D,
+        clock: Callable[[], float] = time.monotonic,
+        *,
+        epoch_s: float | None = None,
+        wall: Callable[[], float] = time.time,
     ) -> None:
         super().__init__(robot)
         self.origin = origin
         self.clock = clock
+        self.epoch_s, self.wall = epoch_s, wall  # the run's step 0 (Unix time), if known
         self._sonar: tuple[float, ...] = super().sonar_ranges_m()
         self._frame_s = clock()
         self.frames = 0
@@ -56,11 +66,20 @@ class WorldBody(Body):
         with self._lock:
             self._pose = local
             self._twist = Twist2D(frame.v_mps, frame.omega_radps)
-            self._frame_s = self.clock()
+            self._frame_s = self.clock() - self._age(frame)
             if frame.sonar_ranges_m:
                 self._sonar = frame.sonar_ranges_m
             self.frames += 1
             return Twist2D(0.0, 0.0) if self._stalled else self._setpoint
+
+    def _age(self, frame: SenseFrame) -> float:
+        """How long ago the frame's instant was (0 without the run's epoch): a frame on
+        the way for a while, or from a world behind its schedule, describes the body as it
+        was then.
+        """
+        if self.epoch_s is None:
+            return 0.0
+        return min(max(self.wall() - (self.epoch_s + frame.t_s), 0.0), MAX_FRAME_AGE_S)
 
     def step(self, dt_s: float) -> BodyState:
         """The world integrates: nothing to do here."""

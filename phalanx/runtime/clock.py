@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -65,3 +66,47 @@ class EpochClock:
             k += late_ticks
         self._k = k + 1
         return Tick(k, k * self.dt_s)
+
+
+class WorldSchedule:
+    """When a real-time world runs its ticks: every `period_s` from its first (`start`),
+    or, given the run's epoch (Unix time of tick 0, shared with the robots on drivers), on
+    that epoch's grid, where the robots' steps and the world's motion-capture fixes are.
+
+    A tick whose work outlasted the period is an overrun. Without an epoch the next tick
+    comes a period after the late one (a world's own pace, never a burst); with one, the
+    late ticks run back to back until the world is on the grid again: a world that kept
+    its delay would describe its robots as they were that long ago, to emulated robots
+    reporting to agents on the epoch's clock.
+    """
+
+    def __init__(
+        self,
+        period_s: float,
+        epoch_s: float | None = None,
+        *,
+        now: Callable[[], float] = time.monotonic,
+        wall: Callable[[], float] = time.time,
+    ) -> None:
+        self.period_s, self.epoch_s = period_s, epoch_s
+        self.now, self.wall = now, wall
+        self.overruns = 0
+        self._next_s = now()
+
+    def start(self) -> None:
+        """Tick 0 is now, or at the epoch if there is one (a wake-up's delay after it
+        does not shift the grid).
+        """
+        self._next_s = self.now()
+        if self.epoch_s is not None:
+            self._next_s -= max(0.0, self.wall() - self.epoch_s)
+
+    def wait_s(self) -> float:
+        """After a tick: how long until the next one is due (0: at once)."""
+        self._next_s += self.period_s
+        slack_s = self._next_s - self.now()
+        if slack_s < 0.0:
+            self.overruns += 1
+            if self.epoch_s is None:
+                self._next_s = self.now()
+        return max(0.0, slack_s)

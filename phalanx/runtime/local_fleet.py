@@ -318,6 +318,7 @@ def plan(
             emulators.append(Child(f"{entry.id}-emulator", [
                 *_cli(), "emulate", "p3dx", "--tcp", str(port), "--world", str(scenario_path),
                 "--robot", entry.id, "--fleet", options.fleet, "--connect", endpoint,
+                "--epoch", f"{epoch:.3f}",
             ]))  # fmt: skip
             drivers[entry.id] = DriverChoice(name="arcos", settings={"tcp": f"127.0.0.1:{port}"})
     if options.amrisim is not None:

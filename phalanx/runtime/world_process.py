@@ -42,6 +42,7 @@ from phalanx.core.geometry import ZERO_TWIST, Twist2D
 from phalanx.core.limits import KinematicLimits
 from phalanx.core.robot_params import RobotParams
 from phalanx.core.runlog import RunLog
+from phalanx.runtime.clock import WorldSchedule
 from phalanx.runtime.observed import observed_robots
 from phalanx.runtime.run_record import RunRecord, completeness
 from phalanx.runtime.signals import Stoppable
@@ -145,7 +146,7 @@ class WorldProcess:
         self.absent: tuple[str, ...] = ()  # robots not there when the run started
         self._fabric: FleetSession | None = None  # the session, once open
         self.wall_time_s = 0.0
-        self.overruns = 0  # real time: ticks whose work outlasted the period
+        self.schedule = WorldSchedule(scenario.dt_s / options.speed, options.epoch_s)
         self._ahead_ticks = max(2, round(AHEAD_S / scenario.dt_s))
         if options.clock == "lockstep" and options.transport.lowlatency:
             self._check_frames_fit()
@@ -179,25 +180,19 @@ class WorldProcess:
             relinker.start()  # (a world that is its fleet's router has nothing to re-open)
             self._log_static()
             self._await_agents(stop)
-            period_s = self.scenario.dt_s / self.options.speed
             epoch = self.options.epoch_s
             if self.options.clock == "realtime" and epoch is not None:
                 stop.wait(max(0.0, epoch - time.time()))
             started = time.perf_counter()
-            next_tick = time.monotonic()
-            self._next_checkpoint = next_tick + self.options.checkpoint_every_s
+            self._next_checkpoint = time.monotonic() + self.options.checkpoint_every_s
+            self.schedule.start()
             for k in range(self.steps):
                 if stop.is_set():
                     break
                 self._tick(session, k)
                 self._maybe_checkpoint(started)
                 if self.options.clock == "realtime":
-                    next_tick += period_s
-                    slack = next_tick - time.monotonic()
-                    if slack < 0.0:
-                        self.overruns += 1
-                        next_tick = time.monotonic()  # do not try to catch up in a burst
-                    time.sleep(max(0.0, slack))
+                    time.sleep(self.schedule.wait_s())
             self.wall_time_s = time.perf_counter() - started
             self._last_checkpoint_done()
             self._finish(session)
@@ -522,7 +517,7 @@ class WorldProcess:
             "commands_received": int(response.size) + delivered,
             "commands_late": int(np.count_nonzero(response > period_s)),
             "missed_deadlines": dict(self.missed),
-            "overruns": self.overruns,
+            "overruns": self.schedule.overruns,
             "agents": {rid: r.model_dump() for rid, r in self.inbox.reports.items()},
             "leadership": [a.model_dump() for a in self.inbox.leaders.settle()],
             "leadership_refused": self.inbox.leaders.refused,

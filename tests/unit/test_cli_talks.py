@@ -154,6 +154,17 @@ def test_a_wrong_mocap_system_names_the_option_and_the_systems() -> None:
     assert "did you mean 'optitrack'" in said
 
 
+@pytest.mark.parametrize("verb", ["agent", "world", "emulate"])
+def test_an_epoch_that_is_not_a_time_is_refused(verb: str) -> None:
+    """(a world given `--epoch nan` ran none of its ticks and said only that the run was
+    incomplete)"""
+    scenario = str(SCENARIOS / "paper_wedge.toml")
+    args = {"agent": [scenario, "--robot", "r1"], "world": [scenario], "emulate": ["p3dx"]}
+    said = _error(verb, *args[verb], "--epoch", "nan")
+    assert "'--epoch'" in said
+    assert "nan is not a Unix time" in said
+
+
 def test_a_robot_file_given_as_a_scenario_is_called_one(tmp_path: Path) -> None:
     done = subprocess.run(
         [sys.executable, "-m", "phalanx", "run", str(REPO / "configs/robots/p3dx.toml"),

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import itertools
 import math
+import random
 
 import numpy as np
 import pytest
@@ -13,7 +14,7 @@ from phalanx.agents.estimation.ekf import Belief, predict, update_pose
 from phalanx.agents.estimation.estimator import PoseEstimator, process_noise
 from phalanx.core.fixes import PoseFix, RelativeFix
 from phalanx.core.geometry import Pose2D, Twist2D
-from phalanx.core.localisation import LocalisationConfig, OdometryErrors
+from phalanx.core.localisation import LocalisationConfig, MocapSource, OdometryErrors
 from phalanx.core.peers import PeerState
 from phalanx.core.robot import Odometry
 from phalanx.simulator.sensors.odometry import WheelOdometry
@@ -97,6 +98,38 @@ def test_a_fix_older_than_the_history_is_dropped_and_counted() -> None:
         estimate = estimator.step(_odometry(0.1 * k, pose), fixes=old)
     assert estimator.stats.counts["late_dropped"] == 1
     assert estimate.pose.x_m == pytest.approx(poses[-1].x_m)
+
+
+def _turning_with_late_odometry(stamp_std_s: float) -> PoseEstimator:
+    """Ten seconds of a robot turning at 40 deg/s with motion-capture fixes at 50 Hz and
+    odometry stamped 0-40 ms after its reading was taken (a driver stamps a reading when
+    it arrives, later on a loaded computer)."""
+    mocap = MocapSource(stamp_std_s=stamp_std_s)
+    config = LocalisationConfig(estimator=True, odometry=ERRORS, mocap=mocap)
+    estimator = PoseEstimator(config, track_m=TRACK_M, robot_id="r1")
+    w, late = math.radians(40.0), random.Random(5)
+    truth = _arc_poses(1000, v=0.1, w=w, dt=0.01)  # (every 10 ms)
+    for k in range(0, 1000, 10):
+        taken = max(0, k - late.randrange(5))
+        odometry = Odometry(truth[taken], Twist2D(0.1, w), 0.01 * k)
+        fixes = tuple(
+            PoseFix(0.01 * j, truth[j].x_m, truth[j].y_m, truth[j].theta_rad, 0.002, 0.00175)
+            for j in range(k - 8, k + 1, 2)
+            if j >= 0
+        )
+        estimator.step(odometry, fixes=fixes)
+    return estimator
+
+
+def test_a_fix_counts_as_uncertain_by_the_motion_over_its_timing_error() -> None:
+    """During a fast turn odometry a few tens of milliseconds late says the heading is a
+    degree or two elsewhere than the fixes: ten times their own error. Counted uncertain
+    by the robot's motion over `stamp_std_s`, every fix is fused; without, the filter
+    (sure of its heading after a few fixes) shuts a fifth of them out."""
+    tolerant = _turning_with_late_odometry(0.02).stats.counts
+    strict = _turning_with_late_odometry(0.0).stats.counts
+    assert tolerant["fix_gated"] == 0 < tolerant["fix_fused"]
+    assert strict["fix_gated"] > 0.15 * (strict["fix_gated"] + strict["fix_fused"])
 
 
 def test_an_outlier_fails_the_gate() -> None:

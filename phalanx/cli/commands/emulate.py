@@ -9,6 +9,8 @@ from typing import TYPE_CHECKING, Annotated
 
 import typer
 
+from phalanx.cli.commands.fleet import finite_epoch
+
 if TYPE_CHECKING:
     from phalanx.core.motion import Body
 
@@ -32,6 +34,13 @@ def emulate(
     fleet: Annotated[str, typer.Option(help="Fleet name (with --world).")] = "default",
     connect: Annotated[
         list[str] | None, typer.Option("--connect", help="Zenoh endpoint (with --world).")
+    ] = None,
+    epoch: Annotated[
+        float | None,
+        typer.Option(
+            help="Unix time of the run's step 0 (with --world): frames count from it.",
+            callback=finite_epoch,
+        ),
     ] = None,
     odometry_errors: Annotated[
         Path | None,
@@ -61,7 +70,7 @@ def emulate(
             raise typer.BadParameter("--world needs --robot")
 
         scenario = load_scenario(world)
-        body = WorldBody(params, scenario.start_pose(robot))
+        body = WorldBody(params, scenario.start_pose(robot), epoch_s=epoch)
         transport = TransportConfig(mode="client", connect=tuple(connect or ()))
         bridge = WorldBridge(body, robot, fleet).open(transport)
     link = PtyLink() if pty else TcpLink(tcp or 8101, host)

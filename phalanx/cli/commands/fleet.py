@@ -6,6 +6,7 @@ options into a spec (`phalanx.runtime.process_spec`); the runtime builds the age
 from __future__ import annotations
 
 import logging
+import math
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Literal, NoReturn, TypeVar
 
@@ -65,6 +66,13 @@ SetOpt = Annotated[
     list[str] | None,
     typer.Option("--set", help="Override a scenario field, e.g. --set duration_s=60 (repeatable)."),
 ]
+
+
+def finite_epoch(value: float | None) -> float | None:
+    """An `--epoch`, if given, is a Unix time: a number, not nan or inf."""
+    if value is not None and not math.isfinite(value):
+        raise typer.BadParameter(f"{value} is not a Unix time")
+    return value
 
 
 def _scenario(path: Path, overrides: list[str] | None) -> Scenario:
@@ -178,7 +186,8 @@ def agent(
     epoch: Annotated[
         float | None,
         typer.Option(
-            help="Robot drivers: Unix time of step 0, shared by the fleet (default: now)."
+            help="Robot drivers: Unix time of step 0, shared by the fleet (default: now).",
+            callback=finite_epoch,
         ),
     ] = None,
     watchdog: Annotated[
@@ -388,7 +397,10 @@ def world(
     ] = None,
     recording: Annotated[bool, typer.Option(help="Write a Rerun .rrd.")] = True,
     epoch: Annotated[
-        float | None, typer.Option(help="Real time: Unix time of tick 0, shared with agents.")
+        float | None,
+        typer.Option(
+            help="Real time: Unix time of tick 0, shared with agents.", callback=finite_epoch
+        ),
     ] = None,
     recording_id: RecordingIdOpt = None,
     telemetry_file: TelemetryFileOpt = None,
