@@ -14,6 +14,7 @@ import shutil
 import subprocess
 import sys
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -46,6 +47,18 @@ def _amrisim() -> Path:
     return Path(value)
 
 
+def _commands_reached_the_robots(runtime: dict[str, Any], ticks: int) -> None:
+    """Every step an agent ran sent its command to its robot; on the wall clock of a
+    loaded machine an agent skips a step it cannot run in time rather than bunch steps up
+    (`EpochClock`), a few in a run at most (CI runs at 1 cal = 27-46 ms: 29-77 of 1800).
+    """
+    agents = runtime["agents"]
+    assert runtime["commands_expected"] == 3 * ticks
+    assert runtime["commands_received"] == sum(a["commands_sent"] for a in agents.values())
+    for report in agents.values():
+        assert 0.95 * ticks <= report["commands_sent"] <= report["steps"] <= ticks, agents
+
+
 @pytest.mark.timeout(300)
 def test_the_wedge_backs_out_of_its_wall_in_formation_on_amrisim(tmp_path: Path) -> None:
     binary = _amrisim()
@@ -61,9 +74,7 @@ def test_the_wedge_backs_out_of_its_wall_in_formation_on_amrisim(tmp_path: Path)
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["complete"], metrics["incomplete_reason"]
     assert set(metrics["pose_source"].values()) == {"simulator's true pose (AMRISim SIMSTAT)"}
-    runtime = metrics["runtime"]
-    assert runtime["commands_received"] == runtime["commands_expected"] == 3 * 600
-    assert all(a["steps"] == 600 for a in runtime["agents"].values()), runtime["agents"]
+    _commands_reached_the_robots(metrics["runtime"], 600)
     assert metrics["deadlock_reverses"] >= 1
     assert metrics["collisions"] == []
     for rid in ("r2", "r3"):
@@ -116,8 +127,7 @@ def test_a_lab_deployment_without_a_world_writes_its_results(tmp_path: Path) -> 
     metrics = json.loads((results / "metrics.json").read_text())
     assert metrics["complete"], metrics["incomplete_reason"]
     assert set(metrics["pose_source"].values()) == {"simulator's true pose (AMRISim SIMSTAT)"}
-    runtime = metrics["runtime"]
-    assert runtime["commands_received"] == runtime["commands_expected"] == 3 * 250
+    _commands_reached_the_robots(metrics["runtime"], 250)
     start = scenario.start_pose("r2")
     traces = read_traces(results / "traces.npz")
     # placed at its start pose (SIM_SET_POSE), then off into the wedge
