@@ -15,14 +15,29 @@ from pydantic import AfterValidator, BaseModel, ConfigDict, Field, model_validat
 
 from phalanx.core.geometry import Pose2D
 from phalanx.core.localisation import LocalisationConfig
-
-PositiveFloat = Annotated[float, Field(gt=0.0)]
-NonNegativeFloat = Annotated[float, Field(ge=0.0)]
+from phalanx.core.quantities import (
+    MAX_DURATION_S,
+    MAX_YAW_RATE_RADPS,
+    Angle,
+    Coordinate,
+    Duration,
+    Fraction,
+    Gain,
+    Length,
+    NonNegativeSpeed,
+    PositiveDuration,
+    PositiveLength,
+    PositiveRange,
+    PositiveSpeed,
+    PositiveYawRate,
+    SensorRange,
+    SignedSpeed,
+    SignedYawRate,
+)
 
 # Resources a scenario may ask for (a run keeps every robot's trace in memory, about 100
 # bytes per robot and step): a mistyped file must not eat the machine before it starts.
 MAX_ROBOTS = 1000  # the largest fleet the batch runner is measured with (docs/PERFORMANCE.md)
-MAX_DURATION_S = 86_400.0  # a day of fleet time
 MAX_CONTROL_RATE_HZ = 100.0
 MAX_ROBOT_STEPS = 10_000_000  # robots x control steps of one run: about 1 GB of traces
 MAX_ITEMS = 10_000  # obstacles, vertices, events, waypoints, profile segments
@@ -30,6 +45,9 @@ MAX_NAME_CHARS = 128
 MAX_PATH_CHARS = 4096  # PATH_MAX on Linux
 # The largest TOML integer (a signed 64-bit one); numpy's generators take any non-negative.
 MAX_SEED = 2**63 - 1
+# How old the leader's state is when a follower uses it, at most (s): the wire's longest
+# period (`phalanx.wire.bounds.Period`).
+MAX_COMM_DELAY_S = 10.0
 
 _NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.-]*")
 _CONTROL = re.compile(r"[\x00-\x1f\x7f]")
@@ -96,8 +114,8 @@ class Model(BaseModel):
 class LimitsOverride(Model):
     """Run bounds tighter than the robot's own (the paper: 0.3 m/s, 40 deg/s)."""
 
-    v_max_mps: PositiveFloat | None = None
-    omega_max_degps: PositiveFloat | None = None
+    v_max_mps: PositiveSpeed | None = None
+    omega_max_degps: PositiveYawRate | None = None
 
 
 ControllerKind = Literal["tracking", "switching", "icr", "ours"]
@@ -112,13 +130,13 @@ class ControllerConfig(Model):
     """
 
     kind: ControllerKind = "ours"
-    k1: PositiveFloat = 0.6
-    k2: PositiveFloat = 0.6
-    h_m: PositiveFloat = 0.2
-    gain_per_s: PositiveFloat = 1.0
-    control_point_m: PositiveFloat = 0.15
+    k1: Gain = 0.6
+    k2: Gain = 0.6
+    h_m: PositiveRange = 0.2
+    gain_per_s: Gain = 1.0
+    control_point_m: PositiveRange = 0.15
     compensate_delay: bool = True
-    reverse_threshold_mps: NonNegativeFloat = 0.02
+    reverse_threshold_mps: NonNegativeSpeed = 0.02
 
 
 class SlotConfig(Model):
@@ -131,10 +149,10 @@ class SlotConfig(Model):
 
     robot: RobotId
     follows: RobotId | None = None
-    x_m: float | None = None
-    y_m: float | None = None
-    l_m: PositiveFloat | None = None
-    phi_deg: float | None = None
+    x_m: Coordinate | None = None
+    y_m: Coordinate | None = None
+    l_m: PositiveLength | None = None
+    phi_deg: Angle | None = None
 
     @model_validator(mode="after")
     def _one_way_of_placing(self) -> Self:
@@ -165,9 +183,9 @@ class FormationConfig(Model):
 class StartPose(Model):
     """A start pose (config sugar: heading in degrees)."""
 
-    x_m: float = 0.0
-    y_m: float = 0.0
-    theta_deg: float = 0.0
+    x_m: Coordinate = 0.0
+    y_m: Coordinate = 0.0
+    theta_deg: Angle = 0.0
 
 
 # "sim" (the world process moves the robot) or the name of a driver backend, which the
@@ -186,9 +204,9 @@ class RobotEntry(Model):
 class Segment(Model):
     """A piece of the leader's scripted motion: constant twist for a duration."""
 
-    duration_s: PositiveFloat
-    v_mps: float
-    omega_degps: float = 0.0
+    duration_s: PositiveDuration
+    v_mps: SignedSpeed
+    omega_degps: SignedYawRate = 0.0
 
 
 class LeaderProfile(Model):
@@ -226,13 +244,13 @@ class DeadlockConfig(Model):
     """
 
     reverse_mode: Literal["path", "retrace", "fixed"] = "path"
-    reverse_speed_mps: PositiveFloat = 0.15
-    reverse_omega_degps: float = 0.0
-    pause_s: NonNegativeFloat = 0.0
-    safe_distance_m: PositiveFloat = 1.5
-    obstacle_range_m: PositiveFloat = 0.5
+    reverse_speed_mps: PositiveSpeed = 0.15
+    reverse_omega_degps: SignedYawRate = 0.0
+    pause_s: Duration = 0.0
+    safe_distance_m: PositiveLength = 1.5
+    obstacle_range_m: PositiveRange = 0.5
     turn_away_deg: Annotated[float, Field(ge=0.0, le=180.0)] = 60.0
-    escape_distance_m: NonNegativeFloat = 2.0
+    escape_distance_m: Length = 2.0
     max_retries: int = Field(default=3, ge=0, le=100)
 
 
@@ -264,21 +282,21 @@ class NavigationConfig(Model):
     column_path: bool = True
     reshape: bool = True
     prior_map: FilePath = ""
-    waypoints: tuple[tuple[float, float], ...] = Field(default=(), max_length=MAX_ITEMS)
-    goal_tolerance_m: PositiveFloat = 0.5
-    cruise_mps: PositiveFloat = 0.2
-    heading_gain_per_s: PositiveFloat = 1.0
-    min_turn_radius_m: NonNegativeFloat = 2.5
-    lookahead_m: PositiveFloat = 3.0
-    clear_range_m: PositiveFloat = 2.5
-    avoid_range_m: PositiveFloat = 0.2
-    body_margin_m: NonNegativeFloat = 0.05
-    stop_margin_m: NonNegativeFloat = 0.08
-    confirm_s: PositiveFloat = 0.2
-    stall_s: PositiveFloat = 10.0
+    waypoints: tuple[tuple[Coordinate, Coordinate], ...] = Field(default=(), max_length=MAX_ITEMS)
+    goal_tolerance_m: PositiveLength = 0.5
+    cruise_mps: PositiveSpeed = 0.2
+    heading_gain_per_s: Gain = 1.0
+    min_turn_radius_m: Length = 2.5
+    lookahead_m: PositiveLength = 3.0
+    clear_range_m: PositiveRange = 2.5
+    avoid_range_m: PositiveRange = 0.2
+    body_margin_m: SensorRange = 0.05
+    stop_margin_m: SensorRange = 0.08
+    confirm_s: PositiveDuration = 0.2
+    stall_s: PositiveDuration = 10.0
     slowdown: Annotated[float, Field(gt=0.0, le=1.0)] = 0.5
-    wander_period_s: PositiveFloat = 10.0
-    wander_turn_deg: NonNegativeFloat = 45.0
+    wander_period_s: PositiveDuration = 10.0
+    wander_turn_deg: Annotated[float, Field(ge=0.0, le=180.0)] = 45.0
 
 
 class LeadershipConfig(Model):
@@ -294,12 +312,12 @@ class LeadershipConfig(Model):
     """
 
     handover: bool = True
-    confirm_s: PositiveFloat = 0.2
-    min_tenure_s: NonNegativeFloat = 3.0
-    loss_grace_s: NonNegativeFloat = 1.0
-    formed_m: PositiveFloat = 0.1
+    confirm_s: PositiveDuration = 0.2
+    min_tenure_s: Duration = 3.0
+    loss_grace_s: Duration = 1.0
+    formed_m: PositiveLength = 0.1
     formed_share: float = Field(default=0.1, ge=0.0, le=0.5)
-    join_timeout_s: PositiveFloat = 2.0
+    join_timeout_s: PositiveDuration = 2.0
 
 
 class SensorEvent(Model):
@@ -308,24 +326,26 @@ class SensorEvent(Model):
     """
 
     kind: Literal["all_sonars_blocked", "bumper", "markers_hidden"] = "all_sonars_blocked"
-    start_s: NonNegativeFloat
-    duration_s: PositiveFloat
+    start_s: Duration
+    duration_s: PositiveDuration
     robots: tuple[RobotId, ...] = Field(default=(), max_length=MAX_ROBOTS)
-    range_m: PositiveFloat = 0.3
+    range_m: PositiveRange = 0.3
 
 
 class CircleObstacle(Model):
     """A circular obstacle."""
 
-    x_m: float
-    y_m: float
-    radius_m: PositiveFloat
+    x_m: Coordinate
+    y_m: Coordinate
+    radius_m: PositiveLength
 
 
 class PolygonObstacle(Model):
     """A polygonal obstacle, vertices in order."""
 
-    vertices_m: tuple[tuple[float, float], ...] = Field(min_length=3, max_length=MAX_ITEMS)
+    vertices_m: tuple[tuple[Coordinate, Coordinate], ...] = Field(
+        min_length=3, max_length=MAX_ITEMS
+    )
 
 
 class ObstacleField(Model):
@@ -337,13 +357,13 @@ class ObstacleField(Model):
 
     seed: Seed = 0
     count: int = Field(default=20, ge=0, le=10_000)
-    radius_min_m: PositiveFloat = 0.2
-    radius_max_m: PositiveFloat = 0.5
-    x_min_m: float = 0.0
-    x_max_m: float = 20.0
-    y_min_m: float = -5.0
-    y_max_m: float = 5.0
-    min_gap_m: NonNegativeFloat = 0.0
+    radius_min_m: PositiveLength = 0.2
+    radius_max_m: PositiveLength = 0.5
+    x_min_m: Coordinate = 0.0
+    x_max_m: Coordinate = 20.0
+    y_min_m: Coordinate = -5.0
+    y_max_m: Coordinate = 5.0
+    min_gap_m: Length = 0.0
     keep_clear: tuple[CircleObstacle, ...] = Field(default=(), max_length=MAX_ITEMS)
 
     @model_validator(mode="after")
@@ -372,9 +392,9 @@ class WorldConfig(Model):
 class NoiseConfig(Model):
     """Seeded sensor noise; zero means a perfect sensor."""
 
-    odometry_v_std_frac: NonNegativeFloat = 0.0
-    odometry_omega_std_radps: NonNegativeFloat = 0.0
-    sonar_std_m: NonNegativeFloat = 0.0
+    odometry_v_std_frac: Fraction = 0.0
+    odometry_omega_std_radps: Annotated[float, Field(ge=0.0, le=MAX_YAW_RATE_RADPS)] = 0.0
+    sonar_std_m: SensorRange = 0.0
 
 
 # --- ROS 2 (`[ros2]`, docs/ROS2.md) ------------------------------------------------------
@@ -436,7 +456,7 @@ class Scenario(Model):
     robot: RobotFile = "p3dx"
     duration_s: float = Field(default=200.0, gt=0.0, le=MAX_DURATION_S)
     control_rate_hz: float = Field(default=10.0, ge=0.1, le=MAX_CONTROL_RATE_HZ)
-    comm_delay_s: NonNegativeFloat = 0.1
+    comm_delay_s: float = Field(default=0.1, ge=0.0, le=MAX_COMM_DELAY_S)
     seed: Seed = 0
     limits: LimitsOverride = LimitsOverride()
     controller: ControllerConfig = ControllerConfig()
@@ -450,10 +470,20 @@ class Scenario(Model):
     world: WorldConfig = WorldConfig()
     noise: NoiseConfig = NoiseConfig()
     localisation: LocalisationConfig = LocalisationConfig()
-    settle_s: NonNegativeFloat = 5.0
-    initial_settle_s: NonNegativeFloat = 30.0
-    leader_timeout_s: PositiveFloat = 0.5
+    settle_s: Duration = 5.0
+    initial_settle_s: Duration = 30.0
+    leader_timeout_s: PositiveDuration = 0.5
     ros2: Ros2Config = Ros2Config()
+
+    @model_validator(mode="after")
+    def _at_least_a_step(self) -> Self:
+        if self.duration_s < self.dt_s:
+            raise ValueError(
+                f"duration_s ({self.duration_s:g} s) is shorter than one control period "
+                f"({self.dt_s:g} s at control_rate_hz = {self.control_rate_hz:g}): a run of "
+                "no step"
+            )
+        return self
 
     @model_validator(mode="after")
     def _within_resources(self) -> Self:

@@ -15,14 +15,15 @@ from typing import Annotated, Self
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-NonNegativeFloat = Annotated[float, Field(ge=0.0)]
-PositiveFloat = Annotated[float, Field(gt=0.0)]
-Fraction = Annotated[float, Field(ge=0.0, le=1.0)]
+from phalanx.core.quantities import Angle, BodyOffset, Fraction, Length
+
 RobotId = Annotated[str, Field(pattern=r"^[A-Za-z0-9_-]{1,32}$")]
+# A camera's image coordinates (px): its size's bound, either side of the image.
+Pixels = Annotated[float, Field(ge=-20000.0, le=20000.0)]
 
 
 class _Model(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
 class OdometryErrors(_Model):
@@ -38,8 +39,8 @@ class OdometryErrors(_Model):
     walk_std_m: Annotated[float, Field(ge=0.0, le=1.0)] = 0.0
     slip_per_m: Annotated[float, Field(ge=0.0, le=100.0)] = 0.0
     slip_max_frac: Fraction = 0.3
-    floor_std_m: NonNegativeFloat = 0.0001
-    floor_std_deg: NonNegativeFloat = 0.01
+    floor_std_m: Annotated[float, Field(ge=0.0, le=1.0)] = 0.0001
+    floor_std_deg: Annotated[float, Field(ge=0.0, le=45.0)] = 0.01
 
     @property
     def any(self) -> bool:
@@ -96,11 +97,11 @@ class MarkerSource(_Model):
     bearing_std_deg: Annotated[float, Field(gt=0.0, le=45.0)] = 1.0
     heading_std_deg: Annotated[float, Field(gt=0.0, le=45.0)] = 1.0
     fov_deg: Annotated[float, Field(gt=0.0, le=360.0)] = 90.0
-    min_range_m: NonNegativeFloat = 0.3
+    min_range_m: Annotated[float, Field(ge=0.0, le=50.0)] = 0.3
     max_range_m: Annotated[float, Field(gt=0.0, le=50.0)] = 5.0
     dropout: Fraction = 0.0
     robots: tuple[RobotId, ...] = ()
-    mount_yaw_deg: dict[RobotId, float] = Field(default_factory=dict)
+    mount_yaw_deg: dict[RobotId, Angle] = Field(default_factory=dict)
     # A real camera (`phalanx.drivers.markers`): the marker family, its printed side (m),
     # which robot each marker id is on (unlisted: the robot's index in the scenario) and
     # which way its face looks (deg from that robot's heading; 180: on its back, facing
@@ -108,7 +109,7 @@ class MarkerSource(_Model):
     dictionary: str = Field(default="DICT_APRILTAG_36h11", pattern=r"^DICT_[A-Z0-9_a-z]+$")
     marker_size_m: Annotated[float, Field(gt=0.0, le=2.0)] = 0.16
     marker_ids: dict[int, RobotId] = Field(default_factory=dict)
-    face_deg: dict[int, float] = Field(default_factory=dict)
+    face_deg: dict[int, Angle] = Field(default_factory=dict)
     marker_depth_m: Annotated[float, Field(ge=0.0, le=1.0)] = 0.0
 
     @model_validator(mode="after")
@@ -137,10 +138,10 @@ class LocalisationConfig(_Model):
     odometry: OdometryErrors = OdometryErrors()
     mocap: MocapSource | None = None
     markers: MarkerSource | None = None
-    initial_std_m: NonNegativeFloat = 0.01
-    initial_std_deg: NonNegativeFloat = 1.0
+    initial_std_m: Length = 0.01
+    initial_std_deg: Annotated[float, Field(ge=0.0, le=180.0)] = 1.0
     history_s: Annotated[float, Field(gt=0.0, le=10.0)] = 1.0
-    gate: Annotated[float, Field(gt=0.0)] = 25.0
+    gate: Annotated[float, Field(gt=0.0, le=1e4)] = 25.0
 
     @model_validator(mode="after")
     def _sources_need_the_estimator(self) -> Self:
@@ -157,14 +158,16 @@ class CameraCalibration(_Model):
 
     width_px: Annotated[int, Field(gt=0, le=20000)]
     height_px: Annotated[int, Field(gt=0, le=20000)]
-    fx_px: PositiveFloat
-    fy_px: PositiveFloat
-    cx_px: float
-    cy_px: float
-    distortion: tuple[float, ...] = ()
-    mount_x_m: float = 0.0
-    mount_y_m: float = 0.0
-    mount_yaw_deg: float = 0.0
+    fx_px: Annotated[float, Field(gt=0.0, le=1e6)]
+    fy_px: Annotated[float, Field(gt=0.0, le=1e6)]
+    cx_px: Pixels
+    cy_px: Pixels
+    distortion: tuple[Annotated[float, Field(ge=-1e6, le=1e6)], ...] = Field(
+        default=(), max_length=8
+    )
+    mount_x_m: BodyOffset = 0.0
+    mount_y_m: BodyOffset = 0.0
+    mount_yaw_deg: Angle = 0.0
 
     @model_validator(mode="after")
     def _known_distortion(self) -> Self:

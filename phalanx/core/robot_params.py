@@ -6,51 +6,69 @@ robot's geometry, speed and acceleration limits, braking and sonar ring, in SI u
 from __future__ import annotations
 
 import math
-from typing import Self
+from typing import Annotated, Self
 
 from pydantic import Field, model_validator
 
-from phalanx.core.config import Model, NonNegativeFloat, PositiveFloat
+from phalanx.core.config import Model
+from phalanx.core.quantities import (
+    Angle,
+    BodyLength,
+    BodyOffset,
+    PositiveAccel,
+    PositiveRange,
+    PositiveSpeed,
+    PositiveYawAccel,
+    PositiveYawRate,
+    SensorRange,
+    Voltage,
+)
 
 
 class SonarUnit(Model):
     """One sonar transducer: position (m) and heading (deg) in the robot's body frame."""
 
-    x_m: float
-    y_m: float
-    heading_deg: float
+    x_m: BodyOffset
+    y_m: BodyOffset
+    heading_deg: Angle
 
 
 class SonarParams(Model):
     """The sonar ring."""
 
-    max_range_m: PositiveFloat = 5.0
-    min_range_m: NonNegativeFloat = 0.1
-    beam_width_deg: PositiveFloat = 15.0
+    max_range_m: PositiveRange = 5.0
+    min_range_m: SensorRange = 0.1
+    beam_width_deg: Annotated[float, Field(gt=0.0, le=180.0)] = 15.0
     rays_per_beam: int = Field(default=3, ge=1, le=15)
     units: tuple[SonarUnit, ...] = Field(max_length=64)
+
+    @model_validator(mode="after")
+    def _ranges(self) -> Self:
+        if self.min_range_m >= self.max_range_m:
+            raise ValueError("min_range_m must be below max_range_m")
+        return self
 
 
 class RobotParams(Model):
     """Kinematic and physical parameters of a differential-drive robot (SI units)."""
 
     name: str
-    track_width_m: PositiveFloat
-    wheel_radius_m: PositiveFloat
-    radius_m: PositiveFloat
-    v_max_mps: PositiveFloat
-    omega_max_degps: PositiveFloat
-    wheel_v_max_mps: PositiveFloat
-    accel_mps2: PositiveFloat
-    decel_mps2: PositiveFloat
-    rot_accel_degps2: PositiveFloat
+    track_width_m: BodyLength
+    wheel_radius_m: BodyLength
+    radius_m: BodyLength
+    v_max_mps: PositiveSpeed
+    omega_max_degps: PositiveYawRate
+    wheel_v_max_mps: PositiveSpeed
+    accel_mps2: PositiveAccel
+    decel_mps2: PositiveAccel
+    rot_accel_degps2: PositiveYawAccel
     sonar: SonarParams
     # Below this the agent stops the robot (LOW_BATTERY) until it is charged; none: no check.
-    battery_low_v: PositiveFloat | None = None
+    battery_low_v: Voltage | None = None
     # How hard the robot may brake when it must stop now (HOLD: its leader is gone), rather
     # than the comfortable `decel_mps2`/`rot_accel_degps2`; none: the comfortable ones.
-    emergency_decel_mps2: PositiveFloat | None = None
-    emergency_rot_decel_degps2: PositiveFloat | None = None
+    emergency_decel_mps2: PositiveAccel | None = None
+    emergency_rot_decel_degps2: PositiveYawAccel | None = None
 
     @model_validator(mode="after")
     def _emergency_is_harder(self) -> Self:

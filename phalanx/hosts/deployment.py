@@ -25,6 +25,7 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 from phalanx.core.config import DriverKind, Ros2Config, Scenario
 from phalanx.core.config_files import apply_overrides, load_scenario, validate_file
 from phalanx.core.errors import ConfigError
+from phalanx.core.quantities import PositiveDuration
 from phalanx.drivers import validate_settings
 
 NAME_PATTERN = r"^[A-Za-z0-9_-]{1,64}$"
@@ -162,9 +163,9 @@ class RestartPolicy(Model):
     """How a host daemon restarts a crashed agent: exponential back-off, bounded."""
 
     max_restarts: int = Field(default=5, ge=0, le=1000)
-    backoff_s: float = Field(default=0.5, gt=0.0)
-    backoff_max_s: float = Field(default=10.0, gt=0.0)
-    stable_s: float = Field(default=30.0, gt=0.0)  # running this long resets the back-off
+    backoff_s: PositiveDuration = 0.5
+    backoff_max_s: PositiveDuration = 10.0
+    stable_s: PositiveDuration = 30.0  # running this long resets the back-off
 
 
 class TelemetrySettings(Model):
@@ -196,7 +197,7 @@ class Deployment(Model):
     clock: Literal["realtime", "lockstep"] = "realtime"
     startup_s: float = Field(default=10.0, ge=0.0, le=600.0)  # robot drivers: epoch offset
     allow_overrides: bool = True  # accept `phalanx launch --set ...` from the network
-    max_clock_skew_s: float = Field(default=0.05, gt=0.0)
+    max_clock_skew_s: float = Field(default=0.05, gt=0.0, le=60.0)
     zenoh: ZenohSettings = ZenohSettings()
     hosts: tuple[HostEntry, ...] = Field(min_length=1)
     robots: tuple[RobotPlacement, ...] = Field(min_length=1)

@@ -38,6 +38,7 @@ from pydantic import ValidationError
 from phalanx.core.config import Ros2Config, Scenario
 from phalanx.core.formation import scenario_formation
 from phalanx.core.geometry import Pose2D, Twist2D, Vec2
+from phalanx.core.quantities import MAX_EXTENT_M
 from phalanx.core.robot_params import RobotParams
 from phalanx.core.scenarios import resolve_world
 from phalanx.ros2.graph import RosNode, RosPublisher, RosSubscription
@@ -52,7 +53,7 @@ from phalanx.ros2.messages import (
 from phalanx.ros2.names import fleet_namespace
 from phalanx.ros2.topics import fleet_inputs, fleet_topics
 from phalanx.ros2.typestore import CdrWriter, cdr_writer, from_cdr
-from phalanx.wire.bounds import MAX_EXTENT_M, FleetBounds
+from phalanx.wire.bounds import FleetBounds
 from phalanx.wire.delivery import deliver
 from phalanx.wire.keys import robot_key, robots_key
 from phalanx.wire.messages import Message, OperatorCommand, RobotState, ScanMessage, SenseFrame

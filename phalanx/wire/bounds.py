@@ -15,8 +15,14 @@ from typing import Annotated, Final
 
 from pydantic import AfterValidator, Field, ValidationInfo
 
-from phalanx.core.config import MAX_CONTROL_RATE_HZ, MAX_DURATION_S, Scenario
+from phalanx.core.config import MAX_CONTROL_RATE_HZ, Scenario
 from phalanx.core.peers import EPOCH_MAX, SEQ_MAX
+from phalanx.core.quantities import (
+    MAX_DURATION_S,
+    MAX_RANGE_M,
+    MAX_SPEED_MPS,
+    MAX_YAW_RATE_RADPS,
+)
 from phalanx.core.robot_params import RobotParams
 from phalanx.core.shapes import SHAPE_NAMES
 from phalanx.core.states import State
@@ -26,10 +32,6 @@ from phalanx.core.states import State
 UINT32_MAX: Final = 2**32 - 1
 # Fleet time runs from 0 at the run's start (sim time, or the shared epoch in real time).
 MAX_STAMP_S: Final = MAX_DURATION_S + 3600.0
-MAX_SPEED_MPS: Final = 10.0  # no differential-drive robot phalanx drives is rated faster
-MAX_YAW_RATE_RADPS: Final = 20.0  # about 1150 deg/s
-MAX_EXTENT_M: Final = 1e6  # a world a thousand kilometres across
-MAX_RANGE_M: Final = 100.0  # sonar (and any range sensor of the ring)
 MAX_TEXT: Final = 500
 MAX_SONARS: Final = 64
 MAX_BUMPERS: Final = 32
@@ -131,7 +133,6 @@ Seconds = Annotated[float, Field(ge=0.0, le=MAX_STAMP_S)]  # a duration within a
 Count = Annotated[int, Field(ge=0, le=UINT32_MAX)]
 Seq = Annotated[int, Field(ge=0, le=SEQ_MAX)]
 Epoch = Annotated[int, Field(ge=0, le=EPOCH_MAX)]
-Coordinate = Annotated[float, Field(ge=-MAX_EXTENT_M, le=MAX_EXTENT_M)]
 Heading = Annotated[float, Field(ge=-2.0 * math.pi, le=2.0 * math.pi)]
 Speed = Annotated[
     float, Field(ge=-MAX_SPEED_MPS, le=MAX_SPEED_MPS), AfterValidator(_within_rating_v)

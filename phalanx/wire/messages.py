@@ -22,13 +22,11 @@ from pydantic import (
 from phalanx.core.config import MAX_ROBOTS
 from phalanx.core.geometry import Pose2D, Twist2D
 from phalanx.core.peers import FLAG_FIELDS, STATE_FIELDS, PeerFlags, PeerState, Scan
+from phalanx.core.quantities import MAX_EXTENT_M, MAX_RANGE_M, Coordinate
 from phalanx.wire.bounds import (
     MAX_BUMPERS,
-    MAX_EXTENT_M,
-    MAX_RANGE_M,
     MAX_SONARS,
     MAX_STAMP_S,
-    Coordinate,
     Count,
     Epoch,
     Heading,

@@ -13,6 +13,8 @@ from pathlib import Path
 import pytest
 from fleetlab import CLI, WEDGE
 
+from phalanx.core.config_files import CONFIG_ROOT
+
 WEDGE_TEXT = WEDGE.read_text()
 
 
@@ -48,6 +50,21 @@ CASES: dict[str, tuple[str | bytes, list[str], str]] = {
     "--set nonsense": (WEDGE_TEXT, ["--set", "nonsense"], "expected PATH=VALUE"),
     "--set negative": (WEDGE_TEXT, ["--set", "limits.v_max_mps=-1"], "greater than 0"),
     "--set unknown": (WEDGE_TEXT, ["--set", "noexist.x=1"], "no field 'noexist'"),
+    # Numbers past what physics allows: the first four once ended in a traceback (an
+    # integer overflowed, or a run had no step), the rest ran as if they meant something.
+    "a run of no step": (WEDGE_TEXT, ["--set", "duration_s=0.05"],
+                         "shorter than one control period"),
+    "a state older than the universe": (WEDGE_TEXT, ["--set", "comm_delay_s=1e300"],
+                                        "less than or equal to 10"),
+    "settling for ever": (WEDGE_TEXT, ["--set", "settle_s=1e300"], "less than or equal to 86400"),
+    "backing off for ever": (WEDGE_TEXT, ["--set", "deadlock.safe_distance_m=1e300"],
+                             "less than or equal to 1000000"),
+    "a goal off the world": (WEDGE_TEXT, ["--set", "navigation.waypoints=[[1e300, 0]]"],
+                             "less than or equal to 1000000"),
+    "a slot a light year off": (WEDGE_TEXT.replace("l_m = 1.0", "l_m = 1e16", 1), [],
+                                "less than or equal to 1000000"),
+    "faster than any robot": (WEDGE_TEXT.replace("v_mps = 0.15", "v_mps = 150", 1), [],
+                              "less than or equal to 10"),
 }  # fmt: skip
 
 
@@ -108,3 +125,29 @@ def test_a_bad_deployment_file_is_one_message_and_exit_2(tmp_path: Path) -> None
     assert "Traceback" not in proc.stderr
     assert str(path) in proc.stderr
     assert "did you mean 'h1'" in proc.stderr
+
+
+@pytest.mark.parametrize(
+    ("old", "new", "says"),
+    [
+        (
+            "v_max_mps = 1.2 ",
+            "v_max_mps = 1e9 ",
+            "v_max_mps: Input should be less than or equal to 10",
+        ),
+        ("min_range_m = 0.1", "min_range_m = 6.0", "min_range_m must be below max_range_m"),
+    ],
+    ids=["rated faster than any robot", "a sonar seeing from past its reach"],
+)
+def test_a_robot_file_past_physics_is_one_message_and_exit_2(
+    tmp_path: Path, old: str, new: str, says: str
+) -> None:
+    rated = (CONFIG_ROOT / "robots" / "p3dx.toml").read_text()
+    assert old in rated
+    path = tmp_path / "robot.toml"
+    path.write_text(rated.replace(old, new, 1))
+    proc = subprocess.run([*CLI, "validate", str(path)], capture_output=True, text=True,
+                          timeout=60, check=False)  # fmt: skip
+    assert proc.returncode == 2, proc.stderr[-2000:]
+    assert "Traceback" not in proc.stderr + proc.stdout
+    assert says in proc.stdout + proc.stderr

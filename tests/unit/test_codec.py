@@ -8,10 +8,10 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
+from phalanx.core.quantities import MAX_EXTENT_M, MAX_SPEED_MPS, MAX_YAW_RATE_RADPS
 from phalanx.core.states import State
-from phalanx.wire.bounds import MAX_SPEED_MPS, MAX_YAW_RATE_RADPS
 from phalanx.wire.codec import DecodeStats, decode, encode
-from phalanx.wire.messages import MAX_EXTENT_M, MAX_STAMP_S, RobotState, SenseFrame, VelocityCommand
+from phalanx.wire.messages import MAX_STAMP_S, RobotState, SenseFrame, VelocityCommand
 
 
 def _within(bound: float) -> st.SearchStrategy[float]:
