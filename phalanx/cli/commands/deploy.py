@@ -10,6 +10,7 @@ from typing import TYPE_CHECKING, Annotated
 import typer
 
 from phalanx.cli.commands.host import DeploymentArg, load_or_exit
+from phalanx.cli.numbers import seconds
 from phalanx.cli.outputs import launch_run_id
 from phalanx.cli.tables import MarkdownOpt, show_table
 
@@ -66,12 +67,13 @@ def launch(
     host_wait: Annotated[
         float,
         typer.Option(
-            min=0.0,
             help="Seconds to wait for every host's daemon (with --local, also to connect).",
+            callback=seconds,
         ),
     ] = 30.0,
     timeout: Annotated[
-        float | None, typer.Option(help="Stop the fleet after this many seconds.")
+        float | None,
+        typer.Option(help="Stop the fleet after this many seconds.", callback=seconds),
     ] = None,
     detach: Annotated[
         bool, typer.Option(help="Return once the fleet is up; end it with `phalanx stop`.")
@@ -285,7 +287,10 @@ def status(
     json_: Annotated[bool, typer.Option("--json", help="Print JSON instead of a table.")] = False,
     markdown: MarkdownOpt = False,
     listen_s: Annotated[
-        float, typer.Option("--listen-s", help="Seconds to listen to the robots' states.")
+        float,
+        typer.Option(
+            "--listen-s", help="Seconds to listen to the robots' states.", callback=seconds
+        ),
     ] = 1.5,
     via: ViaOpt = None,
     connect: ConnectOpt = None,
@@ -351,8 +356,12 @@ def stop(
     ] = None,
     via: ViaOpt = None,
     connect: ConnectOpt = None,
-    wait: Annotated[float, typer.Option(help="Seconds to wait for every process to end.")] = 15.0,
-    host_wait: Annotated[float, typer.Option(help="Seconds to wait for the hosts.")] = 2.0,
+    wait: Annotated[
+        float, typer.Option(help="Seconds to wait for every process to end.", callback=seconds)
+    ] = 15.0,
+    host_wait: Annotated[
+        float, typer.Option(help="Seconds to wait for the hosts.", callback=seconds)
+    ] = 2.0,
     identity: IdentityOpt = None,
 ) -> None:
     """Stop a running fleet on every host (SIGTERM, then SIGKILL after a grace period)."""

@@ -9,7 +9,7 @@ from typing import TYPE_CHECKING, Annotated
 
 import typer
 
-from phalanx.cli.commands.fleet import finite_epoch
+from phalanx.cli.numbers import PORT_MAX, finite_epoch, seconds
 
 if TYPE_CHECKING:
     from phalanx.core.motion import Body
@@ -19,13 +19,16 @@ def emulate(
     model: Annotated[str, typer.Argument(help="Robot model: p3dx.")] = "p3dx",
     pty: Annotated[bool, typer.Option("--pty", help="Serve on a new pseudo-terminal.")] = False,
     tcp: Annotated[
-        int | None, typer.Option("--tcp", help="Serve on this TCP port (MobileSim: 8101).")
+        int | None,
+        typer.Option(
+            "--tcp", help="Serve on this TCP port (MobileSim: 8101).", min=0, max=PORT_MAX
+        ),
     ] = None,
     host: Annotated[str, typer.Option(help="TCP address to bind.")] = "127.0.0.1",
     subtype: Annotated[str, typer.Option(help="p3dx-sh or p3dx (conversion factors).")] = (
         "p3dx-sh"
     ),
-    watchdog: Annotated[float, typer.Option(help="Firmware watchdog (s).")] = 2.0,
+    watchdog: Annotated[float, typer.Option(help="Firmware watchdog (s).", callback=seconds)] = 2.0,
     world: Annotated[
         Path | None,
         typer.Option(help="Scenario whose world process moves this robot (with --robot)."),

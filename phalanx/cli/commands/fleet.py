@@ -6,13 +6,13 @@ options into a spec (`phalanx.runtime.process_spec`); the runtime builds the age
 from __future__ import annotations
 
 import logging
-import math
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Literal, NoReturn, TypeVar
 
 import typer
 
 from phalanx.cli.commands.run import DpiOpt, FormatOpt
+from phalanx.cli.numbers import finite_epoch, speed_factor
 from phalanx.cli.outputs import fresh_folder, results_name
 
 if TYPE_CHECKING:
@@ -66,13 +66,6 @@ SetOpt = Annotated[
     list[str] | None,
     typer.Option("--set", help="Override a scenario field, e.g. --set duration_s=60 (repeatable)."),
 ]
-
-
-def finite_epoch(value: float | None) -> float | None:
-    """An `--epoch`, if given, is a Unix time: a number, not nan or inf."""
-    if value is not None and not math.isfinite(value):
-        raise typer.BadParameter(f"{value} is not a Unix time")
-    return value
 
 
 def _scenario(path: Path, overrides: list[str] | None) -> Scenario:
@@ -379,7 +372,9 @@ def world(
     scenario: ScenarioArg,
     fleet: FleetOpt = "default",
     clock: ClockOpt = "lockstep",
-    speed: Annotated[float, typer.Option(min=0.01, help="Real-time speed factor.")] = 1.0,
+    speed: Annotated[
+        float, typer.Option(help="Real-time speed factor.", callback=speed_factor)
+    ] = 1.0,
     listen: ListenOpt = None,
     connect: ConnectOpt = None,
     mode: ModeOpt = "router",

@@ -9,6 +9,7 @@ from typing import Annotated
 
 import typer
 
+from phalanx.cli.numbers import seconds_or_ever
 from phalanx.cli.style import choice
 
 # The backends of libmotioncapture (the `motioncapture` package); a build may lack some.
@@ -50,7 +51,9 @@ def mocap(
     mode: Annotated[str, typer.Option(help="Zenoh mode: peer, client, router.")] = "client",
     connect: Annotated[list[str] | None, typer.Option("--connect", help="Zenoh endpoint.")] = None,
     listen: Annotated[list[str] | None, typer.Option("--listen", help="Zenoh endpoint.")] = None,
-    duration: Annotated[float, typer.Option(help="Stop after this many seconds.")] = math.inf,
+    duration: Annotated[
+        float, typer.Option(help="Stop after this many seconds.", callback=seconds_or_ever)
+    ] = math.inf,
 ) -> None:
     """Publish a motion-capture system's rigid bodies as pose fixes (robot/<id>/fix)."""
     from phalanx.core.config_files import load_scenario

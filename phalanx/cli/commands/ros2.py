@@ -10,6 +10,8 @@ from typing import TYPE_CHECKING, Annotated, Literal
 
 import typer
 
+from phalanx.cli.numbers import seconds_or_ever
+
 if TYPE_CHECKING:
     from phalanx.core.config import Ros2Config, Scenario
     from phalanx.wire.transport import FleetSession, TransportConfig
@@ -43,7 +45,9 @@ def ros2(
         list[str] | None,
         typer.Option("--set", help="Override a scenario field, e.g. --set ros2.domain_id=3."),
     ] = None,
-    duration: Annotated[float, typer.Option(help="Stop after this many seconds.")] = math.inf,
+    duration: Annotated[
+        float, typer.Option(help="Stop after this many seconds.", callback=seconds_or_ever)
+    ] = math.inf,
     ros_connect: Annotated[
         list[str] | None,
         typer.Option(

@@ -21,6 +21,7 @@ from phalanx.cli.commands.fleet import (
     _stop_on_signals,
 )
 from phalanx.cli.commands.run import DpiOpt, FormatOpt, _figure_format
+from phalanx.cli.numbers import seconds, speed_factor
 from phalanx.cli.outputs import ForceOpt, fresh_folder, results_name
 from phalanx.cli.style import choice
 
@@ -32,13 +33,17 @@ def up(
     scenario: ScenarioArg,
     fleet: FleetOpt = "default",
     clock: ClockOpt = "lockstep",
-    speed: Annotated[float, typer.Option(min=0.01, help="Real-time speed factor.")] = 1.0,
+    speed: Annotated[
+        float, typer.Option(help="Real-time speed factor.", callback=speed_factor)
+    ] = 1.0,
     out: Annotated[
         Path | None,
         typer.Option(help="Results folder (default: results/<scenario>-<controller>-up)."),
     ] = None,
     restart: Annotated[bool, typer.Option(help="Restart crashed agents (with back-off).")] = False,
-    timeout: Annotated[float, typer.Option(help="Give up after this many seconds.")] = 600.0,
+    timeout: Annotated[
+        float, typer.Option(help="Give up after this many seconds.", callback=seconds)
+    ] = 600.0,
     recording: Annotated[bool, typer.Option(help="Write a Rerun .rrd.")] = True,
     set_: SetOpt = None,
     driver: Annotated[

@@ -11,6 +11,8 @@ from typing import Annotated
 
 import typer
 
+from phalanx.cli.numbers import PORT_MAX
+
 
 def rerun_command(
     recordings: list[Path],
@@ -53,8 +55,12 @@ def view(
         str,
         typer.Option(help="Address to listen on; 0.0.0.0 to take data from robots on the network."),
     ] = "127.0.0.1",
-    port: Annotated[int, typer.Option(help="gRPC port phalanx processes stream to.")] = 9876,
-    web_port: Annotated[int, typer.Option(help="HTTP port of the web viewer.")] = 9090,
+    port: Annotated[
+        int, typer.Option(help="gRPC port phalanx processes stream to.", min=1, max=PORT_MAX)
+    ] = 9876,
+    web_port: Annotated[
+        int, typer.Option(help="HTTP port of the web viewer.", min=1, max=PORT_MAX)
+    ] = 9090,
     memory_limit: Annotated[
         str, typer.Option(help="Drop the oldest data beyond this (e.g. 2GB, 50%).")
     ] = "2GB",
