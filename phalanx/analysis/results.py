@@ -24,6 +24,7 @@ import os
 import shutil
 import tempfile
 import uuid
+import zipfile
 from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import Any
@@ -41,9 +42,16 @@ from phalanx.analysis.figure_files import (
     figure_name,
 )
 from phalanx.analysis.metrics import error_series, is_follower, run_metrics
+from phalanx.core.config import MAX_ROBOT_STEPS
 from phalanx.core.errors import PhalanxError
 from phalanx.core.files import atomic_write
 from phalanx.core.limits import KinematicLimits
+from phalanx.core.quantities import (
+    MAX_DURATION_S,
+    MAX_EXTENT_M,
+    MAX_SPEED_MPS,
+    MAX_YAW_RATE_RADPS,
+)
 from phalanx.core.runlog import FloatArray, RobotTrace, RunLog
 from phalanx.core.scenarios import resolve_world
 
@@ -191,6 +199,21 @@ def _record(log: RunLog, path: Path, *, recording_id: str | None) -> None:
 
 
 TRACE_FIELDS = ("x_m", "y_m", "theta_rad", "v_mps", "omega_radps", "cmd_v_mps", "cmd_omega_radps")
+# What a trace read back may hold, field by field (NaN: a step a robot was not there):
+# a file from elsewhere is held to what a run writes.
+_TRACE_BOUNDS = {
+    "x_m": MAX_EXTENT_M,
+    "y_m": MAX_EXTENT_M,
+    "theta_rad": 2 * math.pi,
+    "v_mps": MAX_SPEED_MPS,
+    "omega_radps": MAX_YAW_RATE_RADPS,
+    "cmd_v_mps": MAX_SPEED_MPS,
+    "cmd_omega_radps": MAX_YAW_RATE_RADPS,
+}
+# The most a `traces.npz` unpacks to: the largest run's (`MAX_ROBOT_STEPS`, each step its
+# fields and a state's name of up to 32 characters, and the step times), so that a small
+# archive that unpacks to more is refused before it is read.
+MAX_TRACES_BYTES = MAX_ROBOT_STEPS * (8 * len(TRACE_FIELDS) + 4 * 32 + 8)
 
 
 def write_traces(log: RunLog, path: Path) -> None:
@@ -209,10 +232,13 @@ def write_traces(log: RunLog, path: Path) -> None:
 def read_run_traces(path: Path) -> tuple[FloatArray, dict[str, RobotTrace]]:
     """A `traces.npz` back as the run's step times (s) and every robot's trace (the
     fields `write_traces` keeps; the rest empty). KeyError or ValueError if it is not a
-    run's.
+    run's, or holds a value no run writes (a step time not from 0 to a day, a value past
+    its field's bound).
     """
     fields = read_traces(path)
     t_s = np.asarray(fields.pop("")["t_s"], dtype=float)
+    if t_s.ndim != 1 or not np.all((t_s >= 0.0) & (t_s <= MAX_DURATION_S)):
+        raise ValueError(f"t_s: step times must lie from 0 to {MAX_DURATION_S:g} s")
     traces = {}
     for rid, arrays in fields.items():
         trace = RobotTrace.empty(t_s.size)
@@ -220,6 +246,9 @@ def read_run_traces(path: Path) -> tuple[FloatArray, dict[str, RobotTrace]]:
             column = np.asarray(arrays[name], dtype=float)
             if column.shape != t_s.shape:
                 raise ValueError(f"{rid}/{name}: {column.size} rows for {t_s.size} steps")
+            bound = _TRACE_BOUNDS[name]
+            if not np.all(np.isnan(column) | (np.abs(column) <= bound)):
+                raise ValueError(f"{rid}/{name}: values beyond +-{bound:g}")
             setattr(trace, name, column)
         trace.states = [str(s) for s in arrays["state"]]
         traces[rid] = trace
@@ -227,13 +256,23 @@ def read_run_traces(path: Path) -> tuple[FloatArray, dict[str, RobotTrace]]:
 
 
 def read_traces(path: Path) -> dict[str, dict[str, Any]]:
-    """A `traces.npz` back: robot -> field -> array, and "" -> {"t_s": times}."""
-    with np.load(path, allow_pickle=False) as data:
-        out: dict[str, dict[str, Any]] = {"": {"t_s": data["t_s"]}}
-        for key in data.files:
-            rid, _, name = key.rpartition("/")
-            if rid:
-                out.setdefault(rid, {})[name] = data[key]
+    """A `traces.npz` back: robot -> field -> array, and "" -> {"t_s": times}.
+    ValueError if it is no numpy archive (empty, cut short, another kind of file) or
+    unpacks to more than `MAX_TRACES_BYTES`.
+    """
+    try:
+        with zipfile.ZipFile(path) as archive:
+            unpacked = sum(member.file_size for member in archive.infolist())
+        if unpacked > MAX_TRACES_BYTES:
+            raise ValueError(f"unpacks to {unpacked} bytes, more than any run writes")
+        with np.load(path, allow_pickle=False) as data:
+            out: dict[str, dict[str, Any]] = {"": {"t_s": data["t_s"]}}
+            for key in data.files:
+                rid, _, name = key.rpartition("/")
+                if rid:
+                    out.setdefault(rid, {})[name] = data[key]
+    except (zipfile.BadZipFile, EOFError) as exc:
+        raise ValueError(f"not a numpy archive ({exc or 'empty'})") from exc
     return out
 
 

@@ -144,6 +144,66 @@ def test_a_folder_without_traces_is_refused_with_the_way_out(tmp_path: Path) -> 
     assert not (tmp_path / "rosbag2").exists()
 
 
+def _spoilt(name: str, good: Path, out: Path) -> None:
+    """`good`'s traces, spoilt as `name` says, written to `out`."""
+    raw = good.read_bytes()
+    if name in ("cut short", "empty"):
+        out.write_bytes(raw[:300] if name == "cut short" else b"")
+        return
+    with np.load(good) as data:
+        arrays = {key: data[key] for key in data.files}
+    if name == "a position past the world":
+        arrays["r2/x_m"][3] = 1e308
+    elif name == "step times of inf":
+        arrays["t_s"] = np.full_like(arrays["t_s"], np.inf)
+    elif name == "a robot not there yet":
+        arrays["r2/x_m"][:3] = np.nan
+    np.savez(out, **arrays)
+
+
+@pytest.mark.parametrize(
+    ("name", "says"),
+    [
+        ("cut short", "not a numpy archive"),
+        ("empty", "not a numpy archive"),
+        ("a position past the world", "r2/x_m: values beyond +-1e+06"),
+        ("step times of inf", "step times must lie from 0 to 86400 s"),
+    ],
+)
+def test_a_spoilt_traces_file_is_refused_with_what_is_wrong(
+    results: Path, tmp_path: Path, name: str, says: str
+) -> None:
+    # Before, these ended in a traceback (zipfile's BadZipFile; an OverflowError at step
+    # times of inf), in click's bare "Aborted!" (numpy's EOFError on an empty file), or
+    # in a bag with a robot 1e308 m off.
+    (tmp_path / "metrics.json").write_text("{}")
+    _spoilt(name, results / "traces.npz", tmp_path / "traces.npz")
+    result = CliRunner().invoke(app, ["export", str(tmp_path), "--mcap"], prog_name="phalanx")
+    assert result.exit_code != 0
+    assert "not a run's traces" in str(result.exception)
+    assert says in str(result.exception)
+    assert not (tmp_path / "rosbag2").exists()
+
+
+def test_a_robot_not_there_yet_is_exported(results: Path, tmp_path: Path) -> None:
+    _spoilt("a robot not there yet", results / "traces.npz", tmp_path / "traces.npz")
+    result = CliRunner().invoke(app, ["export", str(tmp_path), "--mcap"], prog_name="phalanx")
+    assert result.exit_code == 0, result.output
+    assert (tmp_path / "rosbag2" / "metadata.yaml").exists()
+
+
+def test_an_archive_that_unpacks_to_more_than_a_run_writes_is_not_read(
+    results: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # (the bound made small: a real bomb of 2.4 GB unpacked is 2.3 MB packed, slow to make)
+    import phalanx.analysis.results as results_module
+
+    size = sum(np.load(results / "traces.npz")[k].nbytes for k in ("t_s", "r1/x_m"))
+    monkeypatch.setattr(results_module, "MAX_TRACES_BYTES", size)
+    with pytest.raises(ValueError, match="more than any run writes"):
+        read_traces(results / "traces.npz")
+
+
 def test_phalanx_imports_and_loads_scenarios_without_rosbags() -> None:
     # What is off costs nothing: no ROS 2 library is imported by phalanx, its CLI or a
     # scenario; asked for, the bridge says how to install it.
