@@ -9,20 +9,20 @@ changed, and an exact sign test on them (two-sided) says how likely so lopsided 
 is by chance. Each row's reach also gets its Wilson 95 % interval.
 
 Results files are JSON lines as `phalanx sweep` writes them; they are checked like any
-file from a user: a line that is not a sweep run is skipped and counted, and a field
-that two runs of one file claim (two sweeps with different `--set`s in one file) is an
-error, not a guess.
+file from a user: a line that is not a sweep run's record (`SweepRow`) is skipped and
+counted, and a field that two runs of one file claim (two sweeps with different `--set`s
+in one file) is an error, not a guess.
 """
 
 from __future__ import annotations
 
-import json
 import math
 import statistics
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from phalanx.analysis.sweep_row import SweepRow
 from phalanx.core.errors import ConfigError
 
 Group = tuple[str, str, int, str]  # (family, formation, robots, controller)
@@ -97,40 +97,18 @@ def wilson(successes: int, trials: int, z: float = WILSON_Z) -> tuple[float, flo
     return low, high
 
 
-def _run_of(row: Any) -> tuple[Field, Run] | None:
-    """A results line's field and run, or None if it is not a sweep run."""
-    if not isinstance(row, dict) or not isinstance(row.get("job"), dict):
+def _run_of(row: dict[str, Any]) -> tuple[Field, Run] | None:
+    """A sweep run's record (`SweepRow`'s) as its field and run; None for one whose
+    share of time in avoidance episodes is not known (a run of no step).
+    """
+    job, share = row["job"], row["episode_share"]
+    if math.isnan(share):
         return None
-    job = row["job"]
-    course, shape, controller = job.get("course"), job.get("shape"), job.get("controller")
-    robots, seed = _count(job.get("robots")), _count(job.get("seed"))
-    reverses, share = _count(row.get("deadlock_reverses")), _number(row.get("episode_share"))
-    reached = row.get("goal_reached")
-    if not (isinstance(course, str) and isinstance(shape, str) and isinstance(controller, str)):
-        return None
-    if robots is None or seed is None or reverses is None or share is None or share > 1.0:
-        return None
-    if not isinstance(reached, bool):
-        return None
-    time, route = _number(row.get("time_to_goal_s")), _number(row.get("route_s"))
-    ratio = time / route if reached and time is not None and route else None
-    return ((course, shape, robots, controller), seed), Run(reached, ratio, reverses, share)
-
-
-def _count(value: object) -> int | None:
-    """A whole number >= 0 from a results line (None for anything else)."""
-    return value if isinstance(value, int) and not isinstance(value, bool) and value >= 0 else None
-
-
-def _number(value: object) -> float | None:
-    """A finite number >= 0 from a results line (None for anything else)."""
-    if isinstance(value, bool) or not isinstance(value, int | float):
-        return None
-    try:
-        number = float(value)
-    except OverflowError:  # an integer too large for a float
-        return None
-    return number if math.isfinite(number) and number >= 0 else None
+    time, route = row["time_to_goal_s"], row["route_s"]
+    known = row["goal_reached"] and time is not None and math.isfinite(route) and route > 0
+    group = (job["course"], job["shape"], job["robots"], job["controller"])
+    run = Run(row["goal_reached"], time / route if known else None, row["deadlock_reverses"], share)
+    return (group, job["seed"]), run
 
 
 def load_sweep(path: Path) -> Sweep:
@@ -142,10 +120,8 @@ def load_sweep(path: Path) -> Sweep:
     runs: dict[Field, Run] = {}
     skipped = 0
     for number, line in enumerate(lines, start=1):
-        try:
-            parsed = _run_of(json.loads(line))
-        except json.JSONDecodeError:
-            parsed = None
+        row = SweepRow.of(line)
+        parsed = None if row is None else _run_of(row)
         if parsed is None:
             skipped += 1
             continue

@@ -31,7 +31,9 @@ import numpy as np
 from phalanx.agents.navigation.grid import MAX_EVIDENCE, OccupancyMap
 from phalanx.analysis.metrics import navigation_metrics
 from phalanx.analysis.report import SWEEP_BEGIN, SWEEP_END
+from phalanx.analysis.sweep_row import SweepRow
 from phalanx.core.config import Scenario
+from phalanx.core.errors import ConfigError
 from phalanx.core.geometry import Vec2
 from phalanx.core.runlog import RunLog
 from phalanx.core.scenarios import Course, Shape, navigation_scenario, resolve_world
@@ -123,7 +125,8 @@ def run_job(job: Job) -> dict[str, Any]:
     log = run_until_done(BatchRunner(job.scenario()))
     nav = navigation_metrics(log)
     wall_s = time.perf_counter() - started
-    return {"job": asdict(job), "key": job.key, "wall_s": wall_s, "route_s": route_s(log), **nav}
+    row = {"job": asdict(job), "key": job.key, "wall_s": wall_s, "route_s": route_s(log), **nav}
+    return SweepRow.read(json.dumps(row, allow_nan=True))  # (as a resumed sweep reads it)
 
 
 def route_s(log: RunLog) -> float:
@@ -161,19 +164,29 @@ def route_s(log: RunLog) -> float:
 # --- the engine -------------------------------------------------------------------------
 
 
-def done_rows(path: Path) -> dict[str, dict[str, Any]]:
-    """The rows a results file already holds, by job key (a torn last line is dropped)."""
+def read_rows(path: Path) -> tuple[dict[str, dict[str, Any]], int]:
+    """The runs a results file already holds, by job key, and how many of its lines hold
+    none (`SweepRow.of`: a torn last line, one edited, one from another version); those
+    runs are done again. ConfigError if it cannot be read as text.
+    """
     rows: dict[str, dict[str, Any]] = {}
-    if not path.exists():
-        return rows
-    for line in path.read_text(encoding="utf-8").splitlines():
-        try:
-            row = json.loads(line)
-        except json.JSONDecodeError:
-            continue
-        if isinstance(row, dict) and isinstance(row.get("key"), str):
+    skipped = 0
+    try:
+        lines = path.read_text(encoding="utf-8").splitlines() if path.exists() else []
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"{path}: cannot read the results file: {exc}") from exc
+    for line in lines:
+        row = SweepRow.of(line)
+        if row is None:
+            skipped += 1
+        else:
             rows[row["key"]] = row
-    return rows
+    return rows, skipped
+
+
+def done_rows(path: Path) -> dict[str, dict[str, Any]]:
+    """The runs a results file already holds, by job key (`read_rows`)."""
+    return read_rows(path)[0]
 
 
 def run_sweep(

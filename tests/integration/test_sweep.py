@@ -11,7 +11,16 @@ from pathlib import Path
 
 import pytest
 
-from phalanx.analysis.sweep import QUIET_DASK, done_rows, jobs, run_job, summaries, table
+from phalanx.analysis.sweep import (
+    QUIET_DASK,
+    done_rows,
+    jobs,
+    read_rows,
+    run_job,
+    summaries,
+    table,
+)
+from phalanx.core.errors import ConfigError
 
 pytestmark = [pytest.mark.integration, pytest.mark.slow, pytest.mark.timeout(240)]
 
@@ -55,10 +64,23 @@ def test_a_sweep_on_two_local_workers_is_resumable_and_matches_in_process(tmp_pa
     assert "| field | inline | 3 | ours | 2 |" in "\n".join(table(summaries(list(rows.values()))))
 
 
-def test_a_torn_last_line_is_run_again(tmp_path: Path) -> None:
+def test_a_line_that_holds_no_run_is_left_out_and_its_run_done_again(tmp_path: Path) -> None:
+    row = run_job(jobs(["field"], ["inline"], [3], [0], overrides=SHORT)[0])
+    good = json.dumps(row, allow_nan=True)
+    spoilt = {**row, "time_to_goal_s": "x", "goal_reached": "banana"}
     out = tmp_path / "runs.jsonl"
-    out.write_text('{"key": "a", "x": 1}\n{"key": "b", "x"', encoding="utf-8")
-    assert list(done_rows(out)) == ["a"]
+    # a run's record; one with its key but not its fields (the summary once ended in a
+    # traceback on it); a line of another kind; a torn last line
+    lines = [good, json.dumps(spoilt), '{"key": "a", "x": 1}', good[:40]]
+    out.write_text("\n".join(lines), encoding="utf-8")
+    rows, skipped = read_rows(out)
+    assert list(rows) == [row["key"]]
+    assert json.dumps(rows[row["key"]], allow_nan=True) == good  # (NaN is no NaN's equal)
+    assert skipped == 3
+    assert list(done_rows(out)) == [row["key"]]
+    out.write_bytes(b"\xff\xfe garbage")
+    with pytest.raises(ConfigError, match="cannot read the results file"):
+        read_rows(out)
 
 
 def test_the_local_workers_keep_glibcs_trim_threshold_and_rarer_housekeeping() -> None:

@@ -4,6 +4,7 @@ in a terminal; a sweep's statement of its runs and time before it starts; `up --
 
 from __future__ import annotations
 
+import dataclasses
 import io
 import json
 import os
@@ -14,6 +15,7 @@ from pathlib import Path
 import pytest
 
 from phalanx.analysis import sweep as sw
+from phalanx.analysis.sweep_row import SweepRow
 from phalanx.cli.commands.sweep import PER_RUN_S, statement
 from phalanx.cli.commands.up import checkpoint_s
 from phalanx.cli.progress import Reporter, duration, progress_line, sweep_statement
@@ -87,10 +89,30 @@ def test_a_sweep_states_its_runs_and_time_before_it_starts(tmp_path: Path) -> No
     )
     # Resumed: the runs done are not counted, and their mean wall time is the estimate.
     todo = sw.jobs(["field"], ["wedge"], [3], range(3), ["ours"], [])
-    out.write_text(json.dumps({"key": todo[0].key, "wall_s": 20.0}) + "\n", encoding="utf-8")
+    out.write_text(_record(todo[0], wall_s=20.0) + "\n", encoding="utf-8")
     assert statement(todo, out, workers=1, address=None) == (
         f"2 runs, about 40 s on 1 worker (1 of 3 in {out} already)"
     )
+    # A line that holds no run's record is left out, and said so.
+    with out.open("a", encoding="utf-8") as lines:
+        lines.write(json.dumps({"key": todo[1].key, "wall_s": 20.0}) + "\n")
+    assert statement(todo, out, workers=1, address=None) == (
+        f"2 runs, about 40 s on 1 worker (1 of 3 in {out} already); 1 line of {out} holds "
+        "no run's record, left out"
+    )
+
+
+def _record(job: sw.Job, *, wall_s: float) -> str:
+    """A results line of `job` that took `wall_s` (its metrics made up, in range)."""
+    stat = {"mean": 0.5, "max": 1.0}
+    calm = {"samples": 10, **dict.fromkeys(sw.CALM_KEYS, stat)}
+    row = SweepRow.model_validate({
+        "job": dataclasses.asdict(job), "key": job.key, "wall_s": wall_s, "route_s": 100.0,
+        "goal_reached": True, "time_to_goal_s": 120.0, "collisions_obstacle": 0,
+        "collisions_robot": 0, "deadlock_reverses": 0, "leadership_changes": 0,
+        "stuck": False, "stuck_reason": "", "episode_share": 0.1, "calm": calm,
+    })  # fmt: skip
+    return row.model_dump_json()
 
 
 def test_a_checkpoint_gives_the_run_time_reached_and_a_stale_or_torn_one_nothing(

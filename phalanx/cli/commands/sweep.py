@@ -104,10 +104,10 @@ def statement(todo: list[Job], out: Path, *, workers: int, address: str | None) 
     """What the sweep says before it starts: the runs left to do and their estimated
     time, by the mean wall time of the runs `out` holds already (else `PER_RUN_S`).
     """
-    from phalanx.analysis.sweep import done_rows
+    from phalanx.analysis.sweep import read_rows
 
-    have = done_rows(out)
-    walls = [float(r["wall_s"]) for r in have.values() if isinstance(r.get("wall_s"), int | float)]
+    have, skipped = read_rows(out)
+    walls = [r["wall_s"] for r in have.values()]
     per_run = sum(walls) / len(walls) if walls else PER_RUN_S
     left = sum(1 for job in todo if job.key not in have)
     text = sweep_statement(left, per_run, workers)
@@ -115,6 +115,9 @@ def statement(todo: list[Job], out: Path, *, workers: int, address: str | None) 
         text += f" (the cluster at {address} may have more)"
     if left < len(todo):
         text += f" ({len(todo) - left} of {len(todo)} in {out} already)"
+    if skipped:
+        said = f"1 line of {out} holds" if skipped == 1 else f"{skipped} lines of {out} hold"
+        text += f"; {said} no run's record, left out"
     return text
 
 
