@@ -4,9 +4,14 @@ the driver registry checks `--driver-setting` values and deployment files agains
 
 from __future__ import annotations
 
+from typing import Annotated
+
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
+from phalanx.core.quantities import Angle
+
 PLACE_MAX_M = 10_000.0  # a simulated robot is put no further out than this (m)
+_Place = Annotated[float, Field(ge=-PLACE_MAX_M, le=PLACE_MAX_M)]
 
 
 def _is_tcp(address: str) -> bool:
@@ -26,20 +31,26 @@ class ArcosSettings(BaseModel):
     fallbacks: tuple[str, ...] = Field(
         default=(), description="e.g. /dev/ttyUSB1 (an adapter re-plugged), host:8102"
     )
-    baud: int = Field(default=9600, gt=0, description="9600 at power-up; 19200-115200 if set")
-    connect_timeout_s: float = Field(default=5.0, gt=0.0)
-    sync_retries: int = Field(default=5, ge=1)
-    config_timeout_s: float = Field(default=1.0, gt=0.0, description="ARIA waits 1 s")
-    pulse_s: float = Field(default=0.5, gt=0.0, description="keep-alive period (ARIA: 0.5)")
-    link_timeout_s: float = Field(default=1.0, gt=0.0, description="no SIP this long = lost")
+    baud: int = Field(
+        default=9600, ge=300, le=4_000_000, description="9600 at power-up; 19200-115200 if set"
+    )
+    connect_timeout_s: float = Field(default=5.0, gt=0.0, le=3600.0)
+    sync_retries: int = Field(default=5, ge=1, le=1000)
+    config_timeout_s: float = Field(default=1.0, gt=0.0, le=60.0, description="ARIA waits 1 s")
+    pulse_s: float = Field(
+        default=0.5, gt=0.0, le=10.0, description="keep-alive period (ARIA: 0.5)"
+    )
+    link_timeout_s: float = Field(
+        default=1.0, gt=0.0, le=60.0, description="no SIP this long = lost"
+    )
     reconnect: bool = True
-    reconnect_backoff_max_s: float = Field(default=2.0, gt=0.0)
+    reconnect_backoff_max_s: float = Field(default=2.0, gt=0.0, le=3600.0)
     sonar: bool = True
     adopt_accelerations: bool = Field(
         default=True, description="raise the robot's (de)accelerations to the robot file's"
     )
     # A simulator (AMRISim, MobileSim: its CONFIG packet's serial number is "SIM").
-    place_at: tuple[float, float, float] | None = Field(
+    place_at: tuple[_Place, _Place, Angle] | None = Field(
         default=None,
         description="simulators only: (x m, y m, heading deg) in the simulator's frame, "
         "where the robot is put (SIM_SET_POSE) when first connected",
@@ -58,12 +69,6 @@ class ArcosSettings(BaseModel):
 
     @model_validator(mode="after")
     def _one_link(self) -> ArcosSettings:
-        if self.place_at is not None:
-            x_m, y_m, heading_deg = self.place_at
-            if not (abs(x_m) <= PLACE_MAX_M and abs(y_m) <= PLACE_MAX_M):
-                raise ValueError(f"place_at: x and y within +-{PLACE_MAX_M:g} m, got {x_m}, {y_m}")
-            if not abs(heading_deg) <= 360.0:
-                raise ValueError(f"place_at: a heading within +-360 deg, got {heading_deg}")
         if (self.port is None) == (self.tcp is None):
             raise ValueError("give exactly one of port (serial device) or tcp (host:port)")
         for address in (self.tcp,) if self.tcp is not None else ():

@@ -23,6 +23,7 @@ import struct
 import threading
 import time
 from dataclasses import dataclass, field
+from typing import Literal
 
 import canopen
 from pydantic import BaseModel, ConfigDict, Field
@@ -58,15 +59,18 @@ class CanopenSettings(BaseModel):
 
     interface: str = "socketcan"
     channel: str = "can0"
-    bitrate: int = Field(default=500_000, gt=0)
+    bitrate: int = Field(default=500_000, gt=0, le=8_000_000)  # (CAN FD's fastest data phase)
     left_node_id: int = Field(default=1, ge=1, le=127)
     right_node_id: int = Field(default=2, ge=1, le=127)
-    counts_per_radps: float = Field(default=1000.0, gt=0.0, description="drive units per rad/s")
-    left_sign: int = Field(default=1, description="+1 or -1: mounting direction")
-    right_sign: int = Field(default=-1, description="mirrored on the right side")
-    heartbeat_timeout_s: float = Field(default=0.3, gt=0.0)
-    connect_timeout_s: float = Field(default=3.0, gt=0.0)
-    accel_counts_ps2: int = Field(default=10_000, gt=0)
+    # (at most: the fastest wheel's counts stay well inside the target velocity's int32)
+    counts_per_radps: float = Field(
+        default=1000.0, gt=0.0, le=1e6, description="drive units per rad/s"
+    )
+    left_sign: Literal[-1, 1] = Field(default=1, description="+1 or -1: mounting direction")
+    right_sign: Literal[-1, 1] = Field(default=-1, description="mirrored on the right side")
+    heartbeat_timeout_s: float = Field(default=0.3, gt=0.0, le=10.0)
+    connect_timeout_s: float = Field(default=3.0, gt=0.0, le=3600.0)
+    accel_counts_ps2: int = Field(default=10_000, gt=0, le=2**32 - 1)  # (UNSIGNED32, 0x6083)
 
 
 @dataclass(frozen=True)

@@ -27,6 +27,9 @@ MAX_BODY_M: Final = 10.0  # a robot's size, and where on it a sensor sits
 MAX_GAIN_PER_S: Final = 1000.0  # a control gain (1/s, or unitless per step)
 MAX_VOLTAGE_V: Final = 1000.0
 MAX_ANGLE_DEG: Final = 360.0  # a heading or bearing, either way round
+# A robot on a driver stops when no command came for its watchdog's time: a safety stop,
+# never long (1.2 m/s for 10 s is 12 m driven on the last command).
+MAX_WATCHDOG_S: Final = 10.0
 
 # Positions in the world or the formation's frame (m).
 Coordinate = Annotated[float, Field(ge=-MAX_EXTENT_M, le=MAX_EXTENT_M)]

@@ -85,12 +85,13 @@ class ChildStatus(Wire):
     name: str
     kind: Literal["agent", "world"]
     state: ChildState
-    pid: int | None = None
-    restarts: int = 0
-    crashes: int = 0  # times it ended on its own with an error (finished runs exit 0)
-    exit_code: int | None = None
+    pid: int | None = Field(default=None, ge=0, le=2**32 - 1)
+    restarts: int = Field(default=0, ge=0, le=2**32 - 1)
+    # times it ended on its own with an error (finished runs exit 0)
+    crashes: int = Field(default=0, ge=0, le=2**32 - 1)
+    exit_code: int | None = Field(default=None, ge=-256, le=255)  # (negative: its signal)
     last_error: str = ""
-    log_dropped: int = 0
+    log_dropped: int = Field(default=0, ge=0, le=2**32 - 1)
 
 
 class HostStatus(Wire):

@@ -24,6 +24,7 @@ from pydantic import BaseModel, ConfigDict, Field, SerializeAsAny, model_validat
 
 from phalanx.core.config_files import validate_data
 from phalanx.core.errors import ConfigError
+from phalanx.core.quantities import MAX_DURATION_S, MAX_WATCHDOG_S
 from phalanx.drivers import backend_names, settings_from_options, validate_settings
 from phalanx.wire.transport import TransportConfig
 
@@ -126,10 +127,13 @@ class AgentSpec(_Frozen):
     clock: Literal["lockstep", "realtime"] = "lockstep"  # simulated robots (on a driver: real)
     transport: TransportConfig = TransportConfig()
     driver: DriverChoice = DriverChoice()
-    epoch_s: float | None = None  # robots on drivers: Unix time of step 0 (None: now)
-    watchdog_s: float = Field(default=0.5, gt=0.0)  # robots on drivers: no command, stop
+    # robots on drivers: Unix time of step 0 (None: now), the wire's range of them
+    epoch_s: float | None = Field(default=None, ge=0.0, le=float(2**32 - 1))
+    # robots on drivers: no command this long, stop (a safety stop: never long)
+    watchdog_s: float = Field(default=0.5, gt=0.0, le=MAX_WATCHDOG_S)
     camera: str | None = None  # robots on drivers: DEVICE=CALIBRATION.toml of a camera
-    frame_timeout_s: float = Field(default=30.0, ge=0.1)  # simulated: no frame, world gone
+    # simulated: no frame this long, the world is gone
+    frame_timeout_s: float = Field(default=30.0, ge=0.1, le=MAX_DURATION_S)
     telemetry: TelemetryTarget = TelemetryTarget()
 
     def encoded(self) -> bytes:

@@ -70,12 +70,12 @@ class TransportConfig(BaseModel):
     listen: tuple[str, ...] = ()
     connect: tuple[str, ...] = ()
     multicast_scouting: bool = False
-    lease_ms: int = Field(default=1000, ge=100)
-    keep_alive: int = Field(default=4, ge=1)
-    open_timeout_s: float = Field(default=15.0, ge=0.0)
+    lease_ms: int = Field(default=1000, ge=100, le=3_600_000)
+    keep_alive: int = Field(default=4, ge=1, le=100)
+    open_timeout_s: float = Field(default=15.0, ge=0.0, le=3600.0)
     # Routers and peers retry their `connect` endpoints forever; a lost link comes back
     # within `retry_max_ms` of the network returning (Zenoh's default waits up to 4 s).
-    retry_max_ms: int | None = Field(default=None, ge=100)
+    retry_max_ms: int | None = Field(default=None, ge=100, le=3_600_000)
     # Multicast scouting in router mode: connect to routers found that way, one link per
     # pair (only the router with the greater Zenoh id connects).
     autoconnect_routers: bool = False

@@ -1,7 +1,9 @@
 """Every number a user's file holds is bounded both ways: each field of a scenario, a
-deployment, a robot file and a camera calibration, as its JSON Schema states it (the
-schema is pydantic's own account of the model's constraints). A new field declared as a
-bare `float` or `int` fails here, before a file can put 1e300 in it.
+deployment, a robot file, a camera calibration, a robot driver's settings (a
+deployment's `[robots.driver]`), an agent's spec and a host daemon's status, as its JSON
+Schema states it (the schema is pydantic's own account of the model's constraints). A
+new field declared as a bare `float` or `int` fails here, before a file can put 1e300
+in it.
 """
 
 from __future__ import annotations
@@ -17,10 +19,18 @@ from phalanx.core.config import Scenario
 from phalanx.core.config_files import CONFIG_ROOT, load_robot, load_scenario
 from phalanx.core.localisation import CameraCalibration
 from phalanx.core.quantities import MAX_EXTENT_M, MAX_SPEED_MPS
+from phalanx.drivers.arcos_settings import ArcosSettings
+from phalanx.drivers.canopen import CanopenSettings
+from phalanx.hosts.protocol import ChildStatus
+from phalanx.runtime.process_spec import AgentSpec
 
 MODELS: dict[str, type[BaseModel]] = {
     **{kind: schema_model(kind) for kind in KINDS},
     "camera": CameraCalibration,
+    "arcos driver": ArcosSettings,
+    "canopen driver": CanopenSettings,
+    "agent spec": AgentSpec,
+    "host status": ChildStatus,
 }
 
 
@@ -57,13 +67,16 @@ def _bounds(model: type[BaseModel]) -> dict[str, dict[str, Any]]:
     return dict(_numbers(schema, schema.get("$defs", {}), "", frozenset()))
 
 
+def _bounded(node: dict[str, Any]) -> bool:
+    """A number with a lower and an upper bound, or one of a few values."""
+    if {"enum", "const"} & node.keys():
+        return True
+    low = {"minimum", "exclusiveMinimum"} & node.keys()
+    return bool(low) and bool({"maximum", "exclusiveMaximum"} & node.keys())
+
+
 def _unbounded(model: type[BaseModel]) -> list[str]:
-    return [
-        path
-        for path, node in _bounds(model).items()
-        if not ({"minimum", "exclusiveMinimum"} & node.keys())
-        or not ({"maximum", "exclusiveMaximum"} & node.keys())
-    ]
+    return [path for path, node in _bounds(model).items() if not _bounded(node)]
 
 
 @pytest.mark.parametrize("kind", sorted(MODELS))
@@ -98,3 +111,18 @@ def test_the_bounds_are_where_the_shipped_files_are_not() -> None:
         Scenario.model_validate(data)
     data["duration_s"] = scenario.dt_s
     assert Scenario.model_validate(data).duration_s == scenario.dt_s
+
+
+@pytest.mark.parametrize("sign", [0, 10, -2])
+def test_a_drives_mounting_sign_is_one_either_way(sign: int) -> None:
+    # (a sign of 10 commanded the drive ten times the wheel speed asked for, 0 none)
+    with pytest.raises(ValidationError, match="left_sign"):
+        CanopenSettings(left_sign=sign)  # type: ignore[arg-type]
+    assert CanopenSettings(left_sign=-1).left_sign == -1
+
+
+def test_an_agents_watchdog_is_a_safety_stop_never_long() -> None:
+    spec = {"scenario": "s.toml", "robot_id": "r1"}
+    assert AgentSpec.model_validate({**spec, "watchdog_s": 10.0}).watchdog_s == 10.0
+    with pytest.raises(ValidationError, match="watchdog_s"):
+        AgentSpec.model_validate({**spec, "watchdog_s": 3600.0})
