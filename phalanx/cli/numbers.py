@@ -44,3 +44,13 @@ def speed_factor(value: float) -> float:
     if not 0.01 <= value <= MAX_SPEED_FACTOR:
         raise typer.BadParameter(f"{value} is not a speed factor from 0.01 to {MAX_SPEED_FACTOR:g}")
     return value
+
+
+def group_sizes(values: list[int] | None) -> list[int] | None:
+    """Group sizes, if given: each 1 to the most robots a scenario may have."""
+    from phalanx.core.config import MAX_ROBOTS  # (pydantic's: not for `--help`)
+
+    for value in values or ():
+        if not 1 <= value <= MAX_ROBOTS:
+            raise typer.BadParameter(f"{value} is not a group size from 1 to {MAX_ROBOTS}")
+    return values

@@ -3,7 +3,8 @@ port out of range, NaN included, is refused while the options are read (exit 2, 
 option named), before anything starts. Each case below once ran: `up --timeout -5`
 reported a run "timed out after -5 s", `up --speed 1e300` ran the world for no tick,
 `emulate --tcp 99999` ended in an OverflowError's traceback, `emulate --watchdog nan`
-served a robot whose firmware watchdog never fired.
+served a robot whose firmware watchdog never fired, `sweep --robots 100000` printed
+pydantic's raw error with a link to its docs.
 """
 
 from __future__ import annotations
@@ -37,6 +38,8 @@ CASES: dict[str, tuple[list[str], str]] = {
     "status, listening for ever": (["status", DEPLOYMENT, "--listen-s", "1e300"], "--listen-s"),
     "stop, a wait of nan": (["stop", DEPLOYMENT, "--wait", "nan"], "--wait"),
     "stop, a negative host wait": (["stop", DEPLOYMENT, "--host-wait", "-1"], "--host-wait"),
+    "sweep, a group of 100 000": (["sweep", "--robots", "3", "--robots", "100000"], "--robots"),
+    "sweep, a group of none": (["sweep", "--robots", "0"], "--robots"),
 }
 
 

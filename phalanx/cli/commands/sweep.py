@@ -9,6 +9,7 @@ from typing import TYPE_CHECKING, Annotated, get_args
 
 import typer
 
+from phalanx.cli.numbers import group_sizes
 from phalanx.cli.progress import Reporter, sweep_statement
 from phalanx.cli.tables import MarkdownOpt, markdown_cells, show_table
 
@@ -27,7 +28,9 @@ def sweep(
         typer.Option(help="Scenario family: field, narrow, deadend, corridor (default field)."),
     ] = None,
     shape: Annotated[list[str] | None, typer.Option(help="Formations (default all three).")] = None,
-    robots: Annotated[list[int] | None, typer.Option(help="Group sizes (default 3).")] = None,
+    robots: Annotated[
+        list[int] | None, typer.Option(help="Group sizes (default 3).", callback=group_sizes)
+    ] = None,
     controller: Annotated[
         list[str] | None, typer.Option(help="Follower controllers (default ours).")
     ] = None,
