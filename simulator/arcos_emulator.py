@@ -50,6 +50,7 @@ from phalanx.simulator.sensors.odometry import OdometryTracker
 __all__ = ["ArcosEmulator", "EmulatorOptions", "Link", "PtyLink", "TcpLink"]
 log = logging.getLogger("phalanx.emulator")
 STEP_S = 0.01  # the motion profile's time step while it changes
+MAX_STEPS = 1000  # steps of one catch-up, at most (a 10 s gap in STEP_S steps)
 VEL2_DIVISOR_MMPS = 20.0  # AriaCoda params/p3dx*.p Vel2Divisor
 
 
@@ -271,16 +272,23 @@ class ArcosEmulator(Closing):
                     self._send_sip()
 
     def _advance(self, now: float) -> None:
-        """Run the motion profile and the body from the last step to `now`."""
+        """Run the motion profile and the body from the last step to `now`, `STEP_S` at a
+        time as a firmware's own cycle runs (at most `MAX_STEPS` of them, longer ones past
+        that): a wake-up of this process that comes late on a loaded machine must not
+        make one long step of a turn to a heading or of a move, which overshoots it.
+        """
         with self._lock:
             dt_s = now - self._stepped_s
             self._stepped_s = now
-            if dt_s <= 0.0:
-                return
-            pose = self._odom_origin.relative(self.body.state().pose)
-            twist = self.motion.step(dt_s, pose)
-            self.body.command(twist if self._motors_enabled else Twist2D(0.0, 0.0))
-        self.body.step(dt_s)
+        step_s = max(STEP_S, dt_s / MAX_STEPS)
+        while dt_s > 0.0:
+            this_s = min(step_s, dt_s)
+            dt_s -= this_s
+            with self._lock:
+                pose = self._odom_origin.relative(self.body.state().pose)
+                twist = self.motion.step(this_s, pose)
+                self.body.command(twist if self._motors_enabled else Twist2D(0.0, 0.0))
+            self.body.step(this_s)
 
     def _count(self, name: str) -> None:
         self.stats.commands[name] = self.stats.commands.get(name, 0) + 1

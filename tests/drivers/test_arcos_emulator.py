@@ -142,6 +142,27 @@ def test_head_and_dhead_turn_to_their_heading(client: Client) -> None:
     assert client.pose[2] == pytest.approx(-90.0, abs=0.3)
 
 
+@pytest.mark.parametrize(("cmd", "arg"), [(Cmd.HEAD, 90), (Cmd.MOVE, 600)])
+def test_an_emulator_woken_late_catches_up_in_its_cycles_steps(
+    client: Client, emulator: ArcosEmulator, cmd: int, arg: int
+) -> None:
+    # Its thread held up 0.3 s at a time in mid-motion, as a loaded machine holds it up:
+    # a turn to a heading or a move ends where it does on time (a catch-up made in one
+    # step overshot the heading, or stopped short of the distance).
+    client.send(cmd, arg)
+    client.pump(0.2)
+    for _ in range(6):
+        with emulator._lock:  # (the firmware's own: its thread waits for it)
+            time.sleep(0.3)
+        client.pump(0.05)
+    client.at_rest()
+    x, y, th = client.pose
+    if cmd == Cmd.HEAD:
+        assert th == pytest.approx(90.0, abs=0.3)
+    else:
+        assert math.hypot(x, y) == pytest.approx(600.0, abs=3.0)
+
+
 def test_move_goes_its_distance_along_the_heading_and_stops(client: Client) -> None:
     client.send(Cmd.DHEAD, 30)
     client.at_rest()
