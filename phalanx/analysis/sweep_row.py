@@ -15,7 +15,8 @@ from typing import Annotated, Any
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field, ValidationError
 
 from phalanx.core.config import MAX_ROBOTS
-from phalanx.core.quantities import MAX_DURATION_S
+from phalanx.core.quantities import MAX_DURATION_S, Duration
+from phalanx.wire.bounds import Count
 
 # The largest formation error a run records (per cent, deg, m: a follower a world away).
 MAX_ERROR = 1e9
@@ -41,9 +42,7 @@ def _error(value: float) -> float:
 
 Share = Annotated[float, AfterValidator(_share)]  # 0..1, or NaN
 Time = Annotated[float, AfterValidator(_time)]  # s, or NaN
-Seconds = Annotated[float, Field(ge=0.0, le=MAX_DURATION_S)]
 Error = Annotated[float, AfterValidator(_error)]  # or NaN
-Count = Annotated[int, Field(ge=0, le=2**32 - 1)]
 Text = Annotated[str, Field(max_length=2000)]
 
 
@@ -89,10 +88,10 @@ class SweepRow(_Record):
 
     job: JobRecord
     key: Text
-    wall_s: Seconds
+    wall_s: Duration
     route_s: Time
     goal_reached: bool
-    time_to_goal_s: Seconds | None
+    time_to_goal_s: Duration | None
     collisions_obstacle: Count
     collisions_robot: Count
     deadlock_reverses: Count

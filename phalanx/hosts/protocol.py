@@ -20,6 +20,7 @@ from typing import Annotated, Literal
 from pydantic import BaseModel, ConfigDict, Field
 
 from phalanx.hosts.deployment import NAME_PATTERN
+from phalanx.wire.bounds import Count
 
 PROTOCOL_VERSION: Literal[1] = 1
 MAX_REQUEST_BYTES = 64 * 1024
@@ -85,13 +86,13 @@ class ChildStatus(Wire):
     name: str
     kind: Literal["agent", "world"]
     state: ChildState
-    pid: int | None = Field(default=None, ge=0, le=2**32 - 1)
-    restarts: int = Field(default=0, ge=0, le=2**32 - 1)
+    pid: Count | None = None
+    restarts: Count = 0
     # times it ended on its own with an error (finished runs exit 0)
-    crashes: int = Field(default=0, ge=0, le=2**32 - 1)
+    crashes: Count = 0
     exit_code: int | None = Field(default=None, ge=-256, le=255)  # (negative: its signal)
     last_error: str = ""
-    log_dropped: int = Field(default=0, ge=0, le=2**32 - 1)
+    log_dropped: Count = 0
 
 
 class HostStatus(Wire):

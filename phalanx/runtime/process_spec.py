@@ -26,6 +26,7 @@ from phalanx.core.config_files import validate_data
 from phalanx.core.errors import ConfigError
 from phalanx.core.quantities import MAX_DURATION_S, MAX_WATCHDOG_S
 from phalanx.drivers import backend_names, settings_from_options, validate_settings
+from phalanx.wire.bounds import UnixStamp
 from phalanx.wire.transport import TransportConfig
 
 if TYPE_CHECKING:
@@ -128,7 +129,7 @@ class AgentSpec(_Frozen):
     transport: TransportConfig = TransportConfig()
     driver: DriverChoice = DriverChoice()
     # robots on drivers: Unix time of step 0 (None: now), the wire's range of them
-    epoch_s: float | None = Field(default=None, ge=0.0, le=float(2**32 - 1))
+    epoch_s: UnixStamp | None = None
     # robots on drivers: no command this long, stop (a safety stop: never long)
     watchdog_s: float = Field(default=0.5, gt=0.0, le=MAX_WATCHDOG_S)
     camera: str | None = None  # robots on drivers: DEVICE=CALIBRATION.toml of a camera
