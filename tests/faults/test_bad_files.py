@@ -77,6 +77,7 @@ def _write(tmp_path: Path, case: str, text: str | bytes) -> Path:
     return path
 
 
+@pytest.mark.timeout(180)  # its child processes' own bound, and set-up
 @pytest.mark.parametrize("case", sorted(CASES))
 def test_a_bad_file_or_value_is_one_message_and_exit_2(tmp_path: Path, case: str) -> None:
     text, extra, says = CASES[case]

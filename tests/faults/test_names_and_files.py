@@ -59,6 +59,7 @@ def test_a_name_that_is_a_path_is_refused_and_nothing_written(tmp_path: Path, na
     assert _files_under(tmp_path) == [scenario]  # no results anywhere, inside or out
 
 
+@pytest.mark.timeout(180)  # its child processes' own bound, and set-up
 def test_up_refuses_a_name_that_is_a_path_before_starting_anything(tmp_path: Path) -> None:
     scenario = tmp_path / "named.toml"
     scenario.write_text(_with_name(str(tmp_path / "absolute")))

@@ -253,6 +253,7 @@ def test_the_private_directory_is_made_per_run_and_removed_after_it() -> None:
     assert not any(folder.exists() for folder in folders)
 
 
+@pytest.mark.timeout(240)  # its child processes' own bound, and set-up
 def test_up_runs_to_completion_over_the_socket_and_leaves_no_directory(tmp_path: Path) -> None:
     done = subprocess.run(
         [*CLI, "up", str(WEDGE), "--fleet", "private-lockstep", "--set", "duration_s=5",

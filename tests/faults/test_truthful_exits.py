@@ -191,6 +191,7 @@ def test_up_on_a_full_disk_gives_one_message_and_never_an_empty_file(tmp_path: P
     _assert_nothing_half_written(kept / "up")
 
 
+@pytest.mark.timeout(180)  # its child processes' own bound, and set-up
 def test_run_past_its_file_size_limit_gives_one_message_and_never_an_empty_file(
     tmp_path: Path,
 ) -> None:

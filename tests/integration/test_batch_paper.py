@@ -77,6 +77,7 @@ def test_transitions_logged_with_reasons() -> None:
     assert log.saturations.keys() == {"r1", "r2", "r3"}
 
 
+@pytest.mark.timeout(180)  # its child processes' own bound, and set-up
 def test_cli_run_writes_the_results_folder(tmp_path: Path) -> None:
     out = tmp_path / "res"
     proc = subprocess.run(

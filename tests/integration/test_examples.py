@@ -220,6 +220,7 @@ def test_the_map_is_the_floor_plan_of_its_world() -> None:
     assert not door.any()
 
 
+@pytest.mark.timeout(180)  # its child processes' own bound, and set-up
 def test_the_scripts_run_a_scenario_and_plot_its_results(tmp_path: Path) -> None:
     out = tmp_path / "api"
     ran = subprocess.run(

@@ -31,6 +31,7 @@ TOLERANCE = {"linear_pct": 0.2, "angular_pct": 0.1, "orientation_deg": 0.3}
 BOUNDS = {"linear_pct": 2.0, "angular_pct": 0.8, "orientation_deg": 1.3}
 
 
+@pytest.mark.timeout(260)  # its child processes' own bound, and set-up
 def test_up_on_arcos_emulators_keeps_the_formation(tmp_path: Path) -> None:
     out = tmp_path / "arcos"
     sets = [arg for s in SHORT for arg in ("--set", s)]

@@ -29,6 +29,7 @@ def processes() -> Iterator[list[subprocess.Popen[bytes]]]:
     terminate(procs, grace_s=10.0)
 
 
+@pytest.mark.timeout(240)  # its child processes' own bound, and set-up
 def test_up_reproduces_the_in_process_run(
     tmp_path: Path, same_follower_metrics: Callable[..., None]
 ) -> None:
@@ -69,6 +70,7 @@ def test_up_reproduces_the_in_process_run(
     assert not any(a["late_peer_steps"] for a in runtime["agents"].values())
 
 
+@pytest.mark.timeout(240)  # its child processes' own bound, and set-up
 def test_up_reproduces_a_leadership_handover(tmp_path: Path) -> None:
     """The leader alone blocked (its sonars read 0.3 m at 8 s): every robot process hands
     the lead to r2 under epoch 1 on the same tick as the in-process run, and the group's

@@ -22,6 +22,7 @@ PER_ROBOT = ("pose", "heading", "trail", "cmd/v_mps", "cmd/omega_degps", "measur
 PER_FOLLOWER = ("slot_target", "errors/linear_pct", "errors/angular_pct", "errors/orientation_deg")
 
 
+@pytest.mark.timeout(360)  # its child processes' own bound, and set-up
 def test_up_recording_reads_back_whole(tmp_path: Path) -> None:
     out = tmp_path / "run"
     proc = subprocess.run(
@@ -51,6 +52,7 @@ def test_up_recording_reads_back_whole(tmp_path: Path) -> None:
     assert rows["/bounds/velocity/v_max_mps"] > 0
 
 
+@pytest.mark.timeout(360)  # its child processes' own bound, and set-up
 def test_a_dead_viewer_costs_the_fleet_nothing_but_counted_drops(tmp_path: Path) -> None:
     out = tmp_path / "run"
     dead = f"rerun+http://127.0.0.1:{free_tcp_port()}/proxy"  # nothing listens there

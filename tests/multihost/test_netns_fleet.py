@@ -36,6 +36,7 @@ def _write_deployment(kit: Any, lab: NetLab, tmp_path: Path, name: str, clock: s
     return path
 
 
+@pytest.mark.timeout(260)  # its child processes' own bound, and set-up
 def test_lockstep_across_namespaces_gives_the_single_host_metrics(
     kit: Any, lab: NetLab, tmp_path: Path, same_follower_metrics: Callable[..., None]
 ) -> None:

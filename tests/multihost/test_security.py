@@ -300,6 +300,7 @@ def test_a_stolen_host_certificate_cannot_relay_an_outsiders_request(
             assert reply.status.children == ()
 
 
+@pytest.mark.timeout(260)  # its child processes' own bound, and set-up
 def test_the_fleet_runs_unchanged_while_a_robot_certificate_attacks_it(
     kit: Any, secured: SecuredFleet, same_follower_metrics: Callable[..., None]
 ) -> None:
@@ -440,6 +441,7 @@ def test_a_robot_certificate_cannot_take_the_lead_with_its_own_flags(
 # --- across namespaces ----------------------------------------------------------------
 
 
+@pytest.mark.timeout(260)  # its child processes' own bound, and set-up
 def test_lockstep_across_namespaces_under_mtls_gives_the_single_host_metrics(
     kit: Any, lab: NetLab, tmp_path: Path, same_follower_metrics: Callable[..., None]
 ) -> None:

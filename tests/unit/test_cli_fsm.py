@@ -6,6 +6,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
 from typer.testing import CliRunner
 
 from phalanx.cli import app
@@ -23,6 +24,7 @@ def test_fsm_prints_mermaid_and_writes_the_diagram(tmp_path: Path) -> None:
     assert png.stat().st_size > 20_000
 
 
+@pytest.mark.timeout(180)  # its child processes' own bound, and set-up
 def test_fsm_as_a_real_command(tmp_path: Path) -> None:
     png = tmp_path / "chart.png"
     proc = subprocess.run(

@@ -165,6 +165,7 @@ def test_an_epoch_that_is_not_a_time_is_refused(verb: str) -> None:
     assert "nan is not a Unix time" in said
 
 
+@pytest.mark.timeout(180)  # its child processes' own bound, and set-up
 def test_a_robot_file_given_as_a_scenario_is_called_one(tmp_path: Path) -> None:
     done = subprocess.run(
         [sys.executable, "-m", "phalanx", "run", str(REPO / "configs/robots/p3dx.toml"),

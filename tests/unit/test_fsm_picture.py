@@ -197,6 +197,7 @@ def test_fsm_writes_png_svg_and_dot(tmp_path: Path) -> None:
     assert out["dot"].read_text() == to_dot(behaviour_machine())
 
 
+@pytest.mark.timeout(180)  # its child processes' own bound, and set-up
 def test_fsm_into_a_missing_folder_says_so_without_a_traceback(tmp_path: Path) -> None:
     target = tmp_path / "nowhere" / "chart.svg"
     proc = subprocess.run(

@@ -131,6 +131,7 @@ def test_a_checkpoint_gives_the_run_time_reached_and_a_stale_or_torn_one_nothing
     assert checkpoint_s(path, 0.1, since_unix=0.0) is None
 
 
+@pytest.mark.timeout(240)  # its child processes' own bound, and set-up
 def test_up_writes_svg_figures_when_asked(tmp_path: Path) -> None:
     out = tmp_path / "out"
     done = subprocess.run(

@@ -42,6 +42,7 @@ def test_committed_schema_is_current(kind: Kind) -> None:
     )
 
 
+@pytest.mark.timeout(180)  # its child processes' own bound, and set-up
 def test_every_shipped_file_validates_in_one_call() -> None:
     files = [path for paths in SHIPPED.values() for path in paths]
     assert all(SHIPPED.values()), SHIPPED
