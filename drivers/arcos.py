@@ -71,6 +71,7 @@ class ArcosDriver(Closing):
         self.robot = robot
         self.stats = ArcosStats()
         self.parser = FrameParser()
+        self._skipped = 0  # the parser's errors and garbage bytes at the last frame
         self.readings = SipTracker(self.stats)
         self.robot_name = ""
         self.subtype = ""
@@ -444,6 +445,10 @@ class ArcosDriver(Closing):
 
     def _dispatch(self, body: bytes) -> None:
         byte_time_s = self._link.byte_time_s if self._link is not None else 0.0
+        skipped = self.parser.stats.errors + self.parser.stats.garbage_bytes
+        if skipped != self._skipped:  # a frame may have been lost before this one
+            self._skipped = skipped
+            self.readings.lose_cycle()
         sip = self.readings.take(body, byte_time_s=byte_time_s)
         if sip is not None and sip.estopped and not self._estop:
             self._estop = "the robot's E-stop button"

@@ -45,6 +45,9 @@ CHORD_EASE_S = 1.0
 # Slower than this (m/s), a robot is taken to stand: its chords are too short to tell.
 MOVING_MPS = 0.02
 FRAME_OVERHEAD_BYTES = 5  # FA FB, the length byte, the two checksum bytes
+# A robot's cycle may run this much longer than it says (its clock against ours) and its
+# packets' stamps still follow their arrivals when they come on time.
+CYCLE_SLACK = 0.005
 
 
 @dataclass
@@ -60,6 +63,38 @@ class ArcosStats:
     commands_sent: int = 0
     sips_lost_s: float | None = None  # SIPs declared lost
     loss_stop_s: float | None = None  # the STOP sent for it (None: the link was gone)
+
+
+class CycleClock:
+    """When the robot sent its packets, from when they arrived.
+
+    The firmware sends a SIP every cycle (CONFIG's SipCycle: 100 ms on a P3DX); a
+    simulator sends a SIMSTAT just before it, saying how long its last update took in
+    real time. A packet was sent no later than it arrived, nor more than a cycle after
+    the one before it: its stamp is the earlier of the two. A reader the host held up
+    (a loaded machine: tens of milliseconds, then the packets read in one burst) so
+    stamps them when the robot sent them, not when it got round to them, and robots
+    recorded side by side stay in step; a packet on time is stamped at its arrival. After
+    a frame was lost, or on a new connection, `lose()` forgets the last stamp: the next
+    packet may come more than a cycle later.
+    """
+
+    def __init__(self) -> None:
+        self.last_s: float | None = None
+
+    def stamp(self, arrived_s: float, period_s: float) -> float:
+        """When the packet that arrived at `arrived_s` was sent, `period_s` (0: not
+        known) being the robot's cycle since the one before.
+        """
+        sent_s = arrived_s
+        if self.last_s is not None and period_s > 0.0:
+            sent_s = min(arrived_s, self.last_s + period_s * (1.0 + CYCLE_SLACK))
+        self.last_s = sent_s
+        return sent_s
+
+    def lose(self) -> None:
+        """The next packet may not follow the last by one cycle."""
+        self.last_s = None
 
 
 class QuantisedHeading:
@@ -175,6 +210,8 @@ class SipTracker:
         self.odometry: Odometry | None = None
         self.truth: TruePose | None = None  # a simulator's true pose (SIMSTAT)
         self._sim_ms, self._real_ms = 0, 0  # its updates' simulated and real times
+        self._sip_clock, self._simstat_clock = CycleClock(), CycleClock()
+        self._update_s = 0.0  # a simulator's last update took this long in real time
         self.heading_step_rad = heading_step_rad
         self._headings: tuple[QuantisedHeading, QuantisedHeading] | None = None
         self.sonar_m: tuple[float, ...] = (5.0,) * N_SONARS
@@ -189,14 +226,21 @@ class SipTracker:
         self._last_xy, self._th0 = None, None
         self._raw = (0.0, 0.0)
         self.last_sip_s = time.monotonic()
+        self.lose_cycle()
         step = self.heading_step_rad
         self._headings = None if step is None else (QuantisedHeading(step), QuantisedHeading(step))
+
+    def lose_cycle(self) -> None:
+        """A frame was lost (or the link is new): the next packets start the cycle anew."""
+        self._sip_clock.lose()
+        self._simstat_clock.lose()
 
     def take(self, body: bytes, *, byte_time_s: float) -> Sip | None:
         """Account for one frame's body; the SIP if it was a good one.
 
         A SIP is stamped when the robot sent it: its arrival less its time on the wire
-        (the whole frame at `byte_time_s` a byte).
+        (the whole frame at `byte_time_s` a byte), or a cycle after the last SIP if that
+        is earlier (`CycleClock`); a simulator's cycle is its last update's real time.
         """
         kind = body[0]
         if kind in (SIP_STOPPED, SIP_MOVING):
@@ -204,15 +248,20 @@ class SipTracker:
                 sip = decode_sip(body)
             except ProtocolError:
                 self.stats.bad_sips += 1
+                self.lose_cycle()
                 return None
             wire_s = (len(body) + FRAME_OVERHEAD_BYTES) * byte_time_s
-            self._on_sip(sip, time.monotonic() - wire_s)
+            self._on_sip(sip, self._sip_clock.stamp(time.monotonic() - wire_s, self._cycle_s()))
             return sip
         if kind == SIMSTAT:
             try:
-                self._on_simstat(decode_simstat(body), time.monotonic())
+                stat = decode_simstat(body)
             except ProtocolError:
                 self.stats.bad_sips += 1
+                self.lose_cycle()
+                return None
+            self._update_s = stat.last_interval_ms / 1000.0
+            self._on_simstat(stat, self._simstat_clock.stamp(time.monotonic(), self._update_s))
             return None
         if kind == CONFIG_PAC:
             try:
@@ -222,6 +271,14 @@ class SipTracker:
         else:
             self.stats.other_frames += 1
         return None
+
+    def _cycle_s(self) -> float:
+        """The robot's cycle (s; 0 while not known): a simulator's last update, else the
+        SIP cycle its CONFIG packet gives.
+        """
+        if self._update_s > 0.0:
+            return self._update_s
+        return self.config.sip_cycle_ms / 1000.0 if self.config is not None else 0.0
 
     def status(self, *, link_fault: str, estop: str) -> RobotStatus:
         """Sonar (m), bumpers, battery (V) and motor state of the latest SIP, with the
