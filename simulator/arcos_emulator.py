@@ -51,6 +51,9 @@ __all__ = ["ArcosEmulator", "EmulatorOptions", "Link", "PtyLink", "TcpLink"]
 log = logging.getLogger("phalanx.emulator")
 STEP_S = 0.01  # the motion profile's time step while it changes
 MAX_STEPS = 1000  # steps of one catch-up, at most (a 10 s gap in STEP_S steps)
+# SIPs of cycles a late wake-up missed are sent at once, this many at most: longer, and
+# the driver has taken the link for lost (its link timeout, 1 s by default).
+MAX_LATE_SIPS = 10
 VEL2_DIVISOR_MMPS = 20.0  # AriaCoda params/p3dx*.p Vel2Divisor
 
 
@@ -259,17 +262,29 @@ class ArcosEmulator(Closing):
                 continue
             if self._faults.unplugged:
                 data = b""
-            self._advance(time.monotonic())  # commands act from the moment they arrive
+            now = time.monotonic()
+            next_sip = self._send_due_sips(next_sip, now)
+            self._advance(now)  # commands act from the moment they arrive
             for body in self.parser.feed(data):
                 self._handle(body)
-            now = time.monotonic()
-            self._watchdog(now)
-            if now >= next_sip:
-                next_sip += self.options.sip_cycle_s
-                if next_sip < now:
-                    next_sip = now + self.options.sip_cycle_s
-                if self._open:
-                    self._send_sip()
+            self._watchdog(time.monotonic())
+
+    def _send_due_sips(self, next_sip: float, now: float) -> float:
+        """Send the SIP of each cycle due by `now`, describing the robot at that cycle's
+        time, as firmware on its own clock does: a wake-up late on a loaded machine sends
+        the cycles it missed at once (at most MAX_LATE_SIPS; past that the cycle starts
+        again now), each as it was, not the robot as it is when the SIPs go out. Returns
+        the time of the next cycle.
+        """
+        cycle_s = self.options.sip_cycle_s
+        if now - next_sip > MAX_LATE_SIPS * cycle_s:
+            next_sip = now
+        while next_sip <= now:
+            self._advance(next_sip)
+            if self._open:
+                self._send_sip(next_sip)
+            next_sip += cycle_s
+        return next_sip
 
     def _advance(self, now: float) -> None:
         """Run the motion profile and the body from the last step to `now`, `STEP_S` at a
@@ -279,7 +294,7 @@ class ArcosEmulator(Closing):
         """
         with self._lock:
             dt_s = now - self._stepped_s
-            self._stepped_s = now
+            self._stepped_s = max(self._stepped_s, now)
         step_s = max(STEP_S, dt_s / MAX_STEPS)
         while dt_s > 0.0:
             this_s = min(step_s, dt_s)
@@ -392,7 +407,8 @@ class ArcosEmulator(Closing):
             data = bytes(b ^ 0x5A for b in data[:n]) + data[n:]
         self.link.write(data)
 
-    def _send_sip(self) -> None:
+    def _send_sip(self, at_s: float) -> None:
+        """The SIP of the cycle at `at_s` (monotonic; the body is stepped to it)."""
         with self._lock:
             if self._faults.drop_sips:
                 self._faults.drop_sips -= 1
@@ -400,7 +416,7 @@ class ArcosEmulator(Closing):
             flags = 0x0001 if self._motors_enabled else 0
             flags |= 0x001E if self._sonar_on else 0  # bits 1-4: the sonar arrays
             flags |= 0x0020 if self._faults.estop_button else 0
-            state = self.body.state()
+            state = self.body.state_at(at_s)
             sonars = self.body.sonar_ranges_m() if self._sonar_on else None
             pose = self._odom_origin.relative(_measured(self._odometry, state.pose))
             sip = _sip_of(

@@ -76,6 +76,13 @@ class Body:
         with self._lock:
             return self._snapshot()
 
+    def state_at(self, t_s: float) -> BodyState:
+        """The snapshot at monotonic time `t_s`: this body is where its owner last
+        stepped it, which an emulator sending a SIP of the cycle at `t_s` has done.
+        """
+        del t_s
+        return self.state()
+
     def _snapshot(self) -> BodyState:
         return BodyState(self._pose, self._twist, self._setpoint, self._stalled, self._odometer_m)
 

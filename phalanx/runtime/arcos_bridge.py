@@ -88,9 +88,15 @@ class WorldBody(Body):
 
     def state(self) -> BodyState:
         """The snapshot, its pose carried forward from the last frame to now."""
+        return self.state_at(self.clock())
+
+    def state_at(self, t_s: float) -> BodyState:
+        """The snapshot, its pose carried forward from the last frame to `t_s` (this
+        body's clock; not back before the frame).
+        """
         with self._lock:
             snapshot = self._snapshot()
-            age_s = self.clock() - self._frame_s
+            age_s = t_s - self._frame_s
         snapshot.pose = dead_reckon(snapshot.pose, snapshot.twist, age_s, MAX_FRAME_AGE_S)
         return snapshot
 

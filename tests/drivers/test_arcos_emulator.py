@@ -3,6 +3,7 @@ uses and reads the SIPs back; the robot moves as a P3DX's firmware moves it."""
 
 from __future__ import annotations
 
+import itertools
 import logging
 import math
 import re
@@ -161,6 +162,34 @@ def test_an_emulator_woken_late_catches_up_in_its_cycles_steps(
         assert th == pytest.approx(90.0, abs=0.3)
     else:
         assert math.hypot(x, y) == pytest.approx(600.0, abs=3.0)
+
+
+def test_a_late_emulator_sends_the_cycles_it_missed_each_as_it_was(
+    client: Client, emulator: ArcosEmulator
+) -> None:
+    # Held up 0.35 s while driving at 200 mm/s, it sends the SIPs of the cycles it
+    # missed at once, each with the robot where it was at its cycle (20 mm apart), as
+    # firmware on its own clock does; the driver stamps them on that cycle
+    # (CycleClock). Before, one SIP went out late with the robot where it was then.
+    client.send(Cmd.VEL, 200)
+    client.pump(1.5)  # at speed
+    before = client.tracker.stats.sips
+    with emulator._lock:
+        time.sleep(0.35)
+    xs = []
+    deadline = time.monotonic() + 2.0
+    while client.tracker.stats.sips < before + 6 and time.monotonic() < deadline:
+        try:
+            data = client.sock.recv(65536)
+        except TimeoutError:
+            continue
+        for body in client.parser.feed(data):
+            if client.tracker.take(body, byte_time_s=0.0) is not None:
+                xs.append(client.pose[0])
+    client.send(Cmd.STOP)
+    steps = [b - a for a, b in itertools.pairwise(xs)]
+    assert len(steps) >= 5, xs
+    assert steps == pytest.approx([20.0] * len(steps), abs=1.5), xs
 
 
 def test_move_goes_its_distance_along_the_heading_and_stops(client: Client) -> None:
