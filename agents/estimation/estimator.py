@@ -12,6 +12,13 @@ applied where it was taken (buffer and replay). A measurement older than the his
 uncertain by the robot's motion over the time its stamp may be off the odometry's
 (`stamp_std_s` of its source, and how far ahead it was).
 
+A filter that refused every pose fix for `RELOCALISE_AFTER_S` is lost, not the positioning
+system: sure of a pose its odometry carried off (a fast turn at the start, a wheel
+slipping), it would refuse every fix to come and drive on odometry alone. It then takes
+the newest fix as its belief, with that fix's covariance (what a pose measurement says
+given no prior), and replays from there; counted as `fix_relocalised`. A lone outlier, or
+a burst of them shorter than that, is still refused.
+
 Sources: absolute pose fixes (`PoseFix`: motion capture, an overhead camera) and
 relative measurements of the robot this one tracks (`RelativeFix`: a camera on a
 fiducial marker), which, with that robot's published estimate and covariance, tell where
@@ -25,7 +32,7 @@ from __future__ import annotations
 import math
 from collections import Counter, deque
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 from phalanx.agents.estimation.ekf import Belief, ProcessNoise, predict, update_pose, wrap
 from phalanx.agents.estimation.relative import as_pose_fix, update_range_bearing
@@ -47,6 +54,8 @@ SAME_INSTANT_S = 1e-9
 # A robot that had an absolute fix this recently lives in the world frame: relative
 # measurements (which tie it to another robot's estimate) wait until the fixes stop.
 ABSOLUTE_FRESH_S = 0.5
+# A filter that refused every pose fix this long (by the fixes' stamps) takes the newest.
+RELOCALISE_AFTER_S = 0.5
 # How far the leader's published estimate may be carried forward or back to the instant
 # of a relative measurement; the extra uncertainty per second of it (m, rad).
 MAX_LEADER_AGE_S = 1.0
@@ -66,15 +75,16 @@ class Estimate:
 
 @dataclass(frozen=True, slots=True)
 class _Taken:
-    """A measurement as the history keeps it: a pose fix, or a relative measurement with
-    the tracked robot's state as it was known when the measurement arrived (so a replay
-    gives the same result).
+    """A measurement as the history keeps it: a pose fix (`reset`: taken as the belief,
+    the filter being lost), or a relative measurement with the tracked robot's state as
+    it was known when the measurement arrived (so a replay gives the same result).
     """
 
     stamp_s: float
     fix: PoseFix | None = None
     relative: RelativeFix | None = None
     lead: PeerState | None = None
+    reset: bool = False
 
 
 @dataclass(slots=True)
@@ -130,6 +140,7 @@ class PoseEstimator:
         self._nodes: deque[_Node] = deque()
         self._last_odometry: Pose2D | None = None
         self._last_fix_s = -math.inf
+        self._last_fused_s = -math.inf  # the newest fix fused (or the first one taken)
         self._min_fix_gap_s = 0.0
         if config.mocap is not None and config.mocap.fuse_hz < config.mocap.rate_hz:
             # (a hair under the period: stamps k / rate are not exact in floating point)
@@ -160,6 +171,8 @@ class PoseEstimator:
             if place is not None:
                 first = min(first, place)
         self._replay(*first)
+        if self._last_fix_s - self._last_fused_s >= RELOCALISE_AFTER_S:
+            self._relocalise()
         self._trim()
         b = self._nodes[-1].belief
         return Estimate(Pose2D(b.x, b.y, b.th), self.published_cov(b), odometry.stamp_s)
@@ -194,6 +207,8 @@ class PoseEstimator:
             if fix.stamp_s - self._last_fix_s < self._min_fix_gap_s:
                 count["fix_thinned"] += 1
                 continue
+            if self._last_fused_s == -math.inf:  # (the time since fixes first came)
+                self._last_fused_s = fix.stamp_s
             self._last_fix_s = fix.stamp_s
             taken.append(_Taken(fix.stamp_s, fix=fix))
         for rel in relative:
@@ -252,6 +267,17 @@ class PoseEstimator:
             return belief
         return predict(belief, node.ds_m * frac, node.dth_rad * frac, span_s * frac, self.noise)
 
+    def _relocalise(self) -> None:
+        """Take the newest pose fix in the history as the belief and replay from it."""
+        for i in range(len(self._nodes) - 1, 0, -1):
+            taken = self._nodes[i].taken
+            for j in range(len(taken) - 1, -1, -1):
+                if taken[j].fix is not None:
+                    taken[j] = replace(taken[j], reset=True)
+                    self.stats.counts["fix_relocalised"] += 1
+                    self._replay(i, j)
+                    return
+
     def _trim(self) -> None:
         nodes = self._nodes
         horizon = nodes[-1].t_s - self.config.history_s
@@ -264,9 +290,13 @@ class PoseEstimator:
         if item.fix is not None:
             fix = item.fix
             r = self._fix_noise(fix, belief.th, node, span_s)
-            out = update_pose(belief, (fix.x_m, fix.y_m, fix.theta_rad), r, self.config.gate)
+            if item.reset:
+                out: Belief | None = Belief(fix.x_m, fix.y_m, fix.theta_rad, r)
+            else:
+                out = update_pose(belief, (fix.x_m, fix.y_m, fix.theta_rad), r, self.config.gate)
             if out is not None:
                 self._frame_of = None  # back in the world frame
+                self._last_fused_s = max(self._last_fused_s, fix.stamp_s)
             return self._count(out, belief, "fix")
         if item.relative is None or item.lead is None:  # (never: `_select` pairs them)
             return belief

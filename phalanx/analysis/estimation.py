@@ -62,7 +62,7 @@ def robot_estimation(log: RunLog, robot_id: str) -> dict[str, Any]:
     return {
         "position_m": _stat(pos[settled]),
         "heading_deg": _stat(np.degrees(np.abs(head[settled]))),
-        "final_position_m": float(pos[-1]) if pos.size else math.nan,
+        "final_position_m": _last(pos),
         "nees_steps": int(finite.size),
         "nees_mean": float(finite.mean()) if finite.size else math.nan,
         "nees_in_band": float(inside.mean()) if finite.size else math.nan,
@@ -85,7 +85,13 @@ def drift_cm_per_m(log: RunLog, robot_id: str) -> float:
     trace = log.traces[robot_id]
     driven_m = float(np.sum(np.hypot(np.diff(trace.x_m), np.diff(trace.y_m))))
     pos, _, _ = pose_errors(trace)
-    return 100.0 * float(pos[-1]) / driven_m if driven_m > 0 else math.nan
+    return 100.0 * _last(pos) / driven_m if driven_m > 0 else math.nan
+
+
+def _last(values: FloatArray) -> float:
+    """The last finite value (NaN: none; a robot publishes no pose for a tick it skips)."""
+    finite = values[np.isfinite(values)]
+    return float(finite[-1]) if finite.size else math.nan
 
 
 def _stat(values: FloatArray) -> dict[str, float]:

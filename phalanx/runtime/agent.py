@@ -166,6 +166,7 @@ class AgentRuntime:
     def _status(self) -> dict[str, object]:
         stats = self._session.stats.as_dict() if self._session else {}
         state = self.last.state if self.last is not None else None
+        estimator = self.agent.estimator  # (its measurements' outcomes: fused, gated, ...)
         return {
             "robot_id": self.robot_id,
             "steps": self.steps,
@@ -176,6 +177,7 @@ class AgentRuntime:
             "late_peer_steps": self.inbox.late_steps,
             "scans_heard": self.scans.heard,
             "robot_echoes_left_out": self.agent.robot_echoes_left_out,
+            "estimator": dict(estimator.stats.counts) if estimator is not None else {},
             **self.operator.counters(),
             "flags_skipped": self.flags_out.skipped,
             "unsent": self.unsent,

@@ -23,7 +23,9 @@ from phalanx.simulator.world import World
 from phalanx.telemetry.stream import Telemetry
 from phalanx.wire.messages import AgentEvent, AgentReport, RobotState
 
-Published = dict[str, tuple[FloatArray, FloatArray]]  # each robot's v and omega, per tick
+# Each robot's last published pose (n x 3), v and omega, per tick (a tick it published
+# nothing for: those it published before).
+Published = dict[str, tuple[FloatArray, FloatArray, FloatArray]]
 
 
 class RunRecord:
@@ -96,13 +98,16 @@ class RunRecord:
 
     def _take_states(self, states: Mapping[str, Mapping[int, RobotState]]) -> Published:
         """What each robot published, tick by tick (a missing state: the one before):
-        its behaviour state, whom it tracked, the leader and epoch it knew, its pose (its
-        estimate) and covariance; the twists it published, returned.
+        its behaviour state, whom it tracked, the leader and epoch it knew; its pose (its
+        estimate) and covariance only at the ticks it published them for (an agent late
+        on a loaded machine skips ticks, and its pose of three ticks before is not its
+        estimate now); its poses and twists as held, returned.
         """
         root = self.formation.root
         published = {}
         for rid in self.ids:
             got, tr = states.get(rid, {}), self.traces[rid]
+            held = np.full((self.steps, 3), np.nan)
             v, w = np.zeros(self.steps), np.zeros(self.steps)
             last = None
             for trace_list in (tr.states, tr.tracked, tr.leaders, tr.epochs, tr.formed):
@@ -115,12 +120,15 @@ class RunRecord:
                 tr.leaders.append(last.formation_leader_id or root if last else root)
                 tr.epochs.append(last.epoch if last else 0)
                 tr.formed.append(last.formed if last else True)
-                if last is not None:  # the pose it published (its estimate) and covariance
-                    tr.estimate[k] = (last.x_m, last.y_m, last.theta_rad)
-                    v[k], w[k] = last.v_mps, last.omega_radps
+                if last is None:
+                    continue
+                held[k] = (last.x_m, last.y_m, last.theta_rad)
+                v[k], w[k] = last.v_mps, last.omega_radps
+                if k in got:  # the pose it published for this tick (its estimate)
+                    tr.estimate[k] = held[k]
                     if last.cov:
                         tr.cov[k] = last.cov
-            published[rid] = (v, w)
+            published[rid] = (held, v, w)
         return published
 
     def _take_observed(self, observed: ObservedRobots, published: Published) -> dict[str, str]:
@@ -132,10 +140,11 @@ class RunRecord:
         for rid in observed.ids:
             source, rows = observed.record(rid, self.t_s)
             tr = self.traces[rid]
+            held, v, w = published[rid]
             if rows is None:
-                rows = (*tr.estimate.T, *published[rid])
+                rows = (*held.T, v, w)
             tr.x_m, tr.y_m, tr.theta_rad, tr.v_mps, tr.omega_radps = (np.array(r) for r in rows)
-            tr.cmd_v_mps, tr.cmd_omega_radps = published[rid]
+            tr.cmd_v_mps, tr.cmd_omega_radps = v, w
             sources[rid] = source
         return sources
 

@@ -75,4 +75,5 @@ def test_up_on_arcos_with_motion_capture_fixes(tmp_path: Path) -> None:
         for key, bound in BOUNDS.items():
             assert backward[key]["max"] < bound, (rid, key, backward[key], timing)
     for rid, est in metrics["estimation"]["robots"].items():
-        assert est["position_m"]["max"] < 0.02, rid  # fixes arrived and were fused
+        steps = runtime["agents"][rid]["steps"]  # (a late agent skips ticks)
+        assert est["position_m"]["max"] < 0.02, (rid, est, steps)  # fixes arrived, fused

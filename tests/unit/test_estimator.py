@@ -201,3 +201,46 @@ def test_perfect_sensing_publishes_no_covariance_and_the_estimator_publishes_one
     cov = _first_state("real_wedge.toml").cov
     assert len(cov) == 6
     assert cov[0] == pytest.approx(0.01**2)  # initial_std_m
+
+
+def _slipping(outliers: range = range(0)) -> tuple[PoseEstimator, list[float]]:
+    """Ten seconds at 0.15 m/s with motion-capture fixes at 50 Hz (stamped on the
+    odometry's timeline, fused at each 10 Hz step), the odometry turned 3 deg at 2 s by a
+    wheel that slipped; `outliers`: the fixes (by index, 0.02 s apart) 1 m off. Returns
+    the estimator and its position error at each step."""
+    config = LocalisationConfig(estimator=True, odometry=ERRORS, mocap=MocapSource())
+    estimator = PoseEstimator(config, track_m=TRACK_M, robot_id="r1")
+    truth = _arc_poses(500, w=0.0, dt=0.02)
+    odometry, slip, errors = [truth[0]], Pose2D(0.0, 0.0, math.radians(3.0)), []
+    for k in range(1, 501):
+        moved = odometry[-1].compose(slip) if k == 100 else odometry[-1]
+        odometry.append(moved.compose(truth[k - 1].relative(truth[k])))
+    fixes = [
+        PoseFix(0.02 * k, p.x_m + (1.0 if k in outliers else 0.0), p.y_m, p.theta_rad, 0.002,
+                0.00175)
+        for k, p in enumerate(truth)
+    ]  # fmt: skip
+    for k in range(5, 501, 5):
+        reading = Odometry(odometry[k], Twist2D(0.15, 0.0), 0.02 * k)
+        got = estimator.step(reading, fixes=tuple(fixes[k - 4 : k + 1]))
+        errors.append(math.hypot(got.pose.x_m - truth[k].x_m, got.pose.y_m - truth[k].y_m))
+    return estimator, errors
+
+
+def test_a_filter_that_refuses_every_fix_for_half_a_second_takes_the_newest() -> None:
+    """A slip turns the odometry 3 deg in one step: the filter, sure of its heading,
+    refuses the fixes that disagree and would drive on odometry alone from there; after
+    half a second of refusals it takes the newest fix as its belief and fuses again."""
+    estimator, errors = _slipping()
+    counts = estimator.stats.counts
+    assert counts["fix_relocalised"] == 1, counts
+    assert counts["fix_gated"] > 0
+    assert max(errors[-50:]) < 0.003  # the last five seconds: on the fixes again
+    assert max(errors) < 0.02  # (3 deg over the half second at 0.15 m/s: 4 mm)
+
+
+def test_a_burst_of_outliers_shorter_than_half_a_second_is_refused() -> None:
+    estimator, errors = _slipping(outliers=range(300, 315))  # 6.0-6.3 s
+    counts = estimator.stats.counts
+    assert counts["fix_relocalised"] == 1, counts  # the slip's, not the outliers'
+    assert max(errors[40:]) < 0.003  # the outliers never pulled the estimate
