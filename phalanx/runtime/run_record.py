@@ -149,6 +149,16 @@ class RunRecord:
         return sources
 
 
+def done_when_it_left(
+    robot_id: str, tick: int, reports: Mapping[str, AgentReport], steps: int
+) -> bool:
+    """Whether a robot whose liveliness went at `tick` had ended its run: it reported,
+    and left at the last tick or after. On its own clock it ends its last step as the
+    world does, so it may leave before the world's last frame.
+    """
+    return robot_id in reports and tick >= steps - 1
+
+
 def completeness(
     *,
     steps: int,
@@ -159,10 +169,9 @@ def completeness(
     ids: Sequence[str],
 ) -> dict[str, object]:
     """Whether a run is whole: every tick run, no robot gone, every report in. A robot
-    that reported and left at the last tick is not gone: on its own clock it ends its
-    last step as the world does.
+    that left when its run was done (`done_when_it_left`) is not gone.
     """
-    gone = [(r, k) for r, k in lost if not (r in reports and k >= steps - 1)]
+    gone = [(r, k) for r, k in lost if not done_when_it_left(r, k, reports, steps)]
     reasons = []
     if ticks_run < steps:
         reasons.append(f"the world ran {ticks_run} of {steps} ticks")

@@ -44,7 +44,7 @@ from phalanx.core.robot_params import RobotParams
 from phalanx.core.runlog import RunLog
 from phalanx.runtime.clock import WorldSchedule
 from phalanx.runtime.observed import observed_robots
-from phalanx.runtime.run_record import RunRecord, completeness
+from phalanx.runtime.run_record import RunRecord, completeness, done_when_it_left
 from phalanx.runtime.signals import Stoppable
 from phalanx.runtime.world_frames import (
     Flat,
@@ -274,10 +274,18 @@ class WorldProcess:
             return  # another process (a tool, the world itself) or no robot of this fleet
         with self.inbox.cond:
             (self.inbox.alive.add if alive else self.inbox.alive.discard)(robot)
+            tick = self._run_tick() if self.started and not alive else None
             if not alive:
-                self.inbox.gone(robot, self._run_tick() if self.started else None)
+                self.inbox.gone(robot, tick)
+            done = tick is not None and done_when_it_left(
+                robot, tick, self.inbox.reports, self.steps
+            )
             self.inbox.cond.notify_all()
-        if not alive:
+        if alive:
+            return
+        if done:
+            log.info("robot %s has left, its run done", robot)
+        else:
             log.warning("robot %s is gone (liveliness lost)", robot)
 
     def _run_tick(self) -> int:

@@ -71,6 +71,9 @@ def test_the_wedge_backs_out_of_its_wall_in_formation_on_amrisim(tmp_path: Path)
         capture_output=True, text=True, timeout=260, check=False,
     )  # fmt: skip
     assert proc.returncode == 0, proc.stderr[-3000:]
+    # Robots leave as their run ends: that is said, and no robot is called lost.
+    assert "is gone" not in proc.stderr, proc.stderr[-3000:]
+    assert proc.stderr.count("has left, its run done") == 3, proc.stderr[-3000:]
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["complete"], metrics["incomplete_reason"]
     assert set(metrics["pose_source"].values()) == {"simulator's true pose (AMRISim SIMSTAT)"}

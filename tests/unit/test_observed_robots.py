@@ -16,7 +16,7 @@ from phalanx.core.geometry import Pose2D, Twist2D
 from phalanx.core.runlog import ESTIMATE_POSE, MOCAP_POSE, truth_source
 from phalanx.runtime.clock import EpochClock
 from phalanx.runtime.observed import ObservedRobots, Track, path_headings
-from phalanx.runtime.run_record import completeness
+from phalanx.runtime.run_record import completeness, done_when_it_left
 from phalanx.simulator.world import World
 from phalanx.wire.bounds import FleetBounds
 from phalanx.wire.messages import AgentReport
@@ -118,6 +118,13 @@ def test_a_robot_that_reported_and_left_at_the_last_tick_finished() -> None:
                           reports={"r1": reports["r1"]}, ids=ids)  # fmt: skip
     assert "no report from r2" in str(silent["incomplete_reason"])
     assert silent["lost"] == [{"robot": "r2", "tick": 9}]
+
+
+def test_a_robot_is_done_when_it_left_after_reporting_at_the_last_tick() -> None:
+    reports = {"r1": _report("r1")}
+    assert done_when_it_left("r1", 9, reports, steps=10)
+    assert not done_when_it_left("r1", 8, reports, steps=10)  # before its last step
+    assert not done_when_it_left("r2", 9, reports, steps=10)  # no report in
 
 
 def test_a_clock_woken_at_its_epoch_takes_step_zero() -> None:
