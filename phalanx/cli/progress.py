@@ -39,9 +39,17 @@ def time_left(done: float, total: float, elapsed_s: float) -> float:
 
 
 def progress_line(
-    label: str, done: float, total: float, elapsed_s: float, *, unit: str = ""
+    label: str,
+    done: float,
+    total: float,
+    elapsed_s: float,
+    *,
+    unit: str = "",
+    left_s: float | None = None,
 ) -> str:
-    """One progress line: "sweep: 12 of 300 runs (4 %), 2 min elapsed, about 48 min left"."""
+    """One progress line: "sweep: 12 of 300 runs (4 %), 2 min elapsed, about 48 min left".
+    The time left is `left_s` (NaN: none said yet), or by the mean rate since the start.
+    """
     total = max(total, 0.0)
     done = min(max(done, 0.0), total) if total else max(done, 0.0)
     pct = f" ({100 * done / total:.0f} %)" if total else ""
@@ -49,7 +57,7 @@ def progress_line(
     line = f"{label}: {count}, {duration(elapsed_s)} elapsed"
     if total and done >= total:
         return line + ", done"
-    left = time_left(done, total, elapsed_s)
+    left = time_left(done, total, elapsed_s) if left_s is None else left_s
     return line + (f", about {duration(left)} left" if math.isfinite(left) else "")
 
 
@@ -80,6 +88,10 @@ class Stream(Protocol):
 class Reporter:
     """Writes progress lines to `stream` (stderr by default): in place on a TTY, sparse
     in a pipe. Call it with (done, total); `close` ends the line.
+
+    `from_first`: the time left by the rate since the first report, not since the
+    reporter was made (work that runs at its own pace once it starts, such as a run's
+    clock after its processes have started: start-up time says nothing of what is left).
     """
 
     label: str
@@ -88,7 +100,9 @@ class Reporter:
     quiet: bool = False
     tty: bool | None = None  # (None: whether `stream` is a terminal)
     clock: Callable[[], float] | None = None  # (seconds; None: time.monotonic)
+    from_first: bool = False
     _start: float = field(default=math.nan, init=False)
+    _first: tuple[float, float] | None = field(default=None, init=False)  # (time, done)
     _last_fraction: float = field(default=-1.0, init=False)
     _last_time: float = field(default=-math.inf, init=False)
     _last_line: str = field(default="", init=False)
@@ -110,7 +124,14 @@ class Reporter:
         if self.quiet or self.stream is None:
             return
         now = self._now()
-        line = progress_line(self.label, done, total, now - self._start, unit=self.unit)
+        line = progress_line(
+            self.label,
+            done,
+            total,
+            now - self._start,
+            unit=self.unit,
+            left_s=self._left(now, done, total),
+        )
         if self.tty:
             if now - self._last_time < TTY_PERIOD_S and not (total > 0 and done >= total):
                 return
@@ -128,6 +149,15 @@ class Reporter:
             self._last_fraction, self._last_time = fraction, now
         self._last_line = line
         self.stream.flush()
+
+    def _left(self, now: float, done: float, total: float) -> float | None:
+        """The time left `from_first` (None: by the mean since the start)."""
+        if not self.from_first:
+            return None
+        if self._first is None:
+            self._first = (now, done)
+        since, before = self._first
+        return time_left(done - before, total - before, now - since)
 
     def say(self, text: str) -> None:
         """A line of its own (such as a sweep's statement before it starts)."""

@@ -71,6 +71,23 @@ def test_a_terminal_gets_one_line_rewritten_in_place() -> None:
     assert text.rstrip().endswith("done")
 
 
+def test_a_run_estimates_the_time_left_from_its_first_report_not_its_start_up() -> None:
+    """`phalanx up` on robots takes a minute to start its processes; its run then goes at
+    a second a second: counted in the rate, the start-up makes the run seem slow."""
+    lines = {}
+    for from_first in (False, True):
+        stream, clock = io.StringIO(), Clock()
+        reporter = Reporter("up", unit="s of run", stream=stream, tty=False, clock=clock,
+                            from_first=from_first)  # fmt: skip
+        for now, done in ((60.0, 3.0), (90.0, 33.0)):
+            clock.now = now
+            reporter(done, 240.0)
+        lines[from_first] = stream.getvalue().splitlines()
+    assert lines[True][0] == "up: 3 of 240 s of run (1 %), 1 min elapsed"  # (no rate yet)
+    assert lines[True][1].endswith("2 min elapsed, about 3 min left")  # 207 s at 1 s/s
+    assert lines[False][1].endswith("2 min elapsed, about 9 min left")  # 33 s of run in 90 s
+
+
 def test_quiet_says_nothing() -> None:
     stream = io.StringIO()
     reporter = Reporter("sweep", stream=stream, tty=False, quiet=True)

@@ -191,10 +191,12 @@ def _run(
     if table if table is not None else sys.stdout.isatty():
         with LiveOutput(title, logs=logs) as live:
             line = TitleLine(live, title)
-            reporter = Reporter("launch", unit="s of run", stream=line, quiet=quiet, tty=True)
+            reporter = Reporter(
+                "launch", unit="s of run", stream=line, quiet=quiet, tty=True, from_first=True
+            )
             watched = WorldProgress(live, reporter, rate_hz)
             return launch(loaded, options, transport=transport, output=watched, stop=stop)
-    reporter = Reporter("launch", unit="s of run", quiet=quiet)
+    reporter = Reporter("launch", unit="s of run", quiet=quiet, from_first=True)
 
     def write(text: str) -> None:
         reporter.close()  # (a terminal's progress line ended before a line of output)

@@ -196,7 +196,7 @@ class RunWatch:
         from phalanx.cli.progress import Reporter
 
         self.out, self.duration_s, self.dt_s, self.since_unix = out, duration_s, dt_s, since_unix
-        self.reporter = Reporter("up", unit="s of run", quiet=quiet)
+        self.reporter = Reporter("up", unit="s of run", quiet=quiet, from_first=True)
         self._done = threading.Event()
         self._thread = threading.Thread(target=self._loop, name="up-progress", daemon=True)
 
