@@ -305,8 +305,9 @@ def plan(
     ]
     if options.out is not None:
         world += ["--out", str(options.out)]
-    # The world's own post-run recording is replaced by every process's live one.
-    world += ["--no-recording", *_telemetry_args(options, "world")]
+    # The world's own post-run recording is replaced by every process's live one, and
+    # `phalanx up` names the results folder itself once every process has ended.
+    world += ["--no-recording", "--no-results-line", *_telemetry_args(options, "world")]
     drivers: dict[str, DriverChoice] = {}
     emulators: list[Child] = []
     epoch: float | None = None

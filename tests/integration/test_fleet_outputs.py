@@ -28,6 +28,7 @@ def test_up_writes_beside_an_earlier_run_and_says_where(tmp_path: Path) -> None:
     )  # fmt: skip
     assert done.returncode == 0, done.stderr[-2000:]
     assert done.stdout.splitlines()[-1] == "results: results/paper-wedge-ours-up-2"
+    assert done.stdout.count("results: ") == 1, done.stdout  # (the world's child says none)
     assert (earlier / "metrics.json").read_text() == '{"earlier": true}'
     assert (tmp_path / "results" / "paper-wedge-ours-up-2" / "metrics.json").is_file()
     assert re.search(r"^up: 2 of 2 s of run \(100 %\), .* done$", done.stderr, re.MULTILINE)

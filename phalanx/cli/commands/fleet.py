@@ -411,6 +411,13 @@ def world(
     ] = None,
     figure_format: FormatOpt = "png",
     dpi: DpiOpt = 150,
+    results_line: Annotated[
+        bool,
+        typer.Option(
+            help="End with the results folder's line (`phalanx up` says it itself, once "
+            "every process has ended; a launch reads it from the world's output)."
+        ),
+    ] = True,
 ) -> None:
     """Run the world for agents in other processes: simulate the robots on the sim
     driver, record the ones that move on their own; write the results folder (and, while
@@ -448,7 +455,8 @@ def world(
         )
     except ResultsNotWritten as exc:
         _results_lost(exc)
-    typer.echo(f"results: {folder}")
+    if results_line:
+        typer.echo(f"results: {folder}")
     if not complete:
         raise typer.Exit(EXIT_INCOMPLETE)
 
