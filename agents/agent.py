@@ -89,9 +89,6 @@ class StepOutput:
     saturations: int = 0
     accel_limited: int = 0
     scan: Scan | None = None  # this step's sonar reading, for the fleet's shared map
-    # (a navigating leader) whether its map shows the scenario's shape fitting the way
-    # (`ShapeKeeper.scenario_fits`); True otherwise
-    shape_fits: bool = True
 
     @property
     def flags(self) -> PeerFlags:
@@ -562,6 +559,7 @@ class Agent:
             shape_source=self.parts.keeper.key.source,
             shape_target=self.parts.keeper.key.target,
             morph=self.parts.keeper.key.morph,
+            shape_fits=self.parts.keeper.scenario_fits,
         )
         return StepOutput(
             command,
@@ -571,7 +569,6 @@ class Agent:
             self.limiter.saturations,
             self.limiter.accel_limited,
             self.parts.planner.scan,
-            self.parts.keeper.scenario_fits,
         )
 
 

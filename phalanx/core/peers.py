@@ -108,6 +108,10 @@ class PeerState:
     dead-reckon the pose to its own time; `leader_id`, the robot it tracks ("" while it
     leads); and its flags (see `PeerFlags`), so a robot tracking it needs nothing else.
 
+    `shape_fits`: (a navigating leader) whether its map shows the scenario's shape
+    fitting the way (`phalanx.agents.reshape.ShapeKeeper.scenario_fits`); True for any
+    other robot. Nobody steers by it: it goes on the record of the run.
+
     `cov`: the covariance of the pose, when the robot estimates it (its pose estimator
     is on), as the upper triangle `(xx, xy, xt, yy, yt, tt)` in m^2, m rad and rad^2
     (`phalanx.core.fixes`); empty when the robot steers from its odometry as given
@@ -143,6 +147,7 @@ class PeerState:
     shape_source: Int8 = 0
     shape_target: Int8 = 0
     morph: float = 1.0
+    shape_fits: bool = True
 
     @property
     def pose(self) -> Pose2D:

@@ -69,7 +69,7 @@ class RobotTrace:
     # The shape it was in (`phalanx.core.shapes.ShapeKey`: from, to, morph), per step.
     shapes: list[tuple[int, int, float]] = field(default_factory=list)
     # Whether the robot's map showed the scenario's shape fitting its way (a navigating
-    # leader's `StepOutput.shape_fits`), per step.
+    # leader's `PeerState.shape_fits`), per step.
     fits: list[bool] = field(default_factory=list)
 
     @classmethod

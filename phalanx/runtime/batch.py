@@ -225,7 +225,7 @@ class BatchRunner:
             tr.epochs.append(state.epoch)
             tr.formed.append(state.formed)
             tr.shapes.append((state.shape_source, state.shape_target, state.morph))
-            tr.fits.append(out.shape_fits)
+            tr.fits.append(state.shape_fits)
             if state.cov:
                 tr.cov[k] = state.cov
             if out.events:

@@ -17,6 +17,7 @@ from phalanx.core.formation import Formation
 from phalanx.core.geometry import Twist2D
 from phalanx.core.robot_params import RobotParams
 from phalanx.core.runlog import SIMULATED_POSE, FloatArray, RobotTrace, RunLog
+from phalanx.core.shapes import SCENARIO_SHAPE
 from phalanx.core.states import State, TransitionEvent
 from phalanx.runtime.observed import ObservedRobots
 from phalanx.simulator.world import World
@@ -26,6 +27,8 @@ from phalanx.wire.messages import AgentEvent, AgentReport, RobotState
 # Each robot's last published pose (n x 3), v and omega, per tick (a tick it published
 # nothing for: those it published before).
 Published = dict[str, tuple[FloatArray, FloatArray, FloatArray]]
+# The shape a robot is in before it has published one: the scenario's, settled.
+_SETTLED: tuple[int, int, float] = (SCENARIO_SHAPE, SCENARIO_SHAPE, 1.0)
 
 
 class RunRecord:
@@ -98,7 +101,8 @@ class RunRecord:
 
     def _take_states(self, states: Mapping[str, Mapping[int, RobotState]]) -> Published:
         """What each robot published, tick by tick (a missing state: the one before):
-        its behaviour state, whom it tracked, the leader and epoch it knew; its pose (its
+        its behaviour state, whom it tracked, the leader and epoch it knew, the shape it
+        was in and whether its map showed the scenario's shape fitting; its pose (its
         estimate) and covariance only at the ticks it published them for (an agent late
         on a loaded machine skips ticks, and its pose of three ticks before is not its
         estimate now); its poses and twists as held, returned.
@@ -110,6 +114,8 @@ class RunRecord:
             held = np.full((self.steps, 3), np.nan)
             v, w = np.zeros(self.steps), np.zeros(self.steps)
             last = None
+            tr.shapes.clear()
+            tr.fits.clear()
             for trace_list in (tr.states, tr.tracked, tr.leaders, tr.epochs, tr.formed):
                 trace_list.clear()
             for k in range(self.steps):
@@ -120,6 +126,10 @@ class RunRecord:
                 tr.leaders.append(last.formation_leader_id or root if last else root)
                 tr.epochs.append(last.epoch if last else 0)
                 tr.formed.append(last.formed if last else True)
+                tr.shapes.append(
+                    (last.shape_source, last.shape_target, last.morph) if last else _SETTLED
+                )
+                tr.fits.append(last.shape_fits if last else True)
                 if last is None:
                     continue
                 held[k] = (last.x_m, last.y_m, last.theta_rad)

@@ -105,6 +105,7 @@ class RobotState(Message):
     shape_source: ShapeIndex = 0
     shape_target: ShapeIndex = 0
     morph: Morph = 1.0
+    shape_fits: bool = True
 
     @field_validator("cov")
     @classmethod

@@ -71,6 +71,37 @@ def test_up_reproduces_the_in_process_run(
 
 
 @pytest.mark.timeout(240)  # its child processes' own bound, and set-up
+def test_up_records_the_shape_a_navigating_group_was_in_and_where_it_fitted(
+    tmp_path: Path,
+) -> None:
+    """The world of a run of processes records, from the states the robots publish, the
+    shape the group was in and whether the leader's map showed the scenario's shape
+    fitting the way: its time in shape, its fit and its calm errors come out as in the
+    process (before, it recorded neither, and said the wedge in its shape all the time,
+    fitting all the time, its calm error 99.9 % where the group was folded). They agree
+    to a weighing or so, not to the bit: in processes a robot adds the others' scans to
+    its map as they arrive (on a loaded machine, the unfold came 1 s later)."""
+    field = CONFIG_ROOT / "scenarios" / "nav_field_wedge3.toml"
+    sets = ["duration_s=125"]  # (a fold at 108 s, the wedge again at 117 s)
+    out = tmp_path / "shape"
+    proc = subprocess.run(
+        [*CLI, "up", str(field), "--out", str(out), "--fleet", "shape", "--timeout", "120",
+         "--no-recording", *(a for s in sets for a in ("--set", s))],
+        capture_output=True, text=True, timeout=180, check=False,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    multi = json.loads((out / "metrics.json").read_text())["navigation"]
+    single = run_metrics(run_batch(apply_overrides(load_scenario(field), sets)))["navigation"]
+    assert multi["reshapes"] >= 1
+    assert single["reshapes"] >= 1
+    for key in ("scenario_shape_share", "fits_share"):  # (4 s of the 125 either way)
+        assert multi[key] == pytest.approx(single[key], abs=0.03), key
+        assert multi[key] < 0.95, key  # (folded for a while; narrow for a while)
+    calm, want = multi["calm"]["linear_pct"]["max"], single["calm"]["linear_pct"]["max"]
+    assert calm < 2.0 * want + 1.0, (calm, want)
+
+
+@pytest.mark.timeout(240)  # its child processes' own bound, and set-up
 def test_up_reproduces_a_leadership_handover(tmp_path: Path) -> None:
     """The leader alone blocked (its sonars read 0.3 m at 8 s): every robot process hands
     the lead to r2 under epoch 1 on the same tick as the in-process run, and the group's
