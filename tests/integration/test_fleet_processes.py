@@ -8,6 +8,7 @@ import subprocess
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 from fleetlab import CLI, ROBOTS, WEDGE, Seen, running_fleet, terminate, wait_for
@@ -70,6 +71,21 @@ def test_up_reproduces_the_in_process_run(
     assert not any(a["late_peer_steps"] for a in runtime["agents"].values())
 
 
+def _up_and_in_process(
+    scenario: Path, sets: list[str], out: Path, *, fleet: str
+) -> tuple[dict[str, Any], dict[str, Any]]:
+    """The metrics of `scenario` with `sets`, run by `phalanx up` (into `out`, on its
+    own `fleet`) and in process."""
+    proc = subprocess.run(
+        [*CLI, "up", str(scenario), "--out", str(out), "--fleet", fleet, "--timeout", "120",
+         "--no-recording", *(a for s in sets for a in ("--set", s))],
+        capture_output=True, text=True, timeout=180, check=False,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    multi = json.loads((out / "metrics.json").read_text())
+    return multi, run_metrics(run_batch(apply_overrides(load_scenario(scenario), sets)))
+
+
 @pytest.mark.timeout(240)  # its child processes' own bound, and set-up
 def test_up_records_the_shape_a_navigating_group_was_in_and_where_it_fitted(
     tmp_path: Path,
@@ -83,15 +99,8 @@ def test_up_records_the_shape_a_navigating_group_was_in_and_where_it_fitted(
     its map as they arrive (on a loaded machine, the unfold came 1 s later)."""
     field = CONFIG_ROOT / "scenarios" / "nav_field_wedge3.toml"
     sets = ["duration_s=125"]  # (a fold at 108 s, the wedge again at 117 s)
-    out = tmp_path / "shape"
-    proc = subprocess.run(
-        [*CLI, "up", str(field), "--out", str(out), "--fleet", "shape", "--timeout", "120",
-         "--no-recording", *(a for s in sets for a in ("--set", s))],
-        capture_output=True, text=True, timeout=180, check=False,
-    )  # fmt: skip
-    assert proc.returncode == 0, proc.stderr[-2000:]
-    multi = json.loads((out / "metrics.json").read_text())["navigation"]
-    single = run_metrics(run_batch(apply_overrides(load_scenario(field), sets)))["navigation"]
+    both = _up_and_in_process(field, sets, tmp_path / "shape", fleet="shape")
+    multi, single = (metrics["navigation"] for metrics in both)
     assert multi["reshapes"] >= 1
     assert single["reshapes"] >= 1
     for key in ("scenario_shape_share", "fits_share"):  # (4 s of the 125 either way)
@@ -107,15 +116,7 @@ def test_up_reproduces_a_leadership_handover(tmp_path: Path) -> None:
     the lead to r2 under epoch 1 on the same tick as the in-process run, and the group's
     transitions and errors agree."""
     sets = ["duration_s=40", *signal_builder(8.0, robots=("r1",))]
-    out = tmp_path / "handover"
-    proc = subprocess.run(
-        [*CLI, "up", str(WEDGE), "--out", str(out), "--fleet", "hand", "--timeout", "120",
-         "--no-recording", *(a for s in sets for a in ("--set", s))],
-        capture_output=True, text=True, timeout=180, check=False,
-    )  # fmt: skip
-    assert proc.returncode == 0, proc.stderr[-2000:]
-    multi = json.loads((out / "metrics.json").read_text())
-    single = run_metrics(run_batch(apply_overrides(load_scenario(WEDGE), sets)))
+    multi, single = _up_and_in_process(WEDGE, sets, tmp_path / "handover", fleet="hand")
     for rid in ("r1", "r2", "r3"):
         got = [(round(e["t_s"], 6), e["target"]) for e in multi["transitions"][rid]]
         want = [(round(e["t_s"], 6), e["target"]) for e in single["transitions"][rid]]
