@@ -17,7 +17,7 @@ from phalanx.core.formation import Formation
 from phalanx.core.geometry import Twist2D
 from phalanx.core.robot_params import RobotParams
 from phalanx.core.runlog import SIMULATED_POSE, FloatArray, RobotTrace, RunLog
-from phalanx.core.shapes import SCENARIO_SHAPE
+from phalanx.core.shapes import ShapeKey
 from phalanx.core.states import State, TransitionEvent
 from phalanx.runtime.observed import ObservedRobots
 from phalanx.simulator.world import World
@@ -27,8 +27,9 @@ from phalanx.wire.messages import AgentEvent, AgentReport, RobotState
 # Each robot's last published pose (n x 3), v and omega, per tick (a tick it published
 # nothing for: those it published before).
 Published = dict[str, tuple[FloatArray, FloatArray, FloatArray]]
-# The shape a robot is in before it has published one: the scenario's, settled.
-_SETTLED: tuple[int, int, float] = (SCENARIO_SHAPE, SCENARIO_SHAPE, 1.0)
+# The shape a robot is in before it has published one: a `ShapeKey`'s default (the
+# scenario's, settled), as the traces hold it.
+_SETTLED = ShapeKey()
 
 
 class RunRecord:
@@ -127,7 +128,9 @@ class RunRecord:
                 tr.epochs.append(last.epoch if last else 0)
                 tr.formed.append(last.formed if last else True)
                 tr.shapes.append(
-                    (last.shape_source, last.shape_target, last.morph) if last else _SETTLED
+                    (last.shape_source, last.shape_target, last.morph)
+                    if last
+                    else (_SETTLED.source, _SETTLED.target, _SETTLED.morph)
                 )
                 tr.fits.append(last.shape_fits if last else True)
                 if last is None:
