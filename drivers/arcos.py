@@ -316,9 +316,10 @@ class ArcosDriver(Closing):
             self._write(command(Cmd.SIM_STAT, SIMSTAT_CONTINUOUS))
         if self.settings.place_at is not None and not self._placed:
             x_m, y_m, heading_deg = self.settings.place_at
-            self._write(sim_set_pose(round(x_m * 1000.0), round(y_m * 1000.0), round(heading_deg)))
+            pose = round(x_m * 1000.0), round(y_m * 1000.0), round(heading_deg)
+            self._write(sim_set_pose(*pose))
             self._placed = True
-            log.info("placed the robot at %s (SIM_SET_POSE)", self.settings.place_at)
+            log.info("placed the robot at (%d mm, %d mm, %d deg) (SIM_SET_POSE)", *pose)
 
     def _adopt(self, config: RobotConfig) -> None:
         """The robot's watchdog sets the keep-alive; its (de)accelerations are raised to

@@ -9,6 +9,7 @@ Skipped unless PHALANX_AMRISIM gives the binary (docs/INTEROP.md)."""
 from __future__ import annotations
 
 import json
+import math
 import os
 import shutil
 import subprocess
@@ -33,6 +34,16 @@ SHORT = [
     "deadlock.safe_distance_m=1.5",
     "world.polygons=[{vertices_m = [[4.0, 0.0], [2.6, 1.4], [2.7, 1.4], [4.1, 0.0], "
     "[2.7, -1.4], [2.6, -1.4]]}]",
+]
+# The field scenario with its field taken away, one post (radius 0.3 m) dead ahead on the
+# leader's way and the goal 8 m off: about 50 s to the goal in phalanx's simulator.
+FIELD = CONFIG_ROOT / "scenarios" / "nav_field_wedge3.toml"
+POST_X_M, POST_RADIUS_M = 4.0, 0.3
+POST = [
+    "duration_s=60",
+    "world.field.count=0",
+    f"world.circles=[{{x_m = {POST_X_M}, y_m = 0.0, radius_m = {POST_RADIUS_M}}}]",
+    "navigation.waypoints=[[8.0, 0.0]]",
 ]
 # The targets of perfect sensing (docs/RESULTS.md), on AMRISim's true poses.
 BACKWARD = {"linear_pct": 0.5, "angular_pct": 0.3, "orientation_deg": 0.5}
@@ -74,6 +85,11 @@ def test_the_wedge_backs_out_of_its_wall_in_formation_on_amrisim(tmp_path: Path)
     # Robots leave as their run ends: that is said, and no robot is called lost.
     assert "is gone" not in proc.stderr, proc.stderr[-3000:]
     assert proc.stderr.count("has left, its run done") == 3, proc.stderr[-3000:]
+    # Each robot is placed where the scenario starts it, said as SIM_SET_POSE has it.
+    start = load_scenario(WEDGE).start_pose("r2")
+    x_mm, y_mm = round(start.x_m * 1000), round(start.y_m * 1000)
+    placed = f"({x_mm} mm, {y_mm} mm, {round(math.degrees(start.theta_rad))} deg)"
+    assert f"r2 INFO placed the robot at {placed} (SIM_SET_POSE)" in proc.stderr, proc.stderr
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["complete"], metrics["incomplete_reason"]
     assert set(metrics["pose_source"].values()) == {"simulator's true pose (AMRISim SIMSTAT)"}
@@ -90,6 +106,36 @@ def test_the_wedge_backs_out_of_its_wall_in_formation_on_amrisim(tmp_path: Path)
     assert moved > 5.0  # it drove (4 m out, 1.5 m back, on, back): not a robot standing still
     assert (out / "fig5_trajectories.png").stat().st_size > 10_000
     assert "Loading map data" in (out / "amrisim.log").read_text(errors="replace")
+
+
+@pytest.mark.timeout(300)
+def test_a_navigating_wedge_goes_round_a_post_on_amrisims_sonar(tmp_path: Path) -> None:
+    """A navigating wedge (the field scenario with one post dead ahead on the way to
+    its goal) maps, plans and steers on the echoes AMRISim's P3DXs send, its own sonar
+    model, not phalanx's: it gets round the post to the goal with no contact."""
+    binary = _amrisim()
+    out = tmp_path / "amrisim"
+    sets = [arg for s in POST for arg in ("--set", s)]
+    proc = subprocess.run(
+        [sys.executable, "-m", "phalanx", "up", str(FIELD), "--robots", "amrisim",
+         "--amrisim", str(binary), "--out", str(out), "--no-recording", "--timeout", "200",
+         *sets],
+        capture_output=True, text=True, timeout=260, check=False,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["complete"], metrics["incomplete_reason"]
+    assert set(metrics["pose_source"].values()) == {"simulator's true pose (AMRISim SIMSTAT)"}
+    _commands_reached_the_robots(metrics["runtime"], 600)
+    navigation = metrics["navigation"]
+    assert navigation["goal_reached"], navigation["stuck_reason"]
+    assert navigation["collisions_obstacle"] == navigation["collisions_robot"] == 0
+    assert metrics["collisions"] == []
+    # the leader turned off the straight line to the goal to pass the post
+    traces = read_traces(out / "traces.npz")
+    beside = np.abs(traces["r1"]["x_m"] - POST_X_M) < 0.3
+    assert beside.any(), traces["r1"]["x_m"].max()
+    assert np.abs(traces["r1"]["y_m"][beside]).min() > POST_RADIUS_M
 
 
 @pytest.mark.timeout(300)
