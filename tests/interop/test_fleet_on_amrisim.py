@@ -70,18 +70,26 @@ def _commands_reached_the_robots(runtime: dict[str, Any], ticks: int) -> None:
         assert 0.95 * ticks <= report["commands_sent"] <= report["steps"] <= ticks, agents
 
 
-@pytest.mark.timeout(300)
-def test_the_wedge_backs_out_of_its_wall_in_formation_on_amrisim(tmp_path: Path) -> None:
+def _up_on_amrisim(scenario: Path, sets: list[str], out: Path) -> subprocess.CompletedProcess[str]:
+    """`phalanx up SCENARIO --robots amrisim` with `--set`s, its results in `out`: the
+    finished command, which must have succeeded.
+    """
     binary = _amrisim()
-    out = tmp_path / "amrisim"
-    sets = [arg for s in SHORT for arg in ("--set", s)]
+    overrides = [arg for s in sets for arg in ("--set", s)]
     proc = subprocess.run(
-        [sys.executable, "-m", "phalanx", "up", str(WEDGE), "--robots", "amrisim",
+        [sys.executable, "-m", "phalanx", "up", str(scenario), "--robots", "amrisim",
          "--amrisim", str(binary), "--out", str(out), "--no-recording", "--timeout", "200",
-         *sets],
+         *overrides],
         capture_output=True, text=True, timeout=260, check=False,
     )  # fmt: skip
     assert proc.returncode == 0, proc.stderr[-3000:]
+    return proc
+
+
+@pytest.mark.timeout(300)
+def test_the_wedge_backs_out_of_its_wall_in_formation_on_amrisim(tmp_path: Path) -> None:
+    out = tmp_path / "amrisim"
+    proc = _up_on_amrisim(WEDGE, SHORT, out)
     # Robots leave as their run ends: that is said, and no robot is called lost.
     assert "is gone" not in proc.stderr, proc.stderr[-3000:]
     assert proc.stderr.count("has left, its run done") == 3, proc.stderr[-3000:]
@@ -113,16 +121,8 @@ def test_a_navigating_wedge_goes_round_a_post_on_amrisims_sonar(tmp_path: Path) 
     """A navigating wedge (the field scenario with one post dead ahead on the way to
     its goal) maps, plans and steers on the echoes AMRISim's P3DXs send, its own sonar
     model, not phalanx's: it gets round the post to the goal with no contact."""
-    binary = _amrisim()
     out = tmp_path / "amrisim"
-    sets = [arg for s in POST for arg in ("--set", s)]
-    proc = subprocess.run(
-        [sys.executable, "-m", "phalanx", "up", str(FIELD), "--robots", "amrisim",
-         "--amrisim", str(binary), "--out", str(out), "--no-recording", "--timeout", "200",
-         *sets],
-        capture_output=True, text=True, timeout=260, check=False,
-    )  # fmt: skip
-    assert proc.returncode == 0, proc.stderr[-3000:]
+    _up_on_amrisim(FIELD, POST, out)
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["complete"], metrics["incomplete_reason"]
     assert set(metrics["pose_source"].values()) == {"simulator's true pose (AMRISim SIMSTAT)"}
