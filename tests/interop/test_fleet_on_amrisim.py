@@ -2,7 +2,8 @@
 command a user runs: `phalanx up SCENARIO --robots amrisim`. Each robot's agent drives its
 P3DX through the `arcos` driver over TCP, as it would a real one; the world process only
 records, from AMRISim's true poses. The run must be whole, its commands must have reached
-the robots, and the wedge must back out of its wall inside the bounds of perfect sensing.
+the robots, and the wedge must back out of its wall inside the bounds of perfect sensing;
+a navigating wedge must get round a post to its goal on AMRISim's sonar.
 
 Skipped unless PHALANX_AMRISIM gives the binary (docs/INTEROP.md)."""
 
@@ -36,11 +37,12 @@ SHORT = [
     "[2.7, -1.4], [2.6, -1.4]]}]",
 ]
 # The field scenario with its field taken away, one post (radius 0.3 m) dead ahead on the
-# leader's way and the goal 8 m off: about 50 s to the goal in phalanx's simulator.
+# leader's way and the goal 8 m off: the goal at 48.7 s on AMRISim (48.6 s in phalanx's
+# simulator), 70 s of run.
 FIELD = CONFIG_ROOT / "scenarios" / "nav_field_wedge3.toml"
 POST_X_M, POST_RADIUS_M = 4.0, 0.3
 POST = [
-    "duration_s=60",
+    "duration_s=70",
     "world.field.count=0",
     f"world.circles=[{{x_m = {POST_X_M}, y_m = 0.0, radius_m = {POST_RADIUS_M}}}]",
     "navigation.waypoints=[[8.0, 0.0]]",
@@ -126,7 +128,7 @@ def test_a_navigating_wedge_goes_round_a_post_on_amrisims_sonar(tmp_path: Path) 
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["complete"], metrics["incomplete_reason"]
     assert set(metrics["pose_source"].values()) == {"simulator's true pose (AMRISim SIMSTAT)"}
-    _commands_reached_the_robots(metrics["runtime"], 600)
+    _commands_reached_the_robots(metrics["runtime"], 700)
     navigation = metrics["navigation"]
     assert navigation["goal_reached"], navigation["stuck_reason"]
     assert navigation["collisions_obstacle"] == navigation["collisions_robot"] == 0
