@@ -330,17 +330,19 @@ def write_results(
 
 
 def write_checkpoint(log: RunLog, folder: Path) -> None:
-    """What a run still going has produced so far (`log`: its first ticks): `metrics.json`
-    marked incomplete and `traces.npz`, each atomically, so that a world that dies leaves
-    the errors up to its last checkpoint. Raises ResultsNotWritten.
+    """What a run still going has produced so far (`log`: its first ticks): `traces.npz`
+    and then `metrics.json` marked incomplete, each atomically, so that a world that dies
+    leaves the errors up to its last checkpoint. The metrics last: a world killed
+    between the two leaves metrics that the traces beside them hold all of (never
+    metrics of ticks the traces lack). Raises ResultsNotWritten.
     """
     _guarded(folder, "the results folder", lambda: folder.mkdir(parents=True, exist_ok=True))
     metrics = run_metrics(log)
     metrics["complete"] = False
     so_far = log.runtime.get("incomplete_reason") or f"{len(log.t_s)} ticks run"
     metrics["incomplete_reason"] = f"a checkpoint of a run still going: {so_far}"
-    _guarded(folder, "metrics.json", lambda: write_metrics(metrics, folder / "metrics.json"))
     _guarded(folder, "traces.npz", lambda: write_traces(log, folder / "traces.npz"))
+    _guarded(folder, "metrics.json", lambda: write_metrics(metrics, folder / "metrics.json"))
 
 
 def mark_results(

@@ -131,8 +131,12 @@ def test_a_world_killed_mid_run_leaves_the_errors_up_to_the_kill(tmp_path: Path)
         forward = metrics["followers"][rid]["forward"]
         assert forward["samples"] > 0, forward
         assert math.isfinite(forward["linear_pct"]["max"])
-    traces = read_traces(out / "traces.npz")
-    assert len(traces[""]["t_s"]) == ticks
+    # The traces hold every tick the metrics count: a checkpoint writes them first, so a
+    # world killed between its two files leaves traces a checkpoint ahead, never behind
+    # (a .ci/run found 51 ticks of traces beside metrics of 72, written the other way).
+    t_s = read_traces(out / "traces.npz")[""]["t_s"]
+    assert ticks <= len(t_s) < 400
+    assert t_s[ticks - 1] == pytest.approx((ticks - 1) * 0.1)
     assert "Traceback" not in text
 
 
