@@ -28,7 +28,8 @@ from phalanx.analysis.metrics import (
     phase_masks,
 )
 from phalanx.analysis.sweep import Job, run_until_done
-from phalanx.core.config_files import parse_value
+from phalanx.core.config_files import parse_assignment
+from phalanx.core.errors import ConfigError
 from phalanx.core.shapes import SCENARIO_SHAPE, ShapeBook, ShapeKey
 from phalanx.runtime.batch import BatchRunner
 
@@ -77,15 +78,6 @@ def _shape_name(key: ShapeKey, column: int) -> str:
     return "the column" if key.target == column else "a shrunk shape"
 
 
-def _split(assignments: list[str]) -> list[tuple[str, str]]:
-    """`PATH=VALUE` pairs, as `phalanx sweep --set` takes them."""
-    pairs = [a.partition("=") for a in assignments]
-    for path, sign, _ in pairs:
-        if not sign:
-            raise SystemExit(f"--set {path}: give PATH=VALUE")
-    return [(path, value) for path, _, value in pairs]
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--shape", nargs="+", default=["wedge", "collateral"])
@@ -94,7 +86,10 @@ def main() -> None:
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--set", nargs="*", default=[], metavar="PATH=VALUE")
     args = parser.parse_args()
-    overrides = tuple((path, parse_value(value)) for path, value in _split(args.set))
+    try:
+        overrides = tuple(parse_assignment(a) for a in args.set)
+    except ConfigError as exc:
+        raise SystemExit(str(exc)) from None
     jobs = [
         Job("field", shape, robots, seed, overrides=overrides)
         for shape in args.shape

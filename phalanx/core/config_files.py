@@ -225,20 +225,28 @@ def apply_overrides(
     where = source or scenario.name
     data = scenario.model_dump(mode="python")
     for assignment in assignments:
-        path, sep, text = assignment.partition("=")
-        if not sep or not path.strip():
-            raise ConfigError(
-                f"{where}: --set {assignment!r}: expected PATH=VALUE, e.g. duration_s=60"
-            )
         try:
-            value = parse_value(text.strip())
+            path, value = parse_assignment(assignment)
         except ConfigError as exc:
-            raise ConfigError(f"{where}: --set {path.strip()}: {exc}") from None
-        _set_path(data, path.strip().split("."), value, assignment, where)
+            raise ConfigError(f"{where}: {exc}") from None
+        _set_path(data, path.split("."), value, assignment, where)
     label = f"{where} with --set {' '.join(assignments)}"
     result = validate_data(Scenario, data, source=label)
     check_formation(result, source=label)
     return result
+
+
+def parse_assignment(text: str) -> tuple[str, Any]:
+    """A `--set PATH=VALUE` assignment as its stripped dotted path and its value, read as
+    `parse_value` reads it; a `ConfigError` if there is no `=` or no path before it.
+    """
+    path, sep, value = text.partition("=")
+    if not sep or not path.strip():
+        raise ConfigError(f"--set {text!r}: expected PATH=VALUE, e.g. duration_s=60")
+    try:
+        return path.strip(), parse_value(value.strip())
+    except ConfigError as exc:
+        raise ConfigError(f"--set {path.strip()}: {exc}") from None
 
 
 _BARE_KEY = re.compile(r"^[A-Za-z0-9_-]+$")

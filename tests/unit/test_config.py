@@ -9,6 +9,7 @@ from phalanx.core.config_files import (
     apply_overrides,
     load_robot,
     load_scenario,
+    parse_assignment,
     validate_data,
 )
 from phalanx.core.errors import ConfigError
@@ -84,6 +85,20 @@ def test_overrides_apply_and_validate() -> None:
         apply_overrides(scenario, ["controller.kind=fancy"])
     with pytest.raises(ConfigError, match="no field"):
         apply_overrides(scenario, ["nothing.here=1"])
+
+
+def test_parse_assignment_splits_path_and_value() -> None:
+    assert parse_assignment(" noise.sonar_std_m = 0.02") == ("noise.sonar_std_m", 0.02)
+    assert parse_assignment("formation.slots.1.l_m=3") == ("formation.slots.1.l_m", 3)
+    assert parse_assignment("controller.kind=ours") == ("controller.kind", "ours")
+    assert parse_assignment('name="a=b"') == ("name", "a=b")
+    assert parse_assignment("name=a=b") == ("name", "a=b")
+    for bad in ["duration_s", "=60", "  =60"]:
+        with pytest.raises(ConfigError, match=r"expected PATH=VALUE, e\.g\. duration_s=60"):
+            parse_assignment(bad)
+    scenario = load_scenario(SCENARIOS / "paper_wedge.toml")
+    with pytest.raises(ConfigError, match=r"^here: --set 'duration_s': expected PATH=VALUE"):
+        apply_overrides(scenario, ["duration_s"], source="here")
 
 
 def test_a_scenario_bounds_the_resources_it_may_ask_for() -> None:

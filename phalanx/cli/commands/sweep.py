@@ -60,6 +60,8 @@ def sweep(
     from phalanx.analysis import sweep as sw
     from phalanx.analysis.report import SWEEP_BEGIN, SWEEP_END, with_section
     from phalanx.core.config import ControllerKind
+    from phalanx.core.config_files import parse_assignment
+    from phalanx.core.errors import ConfigError
     from phalanx.core.scenarios import Course, Shape
 
     family = _choices(family or ["field"], get_args(Course), option="--family")
@@ -67,7 +69,10 @@ def sweep(
     robots = robots or [3]
     controller = _choices(controller or ["ours"], get_args(ControllerKind), option="--controller")
     try:
-        overrides = [_assignment(a) for a in set_ or []]
+        overrides = [parse_assignment(a) for a in set_ or []]
+    except ConfigError as exc:
+        raise typer.BadParameter(str(exc)) from exc
+    try:
         todo = sw.jobs(
             family, shape, robots, range(first_seed, first_seed + seeds), controller, overrides
         )
@@ -129,20 +134,6 @@ def _choices(values: list[str], valid: tuple[str, ...], *, option: str) -> list[
     from phalanx.cli.style import choice
 
     return [choice(value, valid, option=option) for value in values]
-
-
-def _assignment(text: str) -> tuple[str, object]:
-    """`PATH=VALUE` (a TOML value; a bare word is a string)."""
-    import tomllib
-
-    path, sep, value = text.partition("=")
-    if not sep or not path.strip():
-        raise ValueError(f"--set expects PATH=VALUE, got {text!r}")
-    try:
-        parsed: object = tomllib.loads(f"v = {value}")["v"]
-    except tomllib.TOMLDecodeError:
-        parsed = value
-    return path.strip(), parsed
 
 
 def sweep_compare(
