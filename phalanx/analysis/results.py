@@ -210,30 +210,44 @@ _TRACE_BOUNDS = {
     "cmd_v_mps": MAX_SPEED_MPS,
     "cmd_omega_radps": MAX_YAW_RATE_RADPS,
 }
+# What a robot that estimates its pose published with it, per step: the estimate (x, y,
+# theta) and its covariance's upper triangle (xx, xy, xt, yy, yt, tt), NaN where it
+# published none (`RobotTrace.estimate`, `RobotTrace.cov`); columns and bounds.
+ESTIMATE_FIELDS = {"estimate": 3, "cov": 6}
+_ESTIMATE_BOUNDS = {
+    "estimate": np.array([MAX_EXTENT_M, MAX_EXTENT_M, 2 * math.pi]),
+    # (a variance no bigger than the arena's extent squared, or 2 pi squared)
+    "cov": np.full(6, max(MAX_EXTENT_M, 2 * math.pi) ** 2),
+}
 # The most a `traces.npz` unpacks to: the largest run's (`MAX_ROBOT_STEPS`, each step its
-# fields and a state's name of up to 32 characters, and the step times), so that a small
-# archive that unpacks to more is refused before it is read.
-MAX_TRACES_BYTES = MAX_ROBOT_STEPS * (8 * len(TRACE_FIELDS) + 4 * 32 + 8)
+# fields, its estimate and covariance and a state's name of up to 32 characters, and the
+# step times), so that a small archive that unpacks to more is refused before it is read.
+MAX_TRACES_BYTES = MAX_ROBOT_STEPS * (
+    8 * (len(TRACE_FIELDS) + sum(ESTIMATE_FIELDS.values())) + 4 * 32 + 8
+)
 
 
 def write_traces(log: RunLog, path: Path) -> None:
     """Every robot's recorded motion, one row per control step, as a compressed numpy
     archive: `t_s`, then `<robot>/<field>` for each of TRACE_FIELDS (SI units) and
-    `<robot>/state` (its behaviour state's name).
+    `<robot>/state` (its behaviour state's name); of a robot that published an estimate
+    of its pose, also `<robot>/estimate` and `<robot>/cov` (ESTIMATE_FIELDS).
     """
     arrays: dict[str, Any] = {"t_s": log.t_s}
     for rid, trace in log.traces.items():
         for name in TRACE_FIELDS:
             arrays[f"{rid}/{name}"] = getattr(trace, name)
         arrays[f"{rid}/state"] = np.array(trace.states, dtype=np.str_)
+        if trace.cov.shape[0] == log.t_s.size and np.isfinite(trace.cov).any():
+            arrays[f"{rid}/estimate"], arrays[f"{rid}/cov"] = trace.estimate, trace.cov
     atomic_write(path, lambda out: np.savez_compressed(out, **arrays))
 
 
 def read_run_traces(path: Path) -> tuple[FloatArray, dict[str, RobotTrace]]:
     """A `traces.npz` back as the run's step times (s) and every robot's trace (the
-    fields `write_traces` keeps; the rest empty). KeyError or ValueError if it is not a
-    run's, or holds a value no run writes (a step time not from 0 to a day, a value past
-    its field's bound).
+    fields `write_traces` keeps; the rest empty, the estimates NaN where it kept none).
+    KeyError or ValueError if it is not a run's, or holds a value no run writes (a step
+    time not from 0 to a day, a value past its field's bound).
     """
     fields = read_traces(path)
     t_s = np.asarray(fields.pop("")["t_s"], dtype=float)
@@ -250,9 +264,22 @@ def read_run_traces(path: Path) -> tuple[FloatArray, dict[str, RobotTrace]]:
             if not np.all(np.isnan(column) | (np.abs(column) <= bound)):
                 raise ValueError(f"{rid}/{name}: values beyond +-{bound:g}")
             setattr(trace, name, column)
+        for name, columns in ESTIMATE_FIELDS.items():
+            if name in arrays:
+                setattr(trace, name, _estimate_rows(arrays[name], name, (t_s.size, columns)))
         trace.states = [str(s) for s in arrays["state"]]
         traces[rid] = trace
     return t_s, traces
+
+
+def _estimate_rows(array: Any, name: str, shape: tuple[int, int]) -> FloatArray:
+    """A robot's `estimate` or `cov` read back, held to its shape and bounds."""
+    rows = np.asarray(array, dtype=float)
+    if rows.shape != shape:
+        raise ValueError(f"{name}: shape {rows.shape}, expected {shape}")
+    if not np.all(np.isnan(rows) | (np.abs(rows) <= _ESTIMATE_BOUNDS[name])):
+        raise ValueError(f"{name}: values beyond what a pose or its covariance can be")
+    return rows
 
 
 def read_traces(path: Path) -> dict[str, dict[str, Any]]:

@@ -5,17 +5,20 @@ time, with the covariance's bounds and the NEES band)."""
 
 from __future__ import annotations
 
+import dataclasses
 import re
 from collections.abc import Iterator
 from pathlib import Path
 
 import matplotlib.pyplot as plt
+import numpy as np
 import pytest
 from matplotlib.figure import Figure, FigureBase
 from typer.testing import CliRunner
 
 from phalanx.analysis import figures
-from phalanx.analysis.results import write_results
+from phalanx.analysis.estimation import estimation_metrics
+from phalanx.analysis.results import read_run_traces, read_traces, write_results, write_traces
 from phalanx.cli import app
 from phalanx.core.config_files import CONFIG_ROOT, apply_overrides, load_scenario
 from phalanx.core.runlog import RunLog
@@ -144,3 +147,33 @@ def test_phalanx_run_writes_the_estimation_figure_for_a_real_scenario(tmp_path: 
     png = (tmp_path / figures.ESTIMATION_FIGURE).read_bytes()
     assert png[:8] == b"\x89PNG\r\n\x1a\n"
     assert (tmp_path / figures.PAPER_FIGURE).is_file()
+
+
+def test_traces_keep_the_estimates_and_give_back_the_same_honesty(
+    estimated: RunLog, wedge: RunLog, tmp_path: Path
+) -> None:
+    # (what a run on robots is judged by afterwards: the estimate beside the truth)
+    write_traces(estimated, tmp_path / "traces.npz")
+    t_s, traces = read_run_traces(tmp_path / "traces.npz")
+    for rid, trace in estimated.traces.items():
+        np.testing.assert_array_equal(traces[rid].estimate, trace.estimate)
+        np.testing.assert_array_equal(traces[rid].cov, trace.cov)
+    again = dataclasses.replace(estimated, t_s=t_s, traces=traces)
+    assert estimation_metrics(again) == estimation_metrics(estimated)
+    write_traces(wedge, tmp_path / "paper.npz")  # no estimator: no estimate kept
+    assert "estimate" not in read_traces(tmp_path / "paper.npz")["r2"]
+
+
+def test_traces_with_an_estimate_no_run_writes_are_refused(
+    estimated: RunLog, tmp_path: Path
+) -> None:
+    write_traces(estimated, tmp_path / "traces.npz")
+    arrays = dict(np.load(tmp_path / "traces.npz"))
+    for key, value, says in (
+        ("r2/cov", np.full_like(arrays["r2/cov"], np.inf), "covariance"),
+        ("r2/estimate", arrays["r2/estimate"][:, :2], "shape"),
+    ):
+        spoilt = {**arrays, key: value}
+        np.savez_compressed(tmp_path / "spoilt.npz", **spoilt)
+        with pytest.raises(ValueError, match=says):
+            read_run_traces(tmp_path / "spoilt.npz")
