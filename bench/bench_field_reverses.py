@@ -6,17 +6,25 @@ range, and prints each run that backed out at least once: its deadlock reverses,
 shape the group reversed in, and the worst follower's backward-phase errors as
 `metrics.json` gives them (from 5 s after the leader turns back to the end of the
 reverse; a reverse shorter than that is not measured), with the count of measured runs
-inside `phalanx.analysis.metrics.CORE_BOUNDS` per formation.
+inside `phalanx.analysis.metrics.CORE_BOUNDS` per formation. `--out FILE` also writes
+every run's row as `phalanx sweep --out FILE` does, so that the same runs give the
+sweep's table (`phalanx sweep` with the same options and `--out FILE` finds them done)
+and pair with another sweep's (`phalanx sweep-compare`).
 
     .venv/bin/python bench/bench_field_reverses.py [--shape wedge collateral]
         [--robots 3 5] [--seeds 10 30] [--workers 2] [--set deadlock.pause_s=12]
+        [--out FILE]
 """
 
 from __future__ import annotations
 
 import argparse
+import json
+import time
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -27,7 +35,7 @@ from phalanx.analysis.metrics import (
     navigation_metrics,
     phase_masks,
 )
-from phalanx.analysis.sweep import Job, run_until_done
+from phalanx.analysis.sweep import Job, job_row, run_until_done
 from phalanx.core.config_files import parse_assignment
 from phalanx.core.errors import ConfigError
 from phalanx.core.shapes import SCENARIO_SHAPE, ShapeBook, ShapeKey
@@ -50,9 +58,11 @@ class Reversed:
         return all(self.worst[k] < bound for k, bound in CORE_BOUNDS.items())
 
 
-def reverses_of(job: Job) -> Reversed:
-    """Run `job` and measure its reverses."""
+def reverses_of(job: Job) -> tuple[Reversed, dict[str, Any]]:
+    """Run `job`, measure its reverses, and give its sweep row."""
+    started = time.perf_counter()
     log = run_until_done(BatchRunner(job.scenario()))
+    row = job_row(job, log, time.perf_counter() - started)
     reverses = int(navigation_metrics(log)["deadlock_reverses"])
     worst = dict.fromkeys(CORE_BOUNDS, 0.0)
     samples = 0
@@ -68,7 +78,7 @@ def reverses_of(job: Job) -> Reversed:
     keys = leader_shape_keys(log)
     column = ShapeBook(log.formation).distinct[-1]
     shapes = sorted({_shape_name(keys[k], column) for k in np.flatnonzero(backing).tolist()})
-    return Reversed(job, reverses, samples, tuple(shapes), worst)
+    return Reversed(job, reverses, samples, tuple(shapes), worst), row
 
 
 def _shape_name(key: ShapeKey, column: int) -> str:
@@ -85,6 +95,7 @@ def main() -> None:
     parser.add_argument("--seeds", nargs=2, type=int, default=[10, 30], metavar=("FIRST", "END"))
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--set", nargs="*", default=[], metavar="PATH=VALUE")
+    parser.add_argument("--out", type=Path, help="also write every run's sweep row here")
     args = parser.parse_args()
     try:
         overrides = tuple(parse_assignment(a) for a in args.set)
@@ -97,7 +108,11 @@ def main() -> None:
         for seed in range(*args.seeds)
     ]
     with ProcessPoolExecutor(args.workers) as pool:
-        runs = [r for r in pool.map(reverses_of, jobs) if r.reverses]
+        done = list(pool.map(reverses_of, jobs))
+    if args.out is not None:
+        with args.out.open("a", encoding="utf-8") as out:
+            out.writelines(json.dumps(row, allow_nan=True) + "\n" for _, row in done)
+    runs = [r for r, _ in done if r.reverses]
     bounds = " / ".join(f"{v:g}" for v in CORE_BOUNDS.values())
     print("runs that backed out (worst follower's backward max: linear % / angular % / deg;")
     print(f"bounds {bounds}):")

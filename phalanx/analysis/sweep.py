@@ -123,8 +123,12 @@ def run_job(job: Job) -> dict[str, Any]:
     """One run (on whichever worker gets it): its navigation metrics and wall time."""
     started = time.perf_counter()
     log = run_until_done(BatchRunner(job.scenario()))
+    return job_row(job, log, time.perf_counter() - started)
+
+
+def job_row(job: Job, log: RunLog, wall_s: float) -> dict[str, Any]:
+    """The results file's row of `job`, run as `log` in `wall_s` of wall time."""
     nav = navigation_metrics(log)
-    wall_s = time.perf_counter() - started
     row = {"job": asdict(job), "key": job.key, "wall_s": wall_s, "route_s": route_s(log), **nav}
     return SweepRow.read(json.dumps(row, allow_nan=True))  # (as a resumed sweep reads it)
 
