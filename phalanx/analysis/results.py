@@ -214,10 +214,11 @@ _TRACE_BOUNDS = {
 # theta) and its covariance's upper triangle (xx, xy, xt, yy, yt, tt), NaN where it
 # published none (`RobotTrace.estimate`, `RobotTrace.cov`); columns and bounds.
 ESTIMATE_FIELDS = {"estimate": 3, "cov": 6}
+_TURN = 2 * math.pi
+_AREA, _ARM = MAX_EXTENT_M**2, MAX_EXTENT_M * _TURN  # (m^2; m rad)
 _ESTIMATE_BOUNDS = {
-    "estimate": np.array([MAX_EXTENT_M, MAX_EXTENT_M, 2 * math.pi]),
-    # (a variance no bigger than the arena's extent squared, or 2 pi squared)
-    "cov": np.full(6, max(MAX_EXTENT_M, 2 * math.pi) ** 2),
+    "estimate": np.array([MAX_EXTENT_M, MAX_EXTENT_M, _TURN]),
+    "cov": np.array([_AREA, _AREA, _ARM, _AREA, _ARM, _TURN**2]),  # xx, xy, xt, yy, yt, tt
 }
 # The most a `traces.npz` unpacks to: the largest run's (`MAX_ROBOT_STEPS`, each step its
 # fields, its estimate and covariance and a state's name of up to 32 characters, and the
@@ -264,21 +265,23 @@ def read_run_traces(path: Path) -> tuple[FloatArray, dict[str, RobotTrace]]:
             if not np.all(np.isnan(column) | (np.abs(column) <= bound)):
                 raise ValueError(f"{rid}/{name}: values beyond +-{bound:g}")
             setattr(trace, name, column)
-        for name, columns in ESTIMATE_FIELDS.items():
+        for name in ESTIMATE_FIELDS:
             if name in arrays:
-                setattr(trace, name, _estimate_rows(arrays[name], name, (t_s.size, columns)))
+                setattr(trace, name, _estimate_rows(arrays[name], rid, name, t_s.size))
         trace.states = [str(s) for s in arrays["state"]]
         traces[rid] = trace
     return t_s, traces
 
 
-def _estimate_rows(array: Any, name: str, shape: tuple[int, int]) -> FloatArray:
-    """A robot's `estimate` or `cov` read back, held to its shape and bounds."""
+def _estimate_rows(array: Any, rid: str, name: str, steps: int) -> FloatArray:
+    """Robot `rid`'s `name` (of ESTIMATE_FIELDS) read back, held to its shape and bounds."""
     rows = np.asarray(array, dtype=float)
-    if rows.shape != shape:
-        raise ValueError(f"{name}: shape {rows.shape}, expected {shape}")
+    if rows.shape != (steps, ESTIMATE_FIELDS[name]):
+        raise ValueError(
+            f"{rid}/{name}: {rows.shape}, expected {steps} rows of {ESTIMATE_FIELDS[name]}"
+        )
     if not np.all(np.isnan(rows) | (np.abs(rows) <= _ESTIMATE_BOUNDS[name])):
-        raise ValueError(f"{name}: values beyond what a pose or its covariance can be")
+        raise ValueError(f"{rid}/{name}: values beyond what a pose or its covariance can be")
     return rows
 
 

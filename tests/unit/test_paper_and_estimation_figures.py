@@ -170,8 +170,8 @@ def test_traces_with_an_estimate_no_run_writes_are_refused(
     write_traces(estimated, tmp_path / "traces.npz")
     arrays = dict(np.load(tmp_path / "traces.npz"))
     for key, value, says in (
-        ("r2/cov", np.full_like(arrays["r2/cov"], np.inf), "covariance"),
-        ("r2/estimate", arrays["r2/estimate"][:, :2], "shape"),
+        ("r2/cov", np.full_like(arrays["r2/cov"], np.inf), "r2/cov: values beyond"),
+        ("r2/estimate", arrays["r2/estimate"][:, :2], "rows of 3"),
     ):
         spoilt = {**arrays, key: value}
         np.savez_compressed(tmp_path / "spoilt.npz", **spoilt)
