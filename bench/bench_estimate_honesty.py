@@ -1,7 +1,8 @@
 """Where a pose estimator's NEES goes out of its band: per robot of a run with the
 estimator on, the error of its published pose against the run's truth along and across
 its track and in heading, beside the standard deviations its covariance claimed, the
-share of steps inside the 95 % band, and the NEES of the position and the heading alone.
+share of steps inside the 95 % band, and the NEES of the position (its 2 x 2 block of
+the covariance) and of the heading alone.
 
     .venv/bin/python bench/bench_estimate_honesty.py RESULTS_FOLDER [RESULTS_FOLDER ...]
 
@@ -39,7 +40,8 @@ def row(run: str, robot_id: str, trace: RobotTrace, steps: FloatArray) -> str:
     across = -errors[:, 0] * sin + errors[:, 1] * cos
     cov = trace.cov
     whole = nees(errors, cov)[steps]
-    position = (errors[:, 0] ** 2 / cov[:, 0] + errors[:, 1] ** 2 / cov[:, 3])[steps]
+    ex, ey, xx, xy, yy = errors[:, 0], errors[:, 1], cov[:, 0], cov[:, 1], cov[:, 3]
+    position = ((yy * ex * ex - 2 * xy * ex * ey + xx * ey * ey) / (xx * yy - xy * xy))[steps]
     heading = (heading_rad**2 / cov[:, 5])[steps]
     finite = whole[np.isfinite(whole)]
     inside = float(np.mean((finite >= NEES_BAND[0]) & (finite <= NEES_BAND[1])))

@@ -32,7 +32,6 @@ from phalanx.analysis.metrics import (
     CORE_BOUNDS,
     follower_metrics,
     leader_shape_keys,
-    navigation_metrics,
     phase_masks,
 )
 from phalanx.analysis.sweep import Job, job_row, run_until_done
@@ -63,7 +62,7 @@ def reverses_of(job: Job) -> tuple[Reversed, dict[str, Any]]:
     started = time.perf_counter()
     log = run_until_done(BatchRunner(job.scenario()))
     row = job_row(job, log, time.perf_counter() - started)
-    reverses = int(navigation_metrics(log)["deadlock_reverses"])
+    reverses = int(row["deadlock_reverses"])
     worst = dict.fromkeys(CORE_BOUNDS, 0.0)
     samples = 0
     for follower in log.traces:
