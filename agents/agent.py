@@ -559,6 +559,7 @@ class Agent:
             shape_source=self.parts.keeper.key.source,
             shape_target=self.parts.keeper.key.target,
             morph=self.parts.keeper.key.morph,
+            settled=self.fsm.state == State.FORMATION_TRACK and self.parts.track.settled,
             shape_fits=self.parts.keeper.scenario_fits,
         )
         return StepOutput(

@@ -88,6 +88,8 @@ class FlagsView(Protocol):
     def shape_target(self) -> int: ...  # noqa: D102
     @property
     def morph(self) -> float: ...  # noqa: D102
+    @property
+    def settled(self) -> bool: ...  # noqa: D102
 
 
 Flags = Mapping[str, FlagsView]

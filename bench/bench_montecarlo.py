@@ -41,6 +41,7 @@ from phalanx.analysis.sweep import summarise as sweep_summary
 from phalanx.core.config_files import CONFIG_ROOT, load_scenario
 from phalanx.core.runlog import RunLog
 from phalanx.core.scenarios import SHAPES, navigation_scenario
+from phalanx.core.states import State
 from phalanx.runtime.batch import BatchRunner
 
 REPO = Path(__file__).resolve().parent.parent
@@ -84,7 +85,26 @@ def deadend_run(shape: str, robots: int = 3) -> tuple[RunLog, dict[str, Any]]:
             if values.size:
                 worst[k] = max(worst[k], float(values.max()))
     nav = navigation_metrics(log)
-    return log, {"shape": shape, "robots": robots, "backward_s": seconds, "worst": worst, **nav}
+    stood = _stood_before_reversing(log)
+    return log, {
+        "shape": shape, "robots": robots, "backward_s": seconds, "worst": worst,
+        "stood_s": stood, **nav,
+    }  # fmt: skip
+
+
+def _stood_before_reversing(log: RunLog) -> list[float]:
+    """For each deadlock reverse, the seconds from the deadlock (the leader entering
+    DEADLOCK_REVERSE) to its first step backwards: the turn back and the pause.
+    """
+    leader = log.formation.root
+    backing = np.flatnonzero(log.traces[leader].direction < 0)
+    stood = []
+    for event in log.transitions[leader]:
+        if event.target == State.DEADLOCK_REVERSE:
+            after = backing[log.t_s[backing] >= event.t_s]
+            if after.size:
+                stood.append(float(log.t_s[after[0]]) - event.t_s)
+    return stood
 
 
 def _fmt(value: float, digits: int = 3) -> str:
@@ -125,9 +145,9 @@ def deadend_table(results: list[dict[str, Any]]) -> list[str]:
     """
     rows = [
         "| formation | robots | deadlock reverses | measured reverse | backward linear max % "
-        "| backward angular max % | backward orientation max deg | goal reached "
-        "| collisions |",
-        "|---|---:|---:|---:|---|---|---|---|---:|",
+        "| backward angular max % | backward orientation max deg | deadlock to reverse "
+        "| goal reached | collisions |",
+        "|---|---:|---:|---:|---|---|---|---:|---|---:|",
     ]
     for r in results:
         w = r["worst"]
@@ -138,6 +158,7 @@ def deadend_table(results: list[dict[str, Any]]) -> list[str]:
         ]
         cells = [
             r["shape"], str(r["robots"]), str(r["deadlock_reverses"]), _reverse(r), *errors,
+            " / ".join(f"{s:.1f} s" for s in r["stood_s"]) or "-",
             f"yes ({r['time_to_goal_s']:.0f} s)" if r["goal_reached"] else "no",
             str(r["collisions_obstacle"] + r["collisions_robot"]),
         ]  # fmt: skip
@@ -213,15 +234,15 @@ DEADEND_TEXT = (
     "(its end out of sonar range from the mouth), the goal behind it. The group drives "
     "in; once the leader's map shows its route leading back the way it came (the point "
     "it heads for behind it and within 1 m of the path it drove) and no room to turn "
-    "the shape round, the group is in deadlock: it turns the shape back to the "
-    "way it came in (the heading of the leader's last 2 m of path: a leader caught "
-    "turning would otherwise back out diagonally), stands still 12 s "
-    "(`deadlock.pause_s`: the followers settle onto their slots, position then "
-    "heading), backs out straight in formation (`deadlock.reverse_mode = 'fixed'`, as "
-    "the paper) for 10 m, turns towards the route and goes round. Backward-phase errors "
-    "are measured from 5 s after the reverse starts (the formation-core convention), "
-    "against the formation-core bounds (< 0.5 % linear, < 0.3 % angular, < 0.5 deg "
-    "orientation)."
+    "the shape round, the group is in deadlock: it turns the shape back to the way it "
+    "came in (the heading of the leader's last 2 m of path: a leader caught turning "
+    "would otherwise back out diagonally), stands still until every follower says it "
+    "has settled onto its slot, position then heading (at most 12 s, "
+    "`deadlock.pause_s`; `pause_until_settled`), backs out straight in formation "
+    "(`deadlock.reverse_mode = 'fixed'`, as the paper) for 10 m, turns towards the "
+    "route and goes round. Backward-phase errors are measured from 5 s after the "
+    "reverse starts (the formation-core convention), against the formation-core bounds "
+    "(< 0.5 % linear, < 0.3 % angular, < 0.5 deg orientation)."
 )
 MEASURED_TEXT = (
     "Measured with `bench_montecarlo.deadend_run(shape, robots)` of "
@@ -237,7 +258,10 @@ DEADEND_NOTES = """\
   While the leader stands before the reverse, each follower settles onto its slot to
   within 5 mm (it turns towards the slot, drives onto it, then turns on the spot to the
   slot's heading: `Track`, `phalanx.agents.behaviours.follower`), which is what keeps the
-  reverse within the bounds from its fifth second on.
+  reverse within the bounds from its fifth second on. Each says so once within 0.5 deg
+  of the heading, and the leader backs off once all have: 11.8 and 10.4 s after the
+  deadlock, the turn back included, against 15.2 and 14.0 s standing the whole 12 s
+  (`--set deadlock.pause_until_settled=false`).
 - **The chains go round, never in.** At the U's mouth the sonar's arcs close and open the
   mouth on the leader's map from one re-plan to the next, so its route flips between going
   in and going round; a dead end is called only when the route has led back for 2 s

@@ -32,7 +32,7 @@ from phalanx.core.states import DEADLOCK_STATES, State
 ALIGN_AFTER_S = 1.0
 STILL_MPS = 0.005
 STILL_RADPS = 0.005
-ALIGN_GAIN_PER_S = 1.0
+ALIGN_GAIN_PER_S = 3.0
 SETTLE_M = 0.5  # further off, the controller brings it back
 # Near enough: only the heading is left; it drives again only once this far off (a pose
 # estimate's jitter does not send it turning back and forth). A reverse starts from
@@ -40,6 +40,10 @@ SETTLE_M = 0.5  # further off, the controller brings it back
 # with control_point_m / |v|, 2 s at reverse speed): 1 cm left a column of five's rear
 # robots 0.73 deg off the robot they track 5 s into its reverse, 5 mm 0.33 deg.
 ON_SLOT_M, OFF_SLOT_M = 0.005, 0.03
+# On its slot and this near the slot's heading, it has settled (`Track.settled`): a leader
+# pausing before a deadlock reverse backs off once every follower has (the reverse's
+# errors start from these: its bound on the heading is 0.5 deg).
+SETTLED_RAD = math.radians(0.5)
 SETTLE_GAIN_PER_S = 2.0  # heading gain on the way to the slot's position
 SETTLE_SPEED_MPS = (0.02, 0.1)  # slowest, fastest on the way
 SETTLE_AIMED_RAD = math.radians(10.0)  # drives only once aimed this well
@@ -77,9 +81,11 @@ class Track(Behaviour):
         self.dt_s = dt_s
         self.leader_still_s = 0.0
         self.on_slot = False  # settled onto the slot's position while the leader stands
+        self.settled = False  # ... and turned to the slot's heading (this step)
 
     def command(self, moment: Moment) -> Twist2D:
         """The controller's twist, or (its leader standing still) settling onto the slot."""
+        self.settled = False
         view = moment.view
         lead, rigid = view.anchor, _rigid(view)
         if lead is None or rigid is None:
@@ -89,9 +95,9 @@ class Track(Behaviour):
         self.on_slot = self.on_slot and still
         on_path = self.path_slot(view) if _keeps_to_path(moment) else None
         if self.leader_still_s >= ALIGN_AFTER_S:
-            settled = self._settle(moment.pose, on_path or rigid)
-            if settled is not None:
-                return settled
+            settling = self._settle(moment.pose, on_path or rigid)
+            if settling is not None:
+                return settling
         odometry = moment.odometry
         slot = self.shape.formation.slot_of(self.robot_id, lead.robot_id)
         leader, twist, age_s = lead.pose, lead.twist, max(0.0, moment.t_s - lead.stamp_s)
@@ -152,11 +158,9 @@ class Track(Behaviour):
             return None
         self.on_slot = distance_m <= (OFF_SLOT_M if self.on_slot else ON_SLOT_M)
         if self.on_slot:
-            return turn_on_spot(
-                wrap_angle(target.theta_rad - pose.theta_rad),
-                ALIGN_GAIN_PER_S,
-                self.limits.omega_max_radps,
-            )
+            heading_error = wrap_angle(target.theta_rad - pose.theta_rad)
+            self.settled = abs(heading_error) <= SETTLED_RAD
+            return turn_on_spot(heading_error, ALIGN_GAIN_PER_S, self.limits.omega_max_radps)
         error = wrap_angle(math.atan2(offset.y_m, offset.x_m) - pose.theta_rad)
         sign = 1.0
         if abs(error) > math.pi / 2:  # backing onto it turns less

@@ -281,7 +281,8 @@ class Wander(Steered):
 
 class DeadlockReverse(Behaviour):
     """DEADLOCK_REVERSE (the paper's section 3.2): stand still `pause_s` (the followers
-    settle on their slots), then back the group off in formation: along the path it came
+    settle on their slots; with `pause_until_settled`, only until every follower heard
+    says it has), then back the group off in formation: along the path it came
     (`path`), the arc just driven (`retrace`) or straight back (`fixed`, a navigating
     group first turning back to the way it came in).
     """
@@ -298,10 +299,12 @@ class DeadlockReverse(Behaviour):
         self.path_used_up = False  # backed along all of the recorded path
         self._entered_s = 0.0
         self._realigned_s = -math.inf  # when the turn back was done
+        self._backing = False  # the pause is over
 
     def enter(self, moment: Moment) -> None:
         """A new deadlock at this waypoint: count it, start from standing."""
         self._entered_s = self._realigned_s = moment.t_s
+        self._backing = False
         self.reversed_m = 0.0
         self.path_used_up = False
         self.progress.deadlocks += 1
@@ -312,23 +315,37 @@ class DeadlockReverse(Behaviour):
 
     def command(self, moment: Moment) -> Twist2D:
         """Turn back, pause, then back off."""
-        t_s, pose = moment.t_s, moment.pose
-        realign = self._realign(moment)
-        if realign is not None:
-            self.pausing = True
-            self._realigned_s = t_s
-            return realign
-        self.pausing = t_s - self._realigned_s < self.deadlock.pause_s - 1e-9
+        if not self._backing:
+            realign = self._realign(moment)
+            if realign is not None:
+                self.pausing = True
+                self._realigned_s = moment.t_s
+                return realign
+            self._backing = not self._stands_on(moment)
+        self.pausing = not self._backing
         if self.pausing:
             return ZERO_TWIST  # stand still first: the followers settle on their slots
         if self.deadlock.reverse_mode != "path":
             return reverse_twist(self.deadlock, moment.last_forward)
         speed = self.deadlock.reverse_speed_mps
-        twist = self.course.crumbs.back_along(pose, speed, REVERSE_LOOKBACK_M)
+        twist = self.course.crumbs.back_along(moment.pose, speed, REVERSE_LOOKBACK_M)
         if twist is None:  # backed along all the ground it knows: go no further
             self.path_used_up = True
             return ZERO_TWIST
         return twist
+
+    def _stands_on(self, moment: Moment) -> bool:
+        """Whether the pause goes on: `pause_s` since the turn back, unless (with
+        `pause_until_settled`) every follower heard has said since that it has settled.
+        """
+        since_s = self._realigned_s
+        if moment.t_s - since_s >= self.deadlock.pause_s - 1e-9:
+            return False
+        if not self.deadlock.pause_until_settled:
+            return True
+        me = moment.view.leader_id
+        followers = [f for r, f in moment.view.live.items() if r != me]
+        return not followers or not all(f.settled and f.stamp_s > since_s for f in followers)
 
     def _realign(self, moment: Moment) -> Twist2D | None:
         """A navigating group caught in a deadlock while turning: turn the shape back to

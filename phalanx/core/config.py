@@ -224,7 +224,8 @@ class DeadlockConfig(Model):
     follower clear to take over, or in a dead end (its route leads back the way it came
     and the shape has no room to turn round). The leader stands still `pause_s` (the
     followers settle onto their slots, position then heading: the dead-end scenarios
-    give them 12 s; 0 as the paper), backs the group off
+    give them 12 s; 0 as the paper; with `pause_until_settled`, only until every
+    follower heard says it stands on its slot at its heading), backs the group off
     `safe_distance_m` in formation (or until an obstacle behind stops it), then turns:
     towards its route if its map has one (to the heading nearest it along which its
     own corridor is free for twice `obstacle_range_m`), else by `turn_away_deg` (times
@@ -247,6 +248,7 @@ class DeadlockConfig(Model):
     reverse_speed_mps: PositiveSpeed = 0.15
     reverse_omega_degps: SignedYawRate = 0.0
     pause_s: Duration = 0.0
+    pause_until_settled: bool = True
     safe_distance_m: PositiveLength = 1.5
     obstacle_range_m: PositiveRange = 0.5
     turn_away_deg: Annotated[float, Field(ge=0.0, le=180.0)] = 60.0

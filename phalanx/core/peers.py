@@ -75,7 +75,9 @@ class PeerFlags:
     `deadlocks`, `profile_s`: the group's progress (next waypoint, deadlocks at it,
     scripted profile clock in s); `shape_source`, `shape_target`, `morph`: the shape the
     group is in, or moving between (`phalanx.core.shapes.ShapeKey`: 0 the scenario's,
-    1 shrunk, 2 column; `morph` of the way from the first to the second, 1 = there).
+    1 shrunk, 2 column; `morph` of the way from the first to the second, 1 = there);
+    `settled`: (a follower) it stands on its slot at the slot's heading, its leader
+    standing still (a leader pausing before a deadlock reverse may back off).
 
     Its fields are fields of `PeerState`, declared as there, in the same order.
     """
@@ -98,6 +100,7 @@ class PeerFlags:
     shape_source: Int8 = 0
     shape_target: Int8 = 0
     morph: float = 1.0
+    settled: bool = False
 
 
 @quick_init
@@ -147,6 +150,7 @@ class PeerState:
     shape_source: Int8 = 0
     shape_target: Int8 = 0
     morph: float = 1.0
+    settled: bool = False
     shape_fits: bool = True
 
     @property

@@ -105,6 +105,7 @@ class RobotState(Message):
     shape_source: ShapeIndex = 0
     shape_target: ShapeIndex = 0
     morph: Morph = 1.0
+    settled: bool = False
     shape_fits: bool = True
 
     @field_validator("cov")
@@ -157,7 +158,8 @@ class RobotFlags(Message):
     leads, and under which epoch; `waypoint`, `deadlocks`, `profile_s`: the group's
     progress (next waypoint, deadlocks at it, scripted profile clock in s);
     `shape_source`, `shape_target`, `morph`: the shape the group is in or moving between
-    (0 the scenario's, 1 shrunk, 2 column; `morph` of the way, 1 = there).
+    (0 the scenario's, 1 shrunk, 2 column; `morph` of the way, 1 = there); `settled`:
+    (a follower) on its slot at its heading, its leader standing still.
 
     Its fields are `PeerFlags`', in its order, each with its bound.
     """
@@ -181,6 +183,7 @@ class RobotFlags(Message):
     shape_source: ShapeIndex = 0
     shape_target: ShapeIndex = 0
     morph: Morph = 1.0
+    settled: bool = False
 
     @classmethod
     def of(cls, flags: PeerFlags) -> RobotFlags:

@@ -14,6 +14,7 @@ from phalanx.agents.agent import Observation
 from phalanx.agents.behaviours.base import Moment
 from phalanx.agents.behaviours.leader import TURN_ROOM
 from phalanx.agents.inputs import FleetView
+from phalanx.agents.leadership import LiveFlags
 from phalanx.agents.navigation import Breadcrumbs
 from phalanx.agents.navigation.clearance import clearance_along
 from phalanx.agents.sensing import Sensing
@@ -21,7 +22,7 @@ from phalanx.analysis.metrics import error_series, navigation_metrics, phase_mas
 from phalanx.core.config import PolygonObstacle
 from phalanx.core.config_files import CONFIG_ROOT, apply_overrides, load_scenario
 from phalanx.core.geometry import ZERO_TWIST, Pose2D, Vec2
-from phalanx.core.peers import PeerState
+from phalanx.core.peers import PeerFlags, PeerState
 from phalanx.core.robot import Odometry
 from phalanx.core.runlog import RunLog
 from phalanx.core.scenarios import navigation_scenario, signal_builder
@@ -112,6 +113,73 @@ def test_the_group_backs_out_of_the_dead_end_in_formation() -> None:
     assert len(reverses) == 1
     assert "dead end" in reverses[0].reason
     _backed_out_within_the_papers_bounds(log)
+
+
+def _pause_before_the_reverse(scenario_overrides: list[str]) -> tuple[float, bool]:
+    """The wedge of three in the dead end (its own shape): how long its leader stood
+    still in DEADLOCK_REVERSE after its last turning step, and whether every follower
+    said it had settled on the step before the leader backed off.
+    """
+    scenario = apply_overrides(
+        load_scenario(SCENARIOS / "nav_deadend_wedge3.toml"),
+        ["navigation.reshape=false", *scenario_overrides],
+    )
+    runner = BatchRunner(scenario)
+    leader, followers = runner.agents["r1"], [runner.agents["r2"], runner.agents["r3"]]
+    still_from_s, settled_before = math.inf, False
+    for k in range(runner.steps):
+        runner.step(k)
+        t_s = float(runner.t_s[k])
+        if leader.state_name != State.DEADLOCK_REVERSE:
+            continue
+        if not leader.parts.reverse.pausing:
+            return t_s - still_from_s, settled_before
+        if math.isinf(still_from_s) or leader.limiter.last.omega_radps != 0.0:
+            still_from_s = t_s  # (the pause runs from the turn back's end)
+        settled_before = all(
+            f.state_name == State.FORMATION_TRACK and f.parts.track.settled for f in followers
+        )
+    raise AssertionError("the group never backed off")
+
+
+@pytest.mark.slow
+def test_the_leader_backs_off_once_its_followers_have_settled_not_after_all_its_pause() -> None:
+    waited_s, settled = _pause_before_the_reverse([])  # (`pause_until_settled` on)
+    full_s, _ = _pause_before_the_reverse(["deadlock.pause_until_settled=false"])
+    assert settled
+    assert waited_s < full_s - 1.0, (waited_s, full_s)  # (12 s: the scenario's pause_s)
+
+
+def test_the_pause_waits_for_every_follower_to_say_it_settled_since_the_leader_stopped() -> None:
+    runner = BatchRunner(load_scenario(SCENARIOS / "nav_deadend_wedge3.toml"))
+    reverse = runner.agents["r1"].parts.reverse  # (12 s of pause at most)
+    free = (np.zeros(0), np.zeros(0))
+    sensing = Sensing(free, free, 5.0, {1: False, -1: False}, True, False, False)
+    pose = Pose2D(2.0, 0.0, 0.0)
+
+    def moment(t_s: float, **said: tuple[bool, float]) -> Moment:
+        flags = {
+            rid: PeerFlags(rid, 1, stamp_s, State.FORMATION_TRACK, settled=settled)
+            for rid, (settled, stamp_s) in said.items()
+        }
+        live = LiveFlags(flags, runner.formation)
+        view = FleetView(live, None, True, "r1", None, None)
+        odometry = Odometry(pose, ZERO_TWIST, t_s)
+        return Moment(t_s, State.DEADLOCK_REVERSE, odometry, sensing, view)
+
+    reverse.enter(moment(10.0))
+    # one follower not settled yet, or settled only before the leader stopped: it waits
+    assert reverse.command(moment(11.0, r2=(True, 10.9), r3=(False, 10.9))) == ZERO_TWIST
+    assert reverse.command(moment(11.1, r2=(True, 11.0), r3=(True, 9.9))) == ZERO_TWIST
+    assert reverse.pausing
+    # both settled since: it backs off, and goes on backing whatever they say then
+    assert reverse.command(moment(11.2, r2=(True, 11.1), r3=(True, 11.1))).v_mps < 0.0
+    assert reverse.command(moment(11.3, r2=(False, 11.2), r3=(False, 11.2))).v_mps < 0.0
+    assert not reverse.pausing
+    # a follower that never settles holds the group for the whole pause, no longer
+    reverse.enter(moment(20.0))
+    assert reverse.command(moment(31.9, r2=(True, 31.8), r3=(False, 31.8))) == ZERO_TWIST
+    assert reverse.command(moment(32.0, r2=(True, 31.9), r3=(False, 31.9))).v_mps < 0.0
 
 
 @pytest.mark.slow

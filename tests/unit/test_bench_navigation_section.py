@@ -40,7 +40,7 @@ def _cells(line: str) -> list[str]:
 
 def _result(line: str) -> dict[str, Any]:
     """A dead end's result as `deadend_run` gives it, read back from its table row."""
-    shape, robots, reverses, measured, *errors, goal, collisions = _cells(line)
+    shape, robots, reverses, measured, *errors, stood, goal, collisions = _cells(line)
     reached = goal.startswith("yes")
     return {
         "shape": shape,
@@ -51,6 +51,7 @@ def _result(line: str) -> dict[str, Any]:
             key: 0.0 if cell == "-" else float(cell.split()[0])
             for key, cell in zip(CORE_BOUNDS, errors, strict=True)
         },
+        "stood_s": [] if stood == "-" else [float(x.split()[0]) for x in stood.split(" / ")],
         "goal_reached": reached,
         "time_to_goal_s": float(goal.split("(")[1].split()[0]) if reached else math.nan,
         "collisions_obstacle": int(collisions),
@@ -70,7 +71,7 @@ def test_the_section_written_is_the_one_in_the_docs(bench: ModuleType) -> None:
 
 
 def test_the_section_has_no_field_table_and_names_its_figures(bench: ModuleType) -> None:
-    result = _result("| wedge | 3 | 1 | 62 s | 0.0149 ✓ | 0.00175 ✓ | 0.7 ✗ | no | 0 |")
+    result = _result("| wedge | 3 | 1 | 62 s | 0.0149 ✓ | 0.00175 ✓ | 0.7 ✗ | 9.5 s | no | 0 |")
     written = bench.section([result])
     assert "| family |" not in written
     assert "| formation | runs |" not in written  # the seeded fields' table of old
@@ -81,7 +82,8 @@ def test_the_section_has_no_field_table_and_names_its_figures(bench: ModuleType)
 
 
 def test_a_group_that_never_reversed_shows_dashes_and_why(bench: ModuleType) -> None:
-    row = _result("| inline | 3 | 0 | none (no dead end called) | - | - | - | yes (103 s) | 0 |")
+    never = "| inline | 3 | 0 | none (no dead end called) | - | - | - | - | yes (103 s) | 0 |"
+    row = _result(never)
     (line,) = [x for x in bench.deadend_table([row]) if x.startswith("| inline")]
-    assert "| none (no dead end called) | - | - | - | yes (103 s) |" in line
+    assert "| none (no dead end called) | - | - | - | - | yes (103 s) |" in line
     assert "nan" not in line

@@ -13,7 +13,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from phalanx.agents.agent import Agent, Observation
-from phalanx.agents.behaviours.follower import ALIGN_AFTER_S, ON_SLOT_M
+from phalanx.agents.behaviours.follower import ALIGN_AFTER_S, ON_SLOT_M, SETTLED_RAD
 from phalanx.core.config_files import CONFIG_ROOT, load_robot, load_scenario
 from phalanx.core.formation import scenario_formation
 from phalanx.core.geometry import Pose2D, Twist2D, wrap_angle
@@ -108,3 +108,30 @@ def test_from_anywhere_near_its_slot_it_ends_on_it_without_wandering_off(
     assert abs(math.degrees(wrap_angle(pose.theta_rad - SLOT.theta_rad))) < 0.5
     assert fastest_mps <= 0.1 + 1e-9
     assert further_m <= 0.005  # drives onto it, not round it
+
+
+def test_it_says_it_has_settled_once_on_its_slot_at_its_heading_and_not_before() -> None:
+    # What a leader pausing before a deadlock reverse waits for (`pause_until_settled`).
+    agent = Agent("r2", scenario=SCENARIO, robot=ROBOT, formation=FORMATION)
+    dt_s = SCENARIO.dt_s
+    pose, twist, said = _aside(0.2, -90.0, -80.0), Twist2D(0.0, 0.0), []
+    for k in range(round(15.0 / dt_s)):
+        t_s = k * dt_s
+        observation = Observation(Odometry(pose, twist, t_s), FREE)
+        out = agent.step(observation, {"r1": _leader(k, t_s)}, t_s)
+        heading_off_rad = abs(wrap_angle(pose.theta_rad - SLOT.theta_rad))
+        said.append((out.state.settled, _off_m(pose), heading_off_rad))
+        twist = out.command
+        heading = pose.theta_rad + twist.omega_radps * dt_s / 2
+        pose = Pose2D(
+            pose.x_m + twist.v_mps * dt_s * math.cos(heading),
+            pose.y_m + twist.v_mps * dt_s * math.sin(heading),
+            wrap_angle(pose.theta_rad + twist.omega_radps * dt_s),
+        )
+    first = next(i for i, (settled, _, _) in enumerate(said) if settled)
+    assert first * dt_s > ALIGN_AFTER_S  # not while it was still on its way
+    assert all(settled for settled, _, _ in said[first:])  # nothing moved it off again
+    for settled, off_m, heading_off_rad in said:
+        if settled:
+            assert off_m <= ON_SLOT_M + 1e-9
+            assert heading_off_rad <= SETTLED_RAD + 1e-9
