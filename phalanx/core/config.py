@@ -222,10 +222,11 @@ class DeadlockConfig(Model):
     A deadlock is every robot reporting an obstacle on its path (the paper, section 1);
     for a navigating leader also: the leader blocked for `leadership.confirm_s` with no
     follower clear to take over, or in a dead end (its route leads back the way it came
-    and the shape has no room to turn round). The leader stands still `pause_s` (the
-    followers settle onto their slots, position then heading: the dead-end scenarios
-    give them 12 s; 0 as the paper; with `pause_until_settled`, only until every
-    follower heard says it stands on its slot at its heading), backs the group off
+    and the shape has no room to turn round). The leader stands still for the followers
+    to settle onto their slots, position then heading: until every follower heard says
+    it stands on its slot at its heading (`pause_until_settled`), at most `pause_s` (all
+    of it with `pause_until_settled = false`; the dead-end scenarios give them up to
+    12 s; 0 as the paper). Then it backs the group off
     `safe_distance_m` in formation (or until an obstacle behind stops it), then turns:
     towards its route if its map has one (to the heading nearest it along which its
     own corridor is free for twice `obstacle_range_m`), else by `turn_away_deg` (times
