@@ -32,6 +32,7 @@ from phalanx.analysis.metrics import (
     CORE_BOUNDS,
     error_series,
     is_follower,
+    leader_direction,
     navigation_metrics,
     phase_masks,
 )
@@ -96,14 +97,16 @@ def _stood_before_reversing(log: RunLog) -> list[float]:
     """For each deadlock reverse, the seconds from the deadlock (the leader entering
     DEADLOCK_REVERSE) to its first step backwards: the turn back and the pause.
     """
-    leader = log.formation.root
-    backing = np.flatnonzero(log.traces[leader].direction < 0)
+    backing = np.flatnonzero(leader_direction(log) < 0)
+    entered = sorted(
+        e.t_s for events in log.transitions.values() for e in events
+        if e.target == State.DEADLOCK_REVERSE
+    )  # fmt: skip
     stood = []
-    for event in log.transitions[leader]:
-        if event.target == State.DEADLOCK_REVERSE:
-            after = backing[log.t_s[backing] >= event.t_s]
-            if after.size:
-                stood.append(float(log.t_s[after[0]]) - event.t_s)
+    for t_s in entered:
+        after = backing[log.t_s[backing] >= t_s]
+        if after.size:
+            stood.append(float(log.t_s[after[0]]) - t_s)
     return stood
 
 

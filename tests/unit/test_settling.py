@@ -8,11 +8,12 @@ move (a reverse out of a dead end) would start with.
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator
 
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from phalanx.agents.agent import Agent, Observation
+from phalanx.agents.agent import Agent, Observation, StepOutput
 from phalanx.agents.behaviours.follower import ALIGN_AFTER_S, ON_SLOT_M, SETTLED_RAD
 from phalanx.core.config_files import CONFIG_ROOT, load_robot, load_scenario
 from phalanx.core.formation import scenario_formation
@@ -36,29 +37,40 @@ def _leader(seq: int, t_s: float) -> PeerState:
     )  # fmt: skip
 
 
-def _settle(start: Pose2D, seconds: float) -> tuple[Pose2D, float, float]:
-    """r2 from `start` beside its still leader for `seconds` (its commands integrated
-    exactly): where it ends, and once it settles (its leader still for `ALIGN_AFTER_S`,
-    before which the controller tracks the slot; plus the limiter's 1 s to slow down
-    from what the controller asked) the fastest it drove and how much further from its
-    slot it got than it was then.
+def _steps(start: Pose2D, seconds: float) -> Iterator[tuple[float, Pose2D, StepOutput, Pose2D]]:
+    """r2 from `start` beside its still leader for `seconds`, its commands integrated
+    exactly: at each step, the time, the pose it stepped from, what it put out and the
+    pose its command took it to.
     """
     agent = Agent("r2", scenario=SCENARIO, robot=ROBOT, formation=FORMATION)
     dt_s = SCENARIO.dt_s
     pose, twist = start, Twist2D(0.0, 0.0)
-    fastest_mps, settling_from_m, furthest_m = 0.0, math.inf, 0.0
     for k in range(round(seconds / dt_s)):
         t_s = k * dt_s
         observation = Observation(Odometry(pose, twist, t_s), FREE)
-        twist = agent.step(observation, {"r1": _leader(k, t_s)}, t_s).command
+        out = agent.step(observation, {"r1": _leader(k, t_s)}, t_s)
+        twist = out.command
         heading = pose.theta_rad + twist.omega_radps * dt_s / 2
-        pose = Pose2D(
+        moved = Pose2D(
             pose.x_m + twist.v_mps * dt_s * math.cos(heading),
             pose.y_m + twist.v_mps * dt_s * math.sin(heading),
             wrap_angle(pose.theta_rad + twist.omega_radps * dt_s),
         )
+        yield t_s, pose, out, moved
+        pose = moved
+
+
+def _settle(start: Pose2D, seconds: float) -> tuple[Pose2D, float, float]:
+    """r2 from `start` for `seconds` (`_steps`): where it ends, and once it settles (its
+    leader still for `ALIGN_AFTER_S`, before which the controller tracks the slot; plus
+    the limiter's 1 s to slow down from what the controller asked) the fastest it drove
+    and how much further from its slot it got than it was then.
+    """
+    pose = start
+    fastest_mps, settling_from_m, furthest_m = 0.0, math.inf, 0.0
+    for t_s, _, out, pose in _steps(start, seconds):
         if t_s >= ALIGN_AFTER_S + 1.0:
-            fastest_mps = max(fastest_mps, abs(twist.v_mps))
+            fastest_mps = max(fastest_mps, abs(out.command.v_mps))
             settling_from_m = min(settling_from_m, _off_m(pose))
             furthest_m = max(furthest_m, _off_m(pose) - settling_from_m)
     return pose, fastest_mps, furthest_m
@@ -112,24 +124,12 @@ def test_from_anywhere_near_its_slot_it_ends_on_it_without_wandering_off(
 
 def test_it_says_it_has_settled_once_on_its_slot_at_its_heading_and_not_before() -> None:
     # What a leader pausing before a deadlock reverse waits for (`pause_until_settled`).
-    agent = Agent("r2", scenario=SCENARIO, robot=ROBOT, formation=FORMATION)
-    dt_s = SCENARIO.dt_s
-    pose, twist, said = _aside(0.2, -90.0, -80.0), Twist2D(0.0, 0.0), []
-    for k in range(round(15.0 / dt_s)):
-        t_s = k * dt_s
-        observation = Observation(Odometry(pose, twist, t_s), FREE)
-        out = agent.step(observation, {"r1": _leader(k, t_s)}, t_s)
-        heading_off_rad = abs(wrap_angle(pose.theta_rad - SLOT.theta_rad))
-        said.append((out.state.settled, _off_m(pose), heading_off_rad))
-        twist = out.command
-        heading = pose.theta_rad + twist.omega_radps * dt_s / 2
-        pose = Pose2D(
-            pose.x_m + twist.v_mps * dt_s * math.cos(heading),
-            pose.y_m + twist.v_mps * dt_s * math.sin(heading),
-            wrap_angle(pose.theta_rad + twist.omega_radps * dt_s),
-        )
+    said = [
+        (out.state.settled, _off_m(pose), abs(wrap_angle(pose.theta_rad - SLOT.theta_rad)))
+        for _, pose, out, _ in _steps(_aside(0.2, -90.0, -80.0), 15.0)
+    ]
     first = next(i for i, (settled, _, _) in enumerate(said) if settled)
-    assert first * dt_s > ALIGN_AFTER_S  # not while it was still on its way
+    assert first * SCENARIO.dt_s > ALIGN_AFTER_S  # not while it was still on its way
     assert all(settled for settled, _, _ in said[first:])  # nothing moved it off again
     for settled, off_m, heading_off_rad in said:
         if settled:
