@@ -7,9 +7,12 @@ times its runs in CPU time and the calibration workload (`bench/calibration.py`)
 every benchmark times it: the figure is the cost per robot-step and its ratio to it.
 Printed per scenario: the median of each checkout, and this checkout's time over the
 other's round by round, with their median. Both checkouts run with this interpreter and
-its libraries (the other's phalanx comes first on `PYTHONPATH`).
+its libraries (the other's phalanx comes first on `PYTHONPATH`), the compiled kernels
+(`phalanx.core.compiled`) loaded before the runs are timed where the checkout has them;
+`--pythonpath . --other-env PHALANX_KERNELS=numpy` sets numba's kernels against numpy's.
 
     .venv/bin/python bench/bench_nav_ab.py --pythonpath OTHER_CHECKOUT [--rounds 4]
+        [--other-env NAME=VALUE ...]
 """
 
 from __future__ import annotations
@@ -36,6 +39,12 @@ def child(scenarios: list[str]) -> None:
     from phalanx.core.config_files import CONFIG_ROOT, load_scenario
     from phalanx.runtime.batch import BatchRunner
 
+    try:
+        from phalanx.agents.navigation import warm_kernels
+    except ImportError:  # (a checkout from before the compiled kernels)
+        pass
+    else:
+        warm_kernels()  # (numba's code loaded before the first run is timed)
     out: dict[str, float] = {}
     for name in scenarios:
         runner = BatchRunner(load_scenario(CONFIG_ROOT / "scenarios" / f"{name}.toml"))
@@ -46,9 +55,11 @@ def child(scenarios: list[str]) -> None:
     print(json.dumps(out))
 
 
-def measure(checkout: Path, scenarios: list[str]) -> dict[str, float]:
-    """One fresh process of `checkout`'s phalanx running `scenarios`."""
-    env = {**os.environ, "PYTHONPATH": str(checkout)}
+def measure(checkout: Path, scenarios: list[str], extra: dict[str, str]) -> dict[str, float]:
+    """One fresh process of `checkout`'s phalanx running `scenarios`, with `extra` in its
+    environment.
+    """
+    env = {**os.environ, "PYTHONPATH": str(checkout), **extra}
     done = subprocess.run(
         [sys.executable, __file__, "--child", *scenarios],
         cwd=checkout, env=env, capture_output=True, text=True, check=True, timeout=900,
@@ -62,6 +73,10 @@ def main() -> None:
     parser.add_argument("--pythonpath", type=Path, help="the other checkout (the 'before')")
     parser.add_argument("--rounds", type=int, default=4)
     parser.add_argument("--scenario", action="append", help="default: " + ", ".join(SCENARIOS))
+    parser.add_argument(
+        "--other-env", action="append", default=[], metavar="NAME=VALUE",
+        help="set in the other's processes (e.g. PHALANX_KERNELS=numpy, with --pythonpath .)",
+    )  # fmt: skip
     parser.add_argument("--child", nargs="+", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.child:
@@ -71,11 +86,12 @@ def main() -> None:
         parser.error("--pythonpath OTHER_CHECKOUT is required")
     scenarios = args.scenario or list(SCENARIOS)
     trees = {"other": args.pythonpath.resolve(), "this": REPO}
+    envs = {"other": dict(kv.split("=", 1) for kv in args.other_env), "this": {}}
     Calibration.measure()
     runs: dict[str, list[dict[str, float]]] = {name: [] for name in trees}
     for k in range(args.rounds):
         for name in list(trees) if k % 2 == 0 else list(reversed(trees)):
-            runs[name].append(measure(trees[name], scenarios))
+            runs[name].append(measure(trees[name], scenarios, envs[name]))
     for scenario in scenarios:
         line = [f"{scenario:24s}"]
         for name in trees:

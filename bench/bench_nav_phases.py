@@ -14,7 +14,9 @@ make up each phase. A function renamed or moved in the brain stops the benchmark
 its name, rather than letting its time slip into "the rest".
 
 Every time is also given as a ratio to the calibration workload timed in the same run
-(`bench/calibration.py`), in milli-cal per robot-step.
+(`bench/calibration.py`), in milli-cal per robot-step. The compiled kernels
+(`phalanx.core.compiled`) are loaded before the first run; `PHALANX_KERNELS=numpy` times
+numpy's code instead.
 
     .venv/bin/python bench/bench_nav_phases.py [--scenario nav_field_wedge3 ...] [--duration-s 240]
 """
@@ -33,6 +35,9 @@ from typing import Any
 
 from calibration import Calibration, load
 
+from phalanx.agents.navigation import warm_kernels
+from phalanx.agents.navigation.clearance import KERNELS
+from phalanx.core.compiled import kernels
 from phalanx.core.config_files import CONFIG_ROOT, apply_overrides, load_scenario
 from phalanx.runtime.batch import BatchRunner
 
@@ -275,6 +280,8 @@ def main() -> None:
     parser.add_argument("--scripted", default=SCRIPTED, help="the scripted run to compare with")
     parser.add_argument("--duration-s", type=float, default=None, help="(default: the scenario's)")
     args = parser.parse_args()
+    warm_kernels()  # (numba's code loaded before the first run is timed)
+    print(f"kernels: {'numba' if kernels(KERNELS) is not None else 'numpy'}")
     cal = Calibration.measure()
     results = [measure(name, args.duration_s) for name in args.scenario]
     scripted = measure(args.scripted, None) if args.scripted else None

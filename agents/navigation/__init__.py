@@ -30,6 +30,7 @@ from phalanx.agents.navigation.clearance import (
     corridor_clearance,
     heading_index,
     open_side,
+    warm_kernels,
 )
 from phalanx.agents.navigation.column_path import Trail
 from phalanx.agents.navigation.deadlock import (
@@ -85,4 +86,5 @@ __all__ = [
     "rigid_limit",
     "steer",
     "turn_rate_radps",
+    "warm_kernels",
 ]

@@ -3,7 +3,8 @@ straight corridor as wide as the robot (plus a margin) can go along any heading 
 it touches one, for the robot alone or for a whole formation moving together, and the
 navigator's candidate headings that steering picks among.
 
-Pure numpy, no I/O.
+numpy, or one compiled loop where numba is installed (`clearance_kernels`, the same
+floats to the bit); no I/O.
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ import numpy as np
 import numpy.typing as npt
 
 from phalanx.agents.perception import NO_OBSTACLE_M, FloatArray
+from phalanx.core.compiled import kernels
 from phalanx.core.frozen import quick_init
 from phalanx.core.geometry import Vec2
 
@@ -25,6 +27,8 @@ IntArray = npt.NDArray[np.intp]
 
 # Candidate headings of the reactive navigator, body frame: every 7.5 deg all round.
 HEADINGS_RAD: FloatArray = np.radians(np.arange(-180.0, 180.0, 7.5))
+# The compiled pass (`phalanx.core.compiled`), where numba is installed.
+KERNELS = "phalanx.agents.navigation.clearance_kernels"
 
 
 def corridor_clearance(
@@ -51,6 +55,15 @@ def corridor_clearance(
     if x.size == 0 or headings_rad.size == 0 or not origins:
         return out
     w2 = half_width_m * half_width_m
+    compiled = kernels(KERNELS)
+    if compiled is not None:
+        headings = np.asarray(headings_rad, dtype=np.float64)
+        nearest: FloatArray = compiled.corridor(
+            np.ascontiguousarray(x), np.ascontiguousarray(y), np.cos(headings),
+            np.sin(headings), np.array([o.x_m for o in origins], dtype=np.float64),
+            np.array([o.y_m for o in origins], dtype=np.float64), w2, turning,
+        )  # fmt: skip
+        return np.minimum(out, nearest, out=out) if turning else nearest
     if not turning:
         return _sliding(x, y, headings_rad, origins, w2)
     view = _VIEWS.of(x, y, headings_rad)
@@ -235,6 +248,13 @@ class _Scratch(threading.local):
 
 _VIEWS = _Views()
 _SCRATCH = _Scratch()
+
+
+def warm_kernels() -> None:
+    """Compile or load the compiled pass now (`phalanx.core.compiled`), for a real-time
+    loop that must not wait for it at its first obstacle; nothing to do without numba.
+    """
+    corridor_clearance((np.zeros(1), np.zeros(1)), HEADINGS_RAD[:1], half_width_m=0.1)
 
 
 def clearance_along(

@@ -22,12 +22,14 @@ from __future__ import annotations
 import functools
 import math
 from collections.abc import Iterable, Sequence
+from types import ModuleType
 from typing import Any, NamedTuple
 
 import numpy as np
 import numpy.typing as npt
 
 from phalanx.agents.perception import ARC_SPREAD_M, BoolArray, SonarGeometry
+from phalanx.core.compiled import kernels
 from phalanx.core.geometry import Pose2D, Vec2
 from phalanx.core.mapfile import FREE, UNKNOWN, GridMap
 from phalanx.core.mapfile import OCCUPIED as OCCUPIED_CELL
@@ -55,6 +57,8 @@ _STRAIGHT, _DIAGONAL = math.hypot(0, 1), math.hypot(1, 1)  # a move's length (ce
 # beam's angle off the axis) and the evidence it adds there.
 _ARC = ((-1.0, EDGE_HIT), (0.0, HIT), (1.0, EDGE_HIT))
 _ARC_OFFSETS = np.array([[offset] for offset, _ in _ARC])
+# The compiled update (`phalanx.core.compiled`), where numba is installed.
+KERNELS = "phalanx.agents.navigation.grid_kernels"
 _MOVES = tuple((dy, dx, math.hypot(dy, dx)) for dy in (-1, 0, 1) for dx in (-1, 0, 1) if dy or dx)
 
 
@@ -78,6 +82,9 @@ class OccupancyMap:
         self.y0_m = origin.y_m - half_size_m
         self.evidence = np.zeros((self.cells, self.cells), dtype=np.int8)
         self.seen = np.zeros((self.cells, self.cells), dtype=bool)  # ever sensed (or known)
+        # The compiled update's: which marking last changed each cell, and how many so far.
+        self._stamp: npt.NDArray[np.int64] | None = None
+        self._marks = 0
 
     def index(self, x_m: FloatArray, y_m: FloatArray) -> tuple[npt.NDArray[np.intp], ...]:
         """(row, column) of world points, and whether each lies on the grid."""
@@ -133,17 +140,20 @@ class OccupancyMap:
         self, sonar: SonarGeometry, readings: Sequence[tuple[Pose2D, FloatArray, BoolArray]]
     ) -> None:
         """Each reading's rays seen free, then its echoes, reading after reading (the
-        cells of all of them found in one pass).
+        cells of all of them found in one pass; the compiled loop's, where numba is).
         """
         ox, oy, heading = _sonar_rays([pose for pose, _, _ in readings], sonar)
         r = _rows([reading[1] for reading in readings])
         echo = _rows([reading[2] for reading in readings])
         # a beam that met something is free up to it, whether it met an obstacle or one
         # of the formation's robots (masked out: no echo here, but no clear view past it)
-        free_x, free_y, free_counts = self._free_points(
-            ox, oy, heading, np.where(sonar.ranged(r), r - self.cell_m, FREE_REACH_M)
-        )
+        reach = np.where(sonar.ranged(r), r - self.cell_m, FREE_REACH_M)
         near = echo & (r < MAP_RANGE_M)  # far echoes are too vague to remember
+        compiled = kernels(KERNELS)
+        if compiled is not None:
+            self._add_compiled(compiled, sonar, (ox, oy, heading, reach), r, near)
+            return
+        free_x, free_y, free_counts = self._free_points(ox, oy, heading, reach)
         arc_x, arc_y = _arc_points(sonar, (ox, oy, heading), r, near)
         cells = self._cells(np.concatenate((free_x, arc_x)), np.concatenate((free_y, arc_y)))
         # (as a rule every cell is on the grid, and there is none to drop)
@@ -161,6 +171,32 @@ class OccupancyMap:
                 self._mark(on_grid(arc_cells[arc_at : arc_at + echoes]), amount)
                 arc_at += echoes
         self.seen.reshape(-1)[on_grid(cells)] = True
+
+    def _add_compiled(
+        self,
+        compiled: ModuleType,
+        sonar: SonarGeometry,
+        rays: tuple[FloatArray, FloatArray, FloatArray, FloatArray],
+        r: FloatArray,
+        near: BoolArray,
+    ) -> None:
+        """`_add_readings` by the compiled loop (`grid_kernels`), from the cosines and
+        sines numpy works out (the loop's own could differ from numpy's in the last bit).
+        """
+        ox, oy, heading, reach = rays
+        if self._stamp is None:
+            self._stamp = np.zeros(self.evidence.size, dtype=np.int64)
+        steps = np.arange(0.0, float(reach.max(initial=0.0)), self.cell_m / 2)
+        arc_c = arc_s = np.empty((0, 0, 0))
+        if near.any():
+            angle = _arc_angles(sonar, heading, r)
+            arc_c, arc_s = np.cos(angle), np.sin(angle)
+        self._marks = compiled.add_readings(
+            self.evidence.reshape(-1), self.seen.reshape(-1), self._stamp, self._marks,
+            _TABLES, (self.x0_m, self.y0_m, self.cell_m, self.cells),
+            (ox, oy, np.cos(heading), np.sin(heading), reach), steps,
+            (r, near, arc_c, arc_s),
+        )  # fmt: skip
 
     def _free_points(
         self, ox: FloatArray, oy: FloatArray, heading: FloatArray, reach: FloatArray
@@ -417,13 +453,23 @@ def _arc_points(
     """
     if not near.any():
         return np.empty(0), np.empty(0)
-    ox, oy, heading = (a[:, None, :] for a in rays)
-    half = np.minimum(sonar.half_beam_rad, np.arctan2(ARC_SPREAD_M, np.maximum(r, 1e-6)))
-    angle = heading + _ARC_OFFSETS * half[:, None, :]
+    ox, oy, heading = rays
+    angle = _arc_angles(sonar, heading, r)
+    ox, oy = ox[:, None, :], oy[:, None, :]
     arcs = np.broadcast_to(near[:, None, :], angle.shape)
     x = (ox + r[:, None, :] * np.cos(angle))[arcs]
     y = (oy + r[:, None, :] * np.sin(angle))[arcs]
     return x, y
+
+
+def _arc_angles(sonar: SonarGeometry, heading: FloatArray, r: FloatArray) -> FloatArray:
+    """Which way each echo's arc points lie from their transducer (readings x places x
+    transducers; the places `_ARC`'s): its heading, and a half beam either side, narrowed
+    far off to `ARC_SPREAD_M` across.
+    """
+    half = np.minimum(sonar.half_beam_rad, np.arctan2(ARC_SPREAD_M, np.maximum(r, 1e-6)))
+    angle: FloatArray = heading[:, None, :] + _ARC_OFFSETS * half[:, None, :]
+    return angle
 
 
 def _on_grid(cells: npt.NDArray[np.intp]) -> npt.NDArray[np.intp]:
@@ -450,6 +496,11 @@ def _added(amount: int) -> npt.NDArray[np.int8]:
     after = np.clip(before + amount, 0, MAX_EVIDENCE).astype(np.int8)
     after.flags.writeable = False
     return after
+
+
+# What a free sighting, then each of an arc's places, make of every evidence value (the
+# compiled update's tables, in the order it marks).
+_TABLES = np.stack([_added(-1), *(_added(amount) for _, amount in _ARC)])
 
 
 @functools.lru_cache(maxsize=512)

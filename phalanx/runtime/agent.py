@@ -22,6 +22,7 @@ from dataclasses import dataclass
 from typing import Literal
 
 from phalanx.agents.agent import Agent, Observation, StepOutput
+from phalanx.agents.navigation import warm_kernels
 from phalanx.core.config import Scenario
 from phalanx.core.formation import Formation, scenario_formation
 from phalanx.core.peers import PeerState
@@ -83,6 +84,8 @@ class AgentRuntime:
         self.formation: Formation = scenario_formation(scenario)
         self.bounds = FleetBounds.of(scenario, robot)
         self.agent = Agent(robot_id, scenario=scenario, robot=robot, formation=self.formation)
+        if scenario.navigation.reactive:
+            warm_kernels()  # (compiled or loaded now, not at the step that first meets an obstacle)
         self.inbox = PeerInbox(
             robot_id, self.formation, fleet=options.fleet, lockstep=self.lockstep,
             bounds=self.bounds,

@@ -2,8 +2,9 @@
 for bit: the route's wavefront (a bucketed Dijkstra, against relaxing every cell until
 nothing changes), the furthest route point in sight (checked in batches, against one
 segment at a time), a whole `plan`, the obstacles grown by a disc (row by row, against
-every offset in turn), and the map update (against `np.unique` and clipping per call).
-The plain algorithms are kept here, as they were, as the reference.
+every offset in turn), and the map update (against `np.unique` and clipping per call;
+numpy's update and the compiled loop numba runs, each). The plain algorithms are kept
+here, as they were, as the reference.
 """
 
 from __future__ import annotations
@@ -19,11 +20,14 @@ from hypothesis import strategies as st
 from phalanx.agents.navigation import FleetMap, fleet_map, grid
 from phalanx.agents.navigation.grid import OccupancyMap
 from phalanx.agents.perception import ARC_SPREAD_M, SonarGeometry
+from phalanx.core.compiled import chosen
 from phalanx.core.config_files import load_robot
 from phalanx.core.geometry import Pose2D, Vec2
 from phalanx.core.peers import Scan
 
 SONAR = SonarGeometry.from_params(load_robot("p3dx"))
+# The map updates' tests run on both paths (the dev extra installs numba).
+both_paths = pytest.mark.parametrize("kind", ["numpy", "numba"])
 Bools = npt.NDArray[np.bool_]
 Floats = npt.NDArray[np.float64]
 
@@ -310,9 +314,12 @@ def test_on_an_open_map_a_route_is_the_fewest_moves(
     assert length_m is None or length_m == pytest.approx(m.fewest_m(start, goal), rel=1e-8)
 
 
+@both_paths
 @settings(max_examples=100, deadline=None)
 @given(st.integers(0, 2**32 - 1), st.booleans())
-def test_updates_leave_the_map_the_plain_updates_leave(seed: int, odd_evidence: bool) -> None:
+def test_updates_leave_the_map_the_plain_updates_leave(
+    kind: str, seed: int, odd_evidence: bool
+) -> None:
     """A run of random readings, from a map blank or holding any byte (as code writing
     `evidence` directly may leave it)."""
     rng = np.random.default_rng(seed)
@@ -329,7 +336,8 @@ def test_updates_leave_the_map_the_plain_updates_leave(seed: int, odd_evidence: 
         pose = Pose2D(float(x_m), float(y_m), float(theta_rad))
         ranges = np.where(rng.random(units) < 0.3, 5.0, rng.uniform(0.0, 5.0, units))
         echo = rng.random(units) < 0.7
-        fast.update(pose, SONAR, ranges, echo)
+        with chosen(kind):
+            fast.update(pose, SONAR, ranges, echo)
         ref_update(plain, pose, ranges, echo)
         assert np.array_equal(fast.evidence, plain.evidence)
         assert np.array_equal(fast.seen, plain.seen)
@@ -416,9 +424,12 @@ def _scan(
     )
 
 
+@both_paths
 @settings(max_examples=100, deadline=None)
 @given(st.integers(0, 2**32 - 1))
-def test_the_fleets_batches_leave_the_map_one_plain_update_a_scan_leaves(seed: int) -> None:
+def test_the_fleets_batches_leave_the_map_one_plain_update_a_scan_leaves(
+    kind: str, seed: int
+) -> None:
     """Batches of scans of three robots a few metres apart (echoes of one another among
     them), stamps repeating (stale scans, two of one robot in a batch), some rings short."""
     rng = np.random.default_rng(seed)
@@ -437,7 +448,8 @@ def test_the_fleets_batches_leave_the_map_one_plain_update_a_scan_leaves(seed: i
             )
             for _ in range(int(rng.integers(0, 6)))
         ]
-        fleet.add(scans)
+        with chosen(kind):
+            fleet.add(scans)
         scans_added, echoes_left_out = ref_fleet_add(plain, added, at, scans)
         count, dropped = count + scans_added, dropped + echoes_left_out
         assert np.array_equal(fleet.map.evidence, plain.evidence)
@@ -447,13 +459,14 @@ def test_the_fleets_batches_leave_the_map_one_plain_update_a_scan_leaves(seed: i
         assert fleet.robot_echoes == dropped
 
 
-def test_a_scan_the_map_cannot_take_leaves_the_earlier_ones_added() -> None:
+@both_paths
+def test_a_scan_the_map_cannot_take_leaves_the_earlier_ones_added(kind: str) -> None:
     """A ring longer than the robot's, its echoes one per range: it raises, as adding it
     alone does, after the scans before it are in (and counted), before those after it."""
     rng = np.random.default_rng(7)
     first, odd, last = _scan(rng, "r1", 1.0), _scan(rng, "r2", 2.0, 24), _scan(rng, "r3", 3.0)
     fleet = FleetMap(Vec2(0.0, 0.0), sonar=SONAR, order=ROBOTS)
-    with pytest.raises(ValueError, match="broadcast"):
+    with pytest.raises(ValueError, match="broadcast"), chosen(kind):
         fleet.add([last, odd, first])
     plain = OccupancyMap(Vec2(0.0, 0.0))
     ref_update(plain, first.pose, np.asarray(first.ranges_m), np.asarray(first.echo))

@@ -1,8 +1,8 @@
-"""`corridor_clearance`'s fast path gives what the plain pass over every (slot, heading,
-point) gives, bit for bit, also for points on a slot's corridor's edge (where the fast
-path's pick of candidates could err) and for points that are not finite; and its memory
-of the points' projections never outlives the points it was worked out for. The plain
-pass is kept here as the reference.
+"""`corridor_clearance`'s fast paths (numpy's, and the compiled loop numba runs) give
+what the plain pass over every (slot, heading, point) gives, bit for bit, also for points
+on a slot's corridor's edge (where the numpy path's pick of candidates could err) and for
+points that are not finite; and the numpy path's memory of the points' projections never
+outlives the points it was worked out for. The plain pass is kept here as the reference.
 """
 
 from __future__ import annotations
@@ -11,15 +11,20 @@ from collections.abc import Sequence
 
 import numpy as np
 import numpy.typing as npt
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from phalanx.agents.navigation import HEADINGS_RAD, corridor_clearance
+from phalanx.agents.navigation.clearance import KERNELS
 from phalanx.agents.perception import NO_OBSTACLE_M
+from phalanx.core.compiled import chosen, kernels
 from phalanx.core.geometry import Vec2
 
 Floats = npt.NDArray[np.float64]
 SIDEWAYS_RAD = np.array([np.pi / 2, -np.pi / 2])
+# Every test runs on both paths (the dev extra installs numba: CI runs the compiled one).
+both_paths = pytest.mark.parametrize("kind", ["numpy", "numba"])
 
 
 def ref_clearance(
@@ -68,9 +73,11 @@ slots = st.lists(
 )
 
 
+@both_paths
 @settings(max_examples=300, deadline=None)
 @given(echoes(), slots, st.floats(0.05, 1.2), st.booleans(), st.booleans())
 def test_clearances_are_the_plain_passes_to_the_bit(
+    kind: str,
     points: tuple[Floats, Floats],
     others: list[Vec2],
     half_width_m: float,
@@ -80,9 +87,10 @@ def test_clearances_are_the_plain_passes_to_the_bit(
     headings = SIDEWAYS_RAD if sideways else HEADINGS_RAD
     origins = [Vec2(0.0, 0.0), *others]
     for where in ((Vec2(0.0, 0.0),), origins, others):
-        fast = corridor_clearance(
-            points, headings, half_width_m=half_width_m, origins=where, turning=turning
-        )
+        with chosen(kind):
+            fast = corridor_clearance(
+                points, headings, half_width_m=half_width_m, origins=where, turning=turning
+            )
         plain = ref_clearance(
             points, headings, half_width_m=half_width_m, origins=where, turning=turning
         )
@@ -90,16 +98,19 @@ def test_clearances_are_the_plain_passes_to_the_bit(
 
 
 def _same_as_plain(
+    kind: str,
     points: tuple[Floats, Floats],
     headings: Floats,
     half_width_m: float,
     origins: Sequence[Vec2] = (Vec2(0.0, 0.0),),
 ) -> bool:
-    fast = corridor_clearance(points, headings, half_width_m=half_width_m, origins=origins)
+    with chosen(kind):
+        fast = corridor_clearance(points, headings, half_width_m=half_width_m, origins=origins)
     plain = ref_clearance(points, headings, half_width_m=half_width_m, origins=origins)
     return fast.tobytes() == plain.tobytes()
 
 
+@both_paths
 @settings(max_examples=200, deadline=None)
 @given(
     st.lists(st.builds(Vec2, st.floats(-3.0, 3.0), st.floats(-3.0, 3.0)), min_size=1, max_size=4),
@@ -107,7 +118,7 @@ def _same_as_plain(
     st.integers(0, 2**32 - 1),
 )
 def test_points_on_a_slots_corridor_edge_count_as_in_the_plain_pass(
-    others: list[Vec2], half_width_m: float, seed: int
+    kind: str, others: list[Vec2], half_width_m: float, seed: int
 ) -> None:
     """Points a few units in the last place either side of a turned slot's corridor edge
     and of the line through its centre, along every heading: the fast path picks its
@@ -125,23 +136,25 @@ def test_points_on_a_slots_corridor_edge_count_as_in_the_plain_pass(
     across, along = across + ulps, along + ulps[::-1]
     x = c * ox - s * oy + along * c - across * s
     y = s * ox + c * oy + along * s + across * c
-    assert _same_as_plain((x, y), HEADINGS_RAD, half_width_m, [Vec2(0.0, 0.0), *others])
+    assert _same_as_plain(kind, (x, y), HEADINGS_RAD, half_width_m, [Vec2(0.0, 0.0), *others])
 
 
-def test_points_not_all_finite_count_as_in_the_plain_pass() -> None:
+@both_paths
+def test_points_not_all_finite_count_as_in_the_plain_pass(kind: str) -> None:
     """(Both passes multiply an infinity by a zero on the way: numpy says so.)"""
     x = np.array([1.0, np.nan, 2.0, np.inf, 0.5])
     y = np.array([0.1, 0.0, np.nan, 0.2, -0.3])
     slots = [Vec2(0.0, 0.0), Vec2(-0.8, 0.6), Vec2(-0.8, -0.6)]
     with np.errstate(invalid="ignore"):
-        assert _same_as_plain((x, y), HEADINGS_RAD, 0.3, slots)
-        assert _same_as_plain((x, y), HEADINGS_RAD, 0.3, slots[1:])
+        assert _same_as_plain(kind, (x, y), HEADINGS_RAD, 0.3, slots)
+        assert _same_as_plain(kind, (x, y), HEADINGS_RAD, 0.3, slots[1:])
 
 
+@both_paths
 @settings(max_examples=100, deadline=None)
 @given(echoes(), echoes(), st.floats(0.05, 1.2))
 def test_the_projections_kept_are_never_those_of_other_points(
-    first: tuple[Floats, Floats], second: tuple[Floats, Floats], half_width_m: float
+    kind: str, first: tuple[Floats, Floats], second: tuple[Floats, Floats], half_width_m: float
 ) -> None:
     """The same arrays written over in place between calls (x, then y; a copy of the
     first with the arrays it came from written over), then other widths and headings,
@@ -150,13 +163,27 @@ def test_the_projections_kept_are_never_those_of_other_points(
     x, y = first
     n = min(x.size, second[0].size)
     shape = [Vec2(0.0, 0.0), Vec2(-0.8, 0.6)]
-    assert _same_as_plain((x, y), HEADINGS_RAD, half_width_m, shape)
+    assert _same_as_plain(kind, (x, y), HEADINGS_RAD, half_width_m, shape)
     kept = (x.copy(), y.copy())
     x[:n] = second[0][:n]
-    assert _same_as_plain(kept, HEADINGS_RAD, half_width_m, shape)
-    assert _same_as_plain((x, y), HEADINGS_RAD, half_width_m, shape)
-    assert _same_as_plain((x, y), HEADINGS_RAD, half_width_m)
+    assert _same_as_plain(kind, kept, HEADINGS_RAD, half_width_m, shape)
+    assert _same_as_plain(kind, (x, y), HEADINGS_RAD, half_width_m, shape)
+    assert _same_as_plain(kind, (x, y), HEADINGS_RAD, half_width_m)
     y[:n] = second[1][:n]
-    assert _same_as_plain((x, y), HEADINGS_RAD, half_width_m)
-    assert _same_as_plain((x, y), HEADINGS_RAD, half_width_m * 1.5)
-    assert _same_as_plain((x, y), SIDEWAYS_RAD, half_width_m)
+    assert _same_as_plain(kind, (x, y), HEADINGS_RAD, half_width_m)
+    assert _same_as_plain(kind, (x, y), HEADINGS_RAD, half_width_m * 1.5)
+    assert _same_as_plain(kind, (x, y), SIDEWAYS_RAD, half_width_m)
+
+
+def test_the_compiled_path_runs_where_numba_is_installed_and_not_when_turned_off() -> None:
+    """The dev extra installs numba, so the tests above compare its loop, not numpy's
+    twice; `PHALANX_KERNELS=numpy` turns it off, and a value it does not know is refused
+    by name.
+    """
+    with chosen("numba"):
+        assert kernels(KERNELS) is not None
+    with chosen("numpy"):
+        assert kernels(KERNELS) is None
+    with pytest.raises(ValueError, match="PHALANX_KERNELS='fortran'"), chosen("fortran"):
+        pass
+    assert kernels.cache_info().currsize == 0  # (each choice forgotten as it ends)

@@ -1,0 +1,69 @@
+"""Compiled kernels: numba's, where it is installed (the `fast` extra), for the loops that
+numpy runs as tens of calls on small arrays.
+
+A kernel does the arithmetic of the numpy code it stands in for, operation for operation
+(no fused multiply-add, no reordered sums: numba compiles without fast-math), so the two
+give the same floats to the bit; the tests compare them. Without numba, or with
+`PHALANX_KERNELS=numpy` in the environment, the numpy code runs. A kernel's machine code
+is compiled on its first call in a fresh environment (about a second) and loaded from
+numba's on-disk cache after that (a few tenths of a second); `warm` does it ahead.
+"""
+
+from __future__ import annotations
+
+import functools
+import importlib
+import importlib.util
+import logging
+import os
+from collections.abc import Iterator
+from contextlib import contextmanager
+from types import ModuleType
+
+ENV = "PHALANX_KERNELS"
+CHOICES = ("numba", "numpy")
+
+_log = logging.getLogger(__name__)
+
+
+def choice() -> str:
+    """Which kernels the environment asks for: `numba` (the default) or `numpy`;
+    ValueError for anything else.
+    """
+    wanted = os.environ.get(ENV, "numba").strip().lower() or "numba"
+    if wanted not in CHOICES:
+        raise ValueError(f"{ENV}={wanted!r}: expected one of {', '.join(CHOICES)}")
+    return wanted
+
+
+@functools.cache
+def kernels(module: str) -> ModuleType | None:
+    """The kernels module `module` (which imports numba), or None: numba not installed,
+    not importable here (logged once), or turned off (`PHALANX_KERNELS=numpy`).
+    """
+    if choice() == "numpy" or importlib.util.find_spec("numba") is None:
+        return None
+    try:
+        return importlib.import_module(module)
+    except ImportError as exc:  # (numba installed, but not for this numpy, say)
+        _log.warning("compiled kernels off, numpy runs instead: %s", exc)
+        return None
+
+
+@contextmanager
+def chosen(kind: str) -> Iterator[None]:
+    """Run the block with `kind`'s kernels (`numba` or `numpy`), as `PHALANX_KERNELS`
+    would choose them: for tests and benchmarks that compare the two in one process.
+    """
+    before = os.environ.get(ENV)
+    os.environ[ENV] = kind
+    kernels.cache_clear()
+    try:
+        choice()
+        yield
+    finally:
+        if before is None:
+            del os.environ[ENV]
+        else:
+            os.environ[ENV] = before
+        kernels.cache_clear()
