@@ -5,10 +5,12 @@ that something lies somewhere on the arc at that range, so the whole arc is trea
 occupied). The free way round those points and the heading to take are worked out from
 them by navigation (`phalanx.agents.navigation`: `clearance`, `steering`).
 
-Pure numpy, no I/O: the same numbers in the batch runner and on a robot. A reading's
-geometry (`SonarEchoes`) is worked out for a whole fleet in one pass
-(`SonarGeometry.read_all`, what the batch runner does) or for one robot (`read`, the
-same code on one row): elementwise arithmetic gives each robot the same numbers either way.
+numpy (the arcs' test navigation's fleet map asks, `arcs_met`, is a compiled loop doing
+the same arithmetic where numba is installed: `perception_kernels`), no I/O: the same
+numbers in the batch runner and on a robot. A reading's geometry (`SonarEchoes`) is
+worked out for a whole fleet in one pass (`SonarGeometry.read_all`, what the batch runner
+does) or for one robot (`read`, the same code on one row): elementwise arithmetic gives
+each robot the same numbers either way.
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ from functools import cached_property
 import numpy as np
 import numpy.typing as npt
 
+from phalanx.core.compiled import kernels
 from phalanx.core.frozen import quick_init
 from phalanx.core.geometry import Vec2
 from phalanx.core.robot_params import RobotParams
@@ -37,6 +40,8 @@ GAP_FILL_RANGE_M = 1.5
 ARC_SPREAD_M = 0.3
 # An echo at the minimum range is taken this far outside the body's disc (m).
 EDGE_MARGIN_M = 1e-3
+# The compiled arcs' test (`phalanx.core.compiled`), where numba is installed.
+KERNELS = "phalanx.agents.perception_kernels"
 
 
 @quick_init
@@ -320,6 +325,37 @@ class SonarGeometry:
             near = np.broadcast_to(radius, d2.shape)[doubt]
             meets[doubt] = np.hypot(dx[doubt], dy[doubt]) < near
         return meets
+
+    def arcs_met(
+        self,
+        r: FloatArray,
+        owner: npt.NDArray[np.intp],
+        centres: tuple[FloatArray, FloatArray],
+        radius_m: float,
+        dirs: tuple[FloatArray, FloatArray],
+        met: BoolArray,
+    ) -> None:
+        """Mark in `met` (rows of `r`: readings x transducers) each transducer whose echo
+        arc meets a disc of `radius_m` its reading owns: disc k at `centres` (x, y; row k
+        of each, body frame) owned by reading `owner[k]` (ascending), with its
+        `nearest_dirs`. `arcs_meet_at`, disc by disc; the compiled loop's where numba is
+        (the fleet map's question, asked only where a robot navigates).
+        """
+        if owner.size == 0:
+            return
+        cx, cy = centres
+        compiled = kernels(KERNELS)
+        if compiled is not None:
+            r2 = np.square(radius_m)
+            compiled.arcs_met(
+                (self.unit_x_m, self.unit_y_m), r,
+                (owner, cx.reshape(-1), cy.reshape(-1), dirs[0], dirs[1]),
+                (radius_m, r2 * (1.0 - _DOUBT), r2 * (1.0 + _DOUBT)), met,
+            )  # fmt: skip
+            return
+        hit = self.arcs_meet_at(r[owner], cx, cy, radius_m, dirs)
+        starts = np.flatnonzero(np.concatenate(([True], owner[1:] != owner[:-1])))
+        met[owner[starts]] |= np.logical_or.reduceat(hit, starts, axis=0)
 
     @cached_property
     def mount_m(self) -> float:

@@ -118,12 +118,11 @@ class FleetMap:
         c, s_ = np.cos(theta), np.sin(theta)
         px, py = dx[scan, robot], dy[scan, robot]
         cx, cy = (c * px + s_ * py)[:, None], (c * py - s_ * px)[:, None]
-        meets = sonar.arcs_meet_at(r[scan], cx, cy, radius_m, sonar.nearest_dirs(cx, cy))
-        first = np.flatnonzero(np.concatenate(([True], scan[1:] != scan[:-1])))
-        met = np.logical_or.reduceat(meets, first, axis=0)
-        for k, m in zip(scan[first].tolist(), met, strict=True):
+        met = np.zeros(r.shape, dtype=bool)
+        sonar.arcs_met(r, scan, (cx, cy), radius_m, sonar.nearest_dirs(cx, cy), met)
+        for k in np.unique(scan).tolist():
             i = rows[k]
-            echoes[i] = echoes[i] & ~m
+            echoes[i] = echoes[i] & ~met[k]
         return echoes
 
 

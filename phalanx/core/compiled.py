@@ -1,12 +1,15 @@
-"""Compiled kernels: numba's, where it is installed (the `fast` extra), for the loops that
-numpy runs as tens of calls on small arrays.
+"""Compiled kernels: numba's, where it is installed (the `fast` extra), for navigation's
+loops that numpy runs as tens of calls on small arrays (the free way along the candidate
+headings, the map's update, which echoes are the fleet's robots).
 
 A kernel does the arithmetic of the numpy code it stands in for, operation for operation
 (no fused multiply-add, no reordered sums: numba compiles without fast-math), so the two
 give the same floats to the bit; the tests compare them. Without numba, or with
-`PHALANX_KERNELS=numpy` in the environment, the numpy code runs. A kernel's machine code
-is compiled on its first call in a fresh environment (about a second) and loaded from
-numba's on-disk cache after that (a few tenths of a second); `warm` does it ahead.
+`PHALANX_KERNELS=numpy` in the environment, the numpy code runs. The first kernel a
+process calls costs it about half a second (numba's import, its code loaded from numba's
+on-disk cache; compiled there on the first call in a fresh environment) and some 120 MB:
+they pay where one process steps a navigating fleet for long (`phalanx run`, a sweep's
+workers), not in a robot's agent process (`numpy_unless_asked`).
 """
 
 from __future__ import annotations
@@ -24,6 +27,15 @@ ENV = "PHALANX_KERNELS"
 CHOICES = ("numba", "numpy")
 
 _log = logging.getLogger(__name__)
+
+
+def numpy_unless_asked() -> None:
+    """Run numpy's code in this process unless `PHALANX_KERNELS` asks for numba: a robot's
+    agent process, whose 20 Hz steps take a fraction of a millisecond either way, needs
+    neither numba's start-up nor its memory (about 120 MB).
+    """
+    os.environ.setdefault(ENV, "numpy")
+    kernels.cache_clear()
 
 
 def choice() -> str:

@@ -84,8 +84,8 @@ class AgentRuntime:
         self.formation: Formation = scenario_formation(scenario)
         self.bounds = FleetBounds.of(scenario, robot)
         self.agent = Agent(robot_id, scenario=scenario, robot=robot, formation=self.formation)
-        if scenario.navigation.reactive:
-            warm_kernels()  # (compiled or loaded now, not at the step that first meets an obstacle)
+        if scenario.navigation.reactive:  # (numba's, if asked for: loaded now, not mid-run)
+            warm_kernels()
         self.inbox = PeerInbox(
             robot_id, self.formation, fleet=options.fleet, lockstep=self.lockstep,
             bounds=self.bounds,

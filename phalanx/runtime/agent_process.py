@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import time
 
+from phalanx.core.compiled import numpy_unless_asked
 from phalanx.core.config import Scenario
 from phalanx.core.config_files import apply_overrides, load_robot, load_scenario
 from phalanx.core.errors import ConfigError, DriverError, DriverUnavailable
@@ -37,6 +38,7 @@ def run_agent(spec: AgentSpec, *, stop: Stoppable) -> tuple[AgentReport, int]:
     code (`phalanx.runtime.exits`). ConfigError for a spec its scenario does not fit;
     DriverUnavailable if the driver's library is missing or the robot never answers.
     """
+    numpy_unless_asked()
     scenario, robot = agent_scenario(spec)
     driver = _open(spec.driver, robot)
     with telemetry_for(spec.telemetry, robot_id=spec.robot_id) as telemetry:

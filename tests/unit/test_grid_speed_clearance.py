@@ -16,9 +16,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from phalanx.agents.navigation import HEADINGS_RAD, corridor_clearance
-from phalanx.agents.navigation.clearance import KERNELS
 from phalanx.agents.perception import NO_OBSTACLE_M
-from phalanx.core.compiled import chosen, kernels
+from phalanx.core.compiled import chosen
 from phalanx.core.geometry import Vec2
 
 Floats = npt.NDArray[np.float64]
@@ -173,17 +172,3 @@ def test_the_projections_kept_are_never_those_of_other_points(
     assert _same_as_plain(kind, (x, y), HEADINGS_RAD, half_width_m)
     assert _same_as_plain(kind, (x, y), HEADINGS_RAD, half_width_m * 1.5)
     assert _same_as_plain(kind, (x, y), SIDEWAYS_RAD, half_width_m)
-
-
-def test_the_compiled_path_runs_where_numba_is_installed_and_not_when_turned_off() -> None:
-    """The dev extra installs numba, so the tests above compare its loop, not numpy's
-    twice; `PHALANX_KERNELS=numpy` turns it off, and a value it does not know is refused
-    by name.
-    """
-    with chosen("numba"):
-        assert kernels(KERNELS) is not None
-    with chosen("numpy"):
-        assert kernels(KERNELS) is None
-    with pytest.raises(ValueError, match="PHALANX_KERNELS='fortran'"), chosen("fortran"):
-        pass
-    assert kernels.cache_info().currsize == 0  # (each choice forgotten as it ends)
