@@ -13,7 +13,7 @@ first, compiling run is printed apart):
 - how often numba's arctan2 and cos differ from numpy's on random input (what sensing
   uses for bearings and ray directions, so what a kernel would have to leave to numpy).
 
-numba is not a dependency of phalanx: `.venv/bin/pip install numba` first.
+numba comes with the dev, sweep and fast extras (`phalanx.core.compiled`).
 
     .venv/bin/python bench/probe_numba.py [--runs 3]
 """

@@ -567,7 +567,8 @@ def _wavefront(
 
     Dijkstra's order a bucket at a time: the cells within the cheapest move of the least
     cost not final yet are final together (no way through another comes in under them),
-    and a bucket is one numpy pass over the cells next to it. With `start`, it stops once
+    and a bucket is one numpy pass over the cells next to it (or the compiled loop's, the
+    same bucket by bucket, where numba is). With `start`, it stops once
     `start`'s cost is final: every cell no costlier is final then, and every other is
     left above it (all `_downhill` from `start` reads). The costs are `_relaxed`'s, float
     for float: each is the least over the ways of the same sums in the same order.
@@ -583,11 +584,37 @@ def _wavefront(
     into[1, 1:-1, 1:-1][free] = (_DIAGONAL * cost)[free]
     moves = np.array([dy * wide + dx for dy, dx, _ in _MOVES])
     into_moves = moves + size * np.array([dy * dx != 0 for dy, dx, _ in _MOVES])
-    costs, into_flat = np.full(size, UNREACHABLE), into.reshape(-1)
-    pending = np.full(size, np.inf)  # the cost of a cell reached, not final yet
     goal = (row + 1) * wide + col + 1
-    costs[goal] = pending[goal] = 0.0
     until = -1 if start is None else (start[0] + 1) * wide + start[1] + 1
+    compiled = kernels(KERNELS)
+    costs: FloatArray
+    if compiled is not None:
+        costs = compiled.wavefront(
+            into.reshape(-1), (moves, into_moves), (size, goal, until), cheapest, UNREACHABLE
+        )
+    else:
+        costs = _buckets(into.reshape(-1), (moves, into_moves), (size, goal, until), cheapest)
+    dist = costs.reshape(h + 2, w + 2)[1:-1, 1:-1]
+    ends = dist[start] if start is not None else dist
+    furthest = float(np.max(ends, where=ends < UNREACHABLE, initial=0.0))
+    if furthest >= (_sweeps(blocked) - 1) * cheapest:
+        return _relaxed(blocked, cost, row, col)  # a way too long for its sweeps to reach
+    return dist
+
+
+def _buckets(
+    into_flat: FloatArray,
+    steps: tuple[npt.NDArray[np.intp], npt.NDArray[np.intp]],
+    cells: tuple[int, int, int],
+    cheapest: float,
+) -> FloatArray:
+    """`_wavefront`'s costs over the bordered grid, flat: its buckets, each one numpy pass
+    (`grid_kernels.wavefront` says what the arguments are).
+    """
+    (moves, into_moves), (size, goal, until) = steps, cells
+    costs = np.full(size, UNREACHABLE)
+    pending = np.full(size, np.inf)  # the cost of a cell reached, not final yet
+    costs[goal] = pending[goal] = 0.0
     while (least := float(np.minimum.reduce(pending))) < math.inf:
         bound = least + cheapest
         if until >= 0 and costs[until] < bound:
@@ -600,12 +627,7 @@ def _wavefront(
         reached, offered = reached[better], offered[better]
         np.minimum.at(costs, reached, offered)
         pending[reached] = costs[reached]
-    dist = costs.reshape(h + 2, w + 2)[1:-1, 1:-1]
-    ends = dist[start] if start is not None else dist
-    furthest = float(np.max(ends, where=ends < UNREACHABLE, initial=0.0))
-    if furthest >= (_sweeps(blocked) - 1) * cheapest:
-        return _relaxed(blocked, cost, row, col)  # a way too long for its sweeps to reach
-    return dist
+    return costs
 
 
 def _sweeps(blocked: npt.NDArray[np.bool_]) -> int:

@@ -1,13 +1,17 @@
-"""`OccupancyMap`'s update as one compiled loop (numba; `phalanx.core.compiled`).
+"""`OccupancyMap`'s update and its route's wavefront as compiled loops (numba;
+`phalanx.core.compiled`).
 
-The arithmetic is the numpy update's, operation for operation: the same points along
-each ray and on each echo's arc (from the cosines and sines numpy worked out), the same
-cells, each marking's cells changed once whatever how often they are listed (the numpy
-update reads them all before it writes any), the markings in the same order.
+The update's arithmetic is the numpy update's, operation for operation: the same points
+along each ray and on each echo's arc (from the cosines and sines numpy worked out), the
+same cells, each marking's cells changed once whatever how often they are listed (the
+numpy update reads them all before it writes any), the markings in the same order. The
+wavefront takes numpy's buckets in the same order with the same sums.
 Importing this module imports numba.
 """
 
 from __future__ import annotations
+
+import heapq
 
 import numba
 import numpy as np
@@ -88,3 +92,65 @@ def _mark(
     if stamp[at] != mark:
         stamp[at] = mark
         evidence[at] = table[evidence[at] & 0xFF]
+
+
+@numba.njit(cache=True, nogil=True)
+def wavefront(
+    into: FloatArray,
+    moves: tuple[npt.NDArray[np.intp], npt.NDArray[np.intp]],
+    cells: tuple[int, int, int],
+    cheapest: float,
+    unreachable: float,
+) -> FloatArray:
+    """`grid._wavefront`'s buckets, each the same as numpy's: every pending cell below
+    the least pending cost plus `cheapest` made final together, every move out of them
+    offered at the cost before any of the bucket's offers is taken, then the least offer
+    taken per cell and the cells bettered pending at it; stopping where numpy stops, so
+    the cells not final hold what numpy's pass leaves in them too.
+
+    `into`: a move's cost into each cell (straight moves' cells, then diagonal ones',
+    flat, bordered by closed cells); `moves`: each move's step between flat cells, and
+    its step into `into`; `cells`: how many a bordered grid holds, the goal's, and the
+    cell to stop at once final (-1: none).
+    """
+    size, goal, until = cells
+    step, into_step = moves
+    costs = np.full(size, unreachable)
+    pending = np.full(size, np.inf)
+    costs[goal] = pending[goal] = 0.0
+    heap = [(0.0, goal)]  # (pending cost, cell); an entry whose cell moved on is stale
+    bucket = np.empty(size, dtype=np.intp)
+    offers = np.empty(8 * size)
+    reached = np.empty(8 * size, dtype=np.intp)
+    while True:
+        while heap and pending[heap[0][1]] != heap[0][0]:
+            heapq.heappop(heap)
+        if not heap:
+            break
+        bound = heap[0][0] + cheapest
+        if until >= 0 and costs[until] < bound:
+            break
+        count = 0
+        while heap and heap[0][0] < bound:
+            cost, cell = heapq.heappop(heap)
+            if pending[cell] == cost:
+                pending[cell] = np.inf
+                bucket[count] = cell
+                count += 1
+        made = 0
+        for b in range(count):
+            cell = bucket[b]
+            for k in range(step.size):
+                offer = costs[cell] + into[cell + into_step[k]]
+                if offer < costs[cell + step[k]]:
+                    offers[made] = offer
+                    reached[made] = cell + step[k]
+                    made += 1
+        for m in range(made):
+            costs[reached[m]] = min(costs[reached[m]], offers[m])
+        for m in range(made):
+            cell = reached[m]
+            if pending[cell] != costs[cell]:
+                pending[cell] = costs[cell]
+                heapq.heappush(heap, (costs[cell], cell))
+    return costs

@@ -196,23 +196,41 @@ def test_obstacles_grown_row_by_row_are_those_grown_offset_by_offset(
     assert np.array_equal(grid._grow(occupied, cells), ref_grow(occupied, cells))
 
 
+@both_paths
 @settings(max_examples=300, deadline=None)
 @given(grids())
 def test_the_wavefront_is_the_relaxations_to_the_bit(
-    window: tuple[Bools, Floats, tuple[int, int], tuple[int, int]],
+    kind: str, window: tuple[Bools, Floats, tuple[int, int], tuple[int, int]]
 ) -> None:
     blocked, cost, goal, _ = window
-    fast = grid._wavefront(blocked, cost, *goal)
+    with chosen(kind):
+        fast = grid._wavefront(blocked, cost, *goal)
     assert np.array_equal(fast, ref_wavefront(blocked, cost, *goal))
 
 
 @settings(max_examples=300, deadline=None)
 @given(grids())
-def test_stopping_at_the_start_keeps_every_cost_the_way_down_reads(
+def test_the_compiled_wavefront_stops_with_every_cell_as_numpys(
     window: tuple[Bools, Floats, tuple[int, int], tuple[int, int]],
 ) -> None:
+    """Stopped at the start, the cells not final yet too: the same buckets, bit for bit."""
     blocked, cost, goal, start = window
-    fast = grid._wavefront(blocked, cost, *goal, start=start)
+    with chosen("numpy"):
+        plain = grid._wavefront(blocked, cost, *goal, start=start)
+    with chosen("numba"):
+        compiled = grid._wavefront(blocked, cost, *goal, start=start)
+    assert plain.tobytes() == compiled.tobytes()
+
+
+@both_paths
+@settings(max_examples=300, deadline=None)
+@given(grids())
+def test_stopping_at_the_start_keeps_every_cost_the_way_down_reads(
+    kind: str, window: tuple[Bools, Floats, tuple[int, int], tuple[int, int]]
+) -> None:
+    blocked, cost, goal, start = window
+    with chosen(kind):
+        fast = grid._wavefront(blocked, cost, *goal, start=start)
     full = ref_wavefront(blocked, cost, *goal)
     assert fast[start] == full[start]
     if full[start] >= grid.UNREACHABLE:
@@ -233,14 +251,16 @@ def _serpentine(size: int) -> Bools:
     return blocked
 
 
-def test_a_way_longer_than_the_relaxations_sweeps_gets_what_they_reached() -> None:
+@both_paths
+def test_a_way_longer_than_the_relaxations_sweeps_gets_what_they_reached(kind: str) -> None:
     blocked = _serpentine(40)  # 8 (40 + 40) = 640 sweeps, a way of ~800 moves
     cost = np.ones(blocked.shape)
     goal, start = (0, 0), (39, 0)
     reference = ref_wavefront(blocked, cost, *goal)
     assert reference[start] >= grid.UNREACHABLE  # the relaxation stopped short of it
-    assert np.array_equal(grid._wavefront(blocked, cost, *goal), reference)
-    fast = grid._wavefront(blocked, cost, *goal, start=start)
+    with chosen(kind):
+        assert np.array_equal(grid._wavefront(blocked, cost, *goal), reference)
+        fast = grid._wavefront(blocked, cost, *goal, start=start)
     assert np.array_equal(fast, reference)
 
 
@@ -260,6 +280,7 @@ def maps(draw: st.DrawFn) -> OccupancyMap:
 coordinates = st.floats(-8.5, 8.5, allow_nan=False)
 
 
+@both_paths
 @settings(max_examples=200, deadline=None)
 @given(
     maps(),
@@ -272,6 +293,7 @@ coordinates = st.floats(-8.5, 8.5, allow_nan=False)
     st.sampled_from([0.0, 0.4, 0.9, 1.6]),
 )
 def test_a_plan_is_the_plain_plans(
+    kind: str,
     m: OccupancyMap,
     x0: float,
     y0: float,
@@ -283,7 +305,8 @@ def test_a_plan_is_the_plain_plans(
 ) -> None:
     start, goal = Vec2(x0, y0), Vec2(x1, y1)
     kwargs = {"keep_off_m": keep_off_m, "ahead_m": ahead_m, "footprint_m": footprint_m}
-    planned = m.plan(start, goal, **kwargs)
+    with chosen(kind):
+        planned = m.plan(start, goal, **kwargs)
     assert planned == ref_plan(m, start, goal, **kwargs)
     assert planned is None or planned.length_m >= m.fewest_m(start, goal)  # none comes under
 
