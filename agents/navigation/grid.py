@@ -57,7 +57,7 @@ _STRAIGHT, _DIAGONAL = math.hypot(0, 1), math.hypot(1, 1)  # a move's length (ce
 # beam's angle off the axis) and the evidence it adds there.
 _ARC = ((-1.0, EDGE_HIT), (0.0, HIT), (1.0, EDGE_HIT))
 _ARC_OFFSETS = np.array([[offset] for offset, _ in _ARC])
-# The compiled update (`phalanx.core.compiled`), where numba is installed.
+# The compiled update and wavefront (`phalanx.core.compiled`), where numba is installed.
 KERNELS = "phalanx.agents.navigation.grid_kernels"
 _MOVES = tuple((dy, dx, math.hypot(dy, dx)) for dy in (-1, 0, 1) for dx in (-1, 0, 1) if dy or dx)
 

@@ -51,14 +51,15 @@ def choice() -> str:
 @functools.cache
 def kernels(module: str) -> ModuleType | None:
     """The kernels module `module` (which imports numba), or None: numba not installed,
-    not importable here (logged once), or turned off (`PHALANX_KERNELS=numpy`).
+    not working here (its import or the kernels' set-up failed: logged once), or turned
+    off (`PHALANX_KERNELS=numpy`).
     """
     if choice() == "numpy" or importlib.util.find_spec("numba") is None:
         return None
     try:
         return importlib.import_module(module)
-    except ImportError as exc:  # (numba installed, but not for this numpy, say)
-        _log.warning("compiled kernels off, numpy runs instead: %s", exc)
+    except Exception as exc:  # (numba not built for this numpy; no cache it may write to)
+        _log.warning("compiled kernels off, numpy's code runs instead: %s", exc)
         return None
 
 

@@ -8,6 +8,7 @@ process keeps to numpy unless asked; an unknown choice is refused by name.
 
 from __future__ import annotations
 
+import logging
 import os
 import subprocess
 import sys
@@ -102,3 +103,12 @@ def test_an_agent_process_keeps_to_numpy_unless_asked(asked: str | None, runs: s
         check=True,
     )  # fmt: skip
     assert done.stdout.strip() == runs
+
+
+def test_kernels_that_cannot_be_set_up_leave_numpys_code_running(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """(numba built for another numpy, no cache it may write to: the module does not load.)"""
+    with chosen("numba"), caplog.at_level(logging.WARNING, logger="phalanx.core.compiled"):
+        assert kernels("phalanx.agents.no_such_kernels") is None
+    assert "numpy's code runs instead" in caplog.text
