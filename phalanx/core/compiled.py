@@ -1,13 +1,13 @@
 """Compiled kernels: numba's, where it is installed (the `fast` extra), for navigation's
 loops that numpy runs as tens of calls on small arrays (the free way along the candidate
-headings, the map's update, which echoes are the fleet's robots).
+headings, the map's update, the route's wavefront, which echoes are the fleet's robots).
 
 A kernel does the arithmetic of the numpy code it stands in for, operation for operation
 (no fused multiply-add, no reordered sums: numba compiles without fast-math), so the two
 give the same floats to the bit; the tests compare them. Without numba, or with
 `PHALANX_KERNELS=numpy` in the environment, the numpy code runs. The first kernel a
-process calls costs it about half a second (numba's import, its code loaded from numba's
-on-disk cache; compiled there on the first call in a fresh environment) and some 120 MB:
+process calls costs it about a third of a second (numba's import, its code loaded from
+numba's on-disk cache; compiled there first in a fresh environment, 2.4 s) and some 120 MB:
 they pay where one process steps a navigating fleet for long (`phalanx run`, a sweep's
 workers), not in a robot's agent process (`numpy_unless_asked`).
 """
@@ -22,6 +22,8 @@ import os
 from collections.abc import Iterator
 from contextlib import contextmanager
 from types import ModuleType
+
+from phalanx.core.errors import ConfigError
 
 ENV = "PHALANX_KERNELS"
 CHOICES = ("numba", "numpy")
@@ -40,11 +42,12 @@ def numpy_unless_asked() -> None:
 
 def choice() -> str:
     """Which kernels the environment asks for: `numba` (the default) or `numpy`;
-    ValueError for anything else.
+    ConfigError for anything else (the batch runner and an agent process ask before
+    they start, so a misspelt choice never stops a run half-way).
     """
     wanted = os.environ.get(ENV, "numba").strip().lower() or "numba"
     if wanted not in CHOICES:
-        raise ValueError(f"{ENV}={wanted!r}: expected one of {', '.join(CHOICES)}")
+        raise ConfigError(f"{ENV}={wanted!r}: expected one of {', '.join(CHOICES)}")
     return wanted
 
 

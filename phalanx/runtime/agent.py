@@ -23,6 +23,7 @@ from typing import Literal
 
 from phalanx.agents.agent import Agent, Observation, StepOutput
 from phalanx.agents.navigation import warm_kernels
+from phalanx.core import compiled
 from phalanx.core.config import Scenario
 from phalanx.core.formation import Formation, scenario_formation
 from phalanx.core.peers import PeerState
@@ -84,6 +85,7 @@ class AgentRuntime:
         self.formation: Formation = scenario_formation(scenario)
         self.bounds = FleetBounds.of(scenario, robot)
         self.agent = Agent(robot_id, scenario=scenario, robot=robot, formation=self.formation)
+        compiled.choice()  # (a PHALANX_KERNELS it does not know stops it before it starts)
         if scenario.navigation.reactive:  # (numba's, if asked for: loaded now, not mid-run)
             warm_kernels()
         self.inbox = PeerInbox(

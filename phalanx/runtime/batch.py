@@ -26,6 +26,7 @@ from phalanx.agents.agent import Agent, Observation, StepOutput
 from phalanx.agents.control.spacing import near_radius_m, near_sets
 from phalanx.agents.masking import SlotMasks, mask_readings
 from phalanx.agents.perception import SonarGeometry
+from phalanx.core import compiled
 from phalanx.core.config import Scenario
 from phalanx.core.config_files import load_robot, prior_map
 from phalanx.core.formation import Formation, scenario_formation
@@ -71,6 +72,7 @@ class BatchRunner:
     """Runs a scenario to the end in this process."""
 
     def __init__(self, scenario: Scenario, *, robot: RobotParams | None = None) -> None:
+        compiled.choice()  # (a PHALANX_KERNELS it does not know stops the run before it starts)
         self.scenario = scenario
         self.robot = robot or load_robot(scenario.robot)
         self.formation = scenario_formation(scenario)

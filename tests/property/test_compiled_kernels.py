@@ -12,6 +12,7 @@ import logging
 import os
 import subprocess
 import sys
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -23,8 +24,10 @@ from phalanx.agents.navigation.clearance import KERNELS
 from phalanx.agents.perception import SonarGeometry
 from phalanx.core.compiled import ENV, chosen, kernels
 from phalanx.core.config_files import load_robot
+from phalanx.core.errors import ConfigError
 
 SONAR = SonarGeometry.from_params(load_robot("p3dx"))
+REPO = Path(__file__).resolve().parents[2]
 
 
 def _on_edges(seed: int, radius_m: float) -> tuple[Any, tuple[Any, ...]]:
@@ -82,7 +85,7 @@ def test_numba_runs_where_installed_and_not_when_turned_off_or_unknown() -> None
         assert kernels(KERNELS) is not None
     with chosen("numpy"):
         assert kernels(KERNELS) is None
-    with pytest.raises(ValueError, match="PHALANX_KERNELS='fortran'"), chosen("fortran"):
+    with pytest.raises(ConfigError, match="PHALANX_KERNELS='fortran'"), chosen("fortran"):
         pass
     assert kernels.cache_info().currsize == 0  # (each choice forgotten as it ends)
 
@@ -112,3 +115,16 @@ def test_kernels_that_cannot_be_set_up_leave_numpys_code_running(
     with chosen("numba"), caplog.at_level(logging.WARNING, logger="phalanx.core.compiled"):
         assert kernels("phalanx.agents.no_such_kernels") is None
     assert "numpy's code runs instead" in caplog.text
+
+
+def test_a_choice_it_does_not_know_stops_a_run_before_it_starts() -> None:
+    """(Not at the first obstacle, where navigation would first ask for its kernels.)"""
+    env = {**os.environ, ENV: "fortran"}
+    scenario = str(REPO / "configs" / "scenarios" / "nav_field_wedge3.toml")
+    done = subprocess.run(
+        [sys.executable, "-m", "phalanx", "run", scenario, "--no-figures", "--no-recording"],
+        env=env, capture_output=True, text=True, timeout=60, check=False,
+    )  # fmt: skip
+    assert done.returncode != 0
+    assert "PHALANX_KERNELS='fortran': expected one of numba, numpy" in done.stderr
+    assert "Traceback" not in done.stderr
