@@ -347,9 +347,10 @@ class SonarGeometry:
         compiled = kernels(KERNELS)
         if compiled is not None:
             r2 = np.square(radius_m)
+            c = np.ascontiguousarray  # (one kind of array each: one compiled signature)
             compiled.arcs_met(
-                (self.unit_x_m, self.unit_y_m), r,
-                (owner, cx.reshape(-1), cy.reshape(-1), dirs[0], dirs[1]),
+                (self.unit_x_m, self.unit_y_m), c(r),
+                (c(owner), c(cx.reshape(-1)), c(cy.reshape(-1)), c(dirs[0]), c(dirs[1])),
                 (radius_m, r2 * (1.0 - _DOUBT), r2 * (1.0 + _DOUBT)), met,
             )  # fmt: skip
             return

@@ -37,8 +37,9 @@ from calibration import Calibration, load
 
 from phalanx.agents.navigation import warm_kernels
 from phalanx.agents.navigation.clearance import KERNELS
+from phalanx.agents.perception import SonarGeometry
 from phalanx.core.compiled import kernels
-from phalanx.core.config_files import CONFIG_ROOT, apply_overrides, load_scenario
+from phalanx.core.config_files import CONFIG_ROOT, apply_overrides, load_robot, load_scenario
 from phalanx.runtime.batch import BatchRunner
 
 NAVIGATION = ("nav_field_wedge3", "nav_field_collateral5")
@@ -280,7 +281,7 @@ def main() -> None:
     parser.add_argument("--scripted", default=SCRIPTED, help="the scripted run to compare with")
     parser.add_argument("--duration-s", type=float, default=None, help="(default: the scenario's)")
     args = parser.parse_args()
-    warm_kernels()  # (numba's code loaded before the first run is timed)
+    warm_kernels(SonarGeometry.from_params(load_robot("p3dx")))  # (loaded before timing)
     print(f"kernels: {'numba' if kernels(KERNELS) is not None else 'numpy'}")
     cal = Calibration.measure()
     results = [measure(name, args.duration_s) for name in args.scenario]

@@ -16,7 +16,8 @@ from here.
   along the arc just driven or along the path it came (`reverse_twist`, `Breadcrumbs`);
 - `column_path`: the path the robot ahead drove, which a column's follower keeps to
   (`Trail`);
-- `settings`: what navigation reads of a scenario (`NavSettings`).
+- `settings`: what navigation reads of a scenario (`NavSettings`);
+- `warm`: the compiled kernels made ready before a real-time loop (`warm_kernels`).
 
 No I/O; the behaviours (`phalanx.agents.behaviours`) drive with these.
 """
@@ -30,7 +31,6 @@ from phalanx.agents.navigation.clearance import (
     corridor_clearance,
     heading_index,
     open_side,
-    warm_kernels,
 )
 from phalanx.agents.navigation.column_path import Trail
 from phalanx.agents.navigation.deadlock import (
@@ -55,6 +55,7 @@ from phalanx.agents.navigation.steering import (
     steer,
     turn_rate_radps,
 )
+from phalanx.agents.navigation.warm import warm_kernels
 
 __all__ = [
     "HEADINGS_RAD",

@@ -250,13 +250,6 @@ _VIEWS = _Views()
 _SCRATCH = _Scratch()
 
 
-def warm_kernels() -> None:
-    """Compile or load the compiled pass now (`phalanx.core.compiled`), for a real-time
-    loop that must not wait for it at its first obstacle; nothing to do without numba.
-    """
-    corridor_clearance((np.zeros(1), np.zeros(1)), HEADINGS_RAD[:1], half_width_m=0.1)
-
-
 def clearance_along(
     points: tuple[FloatArray, FloatArray], heading_rad: float, *, half_width_m: float
 ) -> float:

@@ -23,6 +23,7 @@ from typing import Literal
 
 from phalanx.agents.agent import Agent, Observation, StepOutput
 from phalanx.agents.navigation import warm_kernels
+from phalanx.agents.perception import SonarGeometry
 from phalanx.core import compiled
 from phalanx.core.config import Scenario
 from phalanx.core.formation import Formation, scenario_formation
@@ -87,7 +88,7 @@ class AgentRuntime:
         self.agent = Agent(robot_id, scenario=scenario, robot=robot, formation=self.formation)
         compiled.choice()  # (a PHALANX_KERNELS it does not know stops it before it starts)
         if scenario.navigation.reactive:  # (numba's, if asked for: loaded now, not mid-run)
-            warm_kernels()
+            warm_kernels(SonarGeometry.from_params(robot))
         self.inbox = PeerInbox(
             robot_id, self.formation, fleet=options.fleet, lockstep=self.lockstep,
             bounds=self.bounds,

@@ -128,3 +128,33 @@ def test_a_choice_it_does_not_know_stops_a_run_before_it_starts() -> None:
     assert done.returncode != 0
     assert "PHALANX_KERNELS='fortran': expected one of numba, numpy" in done.stderr
     assert "Traceback" not in done.stderr
+
+
+def test_warming_the_kernels_readies_every_one_a_navigating_run_calls() -> None:
+    """In a fresh process: after `warm_kernels` each of the four has its code, and half a
+    minute of a navigating wedge in a field (a leader steering, mapping and planning,
+    followers' echoes of one another) makes numba load or compile nothing more."""
+    probe = (
+        "from phalanx.agents.navigation import clearance_kernels, grid_kernels, warm_kernels\n"
+        "from phalanx import agents\n"
+        "from phalanx.agents import perception_kernels\n"
+        "from phalanx.agents.perception import SonarGeometry\n"
+        "from phalanx.analysis.sweep import Job\n"
+        "from phalanx.core.config_files import load_robot\n"
+        "from phalanx.runtime.batch import BatchRunner\n"
+        "fns = [clearance_kernels.corridor, grid_kernels.add_readings, grid_kernels.wavefront,\n"
+        "       perception_kernels.arcs_met]\n"
+        "warm_kernels(SonarGeometry.from_params(load_robot('p3dx')))\n"
+        "warm = [len(f.signatures) for f in fns]\n"
+        "runner = BatchRunner(Job('field', 'wedge', 3, 4).scenario())\n"
+        "runner.run(until=lambda b: b.done >= 300)\n"
+        "print(warm, [len(f.signatures) for f in fns])\n"
+    )
+    env = {**os.environ, ENV: "numba"}
+    done = subprocess.run(
+        [sys.executable, "-c", probe], env=env, capture_output=True, text=True, timeout=90,
+        check=True,
+    )  # fmt: skip
+    warm, after = done.stdout.strip().splitlines()[-1].split("] [")
+    assert "0" not in warm.strip("[").split(", ")
+    assert warm.strip("[") == after.strip("]")
