@@ -1,10 +1,10 @@
 """Navigation's compiled kernels (`phalanx.core.compiled`) made ready ahead of a loop.
 
 A process loads a kernel from numba's cache, or compiles it in a fresh environment, on
-its first call: a third of a second for the first, up to a couple of seconds when they
-compile. A real-time loop must not wait for that at its first obstacle, so it calls
-`warm_kernels` before it starts: each kernel once, on a small case of the same kinds of
-arrays the navigation gives it.
+its first call: about half a second for the four, about 3 s when they compile. A
+real-time loop must not wait for that at its first obstacle, so it calls `warm_kernels`
+before it starts: each kernel once, on a small case of the same kinds of arrays the
+navigation gives it.
 """
 
 from __future__ import annotations

@@ -5,9 +5,9 @@ headings, the map's update, the route's wavefront, which echoes are the fleet's 
 A kernel does the arithmetic of the numpy code it stands in for, operation for operation
 (no fused multiply-add, no reordered sums: numba compiles without fast-math), so the two
 give the same floats to the bit; the tests compare them. Without numba, or with
-`PHALANX_KERNELS=numpy` in the environment, the numpy code runs. The first kernel a
-process calls costs it about a third of a second (numba's import, its code loaded from
-numba's on-disk cache; compiled there first in a fresh environment, 2.4 s) and some 120 MB:
+`PHALANX_KERNELS=numpy` in the environment, the numpy code runs. The kernels cost a
+process about half a second (numba's import, their code loaded from numba's on-disk
+cache; compiled there first in a fresh environment, about 3 s) and some 120 MB:
 they pay where one process steps a navigating fleet for long (`phalanx run`, a sweep's
 workers), not in a robot's agent process (`numpy_unless_asked`).
 """
