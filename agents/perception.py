@@ -334,21 +334,23 @@ class SonarGeometry:
         radius_m: float,
         dirs: tuple[FloatArray, FloatArray],
         met: BoolArray,
+        *,
+        compiled: bool = True,
     ) -> None:
         """Mark in `met` (rows of `r`: readings x transducers) each transducer whose echo
         arc meets a disc of `radius_m` its reading owns: disc k at `centres` (x, y; row k
         of each, body frame) owned by reading `owner[k]` (ascending), with its
-        `nearest_dirs`. `arcs_meet_at`, disc by disc; the compiled loop's where numba is
-        (the fleet map's question, asked only where a robot navigates).
+        `nearest_dirs`. `arcs_meet_at`, disc by disc; with `compiled`, the compiled loop's
+        where numba is (the fleet map's question, asked only where a robot navigates).
         """
         if owner.size == 0:
             return
         cx, cy = centres
-        compiled = kernels(KERNELS)
-        if compiled is not None:
+        loop = kernels(KERNELS) if compiled else None
+        if loop is not None:
             r2 = np.square(radius_m)
             c = np.ascontiguousarray  # (one kind of array each: one compiled signature)
-            compiled.arcs_met(
+            loop.arcs_met(
                 (self.unit_x_m, self.unit_y_m), c(r),
                 (c(owner), c(cx.reshape(-1)), c(cy.reshape(-1)), c(dirs[0]), c(dirs[1])),
                 (radius_m, r2 * (1.0 - _DOUBT), r2 * (1.0 + _DOUBT)), met,
