@@ -11,7 +11,9 @@ and `step_ms` the step's share of the tail, p99 - hop p99. Two sonar readings, e
 robot's the same every step: open space (every transducer at its maximum range: nothing
 to mask, the benchmark's reading by default), and the formation's own robots as the
 simulated world's ring hears them with every robot in its slot (`--sonar formation`:
-masking them out is then part of every step).
+masking them out is then part of every step). Each robot's loop runs with what exists
+before it frozen for the garbage collector, as an agent process's does
+(`phalanx.runtime.heap.lifelong_heap`); `--heap plain` leaves it as it is.
 
 Two topologies: every process a Zenoh client of one router (as `phalanx up` runs), and
 peers connected directly (each listens on its own endpoint and connects to the others).
@@ -25,12 +27,14 @@ robot's error on stderr), its processes killed, and the benchmark goes on.
 
     .venv/bin/python bench/bench_zenoh_latency.py [--robots 3 10 30] [--seconds 10]
         [--topology router peer] [--transport default lowlatency] [--link tcp unixsock]
-        [--sonar open formation]
+        [--sonar open formation] [--heap frozen plain]
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import itertools
 import multiprocessing as mp
 import queue
 import random
@@ -51,6 +55,7 @@ from phalanx.core.quantities import MAX_DURATION_S
 from phalanx.core.robot import Odometry, RobotStatus
 from phalanx.core.scenarios import grid_scenario
 from phalanx.runtime.batch import BatchRunner
+from phalanx.runtime.heap import lifelong_heap
 from phalanx.wire.keys import robot_key
 from phalanx.wire.messages import RobotState, VelocityCommand
 from phalanx.wire.transport import (
@@ -116,9 +121,12 @@ def robot(
     seconds: float,
     ranges: tuple[float, ...],
     sync: tuple[Any, Any],
+    frozen: bool = True,
 ) -> None:
     """One robot: publish own state at RATE_HZ, step on every leader state received (its
-    sonar reading `ranges`); `sync`: the fleet's start barrier and the results' queue.
+    sonar reading `ranges`); `sync`: the fleet's start barrier and the results' queue;
+    `frozen`: its loop runs with what exists before it frozen, as an agent process's
+    does (`lifelong_heap`).
     """
     ready, out = sync
     scenario = fleet_scenario(n)
@@ -140,33 +148,34 @@ def robot(
         next_pub = start + random.random() / RATE_HZ
         end = start + WARMUP_S + seconds
         seq = 0
-        while (now := time.monotonic()) < end:
-            if now >= next_pub:
-                seq += 1
-                state = state.model_copy(update={"seq": seq, "stamp_s": now})
-                session.publish(robot_key(FLEET, rid, "state"), state)
-                next_pub += 1.0 / RATE_HZ
-                continue
-            try:
-                lead = inbox.get(timeout=max(0.0, next_pub - time.monotonic()))
-            except queue.Empty:
-                continue
-            got = time.monotonic()
-            odo = Odometry(Pose2D(here.x_m, here.y_m, 0.0), Twist2D(0.15, 0.0), got)
-            result = agent.step(Observation(odo, status), {lead.robot_id: lead.peer()}, got)
-            done = time.monotonic()
-            session.publish(
-                robot_key(FLEET, rid, "cmd"),
-                VelocityCommand(
-                    robot_id=rid,
-                    tick=seq,
-                    stamp_s=done,
-                    v_mps=result.command.v_mps,
-                    omega_radps=result.command.omega_radps,
-                ),
-            )
-            if got - start > WARMUP_S:
-                latencies.append((done - lead.stamp_s, got - lead.stamp_s))
+        with lifelong_heap() if frozen else contextlib.nullcontext():
+            while (now := time.monotonic()) < end:
+                if now >= next_pub:
+                    seq += 1
+                    state = state.model_copy(update={"seq": seq, "stamp_s": now})
+                    session.publish(robot_key(FLEET, rid, "state"), state)
+                    next_pub += 1.0 / RATE_HZ
+                    continue
+                try:
+                    lead = inbox.get(timeout=max(0.0, next_pub - time.monotonic()))
+                except queue.Empty:
+                    continue
+                got = time.monotonic()
+                odo = Odometry(Pose2D(here.x_m, here.y_m, 0.0), Twist2D(0.15, 0.0), got)
+                result = agent.step(Observation(odo, status), {lead.robot_id: lead.peer()}, got)
+                done = time.monotonic()
+                session.publish(
+                    robot_key(FLEET, rid, "cmd"),
+                    VelocityCommand(
+                        robot_id=rid,
+                        tick=seq,
+                        stamp_s=done,
+                        v_mps=result.command.v_mps,
+                        omega_radps=result.command.omega_radps,
+                    ),
+                )
+                if got - start > WARMUP_S:
+                    latencies.append((done - lead.stamp_s, got - lead.stamp_s))
     out.put(latencies)
 
 
@@ -202,15 +211,17 @@ def measure(
     lowlatency: bool = False,
     link: str = "tcp",
     sonar: str = "open",
+    heap: str = "frozen",
 ) -> list[tuple[float, float]]:
     """Every follower command's latency and its hop's (s), in an `n`-robot fleet; `link`
     tcp (loopback) or unixsock (sockets in a new directory of mode 0700); `sonar`: see
-    `sonar_ranges`.
+    `sonar_ranges`; `heap`: frozen for each robot's loop (as an agent process runs) or
+    plain (`robot`).
     """
     with tempfile.TemporaryDirectory(prefix="phalanx-bench-") as folder:  # (mode 0700)
         here = Path(folder) if link == "unixsock" else None
         configs = _configs(n, topology, lowlatency, here)
-        return _measure(n, seconds, configs, sonar_ranges(n, sonar))
+        return _measure(n, seconds, configs, sonar_ranges(n, sonar), frozen=heap == "frozen")
 
 
 def _measure(
@@ -218,6 +229,8 @@ def _measure(
     seconds: float,
     configs: tuple[TransportConfig | None, list[TransportConfig]],
     ranges: dict[str, tuple[float, ...]],
+    *,
+    frozen: bool = True,
 ) -> list[tuple[float, float]]:
     router_cfg, cfgs = configs
     ctx = mp.get_context("spawn")
@@ -227,7 +240,7 @@ def _measure(
     procs = [
         ctx.Process(
             target=robot,
-            args=(cfgs[i], f"g{i}", n, seconds, ranges[f"g{i}"], (ready, out)),
+            args=(cfgs[i], f"g{i}", n, seconds, ranges[f"g{i}"], (ready, out), frozen),
             daemon=True,
         )
         for i in range(n)
@@ -267,20 +280,21 @@ def main() -> None:
     )
     parser.add_argument("--link", nargs="+", default=["tcp"], choices=["tcp", "unixsock"])
     parser.add_argument("--sonar", nargs="+", default=["open"], choices=["open", "formation"])
+    parser.add_argument("--heap", nargs="+", default=["frozen"], choices=["frozen", "plain"])
     args = parser.parse_args()
     cal = Calibration.measure()
     print(f"leader state -> follower command over Zenoh, {RATE_HZ:.0f} Hz per robot, one host")
     print(
-        "sonar      link      topology  transport   robots  samples  p50_ms  p90_ms  p99_ms  max_ms"
-        "  p99_mcal  hop_p50_ms  hop_p99_ms  step_ms  load"
+        "sonar      heap    link      topology  transport   robots  samples  p50_ms  p90_ms  p99_ms"
+        "  max_ms  p99_mcal  hop_p50_ms  hop_p99_ms  step_ms  load"
     )
     rows: dict[Row, tuple[float, float]] = {}
-    for sonar in args.sonar:
+    for sonar, heap in itertools.product(args.sonar, args.heap):
         for transport in args.transport:
             for topology in args.topology:
                 for n in args.robots:
                     for link in args.link:
-                        row = Row(link, topology, transport, n, sonar)
+                        row = Row(link, topology, transport, n, sonar, heap)
                         figures = _row(row, args.seconds, cal)
                         if figures is not None:
                             rows[row] = figures
@@ -296,14 +310,20 @@ class Row(NamedTuple):
     transport: str
     robots: int
     sonar: str = "open"
+    heap: str = "frozen"
 
 
 def _row(row: Row, seconds: float, cal: Calibration) -> tuple[float, float] | None:
     """Measure and print `row`; its p50 and p99 (s), None if it failed."""
-    name = f"{row.sonar:9s}  {row.link:8s}  {row.topology:8s}  {row.transport:10s}  {row.robots:6d}"
+    name = (
+        f"{row.sonar:9s}  {row.heap:6s}  {row.link:8s}  {row.topology:8s}  "
+        f"{row.transport:10s}  {row.robots:6d}"
+    )
     try:
         lowlatency = row.transport == "lowlatency"
-        pairs = measure(row.robots, seconds, row.topology, lowlatency, row.link, row.sonar)
+        pairs = measure(
+            row.robots, seconds, row.topology, lowlatency, row.link, row.sonar, row.heap
+        )
     except RowFailed as failed:  # (each robot's own error is on stderr)
         print(f"{name}  failed: {failed}", flush=True)
         return None

@@ -31,6 +31,7 @@ from phalanx.core.peers import PeerState
 from phalanx.core.rigid_body import live_errors
 from phalanx.core.robot_params import RobotParams
 from phalanx.runtime.clock import Clock, Tick
+from phalanx.runtime.heap import lifelong_heap
 from phalanx.runtime.operator import OperatorInbox
 from phalanx.runtime.peers import FlagsThrottle, PeerInbox, ScanInbox
 from phalanx.runtime.robot_io import RobotIO
@@ -138,10 +139,11 @@ class AgentRuntime:
             self._wire(session)
             relinker.start()
             try:
-                while (tick := self.clock.next_tick(stop)) is not None:
-                    observation = self.io.read(tick)
-                    if observation is not None:
-                        self.step(tick, observation)
+                with lifelong_heap():
+                    while (tick := self.clock.next_tick(stop)) is not None:
+                        observation = self.io.read(tick)
+                        if observation is not None:
+                            self.step(tick, observation)
             finally:
                 self.io.halt()
             report = self._report()

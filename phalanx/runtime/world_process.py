@@ -43,6 +43,7 @@ from phalanx.core.limits import KinematicLimits
 from phalanx.core.robot_params import RobotParams
 from phalanx.core.runlog import RunLog
 from phalanx.runtime.clock import WorldSchedule
+from phalanx.runtime.heap import lifelong_heap
 from phalanx.runtime.observed import observed_robots
 from phalanx.runtime.run_record import RunRecord, completeness, done_when_it_left
 from phalanx.runtime.signals import Stoppable
@@ -186,13 +187,14 @@ class WorldProcess:
             started = time.perf_counter()
             self._next_checkpoint = time.monotonic() + self.options.checkpoint_every_s
             self.schedule.start()
-            for k in range(self.steps):
-                if stop.is_set():
-                    break
-                self._tick(session, k)
-                self._maybe_checkpoint(started)
-                if self.options.clock == "realtime":
-                    time.sleep(self.schedule.wait_s())
+            with lifelong_heap():
+                for k in range(self.steps):
+                    if stop.is_set():
+                        break
+                    self._tick(session, k)
+                    self._maybe_checkpoint(started)
+                    if self.options.clock == "realtime":
+                        time.sleep(self.schedule.wait_s())
             self.wall_time_s = time.perf_counter() - started
             self._last_checkpoint_done()
             self._finish(session)
