@@ -7,9 +7,10 @@ import math
 import os
 import random
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 
 import pytest
+from fleetlab import wait_for
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -146,15 +147,6 @@ def test_position_counters_unwrap_across_the_15_bit_boundary() -> None:
 # -- the driver against the emulator ---------------------------------------------------
 
 
-def _eventually(check: Callable[[], bool], timeout_s: float) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if check():
-            return True
-        time.sleep(0.02)
-    return check()
-
-
 @pytest.fixture
 def pty_emulator() -> Iterator[ArcosEmulator]:
     with ArcosEmulator(PtyLink(), ROBOT) as emulator:
@@ -221,7 +213,7 @@ def test_garbled_bytes_and_dropped_sips_are_survived_and_counted(
         sips = driver.stats.sips
         tcp_emulator.garble(200)
         tcp_emulator.drop_sips(5)  # 0.5 s: under the 1 s link timeout
-        assert _eventually(lambda: driver.stats.sips > sips + 5, 3.0)
+        assert wait_for(lambda: driver.stats.sips > sips + 5, 3.0, poll_s=0.02)
         assert driver.parser.stats.bad_checksums + driver.parser.stats.garbage_bytes > 0
         assert driver.link_up
         assert driver.stats.links_lost == 0
@@ -230,11 +222,11 @@ def test_garbled_bytes_and_dropped_sips_are_survived_and_counted(
 def test_silent_robot_is_declared_lost_then_reconnected(tcp_emulator: ArcosEmulator) -> None:
     with ArcosDriver(_tcp(tcp_emulator, link_timeout_s=0.5), robot=ROBOT) as driver:
         tcp_emulator.drop_sips(15)  # 1.5 s of silence
-        assert _eventually(lambda: not driver.link_up, 2.0)
+        assert wait_for(lambda: not driver.link_up, 2.0, poll_s=0.02)
         assert "link lost" in driver.read_status().faults[0]
         with pytest.raises(Exception, match="link"):
             driver.set_velocity(Twist2D(0.1, 0.0))
-        assert _eventually(lambda: driver.link_up, 5.0)
+        assert wait_for(lambda: driver.link_up, 5.0, poll_s=0.02)
         assert driver.stats.reconnects == 1
         driver.set_velocity(Twist2D(0.1, 0.0))
 
@@ -242,8 +234,8 @@ def test_silent_robot_is_declared_lost_then_reconnected(tcp_emulator: ArcosEmula
 def test_tcp_disconnect_is_noticed_and_the_driver_reconnects(tcp_emulator: ArcosEmulator) -> None:
     with ArcosDriver(_tcp(tcp_emulator), robot=ROBOT) as driver:
         tcp_emulator.disconnect()
-        assert _eventually(lambda: not driver.link_up, 2.0)
-        assert _eventually(lambda: driver.link_up, 5.0)
+        assert wait_for(lambda: not driver.link_up, 2.0, poll_s=0.02)
+        assert wait_for(lambda: driver.link_up, 5.0, poll_s=0.02)
         assert driver.stats.links_lost == 1
 
 
@@ -254,7 +246,7 @@ def test_unplugged_serial_port_reports_the_fault_and_stays_stopped(
     with ArcosDriver(settings_, robot=ROBOT) as driver:
         driver.set_velocity(Twist2D(0.2, 0.0))
         pty_emulator.disconnect()  # the device disappears
-        assert _eventually(lambda: not driver.link_up, 2.0)
+        assert wait_for(lambda: not driver.link_up, 2.0, poll_s=0.02)
         status = driver.read_status()
         assert not status.motors_enabled
         assert status.faults
@@ -267,8 +259,8 @@ def test_estop_button_and_stall_show_in_the_status(tcp_emulator: ArcosEmulator) 
     with ArcosDriver(_tcp(tcp_emulator), robot=ROBOT) as driver:
         tcp_emulator.press_estop()
         tcp_emulator.stall()
-        assert _eventually(lambda: driver.read_status().estopped, 1.0)
-        assert _eventually(lambda: driver.read_status().stalled, 1.0)
+        assert wait_for(lambda: driver.read_status().estopped, 1.0, poll_s=0.02)
+        assert wait_for(lambda: driver.read_status().stalled, 1.0, poll_s=0.02)
         assert not driver.read_status().motors_enabled
 
 
@@ -279,16 +271,18 @@ def test_firmware_watchdog_stops_and_resumes() -> None:
         ArcosDriver(_tcp(emulator, link_timeout_s=5.0), robot=ROBOT) as driver,
     ):
         driver.set_velocity(Twist2D(0.2, 0.0))
-        assert _eventually(lambda: emulator.body.state().twist.v_mps > 0.1, 2.0)
+        assert wait_for(lambda: emulator.body.state().twist.v_mps > 0.1, 2.0, poll_s=0.02)
         time.sleep(0.5)  # the driver keeps the robot's 0.3 s watchdog fed (PULSE at 1/4)
         assert emulator.stats.watchdog_stops == 0
         emulator.unplug()  # silence: the firmware stops the motors on its own
-        assert _eventually(lambda: emulator.stats.watchdog_stops == 1, 2.0)
-        assert _eventually(lambda: emulator.body.state().twist.v_mps == 0.0, 2.0)
+        assert wait_for(lambda: emulator.stats.watchdog_stops == 1, 2.0, poll_s=0.02)
+        assert wait_for(lambda: emulator.body.state().twist.v_mps == 0.0, 2.0, poll_s=0.02)
         emulator.unplug(False)  # packets again: the last setpoints resume (ARCOS)
-        assert _eventually(lambda: emulator.body.state().twist.v_mps > 0.1, 2.0)
+        assert wait_for(lambda: emulator.body.state().twist.v_mps > 0.1, 2.0, poll_s=0.02)
         driver.stop()
-        assert _eventually(lambda: emulator.body.state().setpoint == Twist2D(0.0, 0.0), 1.0)
+        assert wait_for(
+            lambda: emulator.body.state().setpoint == Twist2D(0.0, 0.0), 1.0, poll_s=0.02
+        )
 
 
 def test_fuzzed_sip_stream_never_crashes_nor_commands_beyond_limits(
@@ -379,8 +373,8 @@ def test_a_robot_that_brakes_softer_than_the_robot_file_is_told_to_brake_harder(
         assert driver.robot_config is not None
         assert driver.robot_config.trans_decel_mmps2 == 100
         # (two commands, taken one after the other: wait for each)
-        assert _eventually(lambda: emulator.limits.trans_decel == 300.0, 1.0)
-        assert _eventually(lambda: emulator.limits.rot_decel == 100.0, 1.0)
+        assert wait_for(lambda: emulator.limits.trans_decel == 300.0, 1.0, poll_s=0.02)
+        assert wait_for(lambda: emulator.limits.rot_decel == 100.0, 1.0, poll_s=0.02)
         assert emulator.limits.trans_accel == 300.0  # already the robot file's: untouched
 
 
@@ -389,9 +383,9 @@ def test_an_estop_holds_in_the_driver_though_the_firmware_lets_go(
 ) -> None:
     with ArcosDriver(_tcp(tcp_emulator), robot=ROBOT) as driver:
         driver.set_velocity(Twist2D(0.3, 0.0))
-        assert _eventually(lambda: tcp_emulator.body.state().twist.v_mps > 0.2, 3.0)
+        assert wait_for(lambda: tcp_emulator.body.state().twist.v_mps > 0.2, 3.0, poll_s=0.02)
         driver.estop()
-        assert _eventually(lambda: tcp_emulator.body.state().twist.v_mps == 0.0, 1.0)
+        assert wait_for(lambda: tcp_emulator.body.state().twist.v_mps == 0.0, 1.0, poll_s=0.02)
         vels = tcp_emulator.stats.commands.get("VEL", 0)
         assert driver.read_status().estopped
         assert not driver.read_status().motors_enabled
@@ -404,7 +398,7 @@ def test_an_estop_holds_in_the_driver_though_the_firmware_lets_go(
         driver.connect()  # the deliberate reset
         assert not driver.read_status().estopped
         driver.set_velocity(Twist2D(0.2, 0.0))
-        assert _eventually(lambda: tcp_emulator.body.state().twist.v_mps > 0.1, 3.0)
+        assert wait_for(lambda: tcp_emulator.body.state().twist.v_mps > 0.1, 3.0, poll_s=0.02)
 
 
 def test_the_robots_estop_button_latches_until_released_and_reset(
@@ -412,14 +406,14 @@ def test_the_robots_estop_button_latches_until_released_and_reset(
 ) -> None:
     with ArcosDriver(_tcp(tcp_emulator), robot=ROBOT) as driver:
         tcp_emulator.press_estop()
-        assert _eventually(lambda: driver.read_status().estopped, 1.0)
+        assert wait_for(lambda: driver.read_status().estopped, 1.0, poll_s=0.02)
         with pytest.raises(Exception, match="still pressed"):
             driver.connect()
         tcp_emulator.press_estop(False)
         time.sleep(0.3)
         assert driver.read_status().estopped  # released, but nobody reset it
         driver.connect()
-        assert _eventually(lambda: driver.read_status().motors_enabled, 1.0)
+        assert wait_for(lambda: driver.read_status().motors_enabled, 1.0, poll_s=0.02)
         assert not driver.read_status().estopped
 
 
@@ -431,8 +425,8 @@ def test_a_lost_robot_is_found_again_at_a_fallback_address() -> None:
         settings = _tcp(first, fallbacks=(f"127.0.0.1:{second.link.port}",))  # type: ignore[attr-defined]
         with ArcosDriver(settings, robot=ROBOT) as driver:
             first.close()
-            assert _eventually(lambda: not driver.link_up, 2.0)
-            assert _eventually(lambda: driver.link_up, 8.0)
+            assert wait_for(lambda: not driver.link_up, 2.0, poll_s=0.02)
+            assert wait_for(lambda: driver.link_up, 8.0, poll_s=0.02)
             assert driver.address == f"127.0.0.1:{second.link.port}"  # type: ignore[attr-defined]
 
 
@@ -449,7 +443,9 @@ def test_another_robot_at_a_fallback_address_is_not_taken_for_this_one() -> None
         )
         with ArcosDriver(settings, robot=ROBOT) as driver:
             first.close()
-            assert _eventually(lambda: "another robot" in str(driver.read_status().faults), 5.0)
+            assert wait_for(
+                lambda: "another robot" in str(driver.read_status().faults), 5.0, poll_s=0.02
+            )
             assert not driver.link_up
 
 

@@ -5,10 +5,11 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 
 import can
 import pytest
+from fleetlab import wait_for
 
 from phalanx.core.config_files import load_robot
 from phalanx.core.errors import DriverError, DriverUnavailable
@@ -20,15 +21,6 @@ from phalanx.simulator.cia402 import SimulatedDiffDrive, next_state
 
 pytestmark = pytest.mark.drivers
 ROBOT = load_robot("p3dx")
-
-
-def _eventually(check: Callable[[], bool], timeout_s: float) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if check():
-            return True
-        time.sleep(0.01)
-    return check()
 
 
 @pytest.fixture
@@ -74,9 +66,9 @@ def test_wheel_targets_follow_the_geometry_and_mounting(
     half = 0.5 * ROBOT.track_width_m / 2
     left = (0.2 - half) / ROBOT.wheel_radius_m * s.counts_per_radps
     right = (0.2 + half) / ROBOT.wheel_radius_m * s.counts_per_radps
-    assert _eventually(lambda: drives.left.target == round(left), 1.0)
+    assert wait_for(lambda: drives.left.target == round(left), 1.0)
     assert drives.right.target == round(-right)  # mirrored mounting: right_sign = -1
-    assert _eventually(lambda: abs(driver.read_odometry().twist.omega_radps - 0.5) < 0.01, 2.0)
+    assert wait_for(lambda: abs(driver.read_odometry().twist.omega_radps - 0.5) < 0.01, 2.0)
     assert driver.read_odometry().twist.v_mps == pytest.approx(0.2, abs=0.005)
 
 
@@ -87,7 +79,7 @@ def test_wheel_speed_limit_scales_both_wheels(
     driver.connect()
     driver.set_velocity(Twist2D(5.0, 0.0))  # far above the wheel speed limit
     limit = driver.geometry.max_radps * driver.settings.counts_per_radps
-    assert _eventually(lambda: drives.left.target != 0, 1.0)
+    assert wait_for(lambda: drives.left.target != 0, 1.0)
     assert abs(drives.left.target) <= round(limit)
     assert abs(drives.right.target) <= round(limit)
 
@@ -110,7 +102,7 @@ def test_the_wheel_speed_sent_follows_the_robot_files_wheel_radius(
         with CanopenDriver(settings, robot=robot) as driver:
             driver.set_velocity(Twist2D(0.2, 0.0))
             counts = round(0.2 / radius_m * settings.counts_per_radps)  # 2051 or 1333
-            assert _eventually(lambda: drives.left.target == counts, 1.0), drives.left.target
+            assert wait_for(lambda: drives.left.target == counts, 1.0), drives.left.target
             assert drives.right.target == -counts  # mounted mirrored
 
 
@@ -124,7 +116,7 @@ def test_the_wheel_speed_limit_is_the_robot_files_wheel_rim_speed(
         with CanopenDriver(settings, robot=robot) as driver:
             driver.set_velocity(Twist2D(1.0, 0.0))  # twice the rim speed
             counts = round(0.5 / robot.wheel_radius_m * settings.counts_per_radps)
-            assert _eventually(lambda: drives.left.target == counts, 1.0), drives.left.target
+            assert wait_for(lambda: drives.left.target == counts, 1.0), drives.left.target
 
 
 def _robot_with(**fields: float) -> RobotParams:
@@ -135,13 +127,13 @@ def test_lost_heartbeat_stops_both_wheels(rig: tuple[SimulatedDiffDrive, Canopen
     drives, driver = rig
     driver.connect()
     driver.set_velocity(Twist2D(0.2, 0.0))
-    assert _eventually(lambda: abs(drives.left.velocity) > 1000, 2.0)
+    assert wait_for(lambda: abs(drives.left.velocity) > 1000, 2.0)
     lost_at = time.monotonic()
     drives.right.lose_heartbeat()
-    assert _eventually(lambda: bool(driver.read_status().faults), 2.0)
+    assert wait_for(lambda: bool(driver.read_status().faults), 2.0)
     assert time.monotonic() - lost_at < driver.settings.heartbeat_timeout_s + 0.2
     assert "heartbeat" in driver.read_status().faults[0]
-    assert _eventually(lambda: drives.left.target == 0, 0.5)  # the live wheel stops too
+    assert wait_for(lambda: drives.left.target == 0, 0.5)  # the live wheel stops too
     assert not driver.read_status().motors_enabled
     with pytest.raises(DriverUnavailable):
         driver.set_velocity(Twist2D(0.2, 0.0))
@@ -149,7 +141,7 @@ def test_lost_heartbeat_stops_both_wheels(rig: tuple[SimulatedDiffDrive, Canopen
     driver.connect()  # back: the drives are re-enabled and the fault cleared
     assert not driver.read_status().faults
     driver.set_velocity(Twist2D(0.1, 0.0))
-    assert _eventually(lambda: drives.right.target != 0, 1.0)
+    assert wait_for(lambda: drives.right.target != 0, 1.0)
 
 
 def test_drive_fault_is_reported_and_reset_on_connect(
@@ -158,7 +150,7 @@ def test_drive_fault_is_reported_and_reset_on_connect(
     drives, driver = rig
     driver.connect()
     drives.left.inject_fault(0x2310)
-    assert _eventually(lambda: any("EMCY 0x2310" in f for f in driver.read_status().faults), 1.0)
+    assert wait_for(lambda: any("EMCY 0x2310" in f for f in driver.read_status().faults), 1.0)
     assert driver.stats.emcys == 1
     driver.connect()
     assert drives.left.state == SW_OPERATION_ENABLED
@@ -174,7 +166,7 @@ def test_close_twice_leaves_drives_stopped_and_disabled(
     driver.set_velocity(Twist2D(0.2, 0.0))
     driver.close()
     driver.close()
-    assert _eventually(lambda: all(d.target == 0 for d in drives.drives), 1.0)
+    assert wait_for(lambda: all(d.target == 0 for d in drives.drives), 1.0)
     assert all(d.state != SW_OPERATION_ENABLED for d in drives.drives)
     with pytest.raises(DriverError):
         driver.set_velocity(Twist2D(0.1, 0.0))
@@ -212,6 +204,6 @@ def test_runs_on_socketcan_vcan() -> None:
         try:
             driver.connect()
             driver.set_velocity(Twist2D(0.1, 0.0))
-            assert _eventually(lambda: drives.left.target != 0, 1.0)
+            assert wait_for(lambda: drives.left.target != 0, 1.0)
         finally:
             driver.close()

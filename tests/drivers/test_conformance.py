@@ -9,6 +9,7 @@ from collections.abc import Callable
 from typing import Any
 
 import pytest
+from fleetlab import wait_for
 
 from phalanx.core.errors import DriverError
 from phalanx.core.geometry import Twist2D
@@ -18,15 +19,6 @@ from phalanx.drivers.safety import SafeDriver
 Rig = Any  # the `rig` fixture of conftest.py: .driver, .robot_side, .limits
 
 pytestmark = pytest.mark.drivers
-
-
-def _eventually(check: Callable[[], bool], timeout_s: float) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if check():
-            return True
-        time.sleep(0.02)
-    return check()
 
 
 def _speed(driver: Driver) -> Twist2D:
@@ -57,16 +49,16 @@ def test_connect_reports_a_finite_pose_and_enabled_motors(rig: Rig) -> None:
 def test_forward_command_moves_forward_and_stop_stops(rig: Rig) -> None:
     rig.driver.connect()
     rig.driver.set_velocity(Twist2D(0.2, 0.0))
-    assert _eventually(lambda: abs(_speed(rig.driver).v_mps - 0.2) < 0.02, 3.0)
-    assert _eventually(lambda: rig.driver.read_odometry().pose.x_m > 0.02, 2.0)
+    assert wait_for(lambda: abs(_speed(rig.driver).v_mps - 0.2) < 0.02, 3.0, poll_s=0.02)
+    assert wait_for(lambda: rig.driver.read_odometry().pose.x_m > 0.02, 2.0, poll_s=0.02)
     rig.driver.stop()
-    assert _eventually(lambda: abs(_speed(rig.driver).v_mps) < 0.005, 3.0)
+    assert wait_for(lambda: abs(_speed(rig.driver).v_mps) < 0.005, 3.0, poll_s=0.02)
 
 
 def test_rotation_turns_counter_clockwise(rig: Rig) -> None:
     rig.driver.connect()
     rig.driver.set_velocity(Twist2D(0.0, 0.5))
-    assert _eventually(lambda: rig.driver.read_odometry().pose.theta_rad > 0.2, 4.0)
+    assert wait_for(lambda: rig.driver.read_odometry().pose.theta_rad > 0.2, 4.0, poll_s=0.02)
     assert abs(rig.driver.read_odometry().pose.x_m) < 0.02
 
 
@@ -78,16 +70,16 @@ def test_close_twice_is_safe_and_leaves_it_stopped(rig: Rig) -> None:
     with pytest.raises(DriverError):
         rig.driver.set_velocity(Twist2D(0.1, 0.0))
     if rig.zero_commanded is not None:  # the robot itself was told to stop
-        assert _eventually(rig.zero_commanded, 2.0)
+        assert wait_for(rig.zero_commanded, 2.0, poll_s=0.02)
 
 
 def test_watchdog_stops_a_robot_whose_commands_stop(rig: Rig) -> None:
     with SafeDriver(rig.driver, rig.limits) as safe:
         assert _drive(safe, Twist2D(0.2, 0.0), lambda: _speed(safe).v_mps > 0.1, 3.0)
         silent_from = time.monotonic()
-        assert _eventually(lambda: safe.stats.watchdog_stops == 1, 2.0)
+        assert wait_for(lambda: safe.stats.watchdog_stops == 1, 2.0, poll_s=0.02)
         assert time.monotonic() - silent_from < rig.limits.watchdog_s + 0.3
-        assert _eventually(lambda: abs(_speed(safe).v_mps) < 0.005, 3.0)
+        assert wait_for(lambda: abs(_speed(safe).v_mps) < 0.005, 3.0, poll_s=0.02)
 
 
 def test_commands_are_clamped_with_their_curvature(rig: Rig) -> None:
@@ -114,6 +106,6 @@ def test_estop_latches_until_reset(rig: Rig) -> None:
         safe.estop()
         assert safe.set_velocity(Twist2D(0.2, 0.0)) == Twist2D(0.0, 0.0)
         assert safe.read_status().estopped
-        assert _eventually(lambda: abs(_speed(safe).v_mps) < 0.005, 3.0)
+        assert wait_for(lambda: abs(_speed(safe).v_mps) < 0.005, 3.0, poll_s=0.02)
         safe.reset_estop()
         assert _drive(safe, Twist2D(0.1, 0.0), lambda: _speed(safe).v_mps > 0.05, 3.0)

@@ -13,6 +13,7 @@ from collections.abc import Callable
 from typing import Any
 
 import pytest
+from fleetlab import wait_for
 
 from phalanx.core.config_files import CONFIG_ROOT, apply_overrides, load_robot, load_scenario
 from phalanx.core.limits import safety_limits
@@ -44,15 +45,6 @@ def _press(rig: Rig, safe: SafeDriver) -> Callable[[], None]:
     return safe.estop  # no robot side: the safety layer's latch
 
 
-def _wait(predicate: Callable[[], bool], timeout_s: float) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        time.sleep(0.005)
-    return predicate()
-
-
 def test_an_estop_shows_in_the_published_state_on_the_next_step(rig: Rig) -> None:
     scenario = apply_overrides(load_scenario(WEDGE), ["duration_s=30"])
     port = free_tcp_port()
@@ -76,13 +68,17 @@ def test_an_estop_shows_in_the_published_state_on_the_next_step(rig: Rig) -> Non
                     RobotState,
                     lambda _k, s: published.append((epoch_s + s.stamp_s, s)),
                 )
-                assert _wait(
-                    lambda: any(s.fsm_state == State.NAVIGATE for _, s in published), 10.0
+                assert wait_for(
+                    lambda: any(s.fsm_state == State.NAVIGATE for _, s in published),
+                    10.0,
+                    poll_s=0.005,
                 ), [s.fsm_state for _, s in published]
                 _press(rig, safe)()
-                assert _wait(lambda: safe.read_status().estopped, 2.0)
+                assert wait_for(lambda: safe.read_status().estopped, 2.0, poll_s=0.005)
                 seen_s = time.time()
-                assert _wait(lambda: published[-1][0] > seen_s + 3 * scenario.dt_s, 5.0)
+                assert wait_for(
+                    lambda: published[-1][0] > seen_s + 3 * scenario.dt_s, 5.0, poll_s=0.005
+                )
         finally:
             stop.set()
             thread.join(10.0)

@@ -12,10 +12,11 @@ import math
 import random
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 
 import can
 import pytest
+from fleetlab import wait_for
 
 from phalanx.core.config_files import CONFIG_ROOT, apply_overrides, load_robot, load_scenario
 from phalanx.core.errors import DriverError
@@ -34,15 +35,6 @@ pytestmark = pytest.mark.drivers
 ROBOT = load_robot("p3dx")
 WEDGE = CONFIG_ROOT / "scenarios" / "paper_wedge.toml"
 STOP_S = 0.5  # a fault brings both wheel targets to zero within this
-
-
-def _eventually(check: Callable[[], bool], timeout_s: float) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if check():
-            return True
-        time.sleep(0.005)
-    return check()
 
 
 @pytest.fixture
@@ -96,11 +88,13 @@ def test_garbage_on_the_bus_stops_the_robot_safely_and_connect_brings_it_back(
 ) -> None:
     drives, driver, channel = rig
     driver.set_velocity(Twist2D(0.2, 0.0))
-    assert _eventually(lambda: abs(drives.left.velocity) > 1000, 2.0)
+    assert wait_for(lambda: abs(drives.left.velocity) > 1000, 2.0, poll_s=0.005)
     sent = time.monotonic()
     _garbage(channel, 3000, seed=7)
-    assert _eventually(lambda: bool(driver.read_status().faults), 1.0)  # forged EMCYs etc.
-    assert _eventually(lambda: _stopped(drives), STOP_S)
+    assert wait_for(
+        lambda: bool(driver.read_status().faults), 1.0, poll_s=0.005
+    )  # forged EMCYs etc.
+    assert wait_for(lambda: _stopped(drives), STOP_S, poll_s=0.005)
     assert time.monotonic() - sent < 5.0
     status, odometry = driver.read_status(), driver.read_odometry()
     assert len(status.faults) <= MAX_FAULTS  # an EMCY flood does not grow it for ever
@@ -114,7 +108,7 @@ def test_garbage_on_the_bus_stops_the_robot_safely_and_connect_brings_it_back(
     driver.connect()  # the bus thread lived through it: the robot drives again
     assert not driver.read_status().faults
     driver.set_velocity(Twist2D(0.1, 0.0))
-    assert _eventually(lambda: drives.left.target != 0, 1.0)
+    assert wait_for(lambda: drives.left.target != 0, 1.0, poll_s=0.005)
 
 
 def test_connect_outlasts_garbled_sdo_answers_for_up_to_its_timeout(
@@ -136,7 +130,7 @@ def test_connect_outlasts_garbled_sdo_answers_for_up_to_its_timeout(
             retries = [r for r in caplog.records if r.getMessage().endswith("; again")]
             assert len(retries) >= 3, (len(jams), [r.getMessage() for r in retries])
             driver.set_velocity(Twist2D(0.1, 0.0))
-            assert _eventually(lambda: drives.left.target != 0, 1.0)
+            assert wait_for(lambda: drives.left.target != 0, 1.0, poll_s=0.005)
         finally:
             jammer.join(timeout=5.0)
             driver.close()
@@ -148,16 +142,16 @@ def test_a_drive_that_reboots_mid_run_stops_both_wheels(
 ) -> None:
     drives, driver, channel = rig
     driver.set_velocity(Twist2D(0.2, 0.0))
-    assert _eventually(lambda: drives.left.target != 0, 1.0)
+    assert wait_for(lambda: drives.left.target != 0, 1.0, poll_s=0.005)
     bus = can.Bus(interface="virtual", channel=channel)
     try:  # the right drive's boot-up message: it lost power and restarted
         bus.send(can.Message(arbitration_id=0x702, data=b"\x00", is_extended_id=False))
     finally:
         bus.shutdown()
-    assert _eventually(
-        lambda: any("left OPERATIONAL" in f for f in driver.read_status().faults), 1.0
+    assert wait_for(
+        lambda: any("left OPERATIONAL" in f for f in driver.read_status().faults), 1.0, poll_s=0.005
     )
-    assert _eventually(lambda: _stopped(drives), STOP_S)
+    assert wait_for(lambda: _stopped(drives), STOP_S, poll_s=0.005)
     driver.connect()
     assert not driver.read_status().faults
 
@@ -167,11 +161,11 @@ def test_both_drives_silent_stop_the_robot_within_the_heartbeat_timeout(
 ) -> None:
     drives, driver, _ = rig
     driver.set_velocity(Twist2D(0.2, 0.0))
-    assert _eventually(lambda: drives.left.target != 0, 1.0)
+    assert wait_for(lambda: drives.left.target != 0, 1.0, poll_s=0.005)
     lost = time.monotonic()
     for drive in drives.drives:
         drive.lose_heartbeat()
-    assert _eventually(lambda: len(driver.read_status().faults) == 2, 2.0)
+    assert wait_for(lambda: len(driver.read_status().faults) == 2, 2.0, poll_s=0.005)
     assert time.monotonic() - lost < driver.settings.heartbeat_timeout_s + 0.2
     assert not driver.read_status().motors_enabled  # (a drive cut off stops on its own)
     with pytest.raises(DriverError):
@@ -207,17 +201,18 @@ def test_an_agent_on_a_faulted_can_robot_commands_zero_and_stays_within_limits(
             thread = threading.Thread(target=runtime.run, args=(stop,), daemon=True)
             thread.start()
             try:
-                assert _eventually(lambda: runtime.steps > 20, 10.0)
+                assert wait_for(lambda: runtime.steps > 20, 10.0, poll_s=0.005)
                 _garbage(channel, 2000, seed=11)
-                assert _eventually(
+                assert wait_for(
                     lambda: (
                         runtime.last is not None and runtime.last.state.fsm_state == State.FAULT
                     ),
                     3.0,
+                    poll_s=0.005,
                 )
-                assert _eventually(lambda: _stopped(drives), STOP_S)
+                assert wait_for(lambda: _stopped(drives), STOP_S, poll_s=0.005)
                 steps = runtime.steps
-                assert _eventually(lambda: runtime.steps > steps + 10, 5.0)  # it goes on
+                assert wait_for(lambda: runtime.steps > steps + 10, 5.0, poll_s=0.005)  # it goes on
             finally:
                 stop.set()
                 thread.join(10.0)

@@ -27,7 +27,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from fleetlab import Fleet, start_flooder, terminate
+from fleetlab import Fleet, start_flooder, terminate, wait_for
 
 from phalanx.wire.bounds import FleetBounds
 from phalanx.wire.codec import DecodeStats, encode
@@ -153,13 +153,13 @@ def test_a_flooded_key_leaves_every_message_of_another_key_through(
     flood = threading.Thread(target=_flood, args=(flooder, stop, sent), daemon=True)
     flood.start()
     try:
-        started = _wait(lambda: receiver.stats.rate_limited["RobotFlags"] > 0)
+        started = wait_for(lambda: receiver.stats.rate_limited["RobotFlags"] > 0, WAIT_S)
         for seq in range(R2_MESSAGES):  # during the flood
             r2.publish(_key("r2"), _flags("r2", seq), reliable_block=True)
             stop.wait(1.0 / RATE_HZ)
-        r2_heard = _wait(lambda: len(_of("r2", heard, lock)) >= R2_MESSAGES)
+        r2_heard = wait_for(lambda: len(_of("r2", heard, lock)) >= R2_MESSAGES, WAIT_S)
         after = receiver.stats.rate_limited["RobotFlags"]  # then twice a ring of flood more
-        _wait(lambda: receiver.stats.rate_limited["RobotFlags"] > after + 2 * RING)
+        wait_for(lambda: receiver.stats.rate_limited["RobotFlags"] > after + 2 * RING, WAIT_S)
     finally:
         stop.set()
         flood.join(WAIT_S)
@@ -179,16 +179,6 @@ def test_a_flooded_key_leaves_every_message_of_another_key_through(
 def _of(rid: str, heard: list[RobotFlags], lock: threading.Lock) -> list[RobotFlags]:
     with lock:
         return [f for f in heard if f.robot_id == rid]
-
-
-def _wait(predicate: Callable[[], bool], timeout_s: float = WAIT_S) -> bool:
-    """Whether `predicate()` held within `timeout_s` (polled every 10 ms)."""
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        time.sleep(0.01)
-    return predicate()
 
 
 # --- copies of a robot's old state on its own key ---------------------------------------
@@ -282,19 +272,19 @@ def test_copies_of_a_robots_old_state_leave_its_new_states_through(
         return [round(s.stamp_s, 3) for s in drain() if s.stamp_s > 1.0]
 
     r1.publish(key, _state("r1", 1.0), reliable_block=True)  # heard before the flood
-    assert _wait(lambda: bool(drain()))
+    assert wait_for(lambda: bool(drain()), WAIT_S)
     stop, sent = threading.Event(), [0]
     copy = encode(_state("r1", 0.5), "packed")  # an earlier state of r1's, bit for bit
     flood = threading.Thread(target=_flood_raw, args=(flooder, key, copy, stop, sent),
                              daemon=True)  # fmt: skip
     flood.start()
     try:
-        started = _wait(lambda: receiver.stats.rate_limited["RobotState"] > 0)
+        started = wait_for(lambda: receiver.stats.rate_limited["RobotState"] > 0, WAIT_S)
         for i in range(1, R2_MESSAGES + 1):  # r1's own, at its rate, during the flood
             r1.publish(key, _state("r1", 1.0 + i / RATE_HZ), reliable_block=True)
             stop.wait(1.0 / RATE_HZ)
             drain()
-        _wait(lambda: len(fresh()) >= R2_MESSAGES)
+        wait_for(lambda: len(fresh()) >= R2_MESSAGES, WAIT_S)
     finally:
         stop.set()
         flood.join(WAIT_S)

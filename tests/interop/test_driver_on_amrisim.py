@@ -9,10 +9,10 @@ from __future__ import annotations
 import math
 import sys
 import time
-from collections.abc import Callable
 from typing import Any
 
 import pytest
+from fleetlab import wait_for
 
 from phalanx.core.config_files import load_robot
 from phalanx.core.errors import DriverError
@@ -48,15 +48,6 @@ def _refused(driver: ArcosDriver, twist: Twist2D) -> str:
     return ""
 
 
-def _eventually(check: Callable[[], bool], timeout_s: float) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if check():
-            return True
-        time.sleep(0.02)
-    return check()
-
-
 def test_the_driver_reads_amrisims_limits_and_reaches_0_3_mps(amrisim: Amrisim) -> None:
     with ArcosDriver(ArcosSettings(tcp=f"127.0.0.1:{amrisim.port}"), robot=ROBOT) as driver:
         config = driver.robot_config
@@ -81,7 +72,7 @@ def test_odometry_equals_what_amrisim_logged_sending(amrisim: Amrisim) -> None:
         _drive(driver, Twist2D(0.2, math.radians(25.0)), 3.0)
         _drive(driver, Twist2D(-0.15, math.radians(-15.0)), 2.0)
         driver.stop()
-        assert _eventually(lambda: driver.read_odometry().twist == Twist2D(0.0, 0.0), 3.0)
+        assert wait_for(lambda: driver.read_odometry().twist == Twist2D(0.0, 0.0), 3.0, poll_s=0.02)
         time.sleep(0.5)
         pose = driver.read_odometry().pose
     x_mm, y_mm, th_deg = amrisim.sent_sips()[-1]  # AMRISim's odometry (mm, mm, whole deg)
@@ -99,7 +90,7 @@ def test_an_estop_amrisim_forgets_is_held_by_the_driver(amrisim: Amrisim) -> Non
     with ArcosDriver(ArcosSettings(tcp=f"127.0.0.1:{amrisim.port}"), robot=ROBOT) as driver:
         _drive(driver, Twist2D(0.3, 0.0), 2.0)
         driver.estop()
-        assert _eventually(lambda: driver.read_odometry().twist.v_mps == 0.0, 2.0)
+        assert wait_for(lambda: driver.read_odometry().twist.v_mps == 0.0, 2.0, poll_s=0.02)
         time.sleep(0.5)
         sip = driver.readings.sip
         assert sip is not None

@@ -9,11 +9,11 @@ import signal
 import subprocess
 import sys
 import time
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import pytest
+from fleetlab import wait_for
 
 from phalanx.hosts.children import ManagedChild
 from phalanx.hosts.daemon import DaemonOptions, HostDaemon
@@ -37,15 +37,6 @@ def _deployment(kit: Any, tmp_path: Path, name: str, *, zenoh_extra: str = "") -
     path = tmp_path / f"{name}.toml"
     path.write_text(text)
     return path
-
-
-def _wait(predicate: Callable[[], bool], timeout_s: float) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        time.sleep(0.1)
-    return False
 
 
 def _child(status: HostStatus | None, name: str) -> ChildStatus | None:
@@ -122,14 +113,16 @@ def test_a_crashed_agent_restarts_with_backoff_and_the_output_reaches_the_launch
                 world, agent = _child(statuses["h1"], "world"), _child(statuses["h2"], "r2")
                 return all(c is not None and c.state == "running" for c in (world, agent))
 
-            assert _wait(running, 40.0), daemons.log_tail()
+            assert wait_for(running, 40.0, poll_s=0.1), daemons.log_tail()
             time.sleep(0.5)  # the world has subscribed to the robots' liveliness
             first = r2()
             assert first is not None
             assert first.pid is not None
             os.kill(first.pid, signal.SIGKILL)
-            assert _wait(
-                lambda: (c := r2()) is not None and c.restarts == 1 and c.state == "running", 30.0
+            assert wait_for(
+                lambda: (c := r2()) is not None and c.restarts == 1 and c.state == "running",
+                30.0,
+                poll_s=0.1,
             ), daemons.log_tail()
             again = r2()
             assert again is not None
@@ -146,7 +139,9 @@ def test_a_crashed_agent_restarts_with_backoff_and_the_output_reaches_the_launch
                     lines.append(client.watch.logs.get())
                 return any(heard(line) for line in lines)
 
-            assert _wait(world_said_r2_gone, 10.0), [line.line for line in lines][-20:]
+            assert wait_for(world_said_r2_gone, 10.0, poll_s=0.1), [line.line for line in lines][
+                -20:
+            ]
 
         stopped = subprocess.run(
             [*kit.CLI, "stop", str(path), "--wait", "20"],
@@ -265,7 +260,7 @@ def test_a_child_that_ignores_sigterm_is_killed_after_the_grace_period() -> None
         "import signal, time; signal.signal(signal.SIGTERM, signal.SIG_IGN); "
         "print('up', flush=True); time.sleep(60)",
     )
-    assert _wait(lambda: "up" in stubborn.lines, 10.0)
+    assert wait_for(lambda: "up" in stubborn.lines, 10.0, poll_s=0.1)
     started = time.monotonic()
     daemon.shutdown()
     assert stubborn.poll() == -signal.SIGKILL
@@ -280,9 +275,9 @@ def test_a_crash_is_reported_with_its_last_error_and_restarted_after_a_delay() -
         "r3",
         "import sys; print('starting'); print('ERROR no robot', flush=True); sys.exit(3)",
     )
-    assert _wait(lambda: (daemon.supervise(), crashing.state)[1] == "backoff", 10.0)
+    assert wait_for(lambda: (daemon.supervise(), crashing.state)[1] == "backoff", 10.0, poll_s=0.1)
     assert crashing.last_error == "exit 3: ERROR no robot"
     assert crashing.restart_at - time.monotonic() <= daemon.spec.restart.backoff_s
-    assert _wait(lambda: (daemon.supervise(), crashing.restarts)[1] == 1, 10.0)
+    assert wait_for(lambda: (daemon.supervise(), crashing.restarts)[1] == 1, 10.0, poll_s=0.1)
     daemon.shutdown()
     assert crashing.poll() is not None

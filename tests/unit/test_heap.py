@@ -8,7 +8,8 @@ from __future__ import annotations
 import gc
 import threading
 import time
-from collections.abc import Callable
+
+from fleetlab import wait_for
 
 from phalanx.core.config_files import CONFIG_ROOT, apply_overrides, load_robot, load_scenario
 from phalanx.core.limits import safety_limits
@@ -25,15 +26,6 @@ from phalanx.wire.transport import TransportConfig, free_tcp_port, loopback_endp
 
 ROBOT = load_robot("p3dx")
 WEDGE = CONFIG_ROOT / "scenarios" / "paper_wedge.toml"
-
-
-def _eventually(check: Callable[[], bool], timeout_s: float) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if check():
-            return True
-        time.sleep(0.005)
-    return check()
 
 
 def test_the_heap_is_frozen_inside_and_let_go_after_any_loop_ends() -> None:
@@ -98,7 +90,7 @@ def test_an_agent_runtime_steps_with_the_heap_frozen() -> None:
             thread = threading.Thread(target=runtime.run, args=(stop,), daemon=True)
             thread.start()
             try:
-                assert _eventually(lambda: runtime.steps >= 5, 20.0)
+                assert wait_for(lambda: runtime.steps >= 5, 20.0, poll_s=0.005)
             finally:
                 stop.set()
                 thread.join(10.0)
