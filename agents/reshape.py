@@ -8,9 +8,12 @@ scenario asks for is the one it goes back to.
 
 The transition is planned (`phalanx.core.shapes`): each robot's slot slides on a
 straight line in the formation frame to its new one, all at the same fraction of the way
-(CAPT: no robot crosses another's path), while the leader drives on slowly along its
-route (the followers' slots slide under them as they go; where the way ahead does not fit
-the shape as it is at that moment, the leader's steering stops it). The shape in
+(CAPT: no robot crosses another's path), while the leader drives on along its route:
+while the group narrows, as fast as every follower can keep to its sliding slot (into a
+column they drop back, and the leader drives on as navigation would), slowly while it
+widens (they come up beside it); the followers' slots slide under them as they go, and
+where the way ahead does not fit the shape as it is at that moment, the leader's steering
+stops it. The shape in
 effect (`ShapeKey`) goes out in the leader's flags; followers take it from there, so
 every robot computes the same slots.
 """
@@ -35,9 +38,11 @@ from phalanx.core.shapes import RAMP_SHARE, SCENARIO_SHAPE, ShapeBook, ShapeKey
 # Slots slide at up to this speed (m/s) in the formation frame during a reshape, at this
 # speed on average (the speed rises and falls over the ends of the slide, `slide_share`),
 # and it takes at least this long; the followers then have this long to settle in the new
-# shape. Meanwhile the leader drives on no faster than `RESHAPE_CRUISE_MPS` (slide and
-# drive together within about a P3DX's 0.3 m/s: a follower that falls behind its slot at
-# the fastest of a slide catches up as it slows).
+# shape. Meanwhile the leader drives on no faster than `RESHAPE_CRUISE_MPS` while the
+# slots widen (slide and drive together within about a P3DX's 0.3 m/s: a follower that
+# falls behind its slot at the fastest of a slide catches up as it slows); while they
+# narrow, as fast as keeps every follower's slot within the speed limit
+# (`ShapeKeeper.drive_cap_mps`).
 RESHAPE_PEAK_MPS = 0.255
 RESHAPE_MPS = RESHAPE_PEAK_MPS * (1 - RAMP_SHARE)
 RESHAPE_MIN_S = 3.0
@@ -55,7 +60,8 @@ DECIDE_S = 1.0
 CONFIRM = 2
 DWELL_S = 5.0
 # The sonar showing the way too narrow for the shape this long folds the group, if its
-# fold is long: one whose leader drives on at least this far while the slots slide (m).
+# fold is long: one whose leader drives on at least this far while the slots slide back
+# (`slide_drive_m`, m).
 # A group that folds in less rides on in its shape, round what the steering can go
 # round, and folds where its leader stalls or is blocked.
 SQUEEZE_S = 1.0
@@ -98,9 +104,11 @@ class ShapeKeeper:
     scenario_fits: bool = True
 
     @cached_property
-    def fold_drive_m(self) -> float:
-        """How far the leader drives on while the scenario's shape folds into the
-        narrowest (m): `RESHAPE_CRUISE_MPS` for as long as the longest slide takes.
+    def slide_drive_m(self) -> float:
+        """How far the leader drives on while the slots slide back from the narrowest
+        shape into the scenario's (m): `RESHAPE_CRUISE_MPS` for as long as the longest
+        slide takes. A group's fold is long when this is (a fold slides as long, driven
+        faster: `drive_cap_mps`).
         """
         return RESHAPE_CRUISE_MPS * slide_s(self.book, SCENARIO_SHAPE, self.book.distinct[-1])
 
@@ -117,16 +125,39 @@ class ShapeKeeper:
         """The leader wants another shape than the one it is in (or is between two)."""
         return self.enabled and (self.wanted != self.key.target or not self.key.settled)
 
+    def drive_cap_mps(self, v_max_mps: float) -> float:
+        """How fast the leader may drive on while the slots slide (m/s). While they slide
+        into a narrower shape, as fast as keeps every follower's slot within `v_max_mps`
+        over the ground at the slide's fastest (driving straight; into a column the
+        followers drop back, and that is about `v_max_mps`), and no slower than
+        `RESHAPE_CRUISE_MPS`; while they widen, `RESHAPE_CRUISE_MPS` (the followers come
+        up beside the leader).
+        """
+        source, target = self.key.source, self.key.target
+        if self.footprint_m(target) >= self.footprint_m(source):
+            return RESHAPE_CRUISE_MPS
+        a, b = self.book.shapes[source], self.book.shapes[target]
+        longest = max((b[r] - a[r]).norm() for r in a)
+        caps = [v_max_mps]
+        for r in a:
+            # the slot's velocity in the formation frame at the slide's fastest, and the
+            # leader's speed that puts it at v_max over the ground: (v + sx)^2 + sy^2 = v_max^2
+            slide = b[r] - a[r]
+            sx, sy = slide.x_m * RESHAPE_PEAK_MPS / longest, slide.y_m * RESHAPE_PEAK_MPS / longest
+            caps.append(math.sqrt(max(0.0, v_max_mps**2 - sy * sy)) - sx)
+        return max(RESHAPE_CRUISE_MPS, min(caps))
+
     def squeeze(self, squeezed: bool, dt_s: float) -> None:
         """The leader's sonar this step: the way along the route free for itself, but no
         way near it free for the whole shape (`phalanx.agents.behaviours.leader.squeezed`).
         While it lasts no wider shape is taken. Held `SQUEEZE_S`, a group whose fold is
-        long (`fold_drive_m` at least `SQUEEZE_FROM_M`) folds at once, to be folded by
-        the time it gets there (the map may not show yet that there is no way round).
+        long (`slide_drive_m` at least `SQUEEZE_FROM_M`) folds at once, to be folded by
+        the time it gets there or soon after, the leader's steering holding it where the
+        shape as it is does not fit (the map may not show yet that there is no way round).
         """
         # (between two shapes a follower still on its way is no squeeze: not counted)
         self.squeezed_s = self.squeezed_s + dt_s if squeezed and self.key.settled else 0.0
-        if self.squeezed_s >= SQUEEZE_S and self.fold_drive_m >= SQUEEZE_FROM_M:
+        if self.squeezed_s >= SQUEEZE_S and self.slide_drive_m >= SQUEEZE_FROM_M:
             self.fold()
 
     def fold(self) -> bool:
@@ -179,9 +210,9 @@ class ShapeKeeper:
     def unfold_along_m(self) -> tuple[float, ...]:
         """Where along the route the way must be seen as wide as the scenario's shape
         for the group to unfold into it (m): every metre as far as the leader drives
-        on while the slots slide back (`fold_drive_m`), and `UNFOLD_BEYOND_M` more.
+        on while the slots slide back (`slide_drive_m`), and `UNFOLD_BEYOND_M` more.
         """
-        last = math.ceil(self.fold_drive_m + UNFOLD_BEYOND_M)
+        last = math.ceil(self.slide_drive_m + UNFOLD_BEYOND_M)
         return tuple(float(d) for d in range(1, last + 1))
 
     def unfolds_along(self, grid: OccupancyMap, pose: Pose2D, route: Sequence[Vec2]) -> bool:
@@ -354,9 +385,9 @@ class Drive(Protocol):
 
 
 class Reshape(Behaviour):
-    """RESHAPE (the leader): drive on slowly (`drive`, the navigation behaviour, capped at
-    `RESHAPE_CRUISE_MPS`; standing still without one) while every slot slides to the new
-    shape's.
+    """RESHAPE (the leader): drive on (`drive`, the navigation behaviour, capped at
+    `ShapeKeeper.drive_cap_mps`; standing still without one) while every slot slides to
+    the new shape's.
     """
 
     def __init__(
@@ -385,7 +416,7 @@ class Reshape(Behaviour):
     def command(self, moment: Moment) -> Twist2D:
         """The shape's slide moves on a step (back the way it came if the shape it left
         is wanted again: a fold called for half-way through an unfold); the leader
-        drives on, slowly.
+        drives on, slower than navigation would where the followers need it.
         """
         keeper = self.keeper
         if not keeper.key.settled and keeper.wanted == keeper.key.source:
@@ -396,7 +427,7 @@ class Reshape(Behaviour):
             return ZERO_TWIST
         twist = self.drive.command(moment)
         self.drove_forward = self.drive.drove_forward
-        return _capped(twist, RESHAPE_CRUISE_MPS)
+        return _capped(twist, keeper.drive_cap_mps(self.shape.limits.v_max_mps))
 
     def slide(self, moment: Moment) -> None:
         """The slide moves a step on to its target; once there, the settling time runs."""

@@ -262,8 +262,8 @@ DEADEND_NOTES = """\
   within 5 mm (it turns towards the slot, drives onto it, then turns on the spot to the
   slot's heading: `Track`, `phalanx.agents.behaviours.follower`), which is what keeps the
   reverse within the bounds from its fifth second on. Each says so once within 0.5 deg
-  of the heading, and the leader backs off once all have: 11.8 and 10.4 s after the
-  deadlock, the turn back included, against 15.2 and 14.0 s standing the whole 12 s
+  of the heading, and the leader backs off once all have: 15.4 and 13.2 s after the
+  deadlock, the turn back included, against 17.3 and 16.3 s standing the whole 12 s
   (`--set deadlock.pause_until_settled=false`).
 - **The chains go round, never in.** At the U's mouth the sonar's arcs close and open the
   mouth on the leader's map from one re-plan to the next, so its route flips between going
@@ -275,7 +275,7 @@ DEADEND_NOTES = """\
   into a column, which turns round inside the U (its followers keep to the path) and
   drives out along the U's wall; at the mouth its route turns back round the wall's end,
   behind the leader but not the way it came, and the group drives on round: at the goal
-  after 236 s (wedge) and 279 s (line abreast), neither calling a dead end (one is a
+  after 237 s (wedge) and 244 s (line abreast), neither calling a dead end (one is a
   route leading back along the path driven: the point the leader heads for within 1 m
   of it, but for its last 2 m). The U's 0.3 m walls stay on the leader's map while the
   robots drive along them: a sonar beam that meets one of the formation's robots sees

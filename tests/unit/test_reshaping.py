@@ -17,15 +17,23 @@ from phalanx.agents.navigation import HEADINGS_RAD, Clearances, heading_index
 from phalanx.agents.navigation.clearance import AHEAD_INDEX
 from phalanx.agents.navigation.grid import OCCUPIED, OccupancyMap
 from phalanx.agents.perception import NO_OBSTACLE_M
-from phalanx.agents.reshape import SQUEEZE_FROM_M, SQUEEZE_S, Arrived, Reshape, ShapeKeeper
+from phalanx.agents.reshape import (
+    RESHAPE_CRUISE_MPS,
+    RESHAPE_PEAK_MPS,
+    SQUEEZE_FROM_M,
+    SQUEEZE_S,
+    Arrived,
+    Reshape,
+    ShapeKeeper,
+)
 from phalanx.agents.shape import Shape
 from phalanx.core.config import NavigationConfig
 from phalanx.core.config_files import load_robot
 from phalanx.core.formation import resolve_formation
-from phalanx.core.geometry import Pose2D, Vec2
+from phalanx.core.geometry import Pose2D, Twist2D, Vec2
 from phalanx.core.limits import KinematicLimits
 from phalanx.core.scenarios import formation_shape
-from phalanx.core.shapes import COLUMN, SCENARIO_SHAPE, ShapeBook, ShapeKey
+from phalanx.core.shapes import COLUMN, SCENARIO_SHAPE, SHRUNK, ShapeBook, ShapeKey
 
 ROBOT = load_robot("p3dx")
 FORMATION = resolve_formation(formation_shape("collateral", 3))
@@ -117,7 +125,7 @@ def test_only_a_group_whose_fold_is_long_folds_ahead_on_the_squeeze(
     shape: str, robots: int, drive_m: float
 ) -> None:
     k = keeper(shape, robots)
-    assert k.fold_drive_m == pytest.approx(drive_m, abs=0.01)
+    assert k.slide_drive_m == pytest.approx(drive_m, abs=0.01)
     for _ in range(round(SQUEEZE_S / 0.1) + 1):
         k.squeeze(True, 0.1)
     assert k.squeezed_s >= SQUEEZE_S  # counted either way: no wider shape is taken meanwhile
@@ -125,6 +133,70 @@ def test_only_a_group_whose_fold_is_long_folds_ahead_on_the_squeeze(
     assert folds == (drive_m >= SQUEEZE_FROM_M)
     k.squeeze(False, 0.1)
     assert k.squeezed_s == 0.0
+
+
+class Cruising:
+    """The navigation behaviour a reshaping leader drives on with, wanting its cruise
+    speed along a gentle bend.
+    """
+
+    has_goal = True
+    drove_forward: Twist2D | None = None
+
+    def command(self, moment: Moment) -> Twist2D:
+        self.drove_forward = Twist2D(0.3, 0.1)
+        return self.drove_forward
+
+
+@pytest.mark.parametrize(("shape", "robots"), [("wedge", 3), ("collateral", 3), ("collateral", 5)])
+def test_the_leader_drives_on_at_its_pace_while_the_shape_narrows_and_slowly_while_it_widens(
+    shape: str, robots: int
+) -> None:
+    k = keeper(shape, robots)
+    behaviour = reshape_for(k)
+    behaviour.drive = Cruising()
+    k.wanted = COLUMN
+    behaviour.enter(moment(0.0))
+    folding = [behaviour.command(moment(0.1 * step)) for step in range(400)]
+    assert behaviour.reshaped
+    assert k.key == ShapeKey(SCENARIO_SHAPE, COLUMN, 1.0)
+    assert all(t == Twist2D(0.3, 0.1) for t in folding)  # its followers drop back
+    behaviour.leave(moment(40.0))
+    k.wanted = SCENARIO_SHAPE
+    behaviour.enter(moment(50.0))
+    unfolding = [behaviour.command(moment(50.0 + 0.1 * step)) for step in range(400)]
+    assert behaviour.reshaped
+    assert k.key == ShapeKey(COLUMN, SCENARIO_SHAPE, 1.0)
+    for t in unfolding:  # they come up beside it: it waits for them, on the same curve
+        assert t.v_mps == pytest.approx(RESHAPE_CRUISE_MPS)
+        assert t.omega_radps / t.v_mps == pytest.approx(0.1 / 0.3)
+
+
+@pytest.mark.parametrize(
+    ("shape", "robots"), [("wedge", 3), ("wedge", 5), ("collateral", 3), ("collateral", 5)]
+)
+def test_a_narrowing_slide_lets_the_leader_on_as_fast_as_every_follower_can_keep_to_its_slot(
+    shape: str, robots: int
+) -> None:
+    k = keeper(shape, robots)
+    v_max = KinematicLimits.from_params(ROBOT).v_max_mps
+    for source, target in [(SCENARIO_SHAPE, SHRUNK), (SCENARIO_SHAPE, COLUMN), (SHRUNK, COLUMN)]:
+        k.key = ShapeKey(source, target, 0.5)
+        cap = k.drive_cap_mps(v_max)
+        a, b = k.book.shapes[source], k.book.shapes[target]
+        longest = max((b[r] - a[r]).norm() for r in a)
+        fastest = max(
+            math.hypot(cap + (b[r] - a[r]).x_m * RESHAPE_PEAK_MPS / longest,
+                       (b[r] - a[r]).y_m * RESHAPE_PEAK_MPS / longest)
+            for r in a
+        )  # fmt: skip
+        assert fastest <= v_max + 1e-9, (source, target)
+        assert fastest == pytest.approx(v_max) or cap == v_max  # no slower than it may
+        if target == COLUMN:
+            assert cap == pytest.approx(v_max)  # into a column the followers drop back
+    for source, target in [(COLUMN, SCENARIO_SHAPE), (SHRUNK, SCENARIO_SHAPE), (COLUMN, SHRUNK)]:
+        k.key = ShapeKey(source, target, 0.5)
+        assert k.drive_cap_mps(v_max) == RESHAPE_CRUISE_MPS  # they come up beside it
 
 
 @pytest.mark.parametrize("ahead_m", [0.0, 1.0, 2.0])
