@@ -13,9 +13,8 @@ while the group narrows, as fast as every follower can keep to its sliding slot 
 column they drop back, and the leader drives on as navigation would), slowly while it
 widens (they come up beside it); the followers' slots slide under them as they go, and
 where the way ahead does not fit the shape as it is at that moment, the leader's steering
-stops it. The shape in
-effect (`ShapeKey`) goes out in the leader's flags; followers take it from there, so
-every robot computes the same slots.
+stops it. The shape in effect (`ShapeKey`) goes out in the leader's flags; followers take
+it from there, so every robot computes the same slots.
 """
 
 from __future__ import annotations
