@@ -175,11 +175,12 @@ def test_the_leader_drives_on_at_its_pace_while_the_shape_narrows_and_slowly_whi
 @pytest.mark.parametrize(
     ("shape", "robots"), [("wedge", 3), ("wedge", 5), ("collateral", 3), ("collateral", 5)]
 )
+@pytest.mark.parametrize("v_max", [0.3, KinematicLimits.from_params(ROBOT).v_max_mps])
 def test_a_narrowing_slide_lets_the_leader_on_as_fast_as_every_follower_can_keep_to_its_slot(
-    shape: str, robots: int
+    shape: str, robots: int, v_max: float
 ) -> None:
+    """`v_max`: the paper's bound (the navigation scenarios'), and the P3DX's rating."""
     k = keeper(shape, robots)
-    v_max = KinematicLimits.from_params(ROBOT).v_max_mps
     for source, target in [(SCENARIO_SHAPE, SHRUNK), (SCENARIO_SHAPE, COLUMN), (SHRUNK, COLUMN)]:
         k.key = ShapeKey(source, target, 0.5)
         cap = k.drive_cap_mps(v_max)
