@@ -1,6 +1,8 @@
-"""One agent's process loop (`AgentRuntime`, robot r2 of the paper wedge) run in a thread
-on a real Zenoh session, stepped on the world's frames that a router session beside it
-sends: what the integration tier's single-agent tests share."""
+"""One agent's process loop (`AgentRuntime`) run in a thread on a real Zenoh session:
+robot r2 of the paper wedge stepped on the world's frames that a router session beside
+it sends (`framed_agent`, what the integration tier's single-agent tests share), or r1
+on its own clock over a driver (`agent_on_driver`, for the tests of the stack over a
+robot)."""
 
 from __future__ import annotations
 
@@ -11,9 +13,12 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 
+from phalanx.core.config import Scenario
 from phalanx.core.config_files import CONFIG_ROOT, apply_overrides, load_robot, load_scenario
+from phalanx.core.robot_params import RobotParams
 from phalanx.runtime.agent import AgentRuntime, ClockMode, RuntimeOptions
-from phalanx.runtime.robot_io import WorldLink
+from phalanx.runtime.clock import Clock
+from phalanx.runtime.robot_io import RobotIO, WorldLink
 from phalanx.runtime.world_frames import sense_frame
 from phalanx.simulator.world import World
 from phalanx.wire.bounds import FleetBounds
@@ -79,3 +84,31 @@ def framed_agent(
             stop.set()
             agent.join(15.0)
     assert not agent.is_alive()
+
+
+@contextmanager
+def agent_on_driver(
+    scenario: Scenario,
+    robot: RobotParams,
+    io: RobotIO,
+    clock: Clock,
+    *,
+    fleet: str,
+    transport: TransportConfig | None = None,
+) -> Iterator[AgentRuntime]:
+    """Agent r1 of `scenario` in real time on `clock`, reaching its robot through `io`
+    (a driver's), on a Zenoh session (`transport`; by default listening on a free
+    loopback port), its loop run in a thread; stopped on the way out and joined, failing
+    if the loop has not ended within 10 s."""
+    transport = transport or TransportConfig(listen=(loopback_endpoint(free_tcp_port()),))
+    options = RuntimeOptions(fleet=fleet, transport=transport, clock="realtime")
+    runtime = AgentRuntime("r1", scenario, robot, options, clock=clock, io=io)
+    stop = threading.Event()
+    thread = threading.Thread(target=runtime.run, args=(stop,), daemon=True)
+    thread.start()
+    try:
+        yield runtime
+    finally:
+        stop.set()
+        thread.join(10.0)
+    assert not thread.is_alive(), "the agent's loop did not end within 10 s"

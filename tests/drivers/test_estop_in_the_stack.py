@@ -7,19 +7,18 @@ the first control step after the driver reports it, and the agent's commands sto
 from __future__ import annotations
 
 import itertools
-import threading
 import time
 from collections.abc import Callable
 from typing import Any
 
 import pytest
+from agentlab import agent_on_driver
 from fleetlab import wait_for
 
 from phalanx.core.config_files import CONFIG_ROOT, apply_overrides, load_robot, load_scenario
 from phalanx.core.limits import safety_limits
 from phalanx.core.states import State
 from phalanx.drivers.safety import SafeDriver
-from phalanx.runtime.agent import AgentRuntime, RuntimeOptions
 from phalanx.runtime.clock import EpochClock
 from phalanx.runtime.robot_io import DriverIO
 from phalanx.simulator.arcos_emulator import ArcosEmulator
@@ -56,36 +55,29 @@ def test_an_estop_shows_in_the_published_state_on_the_next_step(rig: Rig) -> Non
         epoch_s = time.time() + 0.5
         clock = EpochClock(epoch_s=epoch_s, dt_s=scenario.dt_s, steps=300)
         io = DriverIO(safe, ROBOT, origin=scenario.start_pose("r1"))
-        options = RuntimeOptions(fleet="estop", transport=transport, clock="realtime")
-        runtime = AgentRuntime("r1", scenario, ROBOT, options, clock=clock, io=io)
-        stop = threading.Event()
-        thread = threading.Thread(target=runtime.run, args=(stop,), daemon=True)
-        thread.start()
-        try:
-            with open_session(listener) as session:
-                session.subscribe(
-                    robot_key("estop", "r1", "state"),
-                    RobotState,
-                    lambda _k, s: published.append((epoch_s + s.stamp_s, s)),
-                )
-                assert wait_for(
-                    lambda: any(s.fsm_state == State.NAVIGATE for _, s in published),
-                    10.0,
-                    poll_s=0.005,
-                ), [s.fsm_state for _, s in published]
-                _press(rig, safe)()
-                assert wait_for(lambda: safe.read_status().estopped, 2.0, poll_s=0.005)
-                seen_s = time.time()
-                assert wait_for(
-                    lambda: published[-1][0] > seen_s + 3 * scenario.dt_s, 5.0, poll_s=0.005
-                )
-        finally:
-            stop.set()
-            thread.join(10.0)
+        with (
+            agent_on_driver(scenario, ROBOT, io, clock, fleet="estop", transport=transport),
+            open_session(listener) as session,
+        ):
+            session.subscribe(
+                robot_key("estop", "r1", "state"),
+                RobotState,
+                lambda _k, s: published.append((epoch_s + s.stamp_s, s)),
+            )
+            assert wait_for(
+                lambda: any(s.fsm_state == State.NAVIGATE for _, s in published),
+                10.0,
+                poll_s=0.005,
+            ), [s.fsm_state for _, s in published]
+            _press(rig, safe)()
+            assert wait_for(lambda: safe.read_status().estopped, 2.0, poll_s=0.005)
+            seen_s = time.time()
+            assert wait_for(
+                lambda: published[-1][0] > seen_s + 3 * scenario.dt_s, 5.0, poll_s=0.005
+            )
     after = [(t_s, s) for t_s, s in published if t_s >= seen_s + SETTLE_S]
     first_t_s, _ = after[0]
     assert first_t_s <= seen_s + SETTLE_S + scenario.dt_s  # the next step is there
     assert all(s.fsm_state == State.ESTOPPED for _, s in after), [s.fsm_state for _, s in after]
     speeds = [s.v_mps for _, s in after]  # the agent brakes: its command only falls
     assert all(b <= a + 1e-9 for a, b in itertools.pairwise(speeds))
-    assert not thread.is_alive()

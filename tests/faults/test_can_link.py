@@ -16,6 +16,7 @@ from collections.abc import Iterator
 
 import can
 import pytest
+from agentlab import agent_on_driver
 from fleetlab import wait_for
 
 from phalanx.core.config_files import CONFIG_ROOT, apply_overrides, load_robot, load_scenario
@@ -25,11 +26,9 @@ from phalanx.core.limits import run_limits, safety_limits
 from phalanx.core.states import State
 from phalanx.drivers.canopen import MAX_FAULTS, CanopenDriver, CanopenSettings
 from phalanx.drivers.safety import SafeDriver
-from phalanx.runtime.agent import AgentRuntime, RuntimeOptions
 from phalanx.runtime.clock import EpochClock
 from phalanx.runtime.robot_io import DriverIO
 from phalanx.simulator.cia402 import SimulatedDiffDrive
-from phalanx.wire.transport import TransportConfig, free_tcp_port, loopback_endpoint
 
 pytestmark = pytest.mark.drivers
 ROBOT = load_robot("p3dx")
@@ -194,13 +193,7 @@ def test_an_agent_on_a_faulted_can_robot_commands_zero_and_stays_within_limits(
             io = DriverIO(safe, ROBOT, origin=scenario.start_pose("r1"))
             write = io.write
             io.write = lambda tick, command: (sent.append(command), write(tick, command))[1]  # type: ignore[method-assign]
-            transport = TransportConfig(listen=(loopback_endpoint(free_tcp_port()),))
-            options = RuntimeOptions(fleet="canfault", transport=transport, clock="realtime")
-            runtime = AgentRuntime("r1", scenario, ROBOT, options, clock=clock, io=io)
-            stop = threading.Event()
-            thread = threading.Thread(target=runtime.run, args=(stop,), daemon=True)
-            thread.start()
-            try:
+            with agent_on_driver(scenario, ROBOT, io, clock, fleet="canfault") as runtime:
                 assert wait_for(lambda: runtime.steps > 20, 10.0, poll_s=0.005)
                 _garbage(channel, 2000, seed=11)
                 assert wait_for(
@@ -213,10 +206,6 @@ def test_an_agent_on_a_faulted_can_robot_commands_zero_and_stays_within_limits(
                 assert wait_for(lambda: _stopped(drives), STOP_S, poll_s=0.005)
                 steps = runtime.steps
                 assert wait_for(lambda: runtime.steps > steps + 10, 5.0, poll_s=0.005)  # it goes on
-            finally:
-                stop.set()
-                thread.join(10.0)
-    assert not thread.is_alive()
     assert sent
     for command in sent:
         assert abs(command.v_mps) <= limits.v_max_mps + 1e-9

@@ -6,23 +6,21 @@ lets it go when the loop is over.
 from __future__ import annotations
 
 import gc
-import threading
 import time
 
+from agentlab import agent_on_driver
 from fleetlab import wait_for
 
 from phalanx.core.config_files import CONFIG_ROOT, apply_overrides, load_robot, load_scenario
 from phalanx.core.limits import safety_limits
 from phalanx.drivers.canopen import CanopenDriver, CanopenSettings
 from phalanx.drivers.safety import SafeDriver
-from phalanx.runtime.agent import AgentRuntime, RuntimeOptions
 from phalanx.runtime.batch import BatchRunner
 from phalanx.runtime.clock import EpochClock, Tick
 from phalanx.runtime.heap import lifelong_heap
 from phalanx.runtime.robot_io import DriverIO
 from phalanx.runtime.signals import Stoppable
 from phalanx.simulator.cia402 import SimulatedDiffDrive
-from phalanx.wire.transport import TransportConfig, free_tcp_port, loopback_endpoint
 
 ROBOT = load_robot("p3dx")
 WEDGE = CONFIG_ROOT / "scenarios" / "paper_wedge.toml"
@@ -83,18 +81,8 @@ def test_an_agent_runtime_steps_with_the_heap_frozen() -> None:
         with SafeDriver(driver, safety_limits(ROBOT, scenario.limits)) as safe:
             clock = _Watched(epoch_s=time.time() + 0.3, dt_s=scenario.dt_s, steps=300)
             io = DriverIO(safe, ROBOT, origin=scenario.start_pose("r1"))
-            transport = TransportConfig(listen=(loopback_endpoint(free_tcp_port()),))
-            options = RuntimeOptions(fleet="heap", transport=transport, clock="realtime")
-            runtime = AgentRuntime("r1", scenario, ROBOT, options, clock=clock, io=io)
-            stop = threading.Event()
-            thread = threading.Thread(target=runtime.run, args=(stop,), daemon=True)
-            thread.start()
-            try:
+            with agent_on_driver(scenario, ROBOT, io, clock, fleet="heap") as runtime:
                 assert wait_for(lambda: runtime.steps >= 5, 20.0, poll_s=0.005)
-            finally:
-                stop.set()
-                thread.join(10.0)
-    assert not thread.is_alive()
     assert len(clock.frozen) >= 5
     assert min(clock.frozen) > 0
     assert gc.get_freeze_count() == 0
