@@ -7,7 +7,10 @@ The rules:
 1. **Epochs.** Every robot holds `(leader, epoch)`, starting at `(formation root, 0)`.
    Epochs only grow, by one a change (saturating at the top of their 32-bit range,
    `phalanx.core.peers.next_epoch`); a lower epoch is ignored, so a late or replayed
-   message can never hand leadership back. A peer's pair is adopted only when the fleet
+   message can never hand leadership back. (One exception: a robot alone in its pair,
+   which every other live robot has not followed `timeout_s + loss_grace_s` after the
+   change, takes theirs back; it changed on flags they did not show, and two robots
+   would otherwise lead for good.) A peer's pair is adopted only when the fleet
    stands behind it (`Leadership.verdict`), never on one robot's word:
    - the next epoch, naming the leader rules 2 or 3 would choose from this robot's own
      view: the current leader gone from it, or handing over (its flags call for it, or
@@ -336,7 +339,7 @@ class Leadership:
         epoch, leader = claim
         held, voters = self._votes(claim, live)
         if epoch < self.epoch:
-            return False, ""
+            return self._step_back(claim, held, voters, live, t_s)
         if 2 * held > voters:
             return True, f"held by {held} of {voters} live robots"
         if epoch == self.epoch:
@@ -351,7 +354,9 @@ class Leadership:
         on different flags. Within `timeout_s + loss_grace_s` of the change, a leader that
         claims the lead itself, held by as many robots as this robot's and better than it
         by rule 4 (the two compared on their flags as heard: every robot compares alike),
-        is adopted; later only a majority moves the lead.
+        is adopted, if this robot's leader, heard, claims the lead itself too (else there
+        are not two claims to settle: a robot that named this one's leader and then
+        itself at the same epoch moves nobody); later only a majority moves the lead.
         """
         epoch, leader = claim
         if t_s - self.since_s > self.timeout_s + self.config.loss_grace_s + _EPS_S:
@@ -359,11 +364,38 @@ class Leadership:
         flags = live.get(leader)
         if flags is None or (flags.epoch, flags.formation_leader_id) != claim:
             return False, ""  # (a robot a step behind the two claimants: no vote of its own)
+        ours = None if self.is_leader else live.get(self.leader_id)  # (own flags: a step old)
+        if ours is not None and (ours.epoch, ours.formation_leader_id) != (epoch, ours.robot_id):
+            return False, ""  # (this robot's leader has not claimed the lead: no split)
         pair = {r: f for r, f in live.items() if r in (leader, self.leader_id)}
         unheard = () if self.leader_id in pair else (self.leader_id,)
         better = best(self.formation, pair, unheard) == leader
         mine = (self.epoch, self.leader_id)
         return better and held >= self._votes(mine, live)[0], ""
+
+    def _step_back(
+        self, claim: Claim, held: int, voters: int, live: LiveFlags, t_s: float
+    ) -> tuple[bool, str]:
+        """An older epoch than this robot's: old news, unless this robot alone holds its
+        pair and every other live robot, the leader `claim` names among them, still holds
+        `claim` `timeout_s + loss_grace_s` after the change: a change the fleet did not
+        follow (one robot took the lead on flags the others no longer showed, such as its
+        own path clear a step before its sonar saw the obstacle the others saw). It goes
+        back to the fleet's pair, rather than leave two leaders for good. A leader this
+        robot does not hear is no pair to go back to: cut off from it, the robot keeps
+        what rule 3 made of that.
+        """
+        alone = self._votes((self.epoch, self.leader_id), live)[0] == 1
+        others = voters - 1
+        lead = live.get(claim[1])
+        leads = lead is not None and (lead.epoch, lead.formation_leader_id) == claim
+        settled_s = self.timeout_s + self.config.loss_grace_s + _EPS_S
+        if not (alone and leads and others and held >= others) or t_s - self.since_s <= settled_s:
+            return False, ""
+        return True, (
+            f"epoch {self.epoch} not followed: epoch {claim[0]} held by the {held} other "
+            "live robots"
+        )
 
     def _unjustified(self, leader: str, epoch: int, live: LiveFlags) -> str:
         """Why the rule would not pass the lead to `leader` now ("" if it would)."""

@@ -17,7 +17,7 @@ from typing import Any
 
 import pytest
 from fleetlab import ROBOTS, Fleet, running_fleet, wait_for
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 from peerflags import flags
 
@@ -157,6 +157,9 @@ claims = st.lists(
     st.booleans(),
     st.lists(st.booleans(), min_size=4, max_size=4),
 )
+# (found by the search: r3, leading, handed the lead to r4, then claimed it at the same
+# epoch for itself, and was followed as if the two had split)
+@example([(1, "r3"), (2, "r4"), (2, "r3")], "r3", "r2", False, False, [False, False, True, True])
 def test_whatever_one_robot_claims_the_lead_goes_only_where_the_rule_says(
     heard: list[tuple[int, str]],
     liar: str,

@@ -113,6 +113,65 @@ def test_a_late_message_cannot_flip_leadership_back() -> None:
     assert (view.leader_id, view.epoch) == ("r2", 2)
 
 
+def test_a_lead_the_fleet_did_not_follow_is_handed_back() -> None:
+    """The race on ARCOS's sonar ring: r2 takes the lead from a blocked r1 on its own
+    flags still clear; by the time r1 and r3 hear the claim r2's flags are blocked too,
+    every robot is (r1's deadlock, not a handover), and they refuse it. r2, alone in its
+    pair, goes back to theirs once the change has had time to spread; not before.
+    """
+    fleet = views(WEDGE)
+    r1, r2 = fleet["r1"], fleet["r2"]
+    assert r2.update(r2.live(blocked_leader(20.2), 20.2), 20.2) is not None
+    assert (r2.leader_id, r2.epoch) == ("r2", 1)
+    blocked = {"obstacle": True, "blocked_s": 0.1, "clear": False}
+    claim = {"formation_leader_id": "r2", "epoch": 1, "fsm_state": State.NAVIGATE}
+
+    def heard(t_s: float) -> dict[str, RobotFlags]:
+        return {
+            "r1": flags("r1", t_s, obstacle=True, blocked_s=0.5, clear=False),
+            "r2": flags("r2", t_s, **blocked, **claim),
+            "r3": flags("r3", t_s, **blocked),
+        }
+
+    assert r1.update(r1.live(heard(20.3), 20.3), 20.3) is None
+    assert (r1.leader_id, r1.epoch) == ("r1", 0)
+    assert r1.refused == 1
+    assert r2.update(r2.live(heard(21.0), 21.0), 21.0) is None  # the change still spreading
+    assert (r2.leader_id, r2.epoch) == ("r2", 1)
+    change = r2.update(r2.live(heard(21.8), 21.8), 21.8)
+    assert change is not None
+    assert "not followed" in change.reason
+    assert (r2.leader_id, r2.epoch) == ("r1", 0)
+
+
+def test_a_lead_another_robot_followed_is_kept() -> None:
+    """r2's lead, held by r3 as well, stays: no step back; r1, alone, catches up."""
+    fleet = views(WEDGE)
+    r1, r2 = fleet["r1"], fleet["r2"]
+    r2.update(r2.live(blocked_leader(20.2), 20.2), 20.2)
+    claim = {"formation_leader_id": "r2", "epoch": 1}
+    heard = {
+        "r1": flags("r1", 25.0, obstacle=True, blocked_s=0.5, clear=False),
+        "r2": flags("r2", 25.0, fsm_state=State.NAVIGATE, **claim),
+        "r3": flags("r3", 25.0, **claim),
+    }
+    assert r2.update(r2.live(heard, 25.0), 25.0) is None
+    assert (r2.leader_id, r2.epoch) == ("r2", 1)
+    assert r1.update(r1.live(heard, 25.0), 25.0) is not None
+    assert (r1.leader_id, r1.epoch) == ("r2", 1)
+
+
+def test_a_lead_taken_from_a_leader_out_of_hearing_is_kept() -> None:
+    """Cut off from r1 (r3 still hears it), r2 leads under epoch 1 by rule 3; r1's pair,
+    which r3 holds, is no pair to go back to while r2 does not hear r1.
+    """
+    r2 = views(WEDGE)["r2"]
+    r2.leader_id, r2.epoch, r2.since_s = "r2", 1, 20.0
+    heard = {"r2": flags("r2", 25.0, formation_leader_id="r2", epoch=1), "r3": flags("r3", 25.0)}
+    assert r2.update(r2.live(heard, 25.0), 25.0) is None
+    assert (r2.leader_id, r2.epoch) == ("r2", 1)
+
+
 def test_same_epoch_two_claims_converge_on_the_formation_order() -> None:
     assert newer((3, "r2"), (3, "r3"), WEDGE)
     assert not newer((3, "r3"), (3, "r2"), WEDGE)
