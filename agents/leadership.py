@@ -8,10 +8,11 @@ The rules:
    Epochs only grow, by one a change (saturating at the top of their 32-bit range,
    `phalanx.core.peers.next_epoch`); a lower epoch is ignored, so a late or replayed
    message can never hand leadership back. (One exception: a robot alone in its pair,
-   which every other live robot has not followed `timeout_s + loss_grace_s` after the
-   change, takes theirs back; it changed on flags they did not show, and two robots
-   would otherwise lead for good.) A peer's pair is adopted only when the fleet
-   stands behind it (`Leadership.verdict`), never on one robot's word:
+   which every other live robot, the leader they name heard among them, has not
+   followed `timeout_s + loss_grace_s` after the change, takes theirs back; it changed
+   on flags they did not show, and two robots would otherwise lead for good.) A peer's
+   pair is adopted only when the fleet stands behind it (`Leadership.verdict`), never on
+   one robot's word:
    - the next epoch, naming the leader rules 2 or 3 would choose from this robot's own
      view: the current leader gone from it, or handing over (its flags call for it, or
      themselves name the new pair) to the best robot that can take over;
@@ -19,7 +20,8 @@ The rules:
      catches up);
    - or, within `timeout_s + loss_grace_s` of a change, the same epoch held by as many
      robots, claimed by the leader it names for itself, that leader better by rule 4
-     than this robot's (two robots that decided on different flags converge).
+     than this robot's, which claims the lead for itself too if heard (two robots that
+     decided on different flags converge).
    Anything else is refused and kept in `refusals` for the runtime to count: a stolen
    robot identity can stop its own robot, not move the lead. A restarted robot
    (`joining`) takes, for `timeout_s` after it first hears the fleet, the pair most of
