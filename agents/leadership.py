@@ -232,6 +232,15 @@ def successor(formation: Formation, live: Flags, gone: str, robot_id: str) -> st
     return best(formation, alive, () if robot_id in alive else (robot_id,))
 
 
+def _may_take(flags: FlagsView | None, epoch: int, leader: str) -> bool:
+    """Whether the robot of `flags` may take the lead a leader hands it under `epoch`:
+    it can lead, or has taken it already.
+    """
+    if flags is None:
+        return False
+    return can_lead(flags) or (flags.epoch, flags.formation_leader_id) == (epoch, leader)
+
+
 def taker(formation: Formation, live: Flags, leader: str) -> str | None:
     """Rule 2's choice to take over from `leader`: the best follower that can lead."""
     return best(formation, {r: f for r, f in live.items() if r != leader and can_lead(f)})
@@ -367,8 +376,11 @@ class Leadership:
         if flags is None or (flags.epoch, flags.formation_leader_id) != claim:
             return False, ""  # (a robot a step behind the two claimants: no vote of its own)
         ours = None if self.is_leader else live.get(self.leader_id)  # (own flags: a step old)
-        if ours is not None and (ours.epoch, ours.formation_leader_id) != (epoch, ours.robot_id):
-            return False, ""  # (this robot's leader has not claimed the lead: no split)
+        if ours is not None and (ours.epoch, ours.formation_leader_id) not in (
+            (epoch, ours.robot_id),
+            claim,
+        ):
+            return False, ""  # (this robot's leader neither claims the lead nor follows `claim`)
         pair = {r: f for r, f in live.items() if r in (leader, self.leader_id)}
         unheard = () if self.leader_id in pair else (self.leader_id,)
         better = best(self.formation, pair, unheard) == leader
@@ -400,13 +412,20 @@ class Leadership:
         )
 
     def _unjustified(self, leader: str, epoch: int, live: LiveFlags) -> str:
-        """Why the rule would not pass the lead to `leader` now ("" if it would)."""
+        """Why the rule would not pass the lead to `leader` now ("" if it would). A
+        leader whose own flags hand the lead to `leader` is followed if `leader` can lead
+        or has taken it, whether or not this robot's view would pick it: the leader chose
+        on its flags of that step, which this robot's may no longer match (else the two
+        would part for good, each refusing the other's pair).
+        """
         lead = live.get(self.leader_id)
         if lead is None:
             choice = successor(self.formation, live, self.leader_id, self.robot_id)
             gone = f"{self.leader_id} is gone"
         else:
             handing = (lead.epoch, lead.formation_leader_id) == (epoch, leader)
+            if handing and leader != self.leader_id and _may_take(live.get(leader), epoch, leader):
+                return ""
             if not handing and not self._calls_for_handover(lead, live):
                 return f"{self.leader_id} leads and is not handing over"
             choice = taker(self.formation, live, self.leader_id)

@@ -21,7 +21,7 @@ from hypothesis import example, given, settings
 from hypothesis import strategies as st
 from peerflags import flags
 
-from phalanx.agents.leadership import Leadership, LiveFlags, successor, taker
+from phalanx.agents.leadership import Leadership, LiveFlags, can_lead, successor, taker
 from phalanx.core.config import LeadershipConfig
 from phalanx.core.formation import resolve_formation
 from phalanx.core.peers import EPOCH_MAX
@@ -171,8 +171,9 @@ def test_whatever_one_robot_claims_the_lead_goes_only_where_the_rule_says(
     """Every robot honest but `liar`, whose flags claim any sequence of pairs: whenever
     robot `rid` changes leader, the epoch moves by one, to the robot the succession rule
     picks from the live set (the best live robot if the leader is gone, the best robot
-    that can take over if its flags call for a handover or name the new pair
-    themselves); a live leader that does not hand over is never replaced."""
+    that can take over if its flags call for a handover), or to the pair the leader's
+    own flags name, a robot that can lead or has taken the lead; a live leader that does
+    not hand over is never replaced."""
     ids = WEDGE4.robot_ids
     clear_of = dict(zip(ids, clear, strict=True))
     lsh = view(rid, WEDGE4)
@@ -199,10 +200,14 @@ def test_whatever_one_robot_claims_the_lead_goes_only_where_the_rule_says(
         if change is None:
             continue
         assert lead is None or calls or hands_over, (change, before)
+        assert change.epoch == before[0] + 1, (change, before)
         if hands_over and not calls:  # the leader's own flags named the new pair
             assert (lead.epoch, lead.formation_leader_id) == (change.epoch, change.leader_id)
-        assert change.epoch == before[0] + 1, (change, before)
-        assert change.leader_id == choice, (change, before)
+            named = live[change.leader_id]
+            assert change.leader_id != before[1], (change, before)
+            assert can_lead(named) or named.formation_leader_id == change.leader_id
+        else:
+            assert change.leader_id == choice, (change, before)
 
 
 def test_live_flags_count_each_claim_once_for_the_group() -> None:

@@ -22,6 +22,7 @@ from phalanx.wire.messages import RobotFlags
 
 WEDGE = resolve_formation(formation_shape("wedge", 3))
 INLINE = resolve_formation(formation_shape("inline", 3))
+WEDGE4 = resolve_formation(formation_shape("wedge", 4))
 CONFIG = LeadershipConfig()
 TIMEOUT_S = 0.5
 
@@ -170,6 +171,39 @@ def test_a_lead_taken_from_a_leader_out_of_hearing_is_kept() -> None:
     heard = {"r2": flags("r2", 25.0, formation_leader_id="r2", epoch=1), "r3": flags("r3", 25.0)}
     assert r2.update(r2.live(heard, 25.0), 25.0) is None
     assert (r2.leader_id, r2.epoch) == ("r2", 1)
+
+
+def test_the_robot_a_leader_hands_to_takes_the_lead_its_own_view_would_not_pick() -> None:
+    """r1 handed the lead to r3 on flags that showed r2 blocked; r2 is clear now, and r3's
+    view would pick r2 (the formation's order). r3 takes it: refusing, it would follow r1
+    while r1 follows r3, and no robot would lead.
+    """
+    r3 = views(WEDGE4)["r3"]
+    handed = {"formation_leader_id": "r3", "epoch": 1}
+    heard = {
+        "r1": flags("r1", 3.1, fsm_state=State.FORMATION_TRACK, **handed),
+        "r2": flags("r2", 3.1, **handed),
+        "r3": flags("r3", 3.1),
+        "r4": flags("r4", 3.1),
+    }
+    assert r3.update(r3.live(heard, 3.1), 3.1) is not None
+    assert (r3.leader_id, r3.epoch) == ("r3", 1)
+
+
+def test_a_robot_whose_leader_follows_another_claim_at_its_epoch_follows_it_too() -> None:
+    """Two robots took the lead at epoch 1 on different flags; r1 and r4 followed r3, and
+    r3 has since followed r2's claim (two robots a pair, no majority): r1 follows on to r2.
+    """
+    r1 = views(WEDGE4)["r1"]
+    r1.leader_id, r1.epoch, r1.since_s = "r3", 1, 3.0
+    heard = {
+        "r1": flags("r1", 3.2, fsm_state=State.FORMATION_TRACK, formation_leader_id="r3", epoch=1),
+        "r2": flags("r2", 3.2, fsm_state=State.NAVIGATE, formation_leader_id="r2", epoch=1),
+        "r3": flags("r3", 3.2, formation_leader_id="r2", epoch=1),
+        "r4": flags("r4", 3.2, formation_leader_id="r3", epoch=1),
+    }
+    assert r1.update(r1.live(heard, 3.2), 3.2) is not None
+    assert (r1.leader_id, r1.epoch) == ("r2", 1)
 
 
 def test_same_epoch_two_claims_converge_on_the_formation_order() -> None:
