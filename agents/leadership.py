@@ -14,14 +14,15 @@ The rules:
    pair is adopted only when the fleet stands behind it (`Leadership.verdict`), never on
    one robot's word:
    - the next epoch, naming the leader rules 2 or 3 would choose from this robot's own
-     view: the current leader gone from it, or handing over (its flags call for it, or
-     themselves name the new pair) to the best robot that can take over;
+     view: the current leader gone from it, or handing over (its flags call for it) to
+     the best robot that can take over; or the pair the leader's own flags name, to a
+     robot that can take over or has (the leader chose on the flags of its step);
    - or a pair held by more than half the live robots (a robot that missed a change
      catches up);
    - or, within `timeout_s + loss_grace_s` of a change, the same epoch held by as many
      robots, claimed by the leader it names for itself, that leader better by rule 4
-     than this robot's, which claims the lead for itself too if heard (two robots that
-     decided on different flags converge).
+     than this robot's, which, if heard, claims the lead for itself too or holds that
+     pair already (two robots that decided on different flags converge).
    Anything else is refused and kept in `refusals` for the runtime to count: a stolen
    robot identity can stop its own robot, not move the lead. A restarted robot
    (`joining`) takes, for `timeout_s` after it first hears the fleet, the pair most of
@@ -365,9 +366,10 @@ class Leadership:
         on different flags. Within `timeout_s + loss_grace_s` of the change, a leader that
         claims the lead itself, held by as many robots as this robot's and better than it
         by rule 4 (the two compared on their flags as heard: every robot compares alike),
-        is adopted, if this robot's leader, heard, claims the lead itself too (else there
-        are not two claims to settle: a robot that named this one's leader and then
-        itself at the same epoch moves nobody); later only a majority moves the lead.
+        is adopted, if this robot's leader, heard, claims the lead itself too or holds
+        `claim` already (else there are not two claims to settle: a robot that named this
+        one's leader and then itself at the same epoch moves nobody); later only a
+        majority moves the lead.
         """
         epoch, leader = claim
         if t_s - self.since_s > self.timeout_s + self.config.loss_grace_s + _EPS_S:

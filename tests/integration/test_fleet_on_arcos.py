@@ -5,13 +5,10 @@ ARCOS over TCP. The formation must come out as it does with the `sim` driver."""
 from __future__ import annotations
 
 import json
-import math
 import subprocess
 import sys
 from pathlib import Path
-from typing import Any
 
-import numpy as np
 import pytest
 
 from phalanx.analysis.metrics import run_metrics
@@ -23,7 +20,16 @@ pytestmark = [pytest.mark.integration, pytest.mark.drivers]
 WEDGE = CONFIG_ROOT / "scenarios" / "paper_wedge.toml"
 # 45 s of real time: the deadlock at 20 s, a 1.5 m reverse, forwards again.
 # (the paper's signal builder at 20 s: the scenario's wall is reached at about 97 s)
-SHORT = ["duration_s=45", *signal_builder(20.0), "deadlock.safe_distance_m=1.5"]
+# Handover off, as the paper has none: in lockstep every robot is blocked at the same
+# step, while ARCOS's sonar ring reports the block a sonar at a time, so a follower may
+# still see its path clear when the leader has been blocked for `confirm_s`, and take
+# the lead (or the fleet hand it over); the runs would then differ by who leads. What
+# follows such a race is tested on its own (tests/unit/test_leadership.py,
+# tests/property/test_leadership_properties.py).
+SHORT = [
+    "duration_s=45", *signal_builder(20.0), "deadlock.safe_distance_m=1.5",
+    "leadership.handover=false",
+]  # fmt: skip
 # ARCOS quantises what the agents see and send (1 mm, 0.088 deg and 1 mm/s in SIPs; VEL in
 # mm/s, RVEL in whole deg/s) and runs on the wall clock of a shared machine; a SIP is up to
 # 100 ms old when a step reads it, which the agent dead-reckons away (and the emulator
@@ -32,7 +38,6 @@ SHORT = ["duration_s=45", *signal_builder(20.0), "deadlock.safe_distance_m=1.5"]
 # correction a follower keeps a steady lag set by the SIP phase, up to 0.8 % linear.
 TOLERANCE = {"linear_pct": 0.2, "angular_pct": 0.1, "orientation_deg": 0.3}
 BOUNDS = {"linear_pct": 2.0, "angular_pct": 0.8, "orientation_deg": 1.3}
-LEADING = frozenset({"NAVIGATE", "DEADLOCK_REVERSE"})  # a scripted leader's states here
 
 
 @pytest.mark.timeout(260)  # its child processes' own bound, and set-up
@@ -46,20 +51,8 @@ def test_up_on_arcos_emulators_keeps_the_formation(tmp_path: Path) -> None:
     )  # fmt: skip
     assert proc.returncode == 0, proc.stderr[-3000:]
     arcos = json.loads((out / "metrics.json").read_text())
-    scenario = apply_overrides(load_scenario(WEDGE), SHORT)
-    sim = run_metrics(run_batch(scenario))
-    assert sim["deadlock_reverses"] == 1
-    transitions = arcos["transitions"]
-    assert len(_episodes(transitions, frozenset({"DEADLOCK_REVERSE"}))) == 1, transitions
-    # (ARCOS's sonars report the block a sonar at a time: a follower may take the lead on
-    # its own path still clear, then find every robot blocked and reverse as well, until
-    # it sees the fleet did not follow it and hands the lead back)
-    takeovers = _episodes(transitions, LEADING, among=("r2", "r3"))
-    settle_s = scenario.leader_timeout_s + scenario.leadership.loss_grace_s + 1.0
-    assert all(end - start <= settle_s for start, end in takeovers), transitions
-    states = np.load(out / "traces.npz")
-    leaders = [r for r in ("r1", "r2", "r3") if str(states[f"{r}/state"][-1]) == "NAVIGATE"]
-    assert leaders == ["r1"]
+    sim = run_metrics(run_batch(apply_overrides(load_scenario(WEDGE), SHORT)))
+    assert arcos["deadlock_reverses"] == sim["deadlock_reverses"] == 1, arcos["transitions"]
     assert arcos["collisions"] == []
     for rid in ("r2", "r3"):
         got, want = arcos["followers"][rid]["backward"], sim["followers"][rid]["backward"]
@@ -71,35 +64,4 @@ def test_up_on_arcos_emulators_keeps_the_formation(tmp_path: Path) -> None:
     reports = arcos["runtime"]["agents"]
     assert sorted(reports) == ["r1", "r2", "r3"]
     assert all(r["steps"] >= 400 for r in reports.values())
-    # what they dropped, if anything: the claims of a takeover the fleet did not follow
-    # (flags go out at most once a step)
-    claims = len(takeovers) * settle_s * scenario.control_rate_hz
-    assert all(r["dropped_messages"] <= claims for r in reports.values()), reports
-
-
-def _episodes(
-    transitions: dict[str, list[dict[str, Any]]],
-    states: frozenset[str],
-    among: tuple[str, ...] = ("r1", "r2", "r3"),
-) -> list[tuple[float, float]]:
-    """The spans of time some robot of `among` was in one of `states`, those that overlap
-    merged (s; one still in them at the end: up to infinity).
-    """
-    spans = []
-    for robot in among:
-        start = None
-        for e in transitions.get(robot, []):
-            if e["target"] in states and start is None:
-                start = e["t_s"]
-            elif e["target"] not in states and start is not None:
-                spans.append((start, e["t_s"]))
-                start = None
-        if start is not None:
-            spans.append((start, math.inf))
-    merged: list[tuple[float, float]] = []
-    for start, end in sorted(spans):
-        if merged and start <= merged[-1][1]:
-            merged[-1] = (merged[-1][0], max(end, merged[-1][1]))
-        else:
-            merged.append((start, end))
-    return merged
+    assert all(r["dropped_messages"] == 0 for r in reports.values())
