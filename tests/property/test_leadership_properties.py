@@ -1,8 +1,9 @@
 """Leadership over flags heard late and unevenly, as separate processes hear them: every
-robot runs its own view on its peers' flags, each pair of robots a few steps apart and
-each robot's own sensing late by as much, through any blocking of any robots; once
-nothing changes any more, every robot holds the same leader and epoch, and one robot
-leads."""
+robot runs its own view on its peers' flags, each pair of robots 0-2 steps apart and each
+robot's own flags a step old (as the runtime keeps them), through any blocking of any
+robots; once nothing changes any more, every robot of a group of three holds the same
+leader and epoch, and one robot leads. (Groups of four and five do not always: the same
+search finds lags that part them for good; docs/BEHAVIOUR.md.)"""
 
 from __future__ import annotations
 
