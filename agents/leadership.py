@@ -233,13 +233,18 @@ def successor(formation: Formation, live: Flags, gone: str, robot_id: str) -> st
     return best(formation, alive, () if robot_id in alive else (robot_id,))
 
 
+def _pair(flags: FlagsView) -> Claim:
+    """The `(epoch, leader)` a robot's flags hold."""
+    return flags.epoch, flags.formation_leader_id
+
+
 def _may_take(flags: FlagsView | None, epoch: int, leader: str) -> bool:
     """Whether the robot of `flags` may take the lead a leader hands it under `epoch`:
     it can lead, or has taken it already.
     """
     if flags is None:
         return False
-    return can_lead(flags) or (flags.epoch, flags.formation_leader_id) == (epoch, leader)
+    return can_lead(flags) or _pair(flags) == (epoch, leader)
 
 
 def taker(formation: Formation, live: Flags, leader: str) -> str | None:
@@ -375,13 +380,10 @@ class Leadership:
         if t_s - self.since_s > self.timeout_s + self.config.loss_grace_s + _EPS_S:
             return False, f"epoch {epoch} is {self.leader_id}'s"
         flags = live.get(leader)
-        if flags is None or (flags.epoch, flags.formation_leader_id) != claim:
+        if flags is None or _pair(flags) != claim:
             return False, ""  # (a robot a step behind the two claimants: no vote of its own)
         ours = None if self.is_leader else live.get(self.leader_id)  # (own flags: a step old)
-        if ours is not None and (ours.epoch, ours.formation_leader_id) not in (
-            (epoch, ours.robot_id),
-            claim,
-        ):
+        if ours is not None and _pair(ours) not in ((epoch, ours.robot_id), claim):
             return False, ""  # (this robot's leader neither claims the lead nor follows `claim`)
         pair = {r: f for r, f in live.items() if r in (leader, self.leader_id)}
         unheard = () if self.leader_id in pair else (self.leader_id,)
@@ -404,7 +406,7 @@ class Leadership:
         alone = self._votes((self.epoch, self.leader_id), live)[0] == 1
         others = voters - 1
         lead = live.get(claim[1])
-        leads = lead is not None and (lead.epoch, lead.formation_leader_id) == claim
+        leads = lead is not None and _pair(lead) == claim
         settled_s = self.timeout_s + self.config.loss_grace_s + _EPS_S
         if not (alone and leads and others and held >= others) or t_s - self.since_s <= settled_s:
             return False, ""
@@ -425,7 +427,7 @@ class Leadership:
             choice = successor(self.formation, live, self.leader_id, self.robot_id)
             gone = f"{self.leader_id} is gone"
         else:
-            handing = (lead.epoch, lead.formation_leader_id) == (epoch, leader)
+            handing = _pair(lead) == (epoch, leader)
             if handing and leader != self.leader_id and _may_take(live.get(leader), epoch, leader):
                 return ""
             if not handing and not self._calls_for_handover(lead, live):
@@ -440,7 +442,7 @@ class Leadership:
         """
         own = live.get(self.robot_id)
         held = live.claims.get(claim, 0) + (claim == (self.epoch, self.leader_id))
-        if own is not None and (own.epoch, own.formation_leader_id) == claim:
+        if own is not None and _pair(own) == claim:
             held -= 1
         return held, len(live) + (own is None)
 
@@ -449,7 +451,7 @@ class Leadership:
         others = Counter(live.claims)
         own = live.get(self.robot_id)
         if own is not None:
-            others[(own.epoch, own.formation_leader_id)] -= 1
+            others[_pair(own)] -= 1
         others = +others
         if not others:
             return None
@@ -465,7 +467,7 @@ class Leadership:
     def _refuse(self, claim: Claim, why: str, live: LiveFlags) -> None:
         """Keep (once per message) the flags that made `claim` for the runtime to count."""
         for robot, flags in live.items():
-            said = (flags.epoch, flags.formation_leader_id) == claim
+            said = _pair(flags) == claim
             if said and robot != self.robot_id and self._counted.get(robot) != flags.stamp_s:
                 self._counted[robot] = flags.stamp_s
                 self.refused += 1

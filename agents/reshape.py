@@ -136,7 +136,7 @@ class ShapeKeeper:
         if self.footprint_m(target) >= self.footprint_m(source):
             return RESHAPE_CRUISE_MPS
         a, b = self.book.shapes[source], self.book.shapes[target]
-        longest = max((b[r] - a[r]).norm() for r in a)
+        longest = longest_slide_m(self.book, source, target)
         caps = [v_max_mps]
         for r in a:
             # the slot's velocity in the formation frame at the slide's fastest, and the
@@ -341,8 +341,13 @@ def slide_s(book: ShapeBook, source: int, target: int) -> float:
     """How long a reshape from `source` to `target` slides the slots (s): the longest
     slide at `RESHAPE_MPS`, and at least `RESHAPE_MIN_S`.
     """
+    return max(RESHAPE_MIN_S, longest_slide_m(book, source, target) / RESHAPE_MPS)
+
+
+def longest_slide_m(book: ShapeBook, source: int, target: int) -> float:
+    """How far the slot that moves furthest slides from `source` to `target` (m)."""
     a, b = book.shapes[source], book.shapes[target]
-    return max(RESHAPE_MIN_S, max((a[r] - b[r]).norm() for r in a) / RESHAPE_MPS)
+    return max((b[r] - a[r]).norm() for r in a)
 
 
 def _within_detour(shortest_m: float) -> float:
